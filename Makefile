@@ -1,0 +1,38 @@
+# Two commands on a fresh machine:
+#   make run   - set up, then run the main job (see README)
+#   make test  - set up, then run the test suite
+# Each creates .venv when missing and installs what it needs; a second call skips the install.
+PY        := .venv/bin/python
+STAMP     := .venv/.installed
+SUDO      := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
+# Debian packages the Python dependencies need at import time (pyrealsense2 -> libusb).
+DEB_PKGS  := libusb-1.0-0
+RUN_OUT   ?= out/demo
+
+.PHONY: run test setup sys-deps clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@$(MAKE) --no-print-directory sys-deps
+	@test -x $(PY) || python3 -m venv .venv
+	@# torch first, pinned: it resolves to the local CPU wheel, not the multi-GB CUDA build.
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[export,realsense,oakd,dev]'
+	@touch $@
+
+sys-deps:
+	@missing=""; for p in $(DEB_PKGS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages:$$missing"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $$missing >/dev/null; \
+	fi
+
+run: $(STAMP)
+	$(PY) -m pallet6d.runtime.cli sim --preset virtual-occluded --frames 8 --seed 7 --out $(RUN_OUT) --preview
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+clean:
+	rm -rf .venv out .pytest_cache

@@ -1,0 +1,1 @@
+"""pallet6d.calib: camera intrinsics, camera-to-vehicle extrinsics and their calibration."""

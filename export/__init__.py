@@ -1,0 +1,1 @@
+"""pallet6d.export: torch model definitions, losses, training, ONNX export and int8 quantization."""

@@ -1,0 +1,1 @@
+"""pallet6d.runtime: everything that runs on the forklift (numpy + onnxruntime + OpenCV, never torch)."""

@@ -1,0 +1,74 @@
+"""The `pallet6d` command.
+
+Each subcommand lives in its own module, imported only when that subcommand runs, so that
+`pallet6d run` on the forklift never pays for (or needs) torch, and a missing extra gives a
+clear message instead of an ImportError trace. A subcommand module provides
+
+    HELP: str
+    def add_arguments(parser: argparse.ArgumentParser) -> None
+    def main(args: argparse.Namespace) -> int
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from typing import Sequence
+
+# name -> (module, extra that provides its dependencies or None)
+SUBCOMMANDS: dict[str, tuple[str, str | None]] = {
+    "sim": ("pallet6d.sim.cli", None),
+    "export": ("pallet6d.export.cli", "export"),
+    "bundle": ("pallet6d.runtime.bundle_cli", None),
+    "run": ("pallet6d.runtime.run_cli", None),
+    "record": ("pallet6d.runtime.record_cli", None),
+    "train": ("pallet6d.export.train_cli", "export"),
+    "eval": ("pallet6d.runtime.eval_cli", None),
+}
+
+
+def _load(name: str):
+    module_name, extra = SUBCOMMANDS[name]
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and module_name.startswith(exc.name):
+            return None  # subcommand not part of this version
+        hint = f" (install it with: pip install 'pallet6d[{extra}]')" if extra else ""
+        raise SystemExit(f"pallet6d {name}: missing dependency '{exc.name}'{hint}") from None
+
+
+def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="pallet6d", description="6D pose estimation of pallets from RGB-D.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    # Only the chosen subcommand's module is imported; the others are listed by name.
+    chosen = next((a for a in argv if a in SUBCOMMANDS), None)
+    for name in SUBCOMMANDS:
+        if name == chosen:
+            module = _load(name)
+            if module is None:
+                continue
+            p = sub.add_parser(name, help=module.HELP, description=module.HELP)
+            module.add_arguments(p)
+            p.set_defaults(_main=module.main)
+        else:
+            sub.add_parser(name, add_help=False)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(argv)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if getattr(args, "_main", None) is None:
+        parser.print_help()
+        return 0 if args.command is None else 2
+    return int(args._main(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""pallet6d.sim: synthetic warehouse RGB-D scenes with exact ground truth, in the BOP format."""
