@@ -16,20 +16,20 @@ import logging
 import sys
 from typing import Sequence
 
-# name -> (module, extra that provides its dependencies or None)
-SUBCOMMANDS: dict[str, tuple[str, str | None]] = {
-    "sim": ("pallet6d.sim.cli", None),
-    "export": ("pallet6d.export.cli", "export"),
-    "bundle": ("pallet6d.runtime.bundle_cli", None),
-    "run": ("pallet6d.runtime.run_cli", None),
-    "record": ("pallet6d.runtime.record_cli", None),
-    "train": ("pallet6d.export.train_cli", "export"),
-    "eval": ("pallet6d.runtime.eval_cli", None),
+# name -> (module, extra that provides its dependencies or None, one-line summary for `pallet6d --help`)
+SUBCOMMANDS: dict[str, tuple[str, str | None, str]] = {
+    "sim": ("pallet6d.sim.cli", None, "generate synthetic warehouse RGB-D scenes (BOP format)"),
+    "export": ("pallet6d.export.cli", "export", "export the networks to an ONNX model bundle"),
+    "bundle": ("pallet6d.runtime.bundle_cli", None, "validate a model bundle"),
+    "run": ("pallet6d.runtime.run_cli", None, "estimate pallet poses on a camera or recording"),
+    "record": ("pallet6d.runtime.record_cli", None, "record a camera to the replay format"),
+    "train": ("pallet6d.export.train_cli", "export", "train the detector or the pose network"),
+    "eval": ("pallet6d.runtime.eval_cli", None, "accuracy of a bundle on a BOP dataset"),
 }
 
 
 def _load(name: str):
-    module_name, extra = SUBCOMMANDS[name]
+    module_name, extra, _ = SUBCOMMANDS[name]
     try:
         return importlib.import_module(module_name)
     except ModuleNotFoundError as exc:
@@ -39,22 +39,29 @@ def _load(name: str):
         raise SystemExit(f"pallet6d {name}: missing dependency '{exc.name}'{hint}") from None
 
 
+def _not_available(name: str) -> int:
+    print(f"pallet6d {name}: not available in this version of pallet6d", file=sys.stderr)
+    return 2
+
+
 def build_parser(argv: Sequence[str]) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="pallet6d", description="6D pose estimation of pallets from RGB-D.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     # Only the chosen subcommand's module is imported; the others are listed by name.
     chosen = next((a for a in argv if a in SUBCOMMANDS), None)
-    for name in SUBCOMMANDS:
+    for name, (_, _, summary) in SUBCOMMANDS.items():
         if name == chosen:
             module = _load(name)
             if module is None:
+                p = sub.add_parser(name, help=summary)
+                p.set_defaults(_main=lambda _args, n=name: _not_available(n))
                 continue
             p = sub.add_parser(name, help=module.HELP, description=module.HELP)
             module.add_arguments(p)
             p.set_defaults(_main=module.main)
         else:
-            sub.add_parser(name, add_help=False)
+            sub.add_parser(name, add_help=False, help=summary)
     return parser
 
 
