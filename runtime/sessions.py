@@ -1,0 +1,66 @@
+"""A thin onnxruntime session wrapper: built once, threads set, inputs checked by name.
+
+Intra-op threads = the cores given to the runtime, inter-op 1 (the graphs are chains; a second
+pool only competes for the same two cores), all graph optimisations on, sequential execution.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+__all__ = ["OnnxModel", "session_options"]
+
+log = logging.getLogger(__name__)
+
+
+def session_options(threads: int) -> ort.SessionOptions:
+    """Session options for the forklift computer: `threads` intra-op threads, 1 inter-op thread."""
+    if int(threads) < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads)
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.log_severity_level = 3
+    return so
+
+
+class OnnxModel:
+    """One ONNX graph on the CPU execution provider.
+
+    :param path: the .onnx file.
+    :param threads: intra-op threads.
+    :param expect_inputs: input names the caller will feed; a graph without them raises ValueError.
+    :param expect_outputs: output names the caller reads; a graph without them raises ValueError.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 2, expect_inputs: tuple[str, ...] = (),
+                 expect_outputs: tuple[str, ...] = ()) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"ONNX graph not found: {self.path}")
+        self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
+                                            providers=["CPUExecutionProvider"])
+        self.inputs = {i.name: i for i in self.session.get_inputs()}
+        self.outputs = [o.name for o in self.session.get_outputs()]
+        missing_in = [n for n in expect_inputs if n not in self.inputs]
+        missing_out = [n for n in expect_outputs if n not in self.outputs]
+        if missing_in or missing_out:
+            raise ValueError(f"{self.path.name}: graph lacks inputs {missing_in} / outputs {missing_out} "
+                             f"(it has inputs {list(self.inputs)}, outputs {self.outputs}); "
+                             "the bundle's manifest and its graphs disagree")
+        log.debug("loaded %s (%d threads): inputs %s outputs %s", self.path.name, threads,
+                  {n: i.shape for n, i in self.inputs.items()}, self.outputs)
+
+    def input_shape(self, name: str) -> list:
+        """Declared shape of an input (ints for fixed axes, str/None for dynamic ones)."""
+        return list(self.inputs[name].shape)
+
+    def run(self, feeds: dict[str, np.ndarray], outputs: list[str] | None = None) -> dict[str, np.ndarray]:
+        """Run the graph; returns {output name: array}."""
+        names = outputs or self.outputs
+        return dict(zip(names, self.session.run(names, feeds)))
