@@ -1,0 +1,114 @@
+"""Scene-generation presets mirroring the paper's three datasets (section 4.1).
+
+- ``virtual-clean``: 1224x370, forklift camera aligned with the pallet to pick up, no occluders (4.1.1).
+- ``virtual-occluded``: 1224x370, misaligned camera, occluding boxes, pallets in the aisle, partly visible
+  targets (4.1.2).
+- ``indoor-noisy``: RealSense D435 colour-aligned 848x480, one pallet with stacked boxes on the floor of a
+  room at 1-5 m, noisy stereo depth, low light, motion blur (4.1.3).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+from pallet6d.sim.pallets import get_pallet_model
+from pallet6d.sim.scene import SceneError
+
+__all__ = ["SimConfig", "PRESETS", "get_preset"]
+
+_Range = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """How to draw random scenes. Ranges are (min, max), drawn uniformly; angles in degrees."""
+
+    name: str
+    width: int
+    height: int
+    hfov_deg: float                                     # horizontal field of view; fx = fy
+    layout: str = "warehouse"                           # "warehouse" (racks) or "indoor" (one pallet in a room)
+    pallet_models: tuple[str, ...] = ("epal",)
+    target_distance_m: _Range = (1.5, 4.0)              # camera to the target pallet's front face
+    camera_above_pallet_m: _Range = (0.25, 0.6)         # camera height above the target pallet's underside
+    lateral_offset_m: _Range = (0.0, 0.0)               # sideways offset of the camera from the pallet axis
+    yaw_deg: float = 0.0                                # max |misalignment| of the camera about each axis
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
+    pallet_yaw_jitter_deg: float = 1.0                  # how crooked pallets stand in racks
+    occluders: tuple[int, int] = (0, 0)                 # free-standing objects between camera and target
+    floor_pallets: tuple[int, int] = (0, 0)             # extra pallets standing in the aisle
+    rack_fill: float = 0.7                              # probability that a rack slot holds a pallet
+    load_prob: float = 0.6                              # probability that a pallet carries a load
+    min_target_visib: float = 0.95                      # the target pallet's required visible fraction
+    sensor: str = "ideal"                               # "ideal" or "d435"
+    exposure: _Range = (0.85, 1.15)
+    rgb_noise_sigma: _Range = (0.0, 0.01)               # gaussian noise on RGB in [0, 1] units
+    blur_prob: float = 0.0                              # probability of a motion blur
+    max_attempts: int = 20                              # scene draws before giving up on a visible target
+
+    def __post_init__(self) -> None:
+        if self.width < 16 or self.height < 16:
+            raise ValueError(f"{self.name}: image must be at least 16x16, got {self.width}x{self.height}")
+        if not 10.0 <= self.hfov_deg <= 150.0:
+            raise ValueError(f"{self.name}: hfov_deg must be in [10, 150], got {self.hfov_deg}")
+        if self.layout not in ("warehouse", "indoor"):
+            raise ValueError(f"{self.name}: layout must be 'warehouse' or 'indoor', got {self.layout!r}")
+        if not self.pallet_models:
+            raise SceneError(f"{self.name}: pallet_models is empty: a scene needs at least one pallet type")
+        for m in self.pallet_models:
+            get_pallet_model(m)
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name.endswith(("_m", "_deg", "exposure", "sigma", "occluders", "pallets")) and isinstance(v, tuple):
+                if len(v) != 2 or not v[0] <= v[1]:
+                    raise ValueError(f"{self.name}: {f.name} must be a (min, max) pair with min <= max, got {v}")
+        if self.target_distance_m[0] <= 0.3:
+            raise SceneError(f"{self.name}: target_distance_m must stay above 0.3 m (the camera would touch "
+                             f"the pallet), got {self.target_distance_m}")
+        if self.camera_above_pallet_m[0] < 0.0:
+            raise SceneError(f"{self.name}: camera_above_pallet_m must be >= 0 (camera below the floor/beam)")
+        if self.sensor not in ("ideal", "d435"):
+            raise ValueError(f"{self.name}: sensor must be 'ideal' or 'd435', got {self.sensor!r}")
+        for name in ("rack_fill", "load_prob", "min_target_visib", "blur_prob"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{self.name}: {name} must be in [0, 1], got {getattr(self, name)}")
+        if self.occluders[0] < 0 or self.floor_pallets[0] < 0 or self.max_attempts < 1:
+            raise ValueError(f"{self.name}: counts must be >= 0 and max_attempts >= 1")
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsics: square pixels, principal point at the image centre."""
+        f = (self.width / 2) / math.tan(math.radians(self.hfov_deg) / 2)
+        return np.array([[f, 0, (self.width - 1) / 2], [0, f, (self.height - 1) / 2], [0, 0, 1]])
+
+    def with_image_size(self, width: int, height: int) -> "SimConfig":
+        """The same preset at another image size (same horizontal field of view), e.g. small test renders."""
+        return replace(self, width=int(width), height=int(height))
+
+
+PRESETS: dict[str, SimConfig] = {
+    "virtual-clean": SimConfig(
+        name="virtual-clean", width=1224, height=370, hfov_deg=82.0,
+        target_distance_m=(1.2, 4.0), pallet_yaw_jitter_deg=0.0, min_target_visib=0.98,
+        exposure=(0.95, 1.05), rgb_noise_sigma=(0.0, 0.004)),
+    "virtual-occluded": SimConfig(
+        name="virtual-occluded", width=1224, height=370, hfov_deg=82.0,
+        target_distance_m=(1.2, 5.0), lateral_offset_m=(-0.8, 0.8), yaw_deg=15.0, pitch_deg=5.0, roll_deg=3.0,
+        pallet_yaw_jitter_deg=4.0, occluders=(1, 3), floor_pallets=(0, 3), min_target_visib=0.1,
+        exposure=(0.7, 1.2), rgb_noise_sigma=(0.0, 0.015)),
+    "indoor-noisy": SimConfig(
+        name="indoor-noisy", width=848, height=480, hfov_deg=69.4, layout="indoor",
+        target_distance_m=(1.0, 5.0), camera_above_pallet_m=(0.25, 0.9), lateral_offset_m=(-0.5, 0.5),
+        yaw_deg=10.0, pitch_deg=4.0, roll_deg=2.0, occluders=(0, 1), load_prob=0.85, min_target_visib=0.3,
+        sensor="d435", exposure=(0.3, 0.8), rgb_noise_sigma=(0.01, 0.04), blur_prob=0.3),
+}
+
+
+def get_preset(name: str) -> SimConfig:
+    """The preset called `name` (one of PRESETS)."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; known presets: {', '.join(PRESETS)}")
+    return PRESETS[name]
