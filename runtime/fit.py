@@ -5,8 +5,8 @@ so every pose is checked against the depth image with two complementary terms:
 
 - inlier fraction: observed points of the detection (the sampled points, in the camera frame) within
   `tol_m` of the posed model. A pose shifted or turned away from the data explains few of them.
-- free-space violation: posed model points that project onto valid depth and lie more than `tol_m` in
-  front of it: the camera saw through space the model says is wood. A pose pushed towards the camera
+- free-space violation: posed model points facing the camera (a coarse z-buffer of the model) that
+  project onto valid depth and lie more than `tol_m` in front of it: the camera saw through space the model says is wood. A pose pushed towards the camera
   or turned so the pallet's length points at the camera violates free space; a right pose only at
   silhouette edges. Model points behind the observed surface are occluded, which is no evidence either way.
 
@@ -59,6 +59,37 @@ def distance_to_points(pts: np.ndarray, model_pts: np.ndarray, chunk: int = 512)
     return out
 
 
+def _free_space_violation(model_cam: np.ndarray, depth_m: np.ndarray, K: np.ndarray, tol_m: float,
+                          cell_px: int = 4) -> float:
+    """Fraction of the model's camera-facing points that lie more than `tol_m` in front of the observed depth.
+
+    Only points the camera would see of the model itself count (a coarse z-buffer of the model on
+    `cell_px` pixel cells): the far side of a correctly posed pallet sits behind its near side, not
+    in free space, and must not dilute the fraction.
+
+    :param model_cam: (m, 3) posed model points, camera frame, metres.
+    :return: fraction in [0, 1]; 0 when no visible model point lands on valid depth.
+    """
+    h, w = depth_m.shape
+    mc = model_cam[model_cam[:, 2] > 1e-6]
+    if len(mc) == 0:
+        return 0.0
+    u = np.round(mc[:, 0] * K[0, 0] / mc[:, 2] + K[0, 2]).astype(np.int64)
+    v = np.round(mc[:, 1] * K[1, 1] / mc[:, 2] + K[1, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    if not np.any(inside):
+        return 0.0
+    u, v, z = u[inside], v[inside], mc[inside, 2]
+    cell = (v // cell_px) * ((w + cell_px - 1) // cell_px) + u // cell_px
+    z_near = np.full(int(cell.max()) + 1, np.inf)
+    np.minimum.at(z_near, cell, z)
+    d_obs = depth_m[v, u]
+    use = (z <= z_near[cell] + tol_m) & (d_obs > 0)
+    if not np.any(use):
+        return 0.0
+    return float((z[use] < d_obs[use] - tol_m).mean())
+
+
 def fit_score(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, model_pts: np.ndarray, depth_m: np.ndarray,
               K: np.ndarray, tol_m: float = 0.04, model_boxes_m: np.ndarray | None = None) -> FitScore:
     """Agreement of a posed pallet model with the observed depth.
@@ -91,19 +122,6 @@ def fit_score(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, model_pts: np.nd
     else:
         inlier = 0.0
 
-    model_cam = transform_points(T, np.asarray(model_pts, dtype=np.float64).reshape(-1, 3))
-    z = model_cam[:, 2]
-    h, w = depth_m.shape
-    front = z > 1e-6
-    violation = 0.0
-    if np.any(front):
-        mc = model_cam[front]
-        u = np.round(mc[:, 0] * K[0, 0] / mc[:, 2] + K[0, 2]).astype(np.int64)
-        v = np.round(mc[:, 1] * K[1, 1] / mc[:, 2] + K[1, 2]).astype(np.int64)
-        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        if np.any(inside):
-            d_obs = depth_m[v[inside], u[inside]]
-            valid = d_obs > 0
-            if np.any(valid):
-                violation = float((mc[inside][valid, 2] < d_obs[valid] - tol_m).mean())
+    violation = _free_space_violation(transform_points(T, np.asarray(model_pts, dtype=np.float64).reshape(-1, 3)),
+                                      depth_m, K, tol_m)
     return FitScore(inlier_fraction=inlier, free_space_violation=violation, score=inlier * (1.0 - violation))

@@ -1,0 +1,86 @@
+import numpy as np
+import pytest
+
+from pallet6d.runtime.fit import distance_to_boxes, distance_to_points, fit_score
+from pallet6d.runtime.geometry import (backproject_pixels, clamp_box, make_T, quat_to_rot, sample_indices,
+                                       select_pixels)
+
+sim_generate = pytest.importorskip("pallet6d.sim.generate")
+from pallet6d.sim.pallets import get_pallet_model  # noqa: E402
+from pallet6d.sim.presets import get_preset  # noqa: E402
+
+EPAL = get_pallet_model("epal")
+MODEL_PTS = EPAL.surface_points(1000, seed=0)
+RZ90 = make_T(quat_to_rot(np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])), np.zeros(3))
+
+
+def _observed(frame, n=500):
+    """The target pallet's box as a detector would give it: 500 sampled back-projected points."""
+    gt = frame.pallet(frame.target_instance)
+    x, y, w, h = gt.bbox_visib_xywh
+    box = clamp_box(np.array([x, y, x + w, y + h], float), frame.depth_m.shape)
+    v, u = select_pixels(frame.depth_m, box)
+    idx = sample_indices(len(v), n, np.random.default_rng(0))
+    return gt.T_cam_pallet, backproject_pixels(u[idx], v[idx], frame.depth_m[v[idx], u[idx]], frame.K)
+
+
+@pytest.fixture(scope="module", params=[("virtual-clean", 0), ("indoor-noisy", 1)], ids=lambda p: p[0])
+def scene(request):
+    name, seed = request.param
+    frame = sim_generate.generate_frame(get_preset(name), seed=seed)
+    T_gt, obs = _observed(frame)
+    return frame, T_gt, obs
+
+
+def _score(scene, T, boxes=EPAL.boxes_m):
+    frame, _, obs = scene
+    return fit_score(T, obs, MODEL_PTS, frame.depth_m, frame.K, tol_m=0.04, model_boxes_m=boxes)
+
+
+def test_ground_truth_scores_high(scene):
+    _, T_gt, _ = scene
+    s = _score(scene, T_gt)
+    assert s.score > 0.5 and s.free_space_violation < 0.06
+    # the symmetric twin is just as good; surface points give the same verdict as boxes
+    assert _score(scene, T_gt @ np.diag([-1.0, -1.0, 1.0, 1.0])).score > 0.5
+    assert _score(scene, T_gt, boxes=None).score > 0.45
+
+
+@pytest.mark.parametrize("shift", [(0.2, 0, 0), (0, 0.2, 0), (0, 0, 0.2), (0, 0, -0.2)], ids=str)
+def test_shifted_20cm_scores_low(scene, shift):
+    _, T_gt, _ = scene
+    good = _score(scene, T_gt).score
+    bad = _score(scene, make_T(T_gt[:3, :3], T_gt[:3, 3] + np.array(shift)))
+    assert bad.score < 0.75 * good and bad.score < 0.5
+
+
+def test_turned_90deg_scores_low(scene):
+    _, T_gt, _ = scene
+    bad = _score(scene, T_gt @ RZ90)
+    assert bad.score < 0.3 and bad.free_space_violation > 0.1
+
+
+def test_no_observed_points_gives_zero_inliers():
+    K = np.array([[500.0, 0, 32], [0, 500, 24], [0, 0, 1]])
+    s = fit_score(make_T(np.eye(3), [0, 0, 3.0]), np.zeros((0, 3)), MODEL_PTS, np.zeros((48, 64), np.float32), K)
+    assert s.inlier_fraction == 0.0 and s.free_space_violation == 0.0 and s.score == 0.0
+
+
+def test_wall_in_front_of_camera_is_a_violation():
+    # the observed depth is a wall at 5 m; a pallet posed at 3 m would have blocked it everywhere
+    K = np.array([[300.0, 0, 32], [0, 300, 24], [0, 0, 1]])
+    depth = np.full((48, 64), 5.0, np.float32)
+    s = fit_score(make_T(np.eye(3), [0, 0, 3.0]), np.array([[0, 0, 5.0]]), MODEL_PTS, depth, K)
+    assert s.free_space_violation == 1.0 and s.score == 0.0
+
+
+def test_distances():
+    boxes = np.array([[[0, 0, 0], [1, 1, 1]]], float)
+    np.testing.assert_allclose(distance_to_boxes(np.array([[0.5, 0.5, 0.5], [2, 0.5, 0.5], [2, 2, 0.5]]), boxes),
+                               [0, 1, np.sqrt(2)])
+    np.testing.assert_allclose(distance_to_points(np.array([[0, 0, 0.3]]), np.array([[0, 0, 0], [0, 0, 1]])), [0.3],
+                               atol=1e-6)
+    with pytest.raises(ValueError, match="boxes_m"):
+        distance_to_boxes(np.zeros((1, 3)), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match="tol_m"):
+        fit_score(np.eye(4), np.zeros((1, 3)), MODEL_PTS, np.zeros((4, 4)), np.eye(3), tol_m=0)
