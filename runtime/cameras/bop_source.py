@@ -1,0 +1,94 @@
+"""Play a BOP dataset (`bop:DIR`), e.g. one written by `pallet6d sim`, as a frame source."""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .base import FrameSource
+from .errors import CameraError, CameraNotFound, FrameReadError
+from .frame import RGBDFrame
+from .replay import ON_ERROR_MODES
+
+__all__ = ["BopSource"]
+
+log = logging.getLogger(__name__)
+
+
+class BopSource(FrameSource):
+    """Frames of a BOP dataset in order, as fast as read.
+
+    Depth is handed out in the dataset's own units (`depth_scale_mm` mm per unit), so no value changes.
+    BOP frames carry no capture time: `timestamp_s` is `index / fps`.
+
+    :param root: what `pallet6d.runtime.bop.BopDataset` opens.
+    :param fps: nominal rate for the synthetic timestamps.
+    :param on_error: "skip" unreadable frames with a warning, or "raise" `FrameReadError`.
+    """
+
+    def __init__(self, root: str | Path, fps: float = 30.0, on_error: str = "skip", loop: bool = False) -> None:
+        if on_error not in ON_ERROR_MODES:
+            raise ValueError(f"on_error must be one of {ON_ERROR_MODES}, got {on_error!r}")
+        if not fps > 0:
+            raise ValueError(f"fps must be positive, got {fps}")
+        self.root = Path(root)
+        super().__init__(f"bop:{self.root}")
+        self.fps, self.on_error, self.loop = float(fps), on_error, bool(loop)
+        self.skipped = 0
+        self._ds = None
+
+    def __len__(self) -> int:
+        return 0 if self._ds is None else len(self._ds)
+
+    def _start(self) -> None:
+        from pallet6d.runtime.bop import BopDataset  # the house BOP reader
+        if not self.root.exists():
+            raise CameraNotFound(f"BOP dataset {self.root} does not exist")
+        try:
+            self._ds = BopDataset(self.root)
+        except (OSError, ValueError, KeyError) as exc:
+            raise CameraError(f"{self.root}: cannot open BOP dataset: {exc}") from None
+        if len(self._ds) == 0:
+            raise CameraError(f"{self.root}: BOP dataset holds no frames")
+        self._i = 0
+        self._n_out = 0
+        first = self._frame_at(0)  # intrinsics and depth units before the first read()
+        self._K, self._depth_scale_m = first.K, first.depth_scale_m
+
+    def _stop(self) -> None:
+        self._ds = None
+
+    def _frame_at(self, i: int) -> RGBDFrame:
+        """Frame `i` of the dataset, numbered and stamped as the next frame handed out."""
+        try:
+            f = self._ds[i]
+            return RGBDFrame.from_depth_m(np.asarray(f.rgb), np.asarray(f.depth_m), np.asarray(f.K),
+                                          timestamp_s=self._n_out / self.fps, frame_number=self._n_out,
+                                          source=self.name, depth_scale_m=float(f.depth_scale_mm) * 1e-3)
+        except (OSError, ValueError, TypeError, KeyError) as exc:
+            raise FrameReadError(f"{self.name}: frame {i}: {exc}") from exc
+
+    def _read(self) -> RGBDFrame | None:
+        n = len(self._ds)
+        misses = 0
+        while True:
+            if self._i >= n:
+                if not self.loop:
+                    return None
+                self._i = 0
+            i = self._i
+            self._i += 1
+            try:
+                frame = self._frame_at(i)
+            except FrameReadError as exc:
+                if self.on_error == "raise":
+                    raise
+                self.skipped += 1
+                misses += 1
+                log.warning("%s: skipping frame %d: %s", self.name, i, exc)
+                if misses >= n:
+                    raise FrameReadError(f"{self.name}: no readable frame in the whole dataset") from None
+                continue
+            self._n_out += 1
+            return frame

@@ -1,0 +1,29 @@
+"""Typed camera errors: an integrator catches `CameraError` and decides whether to retry."""
+from __future__ import annotations
+
+__all__ = ["CameraError", "CameraNotFound", "CameraDisconnected", "CameraTimeout", "FrameReadError",
+           "SourceSpecError"]
+
+
+class CameraError(RuntimeError):
+    """Any failure of a frame source (device, SDK, recording)."""
+
+
+class CameraNotFound(CameraError):
+    """No device matches the request (nothing plugged in, wrong serial/MXID, missing recording)."""
+
+
+class CameraDisconnected(CameraError):
+    """The device went away while streaming and did not come back in time."""
+
+
+class CameraTimeout(CameraError):
+    """No frame arrived within the allowed time although the device is still present."""
+
+
+class FrameReadError(CameraError):
+    """A recorded frame is missing, truncated or corrupt (raised in `on_error="raise"` mode)."""
+
+
+class SourceSpecError(ValueError):
+    """A source spec string (`realsense:SERIAL`, `bag:FILE`, ...) cannot be parsed."""
