@@ -158,6 +158,17 @@ class PalletModel:
         gap = np.maximum(np.maximum(lo - pts[:, None], pts[:, None] - hi), 0.0)   # (n, k, 3)
         return np.sqrt((gap ** 2).sum(-1)).min(1)
 
+    def surface_distance_m(self, pts: np.ndarray) -> np.ndarray:
+        """Unsigned distance from points to the pallet's surface, from outside or inside the wood.
+
+        :param pts: (n, 3) pallet-frame points, metres.
+        :return: (n,) distances in metres (0 on the surface).
+        """
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        lo, hi = self.boxes_m[None, :, 0], self.boxes_m[None, :, 1]
+        depth_in = np.minimum(pts[:, None] - lo, hi - pts[:, None]).min(-1).max(1)   # > 0: inside some part
+        return np.where(depth_in > 0, depth_in, self.distance_m(pts))
+
     def surface_points(self, n: int = 2000, seed: int = 0) -> np.ndarray:
         """Points spread uniformly (by area) over the pallet's outer surface.
 

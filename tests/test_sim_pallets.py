@@ -4,15 +4,6 @@ import pytest
 from pallet6d.sim.pallets import PALLET_MODELS, ROT_Z_180, PalletModel, box_corners, get_pallet_model
 
 
-def signed_distance(model: PalletModel, pts: np.ndarray) -> np.ndarray:
-    """Distance to the pallet's surface: > 0 outside, < 0 inside (depth below the nearest face)."""
-    lo, hi = model.boxes_m[None, :, 0], model.boxes_m[None, :, 1]
-    outside = model.distance_m(pts)
-    depth_in = np.minimum(pts[:, None] - lo, hi - pts[:, None]).min(-1)     # (n, k), > 0 inside box k
-    inside = depth_in.max(1)
-    return np.where(inside > 0, -inside, outside)
-
-
 def box_set(boxes: np.ndarray) -> np.ndarray:
     """Boxes as rows sorted lexicographically (rounded to 0.1 mm), to compare sets of boxes."""
     rows = np.round(boxes.reshape(len(boxes), 6) * 1e4).astype(np.int64)
@@ -63,7 +54,7 @@ def test_symmetries_map_the_pallet_onto_itself(name):
     for T in m.symmetries:
         np.testing.assert_array_equal(box_set(transform_boxes(T, m.boxes_m)), box_set(m.boxes_m))
         moved = pts @ T[:3, :3].T + T[:3, 3]
-        assert np.abs(signed_distance(m, moved)).max() < 1e-6
+        assert m.surface_distance_m(moved).max() < 1e-6
 
 
 @pytest.mark.parametrize("name", PALLET_MODELS)
@@ -71,7 +62,7 @@ def test_upside_down_is_not_a_symmetry(name):
     m = get_pallet_model(name)
     flip = np.diag([1.0, -1.0, -1.0, 1.0])   # 180 deg about x
     moved = m.surface_points(2000, seed=2).astype(np.float64) @ flip[:3, :3].T
-    assert np.abs(signed_distance(m, moved)).max() > 0.01
+    assert m.surface_distance_m(moved).max() > 0.01
 
 
 @pytest.mark.parametrize("name", PALLET_MODELS)
@@ -79,7 +70,7 @@ def test_surface_points_lie_on_the_outer_surface(name):
     m = get_pallet_model(name)
     pts = m.surface_points(5000, seed=0)
     assert pts.shape == (5000, 3) and pts.dtype == np.float32
-    assert np.abs(signed_distance(m, pts.astype(np.float64))).max() < 1e-6
+    assert m.surface_distance_m(pts).max() < 1e-6
     np.testing.assert_array_equal(pts, m.surface_points(5000, seed=0))
     assert not np.array_equal(pts, m.surface_points(5000, seed=1))
     lo, hi = pts.min(0), pts.max(0)
