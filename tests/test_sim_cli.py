@@ -1,0 +1,28 @@
+import pytest
+
+from pallet6d.runtime import cli
+from pallet6d.runtime.bop import BopDataset
+
+
+def test_sim_cli_writes_a_dataset_and_previews(tmp_path, capsys):
+    out = tmp_path / "ds"
+    rc = cli.main(["sim", "--preset", "indoor-noisy", "--frames", "2", "--seed", "3", "--size", "160x120",
+                   "--out", str(out), "--split", "val", "--preview"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "previews:" in printed
+    previews = sorted((out / "preview" / "val").glob("*.png"))
+    assert len(previews) == 2 and str(previews[0].parent) in printed
+    ds = BopDataset(out)
+    assert ds.split == "val" and len(ds) == 2 and ds[1].rgb.shape == (120, 160, 3)
+
+
+def test_sim_cli_rejects_unknown_preset(tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["sim", "--preset", "nope", "--out", str(tmp_path)])
+    assert exc.value.code == 2
+
+
+def test_sim_cli_bad_size(tmp_path, capsys):
+    assert cli.main(["sim", "--frames", "1", "--size", "big", "--out", str(tmp_path)]) == 2
+    assert "--size" in capsys.readouterr().err
