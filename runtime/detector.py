@@ -51,18 +51,22 @@ def letterbox(rgb: np.ndarray, input_hw: tuple[int, int], pad_value: int = 114,
     return out, Letterbox(new_w / w, new_h / h, pad_x, pad_y, (h, w), (h_in, w_in))
 
 
-def to_nchw(image: np.ndarray, mean: np.ndarray, std: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """(H, W, 3) uint8 -> (1, 3, H, W) float32, (x / 255 - mean) / std per channel.
+def to_nchw(image: np.ndarray, mean: np.ndarray, std: np.ndarray, pixel_scale: float = 1.0 / 255.0,
+            bgr: bool = False, out: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (1, 3, H, W) float32, (x * pixel_scale - mean) / std per channel.
 
-    :param mean: (3,) in [0, 1] units; :param std: (3,).
+    :param mean: (3,); :param std: (3,) per channel of the output order.
+    :param bgr: the graph wants BGR channel order (the channels are swapped).
     :param out: optional (1, 3, H, W) float32 buffer to write into.
     """
     h, w = image.shape[:2]
     if out is None or out.shape != (1, 3, h, w):
         out = np.empty((1, 3, h, w), dtype=np.float32)
-    scale = (1.0 / (255.0 * np.asarray(std, dtype=np.float32))).reshape(3, 1, 1)
-    shift = (np.asarray(mean, dtype=np.float32) / np.asarray(std, dtype=np.float32)).reshape(3, 1, 1)
-    np.multiply(image.transpose(2, 0, 1), scale, out=out[0], casting="unsafe")
+    std = np.asarray(std, dtype=np.float32)
+    scale = (np.float32(pixel_scale) / std).reshape(3, 1, 1)
+    shift = (np.asarray(mean, dtype=np.float32) / std).reshape(3, 1, 1)
+    chw = image.transpose(2, 0, 1)
+    np.multiply(chw[::-1] if bgr else chw, scale, out=out[0], casting="unsafe")
     out[0] -= shift
     return out
 

@@ -49,6 +49,8 @@ def test_to_nchw_normalises():
     out = to_nchw(img, mean=np.array([0.5, 0.0, 0.0]), std=np.array([0.5, 1.0, 0.2]))
     assert out.shape == (1, 3, 1, 1) and out.dtype == np.float32
     np.testing.assert_allclose(out.ravel(), [1.0, 0.0, 1.0], atol=1e-6)
+    bgr = to_nchw(img, mean=np.zeros(3), std=np.ones(3), pixel_scale=1.0, bgr=True)
+    np.testing.assert_allclose(bgr.ravel(), [51, 0, 255])
 
 
 def test_decode_converts_centre_size_to_corners_and_thresholds():

@@ -1,0 +1,76 @@
+"""Checking what an integrator hands to `PalletEstimator` (numpy only).
+
+Every check raises `TypeError` (wrong kind of thing) or `ValueError` (right kind, wrong content) with a
+message that says what was expected and what came, so the fix is obvious on the forklift.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .geometry import check_K
+
+__all__ = ["check_rgbd"]
+
+NONFINITE_MODES = ("raise", "as_missing")
+
+
+def check_rgbd(rgb, depth, K, depth_scale_m: float | None = None,
+               nonfinite_depth: str = "raise") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate one RGB-D frame and return (rgb uint8 (H, W, 3), depth float32 metres (H, W), K float64 (3, 3)).
+
+    :param rgb: (H, W, 3) uint8 RGB.
+    :param depth: (H, W) registered to `rgb`: uint16 in units of `depth_scale_m` metres (default 0.001, mm)
+        or float32/float64 metres. 0 = no data.
+    :param K: (3, 3) intrinsics of the colour image.
+    :param depth_scale_m: metres per unit of integer depth; must be None for float depth.
+    :param nonfinite_depth: "raise" on NaN/inf in float depth, or "as_missing" to read them as no data
+        (drivers that follow ROS REP 118 mark missing depth with NaN/inf).
+    """
+    if not isinstance(rgb, np.ndarray):
+        raise TypeError(f"rgb must be a numpy array (H, W, 3) uint8, got {type(rgb).__name__}")
+    if not isinstance(depth, np.ndarray):
+        raise TypeError(f"depth must be a numpy array (H, W), got {type(depth).__name__}")
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"rgb must be (H, W, 3), got shape {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise TypeError(f"rgb must be uint8 (0-255), got dtype {rgb.dtype}")
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be a single-channel (H, W) image, got shape {depth.shape}")
+    if depth.shape != rgb.shape[:2]:
+        raise ValueError(f"depth {depth.shape} and rgb {rgb.shape[:2]} differ in size: depth must be aligned "
+                         "(registered) to the colour image")
+    if rgb.shape[0] < 8 or rgb.shape[1] < 8:
+        raise ValueError(f"image too small: {rgb.shape[:2]}")
+    if K is None:
+        raise ValueError("camera intrinsics K are missing: pass K=(3, 3) or an RGBDFrame that carries them")
+    K = check_K(K)
+
+    if np.issubdtype(depth.dtype, np.integer):
+        if depth.dtype != np.uint16:
+            raise TypeError(f"integer depth must be uint16, got {depth.dtype}")
+        scale = 0.001 if depth_scale_m is None else float(depth_scale_m)
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"depth_scale_m must be a positive number of metres per unit, got {depth_scale_m}")
+        depth_m = depth.astype(np.float32) * np.float32(scale)
+    elif np.issubdtype(depth.dtype, np.floating):
+        if depth_scale_m not in (None, 1, 1.0):
+            raise ValueError(f"float depth is read as metres; depth_scale_m={depth_scale_m} applies to uint16 only")
+        depth_m = depth.astype(np.float32, copy=True)
+        bad = ~np.isfinite(depth_m)
+        if bad.any():
+            if nonfinite_depth == "raise":
+                raise ValueError(f"depth has {int(bad.sum())} NaN/inf pixels; mark missing depth with 0, or pass "
+                                 "nonfinite_depth='as_missing'")
+            if nonfinite_depth not in NONFINITE_MODES:
+                raise ValueError(f"nonfinite_depth must be one of {NONFINITE_MODES}, got {nonfinite_depth!r}")
+            depth_m[bad] = 0.0
+        if (depth_m < 0).any():
+            raise ValueError(f"depth has negative values (min {float(depth_m.min()):.3f}); expected metres >= 0")
+        if float(depth_m.max()) > 1000.0:
+            raise ValueError(f"float depth must be metres, but values reach {float(depth_m.max()):.0f}: "
+                             "millimetres? pass uint16 or divide by 1000")
+    else:
+        raise TypeError(f"depth must be uint16 (units of depth_scale_m) or float metres, got dtype {depth.dtype}")
+    if not (depth_m > 0).any():
+        raise ValueError("depth is all zero (no valid pixel): is the depth stream running and aligned to colour?")
+    return rgb, depth_m, K
