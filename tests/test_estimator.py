@@ -1,0 +1,191 @@
+import json
+import shutil
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from pallet6d.runtime.bundle import BundleError
+from pallet6d.runtime.cameras import RGBDFrame
+from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
+from pallet6d.runtime.results import FrameResult, PalletPose
+from pallet6d.sim.generate import generate_frame
+from pallet6d.sim.presets import get_preset
+
+from conftest_runtime_bundle import make_tiny_bundle
+
+
+@pytest.fixture(scope="session")
+def bundle_dir(tmp_path_factory):
+    return make_tiny_bundle(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return generate_frame(get_preset("virtual-clean"), seed=0)
+
+
+@pytest.fixture(scope="module")
+def boxes(frame):
+    """The visible boxes of four pallets, as a detector would give them."""
+    out = []
+    for p in sorted(frame.pallets, key=lambda p: -p.visib_fract)[:4]:
+        x, y, w, h = p.bbox_visib_xywh
+        out.append([x, y, x + w, y + h])
+    return np.array(out, float)
+
+
+@pytest.fixture(scope="module")
+def est(bundle_dir):
+    # min_fit=0: random weights never fit, and these tests are about the plumbing, not the accuracy
+    return PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0)
+
+
+def _key(result: FrameResult):
+    """Everything of a result except the timings."""
+    d = result.to_dict()
+    d.pop("timings_ms")
+    return json.dumps(d, sort_keys=True)
+
+
+def test_end_to_end_types_shapes_and_determinism(est, frame):
+    r1 = est.estimate(frame.rgb, frame.depth_m, frame.K)
+    r2 = est.estimate(frame.rgb, frame.depth_m, frame.K)
+    assert isinstance(r1, FrameResult) and r1.image_hw == frame.depth_m.shape
+    assert len(r1.poses) + len(r1.rejected) >= 1, "a random detector at threshold 0 finds something"
+    assert len(r1.poses) + len(r1.rejected) <= est.options.max_pallets
+    for p in r1.poses:
+        assert isinstance(p, PalletPose) and p.T_cam_pallet.shape == (4, 4) and p.quat_wxyz.shape == (4,)
+        np.testing.assert_allclose(p.R @ p.R.T, np.eye(3), atol=1e-6)
+        assert 0 <= p.confidence <= 1 and 0 <= p.fit.score <= 1
+    assert set(r1.timings_ms) >= {"preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose",
+                                  "selection", "fit", "total"}
+    assert _key(r1) == _key(r2)
+    json.dumps(r1.to_dict())  # serialisable as one JSON line
+
+
+def test_predict_returns_the_accepted_poses(est, frame):
+    poses = est.predict(frame.rgb, frame.depth_m, frame.K)
+    assert [p.to_dict() for p in poses] == [p.to_dict() for p in est.estimate(frame.rgb, frame.depth_m, frame.K).poses]
+
+
+def test_rgbd_frame_input_equals_arrays(est, frame):
+    rgbd = RGBDFrame.from_depth_m(frame.rgb, frame.depth_m, frame.K, 0.0, 0, "test")
+    a = est.estimate(rgbd)
+    b = est.estimate(frame.rgb, rgbd.depth, frame.K, depth_scale=rgbd.depth_scale_m)
+    assert _key(a) == _key(b)
+
+
+def test_no_detections_gives_empty_list(bundle_dir, frame):
+    strict = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=1.0)
+    assert strict.predict(frame.rgb, frame.depth_m, frame.K) == []
+    r = strict.estimate(frame.rgb, frame.depth_m, frame.K)
+    assert r.poses == [] and r.rejected == []
+
+
+def test_four_pallets_batched_equal_one_at_a_time(est, frame, boxes):
+    batched = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    assert len(batched.poses) == 4
+    for box, pose in zip(boxes, batched.poses):
+        single = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=box[None])
+        assert len(single.poses) == 1
+        np.testing.assert_allclose(single.poses[0].T_cam_pallet, pose.T_cam_pallet, atol=1e-5)
+        np.testing.assert_allclose(single.poses[0].box_xyxy, box)
+        assert single.poses[0].n_valid_points == pose.n_valid_points
+
+
+def test_rejections_are_reported_with_reasons(bundle_dir, frame, boxes):
+    depth = frame.depth_m.copy()
+    x1, y1, x2, y2 = boxes[1].astype(int)
+    depth[y1:y2, x1:x2] = 0.0                                   # no depth in the second box
+    outside = [5000.0, 5000.0, 5100.0, 5100.0]
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, min_fit=1.0)   # nothing random fits perfectly
+    r = est.estimate_boxes(frame.rgb, depth, frame.K, boxes_xyxy=np.vstack([boxes[:2], outside]),
+                           scores=[0.9, 0.8, 0.7])
+    assert r.poses == []
+    reasons = [x.reason for x in r.rejected]
+    assert reasons == ["poor_fit", "too_few_points", "box_outside_image"]
+    assert r.rejected[0].pose is not None and r.rejected[1].pose is None
+    assert "valid depth pixels" in r.rejected[1].detail
+
+
+def _bad(frame):
+    rgb, d, K = frame.rgb, frame.depth_m, frame.K
+    nan = d.copy()
+    nan[0, 0] = np.nan
+    return [
+        ("rgb_list", dict(rgb=rgb.tolist(), depth=d, K=K), TypeError, "numpy array"),
+        ("rgb_float", dict(rgb=rgb.astype(np.float32), depth=d, K=K), TypeError, "uint8"),
+        ("rgb_gray", dict(rgb=rgb[..., 0], depth=d, K=K), ValueError, r"\(H, W, 3\)"),
+        ("depth_3ch", dict(rgb=rgb, depth=np.dstack([d] * 3), K=K), ValueError, "single-channel"),
+        ("size_mismatch", dict(rgb=rgb, depth=d[:-10], K=K), ValueError, "aligned"),
+        ("depth_int32", dict(rgb=rgb, depth=d.astype(np.int32), K=K), TypeError, "uint16"),
+        ("all_zero", dict(rgb=rgb, depth=np.zeros_like(d), K=K), ValueError, "all zero"),
+        ("nan", dict(rgb=rgb, depth=nan, K=K), ValueError, "NaN/inf"),
+        ("inf", dict(rgb=rgb, depth=np.where(d > 3, np.inf, d).astype(np.float32), K=K), ValueError, "NaN/inf"),
+        ("negative", dict(rgb=rgb, depth=d - 100.0, K=K), ValueError, "negative"),
+        ("millimetres_as_float", dict(rgb=rgb, depth=d * 1000, K=K), ValueError, "millimetres"),
+        ("missing_K", dict(rgb=rgb, depth=d, K=None), ValueError, "intrinsics K are missing"),
+        ("bad_K", dict(rgb=rgb, depth=d, K=np.eye(4)), ValueError, "3x3"),
+        ("scale_with_float", dict(rgb=rgb, depth=d, K=K, depth_scale=0.001), ValueError, "uint16 only"),
+        ("missing_depth", dict(rgb=rgb, depth=None, K=K), ValueError, "depth is missing"),
+    ]
+
+
+BAD_IDS = [c[0] for c in _bad(type("F", (), dict(rgb=np.zeros((4, 4, 3), np.uint8), depth_m=np.ones((4, 4)),
+                                                  K=np.eye(3)))())]
+
+
+@pytest.mark.parametrize("case", BAD_IDS)
+def test_bad_inputs_raise_clear_errors(est, frame, case):
+    _, kwargs, exc, match = next(c for c in _bad(frame) if c[0] == case)
+    with pytest.raises(exc, match=match):
+        est.predict(**kwargs)
+
+
+def test_nan_depth_as_missing_option(bundle_dir, frame):
+    depth = frame.depth_m.copy()
+    depth[depth == 0] = np.nan
+    lenient = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0,
+                                          nonfinite_depth="as_missing")
+    strict_zero = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0)
+    assert _key(lenient.estimate(frame.rgb, depth, frame.K)) == _key(strict_zero.estimate(frame.rgb, frame.depth_m,
+                                                                                          frame.K))
+
+
+def test_bad_options_and_precision(bundle_dir):
+    with pytest.raises(ValueError, match="max_pallets"):
+        EstimatorOptions(max_pallets=0)
+    with pytest.raises(ValueError, match="precision"):
+        PalletEstimator.from_bundle(bundle_dir, precision="fp16")
+
+
+def test_bundle_that_disagrees_with_its_graphs(bundle_dir, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(bundle_dir, bad)
+    man = json.loads((bad / "manifest.json").read_text())
+    man["pose"]["num_points"] += 1
+    (bad / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(BundleError, match="disagrees with its own graphs.*num_points"):
+        PalletEstimator.from_bundle(bad)
+
+
+def test_runtime_prediction_never_imports_torch(bundle_dir):
+    code = textwrap.dedent(f"""
+        import sys
+        import numpy as np
+        from pallet6d.runtime.estimator import PalletEstimator
+        est = PalletEstimator.from_bundle({str(bundle_dir)!r}, threads=1, score_threshold=0.0, min_fit=0.0)
+        rng = np.random.default_rng(0)
+        rgb = rng.integers(0, 255, (120, 200, 3), dtype=np.uint8)
+        depth = rng.uniform(1.0, 4.0, (120, 200)).astype(np.float32)
+        K = np.array([[150.0, 0, 100], [0, 150, 60], [0, 0, 1]])
+        r = est.estimate(rgb, depth, K)
+        print(len(r.poses) + len(r.rejected), "torch" in sys.modules)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    n, has_torch = out.stdout.split()
+    assert int(n) >= 1 and has_torch == "False"
