@@ -1,0 +1,287 @@
+"""Write a model bundle (runtime/bundle.py documents the manifest): the three ONNX graphs, optional int8
+copies, the pallet model points and manifest.json, with parity, int8 and GFLOP checks recorded.
+
+Checkpoint format (`--checkpoint FILE`, written by training): ``torch.save({"config": name,
+"detector": state_dict | absent, "fusion": state_dict, "pose": state_dict})``. Without a checkpoint,
+`random_init=True` exports freshly initialised networks (BatchNorm statistics warmed up on the
+calibration inputs so activations have realistic ranges) so the runtime can be built and tested
+before any training.
+
+External detector (`detector_onnx`): any YOLOv8 ONNX graph in the ultralytics export layout, e.g.
+``yolo export model=best.pt format=onnx imgsz=384,1216`` (static batch, opset >= 12), which has one
+input (1, 3, H, W) float RGB in [0, 1] (letterboxed with grey 114) and one output (1, 4 + nc, A)
+with cx, cy, w, h in input pixels and sigmoid class scores. The graph is copied into the bundle
+unchanged; H, W come from its input shape; class names from its `names` metadata (ultralytics writes
+it) unless `classes` is given; nc must match. With `int8`, it is quantized like our own detector.
+"""
+from __future__ import annotations
+
+import ast
+import dataclasses
+import datetime as dt
+import json
+import logging
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from pallet6d.runtime.bundle import FORMAT, FORMAT_VERSION, MANIFEST, load_bundle, sha256_file
+from pallet6d.runtime.pose_inputs import gather_features
+
+from .calib_data import CalibrationSet, make_calibration_set
+from .config import ModelConfig
+from .detector import build_detector
+from .flops import count_gflops
+from .fusion import build_fusion
+from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
+from .pose import build_pose
+from .quantize import quantize_graph
+
+__all__ = ["export_bundle", "ExportError"]
+
+log = logging.getLogger(__name__)
+
+DET_IN, DET_OUT = "images", "output0"
+
+
+class ExportError(ValueError):
+    """The export cannot proceed (bad checkpoint, bad external detector, ...)."""
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                             cwd=Path(__file__).resolve().parent)
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+@torch.no_grad()
+def _warm_up_batchnorm(model: torch.nn.Module, batches: list[tuple[torch.Tensor, ...]]) -> None:
+    """Set BatchNorm running statistics from `batches` (cumulative average), then back to eval."""
+    bns = [m for m in model.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    if not bns:
+        return
+    for m in bns:
+        m.reset_running_stats()
+        m.momentum = None
+    model.train()
+    for args in batches:
+        model(*args)
+    model.eval()
+
+
+def _load_checkpoint(path: Path, nets: dict[str, torch.nn.Module], cfg: ModelConfig, need: tuple[str, ...]) -> None:
+    try:
+        ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise ExportError(f"cannot read checkpoint {path}: {exc}") from None
+    if not isinstance(ckpt, dict):
+        raise ExportError(f"checkpoint {path}: expected a dict with 'detector'/'fusion'/'pose' state dicts")
+    if ckpt.get("config") not in (None, cfg.name):
+        raise ExportError(f"checkpoint {path} was trained with config {ckpt.get('config')!r}, not {cfg.name!r}")
+    for key in need:
+        if key not in ckpt:
+            raise ExportError(f"checkpoint {path} has no {key!r} weights (keys: {sorted(ckpt)}); "
+                              "pass --random-init to export untrained networks")
+        try:
+            nets[key].load_state_dict(ckpt[key])
+        except RuntimeError as exc:
+            raise ExportError(f"checkpoint {path}: {key} weights do not fit config {cfg.name!r}: {exc}") from None
+
+
+def _external_detector(path: Path, classes: tuple[str, ...] | None) -> tuple[tuple[int, int], tuple[str, ...]]:
+    """Validate a foreign YOLOv8 ONNX graph; return its input (H, W) and class names."""
+    if not path.is_file():
+        raise ExportError(f"--detector-onnx {path}: no such file")
+    try:
+        model = onnx.load(str(path))
+        onnx.checker.check_model(model)
+    except Exception as exc:
+        raise ExportError(f"--detector-onnx {path}: not a valid ONNX model: {exc}") from None
+    sess = ort_session(path, threads=1)
+    ins, outs = sess.get_inputs(), sess.get_outputs()
+    if len(ins) != 1 or len(outs) < 1:
+        raise ExportError(f"--detector-onnx {path}: expected one input and a YOLOv8 output, got inputs "
+                          f"{[i.name for i in ins]}, outputs {[o.name for o in outs]}")
+    shape = list(ins[0].shape)
+    if len(shape) != 4 or shape[1] != 3 or not all(isinstance(s, int) for s in shape[2:]):
+        raise ExportError(f"--detector-onnx {path}: input {ins[0].name!r} must be (1, 3, H, W) with fixed H, W "
+                          f"(export with a fixed imgsz), got {shape}")
+    h, w = shape[2], shape[3]
+    if h % 32 or w % 32:
+        raise ExportError(f"--detector-onnx {path}: input size {h}x{w} is not a multiple of 32")
+    out = sess.run(None, {ins[0].name: np.zeros((1, 3, h, w), np.float32)})[0]
+    n_anchors = sum((h // s) * (w // s) for s in (8, 16, 32))
+    if out.ndim != 3 or out.shape[2] != n_anchors or out.shape[1] < 5:
+        raise ExportError(f"--detector-onnx {path}: output {out.shape} is not the YOLOv8 layout "
+                          f"(1, 4 + nc, {n_anchors}) for a {h}x{w} input")
+    nc = out.shape[1] - 4
+    if classes is None:
+        meta = {p.key: p.value for p in model.metadata_props}
+        try:
+            names = ast.literal_eval(meta["names"]) if "names" in meta else None
+        except (ValueError, SyntaxError):
+            names = None
+        classes = tuple(names[i] for i in sorted(names)) if isinstance(names, dict) else None
+        if classes is None:
+            raise ExportError(f"--detector-onnx {path}: no class names in its metadata; pass --classes")
+    if len(classes) != nc:
+        raise ExportError(f"--detector-onnx {path}: the graph has {nc} classes but {len(classes)} names were given")
+    if ins[0].name != DET_IN or outs[0].name != DET_OUT:
+        log.info("external detector uses input %r / output %r", ins[0].name, outs[0].name)
+    return (h, w), tuple(classes)
+
+
+def _int8_report(fp32: Path, int8: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
+    s32, s8 = ort_session(fp32), ort_session(int8)
+    ref, got = {}, {}
+    for f in feeds:
+        for k, v in run_session(s32, f).items():
+            ref.setdefault(k, []).append(v)
+        for k, v in run_session(s8, f).items():
+            got.setdefault(k, []).append(v)
+    return {k: compare_outputs(np.concatenate(ref[k]), np.concatenate(got[k])).to_dict() for k in ref}
+
+
+def _batches(arrays: list[np.ndarray], size: int) -> list[list[np.ndarray]]:
+    n = len(arrays[0])
+    return [[a[i:i + size] for a in arrays] for i in range(0, n, size)]
+
+
+def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoint: str | Path | None = None,
+                  random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
+                  classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
+                  calib: CalibrationSet | None = None, calib_frames: int = 8) -> dict:
+    """Export `cfg`'s networks to a bundle folder `out` and return its manifest.
+
+    :raises ExportError: bad arguments, checkpoint or external detector.
+    :raises onnx_io.ParityError: an exported graph does not reproduce its torch model.
+    """
+    if (checkpoint is None) == (not random_init):
+        raise ExportError("give exactly one of --checkpoint FILE or --random-init")
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ExportError(f"output folder {out} is not empty; choose a new folder")
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(seed)
+    nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
+            "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
+    for net in nets.values():
+        net.eval()
+    if detector_onnx is not None:
+        det_hw, det_classes = _external_detector(Path(detector_onnx), classes)
+        cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=det_hw, classes=det_classes))
+    calib = calib or make_calibration_set(cfg, frames=calib_frames, seed=seed)
+    need = ("fusion", "pose") if detector_onnx is not None else ("detector", "fusion", "pose")
+    if checkpoint is not None:
+        _load_checkpoint(Path(checkpoint), nets, cfg, need)
+    else:
+        t = torch.from_numpy
+        _warm_up_batchnorm(nets["detector"], [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)])
+        _warm_up_batchnorm(nets["fusion"], [(t(calib.rgb_crops[i:i + 8]), t(calib.depth_crops[i:i + 8]))
+                                            for i in range(0, len(calib.rgb_crops), 8)])
+    with torch.no_grad():
+        feats = nets["fusion"](torch.from_numpy(calib.rgb_crops), torch.from_numpy(calib.depth_crops)).numpy()
+    point_feats = gather_features(feats, calib.choose)
+
+    files: dict[str, Path] = {}
+    checks: dict = {"parity": {}, "gflops": {}, "params": {}}
+    # detector: static batch 1 (like ultralytics exports)
+    if detector_onnx is None:
+        files["detector"] = export_graph(nets["detector"], (torch.from_numpy(calib.images[:1]),), out / "detector.onnx",
+                                         [DET_IN], [DET_OUT])
+        checks["parity"]["detector"] = check_parity(nets["detector"], (torch.from_numpy(calib.images[:1]),),
+                                                    files["detector"], [DET_IN], [DET_OUT])
+        checks["params"]["detector"] = sum(p.numel() for p in nets["detector"].parameters())
+    else:
+        files["detector"] = Path(shutil.copyfile(detector_onnx, out / "detector.onnx"))
+        checks["parity"]["detector"] = "external graph, copied unchanged"
+    det_sess = ort_session(files["detector"], threads=1)
+    det_in, det_out = det_sess.get_inputs()[0].name, det_sess.get_outputs()[0].name
+    fusion_args = (torch.from_numpy(calib.rgb_crops[:2]), torch.from_numpy(calib.depth_crops[:2]))
+    files["fusion"] = export_graph(nets["fusion"], fusion_args, out / "fusion.onnx", ["rgb", "depth"], ["features"],
+                                   {"rgb": {0: "batch"}, "depth": {0: "batch"}, "features": {0: "batch"}})
+    checks["parity"]["fusion"] = check_parity(nets["fusion"], fusion_args, files["fusion"], ["rgb", "depth"],
+                                              ["features"])
+    pose_args = (torch.from_numpy(calib.points[:2]), torch.from_numpy(point_feats[:2]))
+    pose_names = ["quat", "trans", "conf"]
+    files["pose"] = export_graph(nets["pose"], pose_args, out / "pose.onnx", ["points", "features"], pose_names,
+                                 {"points": {0: "batch"}, "features": {0: "batch"}, "quat": {0: "batch"},
+                                  "trans": {0: "batch"}, "conf": {0: "batch"}})
+    checks["parity"]["pose"] = check_parity(nets["pose"], pose_args, files["pose"], ["points", "features"], pose_names)
+    for stage in ("fusion", "pose"):
+        checks["params"][stage] = sum(p.numel() for p in nets[stage].parameters())
+    checks["gflops"] = {"detector_per_frame": round(count_gflops(files["detector"]), 3),
+                        "fusion_per_pallet": round(count_gflops(files["fusion"]), 3),
+                        "pose_per_pallet": round(count_gflops(files["pose"]), 3)}
+
+    int8_files: dict[str, Path | None] = {"detector": None, "fusion": None, "pose": None}
+    if int8:
+        n_cal = max(1, (3 * len(calib.rgb_crops)) // 4)   # calibrate on 3/4, report the difference on the rest
+        n_img = max(1, (3 * len(calib.images)) // 4)
+        det_feeds = [{det_in: calib.images[i:i + 1]} for i in range(len(calib.images))]
+        fus_feeds = [{"rgb": r, "depth": d} for r, d in _batches([calib.rgb_crops, calib.depth_crops], 4)]
+        pose_feeds = [{"points": p, "features": f} for p, f in _batches([calib.points, point_feats], 4)]
+        split = {"detector": n_img, "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
+        feeds = {"detector": det_feeds, "fusion": fus_feeds, "pose": pose_feeds}
+        # the detector's box decoding and the pose net's first (metric point) layer stay float
+        exclude = {"detector": ("/head/dfl/",), "fusion": (), "pose": ("/conv1/Conv",)}
+        checks["int8"] = {}
+        for stage in ("detector", "fusion", "pose"):
+            cal, held = feeds[stage][:split[stage]], feeds[stage][split[stage]:] or feeds[stage][-1:]
+            int8_files[stage] = quantize_graph(files[stage], out / f"{stage}.int8.onnx", cal, exclude[stage])
+            checks["int8"][stage] = _int8_report(files[stage], int8_files[stage], held)
+        checks["int8"]["note"] = "int8 vs fp32 on calibration inputs held out from calibration"
+
+    from pallet6d.sim.pallets import get_pallet_model  # the pallet geometry lives with the simulator
+    pallet = get_pallet_model(cfg.pallet)
+    points_file = out / "pallet_points.npy"
+    np.save(points_file, pallet.surface_points(2000, seed=0).astype(np.float32))
+
+    all_files = [p for p in list(files.values()) + list(int8_files.values()) + [points_file] if p is not None]
+    rel = lambda p: None if p is None else p.relative_to(out).as_posix()  # noqa: E731
+    d, f, ps = cfg.detector, cfg.fusion, cfg.pose
+    manifest = {
+        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "name": name or out.name, "config": cfg.name, "classes": list(d.classes), "depth_units": "metres",
+        "precision": ["fp32", "int8"] if int8 else ["fp32"],
+        "detector": {"file": rel(files["detector"]), "file_int8": rel(int8_files["detector"]),
+                     "input_name": det_in, "output_name": det_out, "input_hw": list(d.input_hw),
+                     "letterbox_pad_value": 114, "pixel_scale": 1.0 / 255.0, "rgb_mean": [0.0, 0.0, 0.0],
+                     "rgb_std": [1.0, 1.0, 1.0], "channel_order": "RGB", "layout": "yolov8",
+                     "num_classes": d.num_classes, "source": "external" if detector_onnx else "pallet6d",
+                     "scale": None if detector_onnx else d.scale},
+        "fusion": {"file": rel(files["fusion"]), "file_int8": rel(int8_files["fusion"]), "rgb_input": "rgb",
+                   "depth_input": "depth", "output_name": "features", "crop_hw": list(f.crop_hw),
+                   "crop_resize": "stretch", "pixel_scale": 1.0 / 255.0, "rgb_mean": list(cfg.rgb_mean),
+                   "rgb_std": list(cfg.rgb_std),
+                   "depth_encoding": {"type": "metres_minus_median", "clip_m": cfg.depth_clip_m, "invalid_value": 0.0,
+                                      "interpolation": "nearest"},
+                   "feature_dim": f.feature_dim, "attention": f.attention,
+                   "attention_stride": f.attention_stride if f.attention else None},
+        "pose": {"file": rel(files["pose"]), "file_int8": rel(int8_files["pose"]), "points_input": "points",
+                 "features_input": "features", "quat_output": "quat", "trans_output": "trans", "conf_output": "conf",
+                 "num_points": ps.num_points, "depth_range_m": list(cfg.depth_range_m), "points_centring": "mean",
+                 "translation": "point_offset", "quaternion_order": "wxyz", "selection": "max_confidence",
+                 "attention": ps.attention},
+        "pallet_model": {"name": pallet.name, "size_m": [float(v) for v in pallet.size_m],
+                         "diameter_m": float(pallet.diameter_m), "points_file": rel(points_file),
+                         "symmetries": np.asarray(pallet.symmetries).tolist()},
+        "files": {rel(p): sha256_file(p) for p in all_files},
+        "provenance": {"command": command, "seed": seed, "git_commit": _git_commit(),
+                       "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                       "random_init": bool(random_init), "checkpoint": None if checkpoint is None else str(checkpoint),
+                       "detector_onnx": None if detector_onnx is None else str(detector_onnx),
+                       "training": None, "calibration": calib.source, "model_config": cfg.to_dict()},
+        "checks": checks,
+        "scores": {},
+    }
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
+    load_bundle(out)  # the writer must satisfy its own reader
+    return manifest

@@ -1,0 +1,118 @@
+"""Representative network inputs for int8 calibration and parity checks.
+
+Preferred source: frames from the synthetic warehouse generator (`pallet6d.sim`), run through the
+runtime's own preprocessing (`runtime.detector.letterbox`, `runtime.pose_inputs.prepare_pose_inputs`)
+with the ground-truth visible boxes (jittered like detector boxes). Fallback when the generator is
+not installed: smooth random images and a box-shaped point cloud, recorded as such in the manifest.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from pallet6d.runtime.detector import letterbox
+from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
+
+from .config import ModelConfig
+
+__all__ = ["CalibrationSet", "make_calibration_set", "pose_input_spec"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CalibrationSet:
+    """:ivar images: (F, 3, H, W) float32 in [0, 1], letterboxed detector inputs.
+    :ivar rgb_crops: (P, 3, h, w). :ivar depth_crops: (P, 1, h, w). :ivar points: (P, N, 3). :ivar choose: (P, N).
+    :ivar source: where the data came from (recorded in the manifest)."""
+
+    images: np.ndarray
+    rgb_crops: np.ndarray
+    depth_crops: np.ndarray
+    points: np.ndarray
+    choose: np.ndarray
+    source: str
+
+
+def pose_input_spec(cfg: ModelConfig) -> PoseInputSpec:
+    """The preprocessing spec a bundle exported from `cfg` will declare."""
+    return PoseInputSpec(crop_hw=cfg.fusion.crop_hw, rgb_mean=cfg.rgb_mean, rgb_std=cfg.rgb_std,
+                         depth_clip_m=cfg.depth_clip_m, num_points=cfg.pose.num_points,
+                         depth_range_m=cfg.depth_range_m)
+
+
+def _to_chw01(img: np.ndarray) -> np.ndarray:
+    return img.transpose(2, 0, 1).astype(np.float32) / 255.0
+
+
+def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets: tuple[str, ...]) -> CalibrationSet:
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    rng = np.random.default_rng(seed)
+    spec = pose_input_spec(cfg)
+    images, batches = [], []
+    for i in range(frames):
+        preset = presets[i % len(presets)]
+        frame = generate_frame(get_preset(preset), seed, i)
+        images.append(_to_chw01(letterbox(frame.rgb, cfg.detector.input_hw)[0]))
+        boxes = []
+        for gt in frame.pallets:
+            x, y, w, h = (float(v) for v in gt.bbox_visib_xywh)
+            if gt.visib_fract < 0.25 or gt.px_count_valid < 50 or w < 8 or h < 8:
+                continue
+            jitter = rng.normal(0.0, 0.05, 4) * np.array([w, h, w, h])   # detector-like box noise
+            boxes.append(np.array([x, y, x + w, y + h]) + jitter)
+        if boxes:
+            b = prepare_pose_inputs(frame.rgb, frame.depth_m, frame.K, np.array(boxes), spec, rng)
+            batches.append(b.take(np.flatnonzero(b.usable)))
+    if not batches or sum(len(b) for b in batches) == 0:
+        raise RuntimeError("the simulator produced no usable pallet crops for calibration")
+    cat = {k: np.concatenate([getattr(b, k) for b in batches])[:max_crops]
+           for k in ("rgb_crops", "depth_crops", "points", "choose")}
+    return CalibrationSet(np.stack(images), **cat,
+                          source=f"pallet6d.sim presets {list(presets)}, {frames} frames, seed {seed}, "
+                                 f"{len(cat['points'])} ground-truth crops with 5% box jitter")
+
+
+def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int) -> CalibrationSet:
+    """Smooth random images and box-surface points (used only when pallet6d.sim is missing)."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    spec = pose_input_spec(cfg)
+    (H, W), (h, w), n = cfg.detector.input_hw, spec.crop_hw, spec.num_points
+
+    def smooth(shape_hw, c):
+        small = rng.random((max(2, shape_hw[0] // 16), max(2, shape_hw[1] // 16), c)).astype(np.float32)
+        return cv2.resize(small, (shape_hw[1], shape_hw[0]), interpolation=cv2.INTER_CUBIC).reshape(*shape_hw, c)
+
+    images = np.stack([np.clip(smooth((H, W), 3), 0, 1).transpose(2, 0, 1) for _ in range(frames)])
+    p = max_crops
+    mean = np.asarray(spec.rgb_mean, np.float32).reshape(3, 1, 1)
+    std = np.asarray(spec.rgb_std, np.float32).reshape(3, 1, 1)
+    rgb = np.stack([(np.clip(smooth((h, w), 3), 0, 1).transpose(2, 0, 1) - mean) / std for _ in range(p)])
+    depth = np.stack([np.clip(smooth((h, w), 1) * 2 - 1, -1, 1).transpose(2, 0, 1) for _ in range(p)])
+    face = rng.integers(0, 3, (p, n))
+    pts = rng.uniform(-0.5, 0.5, (p, n, 3)) * np.array([1.2, 0.8, 0.144])
+    pts[np.arange(p)[:, None], np.arange(n)[None], face] = 0.5 * np.sign(rng.standard_normal((p, n))) * \
+        np.array([1.2, 0.8, 0.144])[face]
+    choose = rng.integers(0, h * w, (p, n))
+    return CalibrationSet(images.astype(np.float32), rgb.astype(np.float32), depth.astype(np.float32),
+                          pts.astype(np.float32), choose.astype(np.int64),
+                          source=f"synthetic: smooth random images/crops and box-surface points (seed {seed}); "
+                                 "pallet6d.sim was not available")
+
+
+def make_calibration_set(cfg: ModelConfig, frames: int = 8, max_crops: int = 32, seed: int = 0,
+                         presets: tuple[str, ...] = ("virtual-occluded", "indoor-noisy", "virtual-clean")
+                         ) -> CalibrationSet:
+    """Calibration inputs from the simulator, or synthetic ones when it is not installed."""
+    try:
+        import pallet6d.sim.generate  # noqa: F401
+    except ImportError:
+        log.warning("pallet6d.sim is not available: calibrating on synthetic inputs")
+        return _synthetic(cfg, frames, max_crops, seed)
+    return _from_sim(cfg, frames, max_crops, seed, presets)

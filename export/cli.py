@@ -1,0 +1,47 @@
+"""`pallet6d export`: export the networks of a config to an ONNX model bundle."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shlex
+import sys
+
+from .config import CONFIGS, get_config
+
+HELP = "export the detector, fusion and pose networks to an ONNX model bundle (manifest.json + graphs)"
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, choices=sorted(CONFIGS),
+                        help="network variant: paper, edge (2-core CPU), densefusion (no attention), tiny (tests)")
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--checkpoint", help="trained weights: torch.save({'detector':..., 'fusion':..., 'pose':...})")
+    src.add_argument("--random-init", action="store_true", help="export untrained networks (to build/test the runtime)")
+    parser.add_argument("--seed", type=int, default=0, help="seed for initialisation and calibration data")
+    parser.add_argument("--int8", action="store_true", help="also write static int8 (QDQ) graphs")
+    parser.add_argument("--detector-onnx", help="use this YOLOv8 ONNX graph (ultralytics export layout) as detector")
+    parser.add_argument("--classes", help="comma-separated class names of --detector-onnx (default: its metadata)")
+    parser.add_argument("--calib-frames", type=int, default=8, help="simulated frames for calibration (default 8)")
+    parser.add_argument("--name", help="bundle name (default: the output folder's name)")
+    parser.add_argument("--out", required=True, help="output folder (new or empty), e.g. models/edge")
+
+
+def main(args: argparse.Namespace) -> int:
+    from .bundle_export import ExportError, export_bundle
+    from .onnx_io import ParityError
+
+    classes = tuple(c.strip() for c in args.classes.split(",")) if args.classes else None
+    command = "pallet6d export " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
+    try:
+        manifest = export_bundle(get_config(args.config), args.out, seed=args.seed, checkpoint=args.checkpoint,
+                                 random_init=args.random_init, int8=args.int8, detector_onnx=args.detector_onnx,
+                                 classes=classes, name=args.name, command=command, calib_frames=args.calib_frames)
+    except (ExportError, ParityError) as exc:
+        print(f"pallet6d export: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote bundle {args.out} ({manifest['config']}, precision {', '.join(manifest['precision'])})")
+    print(json.dumps(manifest["checks"], indent=1))
+    return 0

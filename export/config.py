@@ -1,0 +1,209 @@
+"""Network configurations: one dataclass per network, one `ModelConfig` per named variant.
+
+Variants (`CONFIGS`):
+
+- ``paper``: the paper's networks. YOLOv8s detector at 384x1216 (fits a 1224x370 frame letterboxed),
+  two ResNet18+PSP branches at full width (DenseFusion's PSPNet: stride 8, dilated layer3/4, PSP
+  pooling 1/2/3/6, three x2 upsampling stages back to the crop), crop 120x120, N=500 points,
+  multi-head self-attention on the fused map (eqs. 1-3) at stride 4 (30x30 = 900 tokens: full-resolution
+  attention over 14400 locations would cost ~53 GFLOP and an 830 MB score matrix per pallet), and on the
+  per-point geometric features (3.1.3).
+- ``edge``: for the forklift's 2 CPU cores. YOLOv8n at 192x640; ResNet18+PSP at half width with a
+  512-channel PSP bottleneck and halved upsampling convs, crop 96x96, N=256, fused-map attention at
+  stride 8 (12x12 tokens); pose MLPs at half width. The paper-sized pose stage is ~30 GFLOP/pallet
+  (~150 ms fp32 on 2 cores); width/2 cuts conv cost ~4x and crop 96 vs 120 another ~1.56x, which puts
+  fusion+pose at a few GFLOP per pallet (measured numbers in the export report / manifest `scores`).
+- ``densefusion``: ``paper`` without any attention block (the paper's ablation baseline).
+- ``tiny``: minimal widths for fast tests (never for deployment).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+__all__ = ["DetectorConfig", "FusionConfig", "PoseConfig", "ModelConfig", "CONFIGS", "get_config",
+           "DETECTOR_SCALES"]
+
+# YOLOv8 (depth multiple, width multiple, max channels) per scale.
+DETECTOR_SCALES: dict[str, tuple[float, float, int]] = {
+    "n": (0.33, 0.25, 1024),
+    "s": (0.33, 0.50, 1024),
+    "m": (0.67, 0.75, 768),
+}
+
+
+def _check_positive(name: str, values) -> None:
+    for v in values if isinstance(values, (tuple, list)) else (values,):
+        if not (isinstance(v, (int, float)) and v > 0):
+            raise ValueError(f"{name} must be positive, got {values}")
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """YOLOv8-style detector.
+
+    :ivar scale: one of DETECTOR_SCALES, or "custom" with `depth_multiple`, `width_multiple` set.
+    :ivar input_hw: letterboxed input (H, W), multiples of 32.
+    """
+
+    scale: str = "n"
+    input_hw: tuple[int, int] = (192, 640)
+    classes: tuple[str, ...] = ("pallet",)
+    reg_max: int = 16
+    depth_multiple: float | None = None
+    width_multiple: float | None = None
+    max_channels: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.scale != "custom" and self.scale not in DETECTOR_SCALES:
+            raise ValueError(f"detector scale {self.scale!r} unknown; use one of {sorted(DETECTOR_SCALES)} or 'custom'")
+        if self.scale == "custom" and (self.depth_multiple is None or self.width_multiple is None):
+            raise ValueError("detector scale 'custom' needs depth_multiple and width_multiple")
+        h, w = self.input_hw
+        if h % 32 or w % 32 or h <= 0 or w <= 0:
+            raise ValueError(f"detector input_hw must be positive multiples of 32 (stride 32), got {self.input_hw}")
+        if not self.classes:
+            raise ValueError("detector needs at least one class")
+        _check_positive("reg_max", self.reg_max)
+
+    @property
+    def multiples(self) -> tuple[float, float, int]:
+        """(depth multiple, width multiple, max channels)."""
+        if self.scale == "custom":
+            return float(self.depth_multiple), float(self.width_multiple), int(self.max_channels or 1024)
+        return DETECTOR_SCALES[self.scale]
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.classes)
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """RGB and depth ResNet18+PSP branches, concatenation (eq. 1), self-attention (eqs. 2-3).
+
+    :ivar crop_hw: crop size fed to the network; multiple of 8 (the backbone's output stride).
+    :ivar resnet_widths: channels of ResNet18's four stages (64, 128, 256, 512 at full width).
+    :ivar psp_out: channels after the PSP bottleneck (DenseFusion: 1024).
+    :ivar up_channels: channels of the three x2 upsampling stages (DenseFusion: 256, 64, 64).
+    :ivar branch_dim: per-modality feature dimension at crop resolution (DenseFusion: 32).
+    :ivar attention: apply multi-head self-attention to the fused map.
+    :ivar attention_stride: attention runs on the fused map average-pooled by this factor, then its
+        output is upsampled and added back (residual), because full-resolution attention is too costly.
+    """
+
+    crop_hw: tuple[int, int] = (120, 120)
+    resnet_widths: tuple[int, int, int, int] = (64, 128, 256, 512)
+    psp_sizes: tuple[int, ...] = (1, 2, 3, 6)
+    psp_out: int = 1024
+    up_channels: tuple[int, int, int] = (256, 64, 64)
+    branch_dim: int = 32
+    attention: bool = True
+    attention_heads: int = 4
+    attention_stride: int = 4
+
+    def __post_init__(self) -> None:
+        h, w = self.crop_hw
+        if h % 8 or w % 8 or h <= 0 or w <= 0:
+            raise ValueError(f"crop_hw must be positive multiples of 8 (backbone stride), got {self.crop_hw}")
+        _check_positive("resnet_widths", self.resnet_widths)
+        _check_positive("up_channels", self.up_channels)
+        _check_positive("psp_sizes", self.psp_sizes)
+        if self.attention:
+            if h % self.attention_stride or w % self.attention_stride:
+                raise ValueError(f"attention_stride {self.attention_stride} must divide crop_hw {self.crop_hw}")
+            if self.feature_dim % self.attention_heads:
+                raise ValueError(f"feature_dim {self.feature_dim} must be divisible by attention_heads "
+                                 f"{self.attention_heads}")
+
+    @property
+    def feature_dim(self) -> int:
+        """Channels of the fused per-pixel feature map (RGB + depth)."""
+        return 2 * self.branch_dim
+
+
+@dataclass(frozen=True)
+class PoseConfig:
+    """DenseFusion's PoseNetFeat + PoseNet heads, with self-attention over per-point features.
+
+    :ivar num_points: N, points sampled per pallet.
+    :ivar point_dims: per-point geometric (and fused-embedding) conv widths (DenseFusion: 64, 128).
+    :ivar global_dims: the two convs before average pooling (DenseFusion: 512, 1024).
+    :ivar head_dims: hidden widths of each head (DenseFusion: 640, 256, 128).
+    """
+
+    num_points: int = 500
+    point_dims: tuple[int, int] = (64, 128)
+    global_dims: tuple[int, int] = (512, 1024)
+    head_dims: tuple[int, int, int] = (640, 256, 128)
+    attention: bool = True
+    attention_heads: int = 4
+
+    def __post_init__(self) -> None:
+        _check_positive("num_points", self.num_points)
+        _check_positive("point_dims", self.point_dims)
+        _check_positive("global_dims", self.global_dims)
+        _check_positive("head_dims", self.head_dims)
+        if self.attention and self.point_dims[1] % self.attention_heads:
+            raise ValueError(f"point_dims[1]={self.point_dims[1]} must be divisible by attention_heads")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """A named variant: detector + fusion + pose, plus the preprocessing they were trained with."""
+
+    name: str
+    detector: DetectorConfig = field(default_factory=DetectorConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    pose: PoseConfig = field(default_factory=PoseConfig)
+    pallet: str = "epal"
+    rgb_mean: tuple[float, float, float] = (0.485, 0.456, 0.406)   # ImageNet, as DenseFusion
+    rgb_std: tuple[float, float, float] = (0.229, 0.224, 0.225)
+    depth_clip_m: float = 1.0        # depth crop = clip(d - median, +-clip) / clip, 0 where no data
+    depth_range_m: tuple[float, float] = (0.1, 10.0)   # valid depth for back-projection
+
+    def replace(self, **changes) -> "ModelConfig":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+CONFIGS: dict[str, ModelConfig] = {
+    "paper": ModelConfig(
+        name="paper",
+        detector=DetectorConfig(scale="s", input_hw=(384, 1216)),
+        fusion=FusionConfig(crop_hw=(120, 120), attention=True, attention_stride=4),
+        pose=PoseConfig(num_points=500, attention=True),
+    ),
+    "edge": ModelConfig(
+        name="edge",
+        detector=DetectorConfig(scale="n", input_hw=(192, 640)),
+        fusion=FusionConfig(crop_hw=(96, 96), resnet_widths=(32, 64, 128, 256), psp_out=512,
+                            up_channels=(128, 64, 32), branch_dim=32, attention=True, attention_stride=8),
+        pose=PoseConfig(num_points=256, point_dims=(64, 128), global_dims=(256, 512), head_dims=(320, 128, 64),
+                        attention=True),
+    ),
+    "densefusion": ModelConfig(
+        name="densefusion",
+        detector=DetectorConfig(scale="s", input_hw=(384, 1216)),
+        fusion=FusionConfig(crop_hw=(120, 120), attention=False),
+        pose=PoseConfig(num_points=500, attention=False),
+    ),
+    "tiny": ModelConfig(
+        name="tiny",
+        detector=DetectorConfig(scale="custom", depth_multiple=0.33, width_multiple=0.0625, max_channels=64,
+                                input_hw=(64, 128)),
+        fusion=FusionConfig(crop_hw=(32, 32), resnet_widths=(8, 8, 16, 16), psp_out=32, up_channels=(16, 8, 8),
+                            branch_dim=8, attention=True, attention_heads=2, attention_stride=8),
+        pose=PoseConfig(num_points=32, point_dims=(16, 16), global_dims=(32, 64), head_dims=(32, 16, 16),
+                        attention=True, attention_heads=2),
+    ),
+}
+
+
+def get_config(name: str) -> ModelConfig:
+    """The named variant (one of CONFIGS)."""
+    if name not in CONFIGS:
+        raise ValueError(f"unknown config {name!r}; choose one of {', '.join(CONFIGS)}")
+    return CONFIGS[name]

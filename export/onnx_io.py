@@ -1,0 +1,99 @@
+"""Torch -> ONNX export of one graph, checked with `onnx.checker`, and torch-vs-onnxruntime parity."""
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+
+__all__ = ["OPSET", "PARITY_TOLERANCE", "ParityError", "export_graph", "check_parity", "compare_outputs", "ort_session",
+           "run_session"]
+
+log = logging.getLogger(__name__)
+
+OPSET = 17
+# Export fails when max |torch - onnxruntime| > PARITY_TOLERANCE * max(1, max |torch|), per output.
+PARITY_TOLERANCE = 1e-4
+
+
+class ParityError(RuntimeError):
+    """The exported graph does not reproduce the torch model within PARITY_TOLERANCE."""
+
+
+def export_graph(model: torch.nn.Module, args: tuple[torch.Tensor, ...], path: Path, input_names: list[str],
+                 output_names: list[str], dynamic_axes: dict[str, dict[int, str]] | None = None) -> Path:
+    """Export `model(*args)` in eval mode with the TorchScript exporter (dynamo=False), check it, return the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model.eval()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")  # the TorchScript exporter's deprecation and tracer warnings
+        torch.onnx.export(model, args, str(path), input_names=input_names, output_names=output_names,
+                          dynamic_axes=dynamic_axes or {}, opset_version=OPSET, do_constant_folding=True, dynamo=False)
+    onnx.checker.check_model(onnx.load(str(path)), full_check=True)
+    log.info("exported %s (%.1f MB)", path.name, path.stat().st_size / 1e6)
+    return path
+
+
+def ort_session(path: Path, threads: int = 2) -> ort.InferenceSession:
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.log_severity_level = 3
+    return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+
+
+def run_session(sess: ort.InferenceSession, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    names = [o.name for o in sess.get_outputs()]
+    return dict(zip(names, sess.run(names, feeds)))
+
+
+@dataclass(frozen=True)
+class OutputDiff:
+    max_abs: float
+    ref_max_abs: float
+    rel_rms: float
+    corr: float
+
+    def to_dict(self) -> dict:
+        return {k: float(round(v, 7)) for k, v in self.__dict__.items()}
+
+
+def compare_outputs(ref: np.ndarray, test: np.ndarray) -> OutputDiff:
+    """Differences of `test` from `ref` (same shape): max abs, max |ref|, rms(diff)/rms(ref), Pearson r."""
+    ref = np.asarray(ref, np.float64).ravel()
+    test = np.asarray(test, np.float64).ravel()
+    if ref.shape != test.shape:
+        raise ValueError(f"outputs differ in size: {ref.shape} vs {test.shape}")
+    diff = test - ref
+    rms_ref = float(np.sqrt(np.mean(ref ** 2))) or 1.0
+    corr = float(np.corrcoef(ref, test)[0, 1]) if ref.std() > 0 and test.std() > 0 else float(np.allclose(ref, test))
+    return OutputDiff(float(np.abs(diff).max()), float(np.abs(ref).max()), float(np.sqrt(np.mean(diff ** 2)) / rms_ref),
+                      corr)
+
+
+def check_parity(model: torch.nn.Module, args: tuple[torch.Tensor, ...], path: Path, input_names: list[str],
+                 output_names: list[str], tolerance: float = PARITY_TOLERANCE) -> dict:
+    """Run torch and onnxruntime on the same inputs; raise ParityError above `tolerance` (relative to max |ref|).
+
+    :return: {output name: OutputDiff dict, "tolerance": ...}.
+    """
+    model.eval()
+    with torch.no_grad():
+        ref = model(*args)
+    ref = (ref,) if isinstance(ref, torch.Tensor) else tuple(ref)
+    got = run_session(ort_session(path), {n: a.numpy() for n, a in zip(input_names, args)})
+    report: dict = {"tolerance_rel_max": tolerance}
+    for name, r in zip(output_names, ref):
+        d = compare_outputs(r.numpy(), got[name])
+        report[name] = d.to_dict()
+        limit = tolerance * max(1.0, d.ref_max_abs)
+        if not d.max_abs <= limit:
+            raise ParityError(f"{path.name}: output {name!r} differs from torch by {d.max_abs:.3g} "
+                              f"(limit {limit:.3g}); the ONNX graph does not reproduce the model")
+    return report
