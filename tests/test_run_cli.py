@@ -1,0 +1,40 @@
+import json
+
+import cv2
+import pytest
+
+from pallet6d.runtime.cli import main
+
+from conftest_runtime_bundle import make_tiny_bundle
+
+
+@pytest.fixture(scope="session")
+def bundle_dir(tmp_path_factory):
+    return make_tiny_bundle(tmp_path_factory)
+
+
+@pytest.fixture(scope="module")
+def bop_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bop")
+    assert main(["sim", "--preset", "virtual-clean", "--frames", "2", "--seed", "3", "--out", str(out)]) == 0
+    return out
+
+
+def test_run_on_bop_prints_json_lines_ground_truth_and_overlays(bundle_dir, bop_dir, tmp_path, capsys):
+    rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
+               "--score-threshold", "0", "--min-fit", "0", "--out", str(tmp_path / "ov"), "--max-frames", "2"])
+    assert rc == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    frames, summary = lines[:-1], lines[-1]
+    assert [f["frame"] for f in frames] == [0, 1]
+    for f in frames:
+        assert f["image_hw"] == [370, 1224] and "total" in f["timings_ms"] and len(f["poses"]) >= 1
+        assert f["gt"] and all({"add_m", "add_sym_m", "detected"} <= set(g) for g in f["gt"])
+    assert summary["summary"]["frames"] == 2 and summary["summary"]["n_gt"] == sum(len(f["gt"]) for f in frames)
+    pngs = sorted((tmp_path / "ov").glob("*.png"))
+    assert len(pngs) == 2 and cv2.imread(str(pngs[0])).shape == (370, 1224, 3)
+
+
+def test_run_with_a_missing_bundle_fails_clearly(tmp_path, capsys):
+    rc = main(["run", "--source", f"bop:{tmp_path}", "--bundle", str(tmp_path / "nope")])
+    assert rc == 2 and "cannot load bundle" in capsys.readouterr().err
