@@ -82,7 +82,8 @@ def _free_space_violation(model_cam: np.ndarray, depth_m: np.ndarray, K: np.ndar
     u, v, z = u[inside], v[inside], mc[inside, 2]
     cell = (v // cell_px) * ((w + cell_px - 1) // cell_px) + u // cell_px
     z_near = np.full(int(cell.max()) + 1, np.inf)
-    np.minimum.at(z_near, cell, z)
+    far_first = np.argsort(-z, kind="stable")
+    z_near[cell[far_first]] = z[far_first]      # fancy assignment: the last (nearest) write wins
     d_obs = depth_m[v, u]
     use = (z <= z_near[cell] + tol_m) & (d_obs > 0)
     if not np.any(use):

@@ -1,0 +1,179 @@
+"""Latency of the runtime per stage and end to end, on this machine's cores (never run by the tests).
+
+For each bundle x precision (fp32, int8) x threads (1, 2) x pallets (1, 4): `--frames` frames of a
+1224x370 synthetic warehouse scene; the detector runs on the whole frame, and the pose stage gets
+exactly P pallets (the scene's P most visible ground-truth boxes, so the count does not depend on a
+random-init detector). Reports p50/p95/p99 in milliseconds per stage and end to end, the same
+networks in torch eager (built from `pallet6d.export` with the bundle's config) for the ratio, and
+peak RSS and import time of the runtime in a fresh subprocess.
+
+    .venv/bin/python benchmarks/latency.py --bundle /tmp/bundles/edge --bundle /tmp/bundles/paper --frames 200
+
+Writes benchmarks/results/latency.json and latency.md.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "fit", "total")
+
+
+def _pct(values: list[float]) -> dict:
+    a = np.asarray(values)
+    return {"p50": float(np.percentile(a, 50)), "p95": float(np.percentile(a, 95)), "p99": float(np.percentile(a, 99))}
+
+
+def _scene():
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    frame = generate_frame(get_preset("virtual-clean"), seed=0)
+    boxes = []
+    for p in sorted(frame.pallets, key=lambda p: -p.visib_fract):
+        x, y, w, h = p.bbox_visib_xywh
+        boxes.append([x, y, x + w, y + h])
+    return frame, np.array(boxes, float)
+
+
+def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes) -> dict:
+    from pallet6d.runtime.detector import Detections
+    from pallet6d.runtime.estimator import PalletEstimator
+
+    est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0)
+    det = Detections(boxes[:pallets], np.linspace(0.9, 0.5, pallets), np.zeros(pallets, np.int64))
+    samples: dict[str, list[float]] = {s: [] for s in STAGES}
+    for i in range(frames + 5):
+        t0 = time.perf_counter()
+        rgb, depth_m, K = est._inputs(frame.rgb, frame.depth_m, frame.K, None)
+        timings: dict[str, float] = {}
+        est._detect(rgb, timings)   # the detector runs on the frame; its (random) boxes are replaced below
+        r = est._estimate_from_detections(rgb, depth_m, K, det, timings, t0)
+        if i >= 5:  # warm-up
+            for s in STAGES:
+                samples[s].append(r.timings_ms[s])
+    return {s: _pct(v) for s, v in samples.items()}
+
+
+def bench_torch(config: str, threads: int, pallets: int, frames: int) -> dict:
+    """The same three networks in torch eager (random weights, same shapes): p50/p95/p99 of their sum."""
+    import torch
+
+    from pallet6d.export.config import get_config
+    from pallet6d.export.detector import build_detector
+    from pallet6d.export.fusion import build_fusion
+    from pallet6d.export.pose import build_pose
+
+    torch.set_num_threads(threads)
+    cfg = get_config(config)
+    nets = [build_detector(cfg.detector).eval(), build_fusion(cfg.fusion).eval(),
+            build_pose(cfg.pose, cfg.fusion.feature_dim).eval()]
+    h, w = cfg.detector.input_hw
+    ch, cw = cfg.fusion.crop_hw
+    n, c = cfg.pose.num_points, cfg.fusion.feature_dim
+    x_det = torch.zeros(1, 3, h, w)
+    x_rgb, x_d = torch.randn(pallets, 3, ch, cw), torch.randn(pallets, 1, ch, cw)
+    x_pts, x_feat = torch.randn(pallets, n, 3) * 0.3, torch.randn(pallets, n, c)
+    out = []
+    with torch.inference_mode():
+        for i in range(frames + 3):
+            t = time.perf_counter()
+            nets[0](x_det)
+            nets[1](x_rgb, x_d)
+            nets[2](x_pts, x_feat)
+            if i >= 3:
+                out.append((time.perf_counter() - t) * 1000)
+    return _pct(out)
+
+
+_FOOTPRINT = """
+import resource, sys, time
+t = time.perf_counter()
+import numpy as np
+from pallet6d.runtime.estimator import PalletEstimator
+import_s = time.perf_counter() - t
+est = PalletEstimator.from_bundle(sys.argv[1], threads=2, precision=sys.argv[2])
+rng = np.random.default_rng(0)
+rgb = rng.integers(0, 255, (370, 1224, 3), dtype=np.uint8)
+depth = rng.uniform(1, 5, (370, 1224)).astype(np.float32)
+K = np.array([[700.0, 0, 612], [0, 700, 185], [0, 0, 1]])
+for _ in range(3):
+    est.estimate(rgb, depth, K)
+print(import_s, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "torch" in sys.modules)
+"""
+
+
+def footprint(bundle: str, precision: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", _FOOTPRINT, bundle, precision], capture_output=True, text=True,
+                         check=True)
+    import_s, rss_mb, torch_loaded = out.stdout.split()
+    return {"import_s": float(import_s), "peak_rss_mb": float(rss_mb), "torch_loaded": torch_loaded == "True"}
+
+
+def _markdown(results: list[dict], footprints: dict) -> str:
+    lines = ["# Runtime latency (ms, 1224x370, this machine)", "",
+             "| bundle | precision | threads | pallets | " + " | ".join(f"{s} p50" for s in STAGES[:-1])
+             + " | total p50 | total p95 | total p99 | torch eager nets p50 | onnx nets p50 | torch/onnx |",
+             "|" + "---|" * (4 + len(STAGES) - 1 + 6)]
+    for r in results:
+        s = r["stages"]
+        nets = s["detector"]["p50"] + s["fusion"]["p50"] + s["pose"]["p50"]
+        t = r.get("torch_eager_nets")
+        lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r['pallets']} | "
+                     + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
+                     + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
+                     + (f"{t['p50']:.1f} | {nets:.1f} | {t['p50'] / nets:.2f} |" if t else f"- | {nets:.1f} | - |"))
+    lines += ["", "| bundle | precision | import (s) | peak RSS (MB) | torch loaded |", "|---|---|---|---|---|"]
+    for key, f in footprints.items():
+        b, p = key.split("|")
+        lines.append(f"| {b} | {p} | {f['import_s']:.3f} | {f['peak_rss_mb']:.0f} | {f['torch_loaded']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--bundle", action="append", required=True, help="bundle folder (repeatable)")
+    ap.add_argument("--frames", type=int, default=200)
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--pallets", type=int, nargs="+", default=[1, 4])
+    ap.add_argument("--precision", nargs="+", default=["fp32", "int8"])
+    ap.add_argument("--no-torch", action="store_true", help="skip the torch eager comparison")
+    ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    args = ap.parse_args()
+
+    from pallet6d.runtime.bundle import load_bundle
+
+    frame, boxes = _scene()
+    results, footprints = [], {}
+    for bundle in args.bundle:
+        b = load_bundle(bundle)
+        for precision in args.precision:
+            if precision not in b.precision:
+                print(f"{b.name}: no {precision} graphs, skipped", flush=True)
+                continue
+            footprints[f"{b.config}|{precision}"] = footprint(bundle, precision)
+            for threads in args.threads:
+                for pallets in args.pallets:
+                    stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes)
+                    r = {"bundle": b.config, "precision": precision, "threads": threads, "pallets": pallets,
+                         "frames": args.frames, "stages": stages}
+                    if not args.no_torch and precision == "fp32":
+                        r["torch_eager_nets"] = bench_torch(b.config, threads, pallets, max(20, args.frames // 4))
+                    results.append(r)
+                    print(json.dumps({k: v for k, v in r.items() if k != "stages"} |
+                                     {"total_p50": stages["total"]["p50"]}), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "latency.json").write_text(json.dumps({"results": results, "footprint": footprints}, indent=1))
+    (args.out / "latency.md").write_text(_markdown(results, footprints))
+    print(_markdown(results, footprints))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
