@@ -230,8 +230,9 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         pose_feeds = [{"points": p, "features": f} for p, f in _batches([calib.points, point_feats], 4)]
         split = {"detector": n_img, "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
         feeds = {"detector": det_feeds, "fusion": fus_feeds, "pose": pose_feeds}
-        # the detector's box decoding and the pose net's first (metric point) layer stay float
-        exclude = {"detector": ("/head/dfl/",), "fusion": (), "pose": ("/conv1/Conv",)}
+        # the detector's last box/class convs (their logits feed the DFL softmax / sigmoid directly) and the
+        # pose net's first layer (metric points in, 5 mm steps if quantized) stay float: cheap, and precise
+        exclude = {"detector": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv"), "fusion": (), "pose": ("/conv1/Conv",)}
         checks["int8"] = {}
         for stage in ("detector", "fusion", "pose"):
             cal, held = feeds[stage][:split[stage]], feeds[stage][split[stage]:] or feeds[stage][-1:]

@@ -107,9 +107,11 @@ def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int) -> Cali
 
 
 def make_calibration_set(cfg: ModelConfig, frames: int = 8, max_crops: int = 32, seed: int = 0,
-                         presets: tuple[str, ...] = ("virtual-occluded", "indoor-noisy", "virtual-clean")
-                         ) -> CalibrationSet:
-    """Calibration inputs from the simulator, or synthetic ones when it is not installed."""
+                         presets: tuple[str, ...] = ("virtual-occluded", "indoor-noisy", "virtual-clean"),
+                         synthetic: bool = False) -> CalibrationSet:
+    """Calibration inputs from the simulator, or synthetic ones when it is not installed or `synthetic`."""
+    if synthetic:
+        return _synthetic(cfg, frames, max_crops, seed)
     try:
         import pallet6d.sim.generate  # noqa: F401
     except ImportError:
