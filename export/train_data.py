@@ -1,0 +1,376 @@
+"""Training data: BOP datasets -> detector samples and pose samples, with domain randomisation and caching.
+
+Pose samples go through the runtime's own `prepare_pose_inputs` (crop, depth encoding, mask-free pixel
+selection, sampling, back-projection, centring), fed with ground-truth visible boxes jittered like a
+detector's boxes, so training sees exactly what the forklift will see. Each pallet is prepared `variants`
+times (different augmentation, box jitter and point sampling) and the result cached in one `.npz` per
+dataset + config, keyed by a fingerprint of the data and of every preprocessing setting; epochs then only
+read arrays, which keeps CPU training cheap.
+
+Targets: the network predicts, per centred point p_i, a rotation and an offset; the runtime's pose is
+``t = centre + p_i + trans_i``. The loss therefore compares against the ground truth expressed in the
+centred frame: ``T_gt_centred = T_cam_pallet`` with ``centre`` subtracted from its translation.
+
+Detector samples are letterboxed to the config's input size once (cached as uint8 with the boxes in input
+pixels); flips, HSV jitter, blur and noise are applied per epoch.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+
+from pallet6d.runtime.bop import BopDataset
+from pallet6d.runtime.detector import letterbox
+from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
+
+__all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
+           "augment_rgb", "augment_depth", "flip_horizontal", "build_pose_samples", "build_detector_samples",
+           "load_or_build", "model_points_for", "MIN_VISIB_FRACT", "CACHE_VERSION"]
+
+log = logging.getLogger(__name__)
+
+MIN_VISIB_FRACT = 0.1     # the evaluation's convention: less visible pallets are neither trained on nor scored
+CACHE_VERSION = 1         # bump when the cached arrays' meaning changes
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Domain randomisation strengths (0 disables a term).
+
+    :ivar box_scale_sigma: relative std of box width/height jitter (detector-like boxes).
+    :ivar box_shift_sigma: std of box centre shift, as a fraction of the box size.
+    :ivar hsv_gain: (hue, saturation, value) max relative gains (YOLOv8: 0.015, 0.7, 0.4).
+    :ivar blur_prob: probability of a Gaussian blur. :ivar rgb_noise_sigma: max Gaussian noise std in [0, 255].
+    :ivar depth_dropout_prob: probability of dropping random rectangles of depth (stereo holes).
+    :ivar depth_noise_sigma_m: depth noise std at 1 m; grows with z^2 like stereo depth.
+    :ivar flip_prob: probability of a horizontal flip (detector only: the pose stage needs true geometry).
+    """
+
+    box_scale_sigma: float = 0.08
+    box_shift_sigma: float = 0.05
+    hsv_gain: tuple[float, float, float] = (0.015, 0.5, 0.4)
+    blur_prob: float = 0.2
+    rgb_noise_sigma: float = 6.0
+    depth_dropout_prob: float = 0.5
+    depth_noise_sigma_m: float = 0.004
+    flip_prob: float = 0.5
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+NO_AUGMENT = AugmentConfig(0.0, 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+# --------------------------------------------------------------------------------------- fingerprints
+
+
+def dataset_fingerprint(root: str | Path) -> dict:
+    """What a dataset is, for provenance and cache keys: path, frame count, sim presets/seeds if recorded,
+    and a sha256 over its annotation files (scene_gt / scene_camera / scene_gt_info).
+
+    :raises ValueError: not a BOP dataset.
+    """
+    root = Path(root)
+    ds = BopDataset(root)
+    h = hashlib.sha256()
+    for f in sorted((root / ds.split).glob("*/scene_*.json")):
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(f.read_bytes())
+    sims = []
+    for f in sorted((root / ds.split).glob("sim_config_*.json")):
+        try:
+            meta = json.loads(f.read_text())
+            sims.append({"preset": meta.get("config", {}).get("name"), "seed": meta.get("seed"),
+                         "start": meta.get("start"), "frames": meta.get("frames"),
+                         "size": [meta.get("config", {}).get("width"), meta.get("config", {}).get("height")]})
+        except (OSError, ValueError, AttributeError):
+            log.warning("%s: unreadable sim config, not recorded", f)
+    return {"path": str(root.resolve()), "split": ds.split, "frames": len(ds), "sim": sims,
+            "annotations_sha256": h.hexdigest()}
+
+
+def _key(*parts) -> str:
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------------------- augmentation
+
+
+def jitter_box(box_xyxy: np.ndarray, rng: np.random.Generator, scale_sigma: float, shift_sigma: float) -> np.ndarray:
+    """A detector-like box: scale and shift noise relative to the box size.
+
+    :param box_xyxy: (4,) pixels. :return: (4,) float64 pixels (not clamped; the pose inputs clamp).
+    """
+    x1, y1, x2, y2 = (float(v) for v in box_xyxy)
+    w, h = x2 - x1, y2 - y1
+    cx = (x1 + x2) / 2 + rng.normal(0.0, shift_sigma) * w
+    cy = (y1 + y2) / 2 + rng.normal(0.0, shift_sigma) * h
+    w *= float(np.clip(1.0 + rng.normal(0.0, scale_sigma), 0.7, 1.4))
+    h *= float(np.clip(1.0 + rng.normal(0.0, scale_sigma), 0.7, 1.4))
+    return np.array([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2])
+
+
+def augment_rgb(rgb: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -> np.ndarray:
+    """HSV gains, optional blur, Gaussian noise. :param rgb: (H, W, 3) uint8 RGB. :return: a new uint8 image."""
+    out = rgb
+    hg, sg, vg = aug.hsv_gain
+    if hg or sg or vg:
+        gains = 1.0 + rng.uniform(-1, 1, 3) * np.array([hg, sg, vg])
+        hsv = cv2.cvtColor(rgb, cv2.COLOR_RGB2HSV).astype(np.float32)
+        hsv[..., 0] = (hsv[..., 0] * gains[0]) % 180.0
+        hsv[..., 1:] *= gains[1:]
+        out = cv2.cvtColor(np.clip(hsv, 0, 255).astype(np.uint8), cv2.COLOR_HSV2RGB)
+    if aug.blur_prob and rng.random() < aug.blur_prob:
+        k = int(rng.choice([3, 5]))
+        out = cv2.GaussianBlur(out, (k, k), 0)
+    if aug.rgb_noise_sigma:
+        sigma = rng.uniform(0.0, aug.rgb_noise_sigma)
+        out = np.clip(out.astype(np.float32) + rng.normal(0.0, sigma, out.shape), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(out)
+
+
+def augment_depth(depth_m: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -> np.ndarray:
+    """Stereo-like depth noise (std grows with z^2) and dropped rectangles.
+
+    :param depth_m: (H, W) float metres, 0 = no data. :return: a new float32 array, 0 stays 0.
+    """
+    d = depth_m.astype(np.float32, copy=True)
+    valid = d > 0
+    if aug.depth_noise_sigma_m:
+        d[valid] += (rng.normal(0.0, 1.0, int(valid.sum())) * aug.depth_noise_sigma_m * d[valid] ** 2).astype(np.float32)
+        d[valid & (d <= 0)] = 0.0
+    if aug.depth_dropout_prob and rng.random() < aug.depth_dropout_prob:
+        h, w = d.shape
+        for _ in range(int(rng.integers(1, 6))):
+            rh, rw = int(rng.integers(2, max(3, h // 6))), int(rng.integers(2, max(3, w // 10)))
+            y, x = int(rng.integers(0, max(1, h - rh))), int(rng.integers(0, max(1, w - rw)))
+            d[y:y + rh, x:x + rw] = 0.0
+    return d
+
+
+def flip_horizontal(image: np.ndarray, boxes_xyxy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mirror an image left-right and its boxes with it.
+
+    :param image: (H, W, C) or (C, H, W)? no: (H, W, 3). :param boxes_xyxy: (n, 4) pixels.
+    :return: the flipped image and (n, 4) boxes, still x1 < x2.
+    """
+    w = image.shape[1]
+    boxes = np.asarray(boxes_xyxy, dtype=np.float32).reshape(-1, 4).copy()
+    boxes[:, [0, 2]] = w - boxes[:, [2, 0]]
+    return np.ascontiguousarray(image[:, ::-1]), boxes
+
+
+# ------------------------------------------------------------------------------------------- models
+
+
+def model_points_for(ds: BopDataset, obj_id: int, n: int, fallback: str) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) float32 pallet-frame surface points (metres) and (S, 4, 4) symmetries of a dataset's object.
+
+    The sim writes each model's name into models_info.json; other datasets fall back to `fallback`.
+    """
+    from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
+
+    name = ds.models_info.get(int(obj_id), {}).get("name")
+    if name not in PALLET_MODELS:
+        log.warning("%s: obj_id %s has no known pallet name; using the %r model", ds.root, obj_id, fallback)
+        name = fallback
+    model = get_pallet_model(name)
+    return model.surface_points(n, seed=0).astype(np.float32), np.asarray(model.symmetries, np.float64)
+
+
+# --------------------------------------------------------------------------------------- pose samples
+
+
+@dataclass(frozen=True)
+class PoseSamples:
+    """P prepared pallet crops (one per pallet per variant).
+
+    :ivar rgb_crops: (P, 3, h, w) float32. :ivar depth_crops: (P, 1, h, w) float32.
+    :ivar points: (P, N, 3) float32 centred camera-frame points, metres. :ivar choose: (P, N) int64.
+    :ivar T_gt: (P, 4, 4) float32 ground truth in the centred camera frame (translation minus centre).
+    :ivar obj_id: (P,) int64. :ivar frame: (P,) int64 frame index in its dataset (for splits).
+    :ivar variant: (P,) int64 augmentation variant. :ivar distance_m: (P,) float32 GT distance.
+    """
+
+    rgb_crops: np.ndarray
+    depth_crops: np.ndarray
+    points: np.ndarray
+    choose: np.ndarray
+    T_gt: np.ndarray
+    obj_id: np.ndarray
+    frame: np.ndarray
+    variant: np.ndarray
+    distance_m: np.ndarray
+
+    def __post_init__(self) -> None:
+        p = len(self.obj_id)
+        n = self.points.shape[1] if self.points.ndim == 3 else -1
+        for name, shape in (("rgb_crops", (p, 3)), ("depth_crops", (p, 1)), ("points", (p, n, 3)),
+                            ("choose", (p, n)), ("T_gt", (p, 4, 4)), ("frame", (p,)), ("variant", (p,)),
+                            ("distance_m", (p,))):
+            arr = getattr(self, name)
+            if arr.shape[:len(shape)] != shape:
+                raise ValueError(f"PoseSamples.{name}: expected leading shape {shape}, got {arr.shape}")
+
+    def __len__(self) -> int:
+        return len(self.obj_id)
+
+    def take(self, idx: np.ndarray) -> "PoseSamples":
+        return PoseSamples(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
+
+    @staticmethod
+    def concat(parts: Sequence["PoseSamples"]) -> "PoseSamples":
+        if not parts:
+            raise ValueError("no pose samples to concatenate")
+        return PoseSamples(*(np.concatenate([getattr(p, f) for p in parts]) for f in PoseSamples.__dataclass_fields__))
+
+
+def build_pose_samples(root: str | Path, spec: PoseInputSpec, variants: int, seed: int, aug: AugmentConfig,
+                       min_points: int = 50, max_frames: int | None = None,
+                       progress: Callable[[int], None] | None = None) -> PoseSamples:
+    """Prepare every usable pallet (visible >= 10 %, >= `min_points` valid depth pixels) `variants` times.
+
+    Variant v of frame i uses `np.random.default_rng((seed, i, v))`: reproducible frame by frame.
+    :raises ValueError: no usable pallet in the dataset.
+    """
+    if variants < 1:
+        raise ValueError(f"variants must be >= 1, got {variants}")
+    ds = BopDataset(root)
+    n_frames = len(ds) if max_frames is None else min(len(ds), max_frames)
+    rows: list[tuple] = []
+    for i in range(n_frames):
+        f = ds[i]
+        gts = [g for g in f.gts if g.bbox_visib_xywh is not None and not np.isnan(g.visib_fract)
+               and g.visib_fract >= MIN_VISIB_FRACT and g.bbox_visib_xywh[2] >= 2 and g.bbox_visib_xywh[3] >= 2]
+        for v in range(variants):
+            if not gts:
+                break
+            rng = np.random.default_rng((seed, i, v))
+            augment = v > 0 or variants == 1   # variant 0 is the clean view when there are several
+            rgb = augment_rgb(f.rgb, rng, aug) if augment else f.rgb
+            depth = augment_depth(f.depth_m, rng, aug) if augment else f.depth_m
+            boxes = []
+            for g in gts:
+                x, y, w, h = (float(c) for c in g.bbox_visib_xywh)
+                box = np.array([x, y, x + w, y + h])
+                boxes.append(jitter_box(box, rng, aug.box_scale_sigma, aug.box_shift_sigma) if augment else box)
+            batch = prepare_pose_inputs(rgb, depth, f.K, np.array(boxes), spec, rng)
+            for k, g in enumerate(gts):
+                if batch.n_valid[k] < min_points:
+                    continue
+                T = g.T_cam_model.copy()
+                T[:3, 3] -= batch.centres[k]
+                rows.append((batch.rgb_crops[k], batch.depth_crops[k], batch.points[k], batch.choose[k],
+                             T.astype(np.float32), g.obj_id, i, v, np.linalg.norm(g.T_cam_model[:3, 3])))
+        if progress is not None:
+            progress(1)
+    if not rows:
+        raise ValueError(f"{root}: no usable pallet (visible >= {MIN_VISIB_FRACT:.0%} with >= {min_points} valid "
+                         "depth pixels) in its frames; check the dataset's scene_gt_info.json and depth images")
+    cols = list(zip(*rows))
+    return PoseSamples(np.stack(cols[0]), np.stack(cols[1]), np.stack(cols[2]), np.stack(cols[3]), np.stack(cols[4]),
+                       np.asarray(cols[5], np.int64), np.asarray(cols[6], np.int64), np.asarray(cols[7], np.int64),
+                       np.asarray(cols[8], np.float32))
+
+
+# ----------------------------------------------------------------------------------- detector samples
+
+
+@dataclass(frozen=True)
+class DetectorSamples:
+    """F letterboxed frames.
+
+    :ivar images: (F, H, W, 3) uint8 letterboxed RGB.
+    :ivar boxes: (F,) object array of (n_i, 4) float32 xyxy boxes in input pixels.
+    :ivar frame: (F,) int64 frame index in its dataset.
+    """
+
+    images: np.ndarray
+    boxes: np.ndarray
+    frame: np.ndarray
+
+    def __post_init__(self) -> None:
+        f = len(self.frame)
+        if self.images.ndim != 4 or self.images.shape[0] != f or self.images.shape[3] != 3 or len(self.boxes) != f:
+            raise ValueError(f"DetectorSamples: expected images (F, H, W, 3), boxes (F,), frame (F,), got "
+                             f"{self.images.shape}, {self.boxes.shape}, {self.frame.shape}")
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def take(self, idx: np.ndarray) -> "DetectorSamples":
+        return DetectorSamples(self.images[idx], self.boxes[idx], self.frame[idx])
+
+    @staticmethod
+    def concat(parts: Sequence["DetectorSamples"]) -> "DetectorSamples":
+        if not parts:
+            raise ValueError("no detector samples to concatenate")
+        boxes = np.empty(sum(len(p) for p in parts), dtype=object)
+        boxes[:] = [b for p in parts for b in p.boxes]
+        return DetectorSamples(np.concatenate([p.images for p in parts]), boxes,
+                               np.concatenate([p.frame for p in parts]))
+
+
+def build_detector_samples(root: str | Path, input_hw: tuple[int, int], max_frames: int | None = None,
+                           progress: Callable[[int], None] | None = None) -> DetectorSamples:
+    """Letterbox every frame; boxes = visible boxes of pallets visible >= 10 %, in input pixels."""
+    ds = BopDataset(root)
+    n_frames = len(ds) if max_frames is None else min(len(ds), max_frames)
+    images = np.empty((n_frames, *input_hw, 3), np.uint8)
+    boxes = np.empty(n_frames, dtype=object)
+    for i in range(n_frames):
+        f = ds[i]
+        img, lb = letterbox(f.rgb, input_hw)
+        images[i] = img
+        bs = [g.bbox_visib_xywh.astype(np.float64) for g in f.gts if g.bbox_visib_xywh is not None
+              and not np.isnan(g.visib_fract) and g.visib_fract >= MIN_VISIB_FRACT
+              and g.bbox_visib_xywh[2] > 0 and g.bbox_visib_xywh[3] > 0]
+        b = np.array([[x, y, x + w, y + h] for x, y, w, h in bs], np.float64).reshape(-1, 4)
+        b[:, [0, 2]] = b[:, [0, 2]] * lb.scale_x + lb.pad_x
+        b[:, [1, 3]] = b[:, [1, 3]] * lb.scale_y + lb.pad_y
+        boxes[i] = b.astype(np.float32)
+        if progress is not None:
+            progress(1)
+    return DetectorSamples(images, boxes, np.arange(n_frames, dtype=np.int64))
+
+
+# --------------------------------------------------------------------------------------------- cache
+
+
+def load_or_build(kind: str, root: str | Path, settings: dict, cache_dir: str | Path | None,
+                  build: Callable[[], PoseSamples | DetectorSamples]):
+    """Read `cache_dir/<kind>_<dataset>_<key>.npz` when its key matches the dataset fingerprint and
+    `settings`; otherwise build the samples and write the cache. `cache_dir=None` disables caching.
+
+    :return: (samples, fingerprint dict of the dataset).
+    """
+    fp = dataset_fingerprint(root)
+    key = _key(CACHE_VERSION, kind, fp, settings)
+    cls = PoseSamples if kind == "pose" else DetectorSamples
+    path = None
+    if cache_dir is not None:
+        path = Path(cache_dir) / f"{kind}_{Path(root).resolve().name}_{key}.npz"
+        if path.exists():
+            try:
+                with np.load(path, allow_pickle=(kind == "detector")) as z:
+                    if str(z["_key"]) == key:
+                        log.info("cache hit: %s", path)
+                        return cls(*(z[f] for f in cls.__dataclass_fields__)), fp
+            except (OSError, KeyError, ValueError) as exc:
+                log.warning("ignoring unreadable cache %s: %s", path, exc)
+    samples = build()
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, _key=np.array(key), **{f: getattr(samples, f) for f in cls.__dataclass_fields__})
+        tmp.replace(path)
+        log.info("cached %d %s samples in %s", len(samples), kind, path)
+    return samples, fp

@@ -1,0 +1,212 @@
+"""Export side: network shapes per config, losses, ONNX export parity, int8, external detectors, FLOP count."""
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from pallet6d.export.bundle_export import ExportError, export_bundle
+from pallet6d.export.calib_data import make_calibration_set
+from pallet6d.export.config import CONFIGS, DetectorConfig, FusionConfig, PoseConfig, get_config
+from pallet6d.export.detector import build_detector
+from pallet6d.export.flops import count_gflops
+from pallet6d.export.fusion import build_fusion
+from pallet6d.export.losses import DetectorLoss, pose_loss
+from pallet6d.export.onnx_io import export_graph
+from pallet6d.export.pose import build_pose
+from pallet6d.runtime.bundle import check_bundle, load_bundle
+from pallet6d.sim.pallets import get_pallet_model
+
+
+def shrink(cfg):
+    """Same structure (attention on/off, strides, crop, N) at tiny widths."""
+    f, p = cfg.fusion, cfg.pose
+    return cfg.replace(
+        detector=DetectorConfig(scale="custom", depth_multiple=0.33, width_multiple=0.0625, max_channels=64,
+                                input_hw=(64, 96)),
+        fusion=dataclasses.replace(f, resnet_widths=(8, 8, 16, 16), psp_out=16, up_channels=(8, 8, 8), branch_dim=4,
+                                   attention_heads=2),
+        pose=dataclasses.replace(p, point_dims=(8, 8), global_dims=(16, 16), head_dims=(16, 8, 8), attention_heads=2))
+
+
+@pytest.mark.parametrize("name", ["paper", "edge", "densefusion"])
+def test_forward_shapes_per_config(name):
+    torch.manual_seed(0)
+    cfg = shrink(get_config(name))
+    det, fus, pose = build_detector(cfg.detector).eval(), build_fusion(cfg.fusion).eval(), \
+        build_pose(cfg.pose, cfg.fusion.feature_dim).eval()
+    h, w = cfg.fusion.crop_hw
+    n = cfg.pose.num_points
+    with torch.no_grad():
+        out = det(torch.rand(1, 3, 64, 96))
+        feats = fus(torch.randn(2, 3, h, w), torch.randn(2, 1, h, w))
+        quat, trans, conf = pose(torch.randn(2, n, 3) * 0.3, torch.randn(2, n, cfg.fusion.feature_dim))
+    assert out.shape == (1, 5, (8 * 12) + (4 * 6) + (2 * 3))
+    assert (out[:, 4] >= 0).all() and (out[:, 4] <= 1).all() and (out[:, 2:4] > 0).all()
+    assert feats.shape == (2, 2 * 4, h, w)
+    assert quat.shape == (2, n, 4) and trans.shape == (2, n, 3) and conf.shape == (2, n)
+    torch.testing.assert_close(quat.norm(dim=-1), torch.ones(2, n))
+    assert ((conf > 0) & (conf < 1)).all()
+    assert (fus.attention is not None) == (name != "densefusion") == (pose.attention is not None)
+
+
+def test_configs_are_as_documented_and_validated():
+    assert CONFIGS["paper"].fusion.crop_hw == (120, 120) and CONFIGS["paper"].pose.num_points == 500
+    assert CONFIGS["paper"].fusion.resnet_widths == (64, 128, 256, 512)
+    assert CONFIGS["densefusion"].fusion.attention is False and CONFIGS["densefusion"].pose.attention is False
+    assert CONFIGS["edge"].pose.num_points == 256 and CONFIGS["edge"].detector.scale == "n"
+    with pytest.raises(ValueError, match="multiples of 32"):
+        DetectorConfig(input_hw=(100, 640))
+    with pytest.raises(ValueError, match="multiples of 8"):
+        FusionConfig(crop_hw=(100, 100))
+    with pytest.raises(ValueError, match="attention_stride"):
+        FusionConfig(crop_hw=(120, 120), attention_stride=16)
+    with pytest.raises(ValueError, match="positive"):
+        PoseConfig(num_points=0)
+    with pytest.raises(ValueError, match="unknown config"):
+        get_config("huge")
+
+
+def _rz(deg):
+    a = np.deg2rad(deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    return T
+
+
+def test_pose_loss_symmetry_aware():
+    pallet = get_pallet_model("epal")
+    pm = torch.from_numpy(pallet.surface_points(300, seed=0)).double()
+    T_gt = torch.from_numpy(_rz(30.0) @ np.diag([1.0, -1.0, -1.0, 1.0])).double()  # some rotation
+    T_gt[:3, 3] = torch.tensor([0.1, -0.2, 0.05])
+    T_flip = T_gt @ torch.from_numpy(_rz(180.0))                                     # same pallet, turned 180 deg about z
+    n = 8
+    points = torch.randn(1, n, 3, dtype=torch.float64) * 0.2
+    from pallet6d.runtime.geometry import rot_to_quat
+    q = torch.from_numpy(rot_to_quat(T_flip[:3, :3].numpy())).expand(1, n, 4)
+    trans = T_flip[:3, 3].expand(1, n, 3) - points
+    conf = torch.full((1, n), 0.9, dtype=torch.float64)
+    sym = torch.from_numpy(np.array(pallet.symmetries))
+    loss_sym, d_sym = pose_loss(q, trans, conf, points, pm, T_gt[None], sym)
+    loss_plain, d_plain = pose_loss(q, trans, conf, points, pm, T_gt[None], None)
+    assert d_sym.max() < 1e-6
+    assert d_plain.min() > 0.3          # the flipped pallet's points are ~0.5 m off on average
+    # eq. 4: exactly d*c - w log c averaged
+    assert abs(float(loss_sym) - (-0.015 * np.log(0.9))) < 1e-6
+    assert float(loss_plain) == pytest.approx(float((d_plain * 0.9).mean()) - 0.015 * np.log(0.9), rel=1e-6)
+    # a translation error of 5 cm gives d = 5 cm with or without symmetries
+    _, d_off = pose_loss(q, trans + torch.tensor([0.05, 0, 0], dtype=torch.float64), conf, points, pm, T_gt[None], sym)
+    torch.testing.assert_close(d_off, torch.full((1, n), 0.05, dtype=torch.float64))
+
+
+def test_pose_loss_trains_confidence_and_rejects_bad_shapes():
+    q = torch.tensor([[[1.0, 0, 0, 0]]])
+    with pytest.raises(ValueError, match="do not agree"):
+        pose_loss(q, torch.zeros(1, 1, 3), torch.ones(1, 2), torch.zeros(1, 1, 3), torch.zeros(5, 3), torch.eye(4)[None])
+
+
+def test_detector_loss_decreases_when_overfitting():
+    torch.manual_seed(0)
+    cfg = DetectorConfig(scale="custom", depth_multiple=0.33, width_multiple=0.0625, max_channels=64, input_hw=(64, 128))
+    model = build_detector(cfg)
+    model.train()
+    crit = DetectorLoss(model)
+    imgs = torch.rand(2, 3, 64, 128) * 0.2
+    imgs[0, :, 10:40, 20:80] = 0.9
+    imgs[1, :, 30:60, 60:120] = 0.9
+    targets = [torch.tensor([[0, 20.0, 10.0, 80.0, 40.0]]), torch.tensor([[0, 60.0, 30.0, 120.0, 60.0]])]
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(20):
+        loss, parts = crit(model(imgs), targets)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert parts["fg"] > 0
+    assert np.isfinite(losses).all() and losses[-1] < 0.5 * losses[0], losses
+    # no targets at all is a valid batch (background only)
+    loss, parts = crit(model(imgs), [torch.zeros(0, 5), torch.zeros(0, 5)])
+    assert parts["fg"] == 0 and np.isfinite(float(loss))
+
+
+def test_flop_count_matches_hand_count(tmp_path):
+    conv = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, padding=1), torch.nn.Flatten(), torch.nn.Linear(8 * 16 * 16, 10))
+    path = export_graph(conv, (torch.zeros(1, 3, 16, 16),), tmp_path / "m.onnx", ["x"], ["y"], {"x": {0: "b"}})
+    expected = 2 * (8 * 16 * 16 * 3 * 9 + 8 * 16 * 16 * 10) / 1e9
+    assert count_gflops(path) == pytest.approx(expected, rel=1e-9)
+
+
+@pytest.fixture(scope="module")
+def tiny_bundle(tmp_path_factory):
+    cfg = get_config("tiny")
+    out = tmp_path_factory.mktemp("b") / "tiny"
+    calib = make_calibration_set(cfg, frames=4, max_crops=16, seed=0, synthetic=True)
+    manifest = export_bundle(cfg, out, seed=0, random_init=True, int8=True, calib=calib, command="test")
+    return out, manifest, calib
+
+
+def test_export_parity_and_manifest(tiny_bundle):
+    out, manifest, _ = tiny_bundle
+    assert check_bundle(out) == []
+    par = manifest["checks"]["parity"]
+    for stage, outputs in (("detector", ["output0"]), ("fusion", ["features"]), ("pose", ["quat", "trans", "conf"])):
+        for o in outputs:
+            assert par[stage][o]["max_abs"] <= 1e-4 * max(1.0, par[stage][o]["ref_max_abs"])
+    b = load_bundle(out)
+    assert b.precision == ("fp32", "int8") and b.provenance["random_init"] is True
+    assert "synthetic" in b.provenance["calibration"]
+    assert b.pose_input_spec().num_points == 32 and b.fusion.crop_hw == (32, 32)
+    assert all(v > 0 for v in manifest["checks"]["gflops"].values())
+
+
+def test_int8_graphs_run_and_correlate(tiny_bundle):
+    out, manifest, calib = tiny_bundle
+    from pallet6d.export.onnx_io import ort_session, run_session
+    b = load_bundle(out)
+    feeds = {"rgb": calib.rgb_crops[:4], "depth": calib.depth_crops[:4]}
+    f32 = run_session(ort_session(b.graph("fusion")), feeds)["features"]
+    f8 = run_session(ort_session(b.graph("fusion", "int8")), feeds)["features"]
+    assert f8.shape == f32.shape and np.corrcoef(f32.ravel(), f8.ravel())[0, 1] > 0.9
+    for stage, o in (("detector", "output0"), ("fusion", "features"), ("pose", "quat"), ("pose", "trans")):
+        assert manifest["checks"]["int8"][stage][o]["corr"] > 0.9, (stage, manifest["checks"]["int8"][stage])
+
+
+def test_export_refuses_bad_arguments(tmp_path, tiny_bundle):
+    cfg = get_config("tiny")
+    with pytest.raises(ExportError, match="exactly one"):
+        export_bundle(cfg, tmp_path / "x", random_init=False)
+    with pytest.raises(ExportError, match="not empty"):
+        export_bundle(cfg, tiny_bundle[0], random_init=True)
+    bad = tmp_path / "ckpt.pt"
+    torch.save({"config": "tiny", "fusion": {}}, bad)
+    with pytest.raises(ExportError, match="no 'detector' weights"):
+        export_bundle(cfg, tmp_path / "y", checkpoint=bad, calib=tiny_bundle[2])
+
+
+def test_checkpoint_round_trip_and_external_detector(tmp_path, tiny_bundle):
+    cfg = get_config("tiny")
+    torch.manual_seed(1)
+    nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
+            "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
+    torch.save({"config": "tiny", **{k: v.state_dict() for k, v in nets.items()}}, tmp_path / "ckpt.pt")
+    calib = tiny_bundle[2]
+    export_bundle(cfg, tmp_path / "from_ckpt", checkpoint=tmp_path / "ckpt.pt", calib=calib)
+    assert check_bundle(tmp_path / "from_ckpt") == []
+    # a YOLOv8-layout graph made elsewhere drops in as the detector (2 classes, named on the command line)
+    ext_cfg = DetectorConfig(scale="custom", depth_multiple=0.33, width_multiple=0.0625, max_channels=64,
+                             input_hw=(64, 96), classes=("pallet", "box"))
+    ext = export_graph(build_detector(ext_cfg).eval(), (torch.rand(1, 3, 64, 96),), tmp_path / "yolo.onnx",
+                       ["images"], ["output0"])
+    m = export_bundle(cfg, tmp_path / "ext", random_init=True, detector_onnx=ext, classes=("pallet", "box"), calib=calib)
+    assert m["detector"]["source"] == "external" and m["detector"]["input_hw"] == [64, 96]
+    assert m["classes"] == ["pallet", "box"] and check_bundle(tmp_path / "ext") == []
+    with pytest.raises(ExportError, match="2 classes but 1 names"):
+        export_bundle(cfg, tmp_path / "ext2", random_init=True, detector_onnx=ext, classes=("pallet",), calib=calib)
+    with pytest.raises(ExportError, match="expected one input"):
+        export_bundle(cfg, tmp_path / "ext3", random_init=True, detector_onnx=tiny_bundle[0] / "fusion.onnx",
+                      classes=("pallet",), calib=calib)
+    not_yolo = export_graph(torch.nn.Conv2d(3, 5, 3, stride=8), (torch.rand(1, 3, 64, 96),), tmp_path / "c.onnx",
+                            ["images"], ["output0"])
+    with pytest.raises(ExportError, match="not the YOLOv8 layout"):
+        export_bundle(cfg, tmp_path / "ext4", random_init=True, detector_onnx=not_yolo, classes=("pallet",), calib=calib)
