@@ -159,7 +159,7 @@ def augment_depth(depth_m: np.ndarray, rng: np.random.Generator, aug: AugmentCon
 def flip_horizontal(image: np.ndarray, boxes_xyxy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mirror an image left-right and its boxes with it.
 
-    :param image: (H, W, C) or (C, H, W)? no: (H, W, 3). :param boxes_xyxy: (n, 4) pixels.
+    :param image: (H, W, 3). :param boxes_xyxy: (n, 4) pixels.
     :return: the flipped image and (n, 4) boxes, still x1 < x2.
     """
     w = image.shape[1]
