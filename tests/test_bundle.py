@@ -9,6 +9,16 @@ from pallet6d.runtime import cli
 from pallet6d.runtime.bundle import BundleError, check_bundle, load_bundle, sha256_file
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Tiny tensors: one thread is faster, and far faster on a busy 2-core machine (no spin-waiting)."""
+    torch_ = pytest.importorskip("torch")
+    n = torch_.get_num_threads()
+    torch_.set_num_threads(1)
+    yield
+    torch_.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def good(tmp_path_factory):
     from pallet6d.export.bundle_export import export_bundle
