@@ -183,7 +183,7 @@ def model_points_for(ds: BopDataset, obj_id: int, n: int, fallback: str) -> tupl
         log.warning("%s: obj_id %s has no known pallet name; using the %r model", ds.root, obj_id, fallback)
         name = fallback
     model = get_pallet_model(name)
-    return model.surface_points(n, seed=0).astype(np.float32), np.asarray(model.symmetries, np.float64)
+    return model.surface_points(n, seed=0).astype(np.float32), np.array(model.symmetries, np.float64)
 
 
 # --------------------------------------------------------------------------------------- pose samples

@@ -1,0 +1,191 @@
+"""The epoch loop shared by detector and pose training: learning-rate schedule, tqdm progress, JSON-lines
+log, checkpoints (last + best) in the format `export_bundle` reads, `--resume`, and a wall-clock budget.
+
+Everything that varies with the epoch is a pure function of (seed, epoch): the shuffling generator is
+`np.random.default_rng((seed, epoch))`, the learning rate `lr_at(epoch + step / steps)`, so a resumed run
+continues exactly as an uninterrupted one would, without saving RNG states.
+
+Checkpoint (``torch.save`` of plain types, loadable with ``weights_only=True``)::
+
+    {"config": name, "<net>": state_dict, ...,            # what export_bundle reads ("detector"/"fusion"/"pose")
+     "format": "pallet6d-train", "format_version": 1, "stage": "detector" | "pose",
+     "epoch": completed epochs, "best_metric": float, "val": {...}, "optimizer": state_dict,
+     "provenance": {"stage", "config", "seed", "command", "data": [dataset fingerprints], ...}}
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+__all__ = ["LoopSettings", "lr_at", "save_checkpoint", "load_checkpoint", "train_epochs", "CKPT_FORMAT",
+           "LAST", "BEST", "LOG"]
+
+log = logging.getLogger(__name__)
+
+CKPT_FORMAT = "pallet6d-train"
+LAST, BEST, LOG = "last.pt", "best.pt", "train_log.jsonl"
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """:ivar epochs: total epochs (a resumed run continues to this). :ivar batch: samples per step.
+    :ivar lr: peak learning rate. :ivar warmup_epochs: linear warm-up length (may be fractional).
+    :ivar min_lr_fraction: the cosine schedule ends at lr * this. :ivar max_minutes: stop (after saving)
+    when this much wall time has passed in this process; 0 = no limit. :ivar grad_clip: max grad norm."""
+
+    epochs: int
+    batch: int
+    lr: float
+    seed: int = 0
+    warmup_epochs: float = 0.0
+    min_lr_fraction: float = 0.05
+    max_minutes: float = 0.0
+    grad_clip: float = 10.0
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or self.batch < 1:
+            raise ValueError(f"epochs and batch must be >= 1, got {self.epochs}, {self.batch}")
+        if not self.lr > 0:
+            raise ValueError(f"lr must be positive, got {self.lr}")
+        if self.max_minutes < 0:
+            raise ValueError(f"max_minutes must be >= 0, got {self.max_minutes}")
+
+
+def lr_at(s: LoopSettings, epoch_f: float) -> float:
+    """Learning rate at fractional epoch `epoch_f`: linear warm-up, then cosine to lr * min_lr_fraction."""
+    warm = min(1.0, (epoch_f + 1e-9) / s.warmup_epochs) if s.warmup_epochs > 0 else 1.0
+    frac = min(1.0, epoch_f / s.epochs)
+    cos = s.min_lr_fraction + (1 - s.min_lr_fraction) * 0.5 * (1 + math.cos(math.pi * frac))
+    return s.lr * warm * cos
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    """Atomic write (a crash never leaves a half-written checkpoint)."""
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """A training checkpoint. :raises ValueError: missing or not a pallet6d training checkpoint."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"no checkpoint at {path}")
+    try:
+        ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a corrupt file
+        raise ValueError(f"cannot read checkpoint {path}: {exc}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CKPT_FORMAT:
+        raise ValueError(f"{path} is not a pallet6d training checkpoint")
+    return ckpt
+
+
+def _batches(n: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """Shuffled index batches; a final batch of one sample is dropped (BatchNorm needs two)."""
+    perm = rng.permutation(n)
+    out = [perm[i:i + batch] for i in range(0, n, batch)]
+    return [b for b in out if len(b) >= 2] or out
+
+
+def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, torch.nn.Module],
+                 optimizer: torch.optim.Optimizer, s: LoopSettings, n_train: int,
+                 step: Callable[[np.ndarray, np.random.Generator], tuple[torch.Tensor, dict]],
+                 validate: Callable[[], dict], provenance: dict, resume: bool = False,
+                 progress: bool = True) -> dict:
+    """Train `nets` for the remaining epochs; return the last log entry.
+
+    :param step: (index batch, rng) -> (loss to minimise, {name: float} to log).
+    :param validate: () -> {"metric": float (lower is better), ...}; nets are in eval mode during it.
+    :param provenance: stored in every checkpoint (seed, command, data fingerprints, ...).
+    """
+    from tqdm import tqdm
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    start_epoch, best = 0, math.inf
+    if resume:
+        ckpt = load_checkpoint(run_dir / LAST)
+        if ckpt.get("stage") != stage or ckpt.get("config") != config_name:
+            raise ValueError(f"{run_dir / LAST} is a {ckpt.get('stage')!r}/{ckpt.get('config')!r} run, not "
+                             f"{stage!r}/{config_name!r}")
+        for k, net in nets.items():
+            net.load_state_dict(ckpt[k])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        start_epoch, best = int(ckpt["epoch"]), float(ckpt["best_metric"])
+        log.info("resuming %s at epoch %d (best metric so far %.4g)", run_dir, start_epoch, best)
+    if n_train < 1:
+        raise ValueError("no training samples")
+    t_start = time.monotonic()
+    entry: dict = {}
+    for epoch in range(start_epoch, s.epochs):
+        t0 = time.monotonic()
+        rng = np.random.default_rng((s.seed, epoch))
+        torch.manual_seed(s.seed * 100003 + epoch)
+        for net in nets.values():
+            net.train()
+        batches = _batches(n_train, s.batch, rng)
+        sums: dict[str, float] = {}
+        stopped = False
+        bar = tqdm(batches, desc=f"{stage} epoch {epoch + 1}/{s.epochs}", unit="batch", file=sys.stderr,
+                   disable=not progress, leave=False)
+        n_done = 0
+        for k, idx in enumerate(bar):
+            lr = lr_at(s, epoch + k / len(batches))
+            for g in optimizer.param_groups:
+                g["lr"] = lr
+            loss, parts = step(idx, rng)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"{stage} loss became {float(loss)} at epoch {epoch + 1}, batch {k}; "
+                                         "lower --lr or check the data")
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            params = [p for net in nets.values() for p in net.parameters()]
+            torch.nn.utils.clip_grad_norm_(params, s.grad_clip)
+            optimizer.step()
+            n_done += 1
+            parts = {"loss": float(loss), **parts}
+            for name, v in parts.items():
+                sums[name] = sums.get(name, 0.0) + float(v)
+            bar.set_postfix(loss=f"{sums['loss'] / n_done:.4f}", lr=f"{lr:.2e}")
+            if s.max_minutes and time.monotonic() - t_start > 60 * s.max_minutes:
+                stopped = True
+                break
+        bar.close()
+        for net in nets.values():
+            net.eval()
+        with torch.no_grad():
+            val = validate()
+        completed = epoch if stopped else epoch + 1
+        entry = {"epoch": epoch + 1, "completed": not stopped, "batches": n_done,
+                 **{f"train_{k}": v / max(n_done, 1) for k, v in sums.items()},
+                 **{f"val_{k}": v for k, v in val.items()}, "lr": lr_at(s, epoch + n_done / len(batches)),
+                 "seconds": round(time.monotonic() - t0, 2)}
+        with open(run_dir / LOG, "a", encoding="utf-8") as f:
+            f.write(json.dumps(entry) + "\n")
+        log.info("%s epoch %d: %s", stage, epoch + 1,
+                 ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in entry.items()))
+        payload = {"config": config_name, **{k: net.state_dict() for k, net in nets.items()},
+                   "format": CKPT_FORMAT, "format_version": 1, "stage": stage, "epoch": completed,
+                   "epochs": s.epochs, "val": val, "optimizer": optimizer.state_dict(),
+                   "provenance": provenance}
+        improved = val["metric"] < best
+        if improved and not stopped:
+            best = float(val["metric"])
+        payload["best_metric"] = best
+        save_checkpoint(run_dir / LAST, payload)
+        if improved and not stopped:
+            save_checkpoint(run_dir / BEST, payload)
+        if stopped:
+            log.info("stopped after %.1f minutes (--max-minutes); resume with --resume", s.max_minutes)
+            break
+    return entry

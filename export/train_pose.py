@@ -1,0 +1,178 @@
+"""Pose-stage training (paper 3.1.1-3.1.5): fusion + pose networks end to end with the eq. 4 loss.
+
+Inputs come from `train_data.build_pose_samples` (the runtime's `prepare_pose_inputs` on jittered ground-truth
+boxes, mask-free point selection), so the crops, depth encoding, sampled points and feature indices are those
+the runtime computes. The loss compares each per-point pose with the ground truth in the centred camera frame,
+over the pallet's symmetries (`losses.pose_loss`). Validation measures what the runtime will report: the
+symmetry-aware ADD of the most confident per-point hypothesis.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from pallet6d.runtime.bop import BopDataset
+
+from .calib_data import pose_input_spec
+from .config import ModelConfig
+from .fusion import build_fusion
+from .losses import pose_loss
+from .pose import build_pose
+from .train_data import AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for
+from .train_loop import LoopSettings, train_epochs
+
+__all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "train_pose"]
+
+log = logging.getLogger(__name__)
+
+MODEL_POINTS = 500   # DenseFusion's num_pt_mesh_small: points of the model in the loss
+
+
+@dataclass
+class PoseData:
+    """Samples of several datasets, with a train/val split by frame and the models' points/symmetries.
+
+    :ivar model_points: obj_id -> (M, 3) float32 metres. :ivar symmetries: obj_id -> (S, 4, 4).
+    """
+
+    samples: PoseSamples
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+    model_points: dict[int, np.ndarray]
+    symmetries: dict[int, np.ndarray]
+    fingerprints: list[dict]
+
+
+def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, seed: int, aug: AugmentConfig,
+                   cache_dir: str | Path | None, val_fraction: float = 0.1, max_frames: int | None = None,
+                   progress: bool = True) -> PoseData:
+    """Prepare (or read from cache) the pose samples of every dataset and split them by frame.
+
+    Validation uses only variant 0 (the un-jittered view) of its frames; no frame is in both splits.
+    """
+    from tqdm import tqdm
+
+    spec = pose_input_spec(cfg)
+    parts, fps, model_points, syms = [], [], {}, {}
+    frame_offset = 0
+    for root in data:
+        settings = {"spec": repr(spec), "variants": variants, "seed": seed, "aug": aug.to_dict(),
+                    "max_frames": max_frames}
+        n = len(BopDataset(root))
+        with tqdm(total=n if max_frames is None else min(n, max_frames), desc=f"prepare {Path(root).name}",
+                  unit="frame", disable=not progress, leave=False) as bar:
+            s, fp = load_or_build("pose", root, settings, cache_dir,
+                                  lambda: build_pose_samples(root, spec, variants, seed, aug, max_frames=max_frames,
+                                                             progress=bar.update))
+        # frame ids unique across datasets, for the split
+        parts.append(PoseSamples(*(getattr(s, f) if f != "frame" else s.frame + frame_offset
+                                   for f in PoseSamples.__dataclass_fields__)))
+        frame_offset += fp["frames"]
+        fps.append(fp)
+        ds = BopDataset(root)
+        for obj in np.unique(s.obj_id):
+            if int(obj) not in model_points:
+                model_points[int(obj)], syms[int(obj)] = model_points_for(ds, int(obj), MODEL_POINTS, cfg.pallet)
+    samples = PoseSamples.concat(parts)
+    frames = np.unique(samples.frame)
+    rng = np.random.default_rng(seed)
+    n_val = int(round(val_fraction * len(frames))) if len(frames) > 1 else 0
+    val_frames = rng.choice(frames, n_val, replace=False) if n_val else np.zeros(0, np.int64)
+    is_val = np.isin(samples.frame, val_frames)
+    train_idx = np.flatnonzero(~is_val)
+    val_idx = np.flatnonzero(is_val & (samples.variant == 0))
+    if len(val_idx) == 0:   # tiny datasets: validate on the clean views of the training frames
+        val_idx = np.flatnonzero(samples.variant == 0)
+    log.info("pose samples: %d train, %d val (%d frames held out)", len(train_idx), len(val_idx), n_val)
+    return PoseData(samples, train_idx, val_idx, model_points, syms, fps)
+
+
+def gather_points(features: torch.Tensor, choose: torch.Tensor) -> torch.Tensor:
+    """Torch twin of `pose_inputs.gather_features`. :param features: (B, C, h, w). :param choose: (B, N).
+    :return: (B, N, C)."""
+    b, c = features.shape[:2]
+    flat = features.reshape(b, c, -1)
+    return torch.gather(flat, 2, choose[:, None, :].expand(-1, c, -1)).transpose(1, 2)
+
+
+class PoseTrainer:
+    """Fusion + pose networks, and the loss/metric on a batch of `PoseData` samples."""
+
+    def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015) -> None:
+        self.cfg, self.data, self.device, self.w = cfg, data, torch.device(device), w
+        self.fusion = build_fusion(cfg.fusion).to(self.device)
+        self.pose = build_pose(cfg.pose, cfg.fusion.feature_dim).to(self.device)
+        self.model_points = {k: torch.from_numpy(v).to(self.device) for k, v in data.model_points.items()}
+        self.symmetries = {k: torch.from_numpy(v).float().to(self.device) for k, v in data.symmetries.items()}
+
+    @property
+    def nets(self) -> dict[str, torch.nn.Module]:
+        return {"fusion": self.fusion, "pose": self.pose}
+
+    def forward_loss(self, idx: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:return: loss (scalar), d (B, N) per-point symmetric ADD (metres), conf (B, N)."""
+        s = self.data.samples
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
+        rgb, depth, pts, choose = t(s.rgb_crops[idx]), t(s.depth_crops[idx]), t(s.points[idx]), t(s.choose[idx])
+        T_gt, obj = t(s.T_gt[idx]), s.obj_id[idx]
+        feats = self.fusion(rgb, depth)
+        quat, trans, conf = self.pose(pts, gather_points(feats, choose))
+        # one loss call per pallet model (symmetry sets may differ between models), weighted by count
+        loss = quat.new_zeros(())
+        d = quat.new_zeros(conf.shape)
+        for o in np.unique(obj):
+            g = torch.from_numpy(np.flatnonzero(obj == o)).to(self.device)
+            l_o, d_o = pose_loss(quat[g], trans[g], conf[g], pts[g], self.model_points[int(o)], T_gt[g],
+                                 self.symmetries[int(o)], self.w)
+            loss = loss + l_o * (len(g) / len(idx))
+            d = d.index_copy(0, g, d_o)
+        return loss, d, conf
+
+    def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
+        loss, d, _ = self.forward_loss(idx)
+        return loss, {"dis": float(d.detach().mean())}
+
+    def validate(self, batch: int = 16) -> dict:
+        """Mean loss, and the symmetric ADD of the most confident hypothesis (the runtime's choice)."""
+        idx_all = self.data.val_idx
+        losses, errs = [], []
+        for i in range(0, len(idx_all), batch):
+            idx = idx_all[i:i + batch]
+            loss, d, conf = self.forward_loss(idx)
+            losses.append(float(loss) * len(idx))
+            errs.append(d.gather(1, conf.argmax(1, keepdim=True))[:, 0].cpu().numpy())
+        e = np.concatenate(errs) if errs else np.zeros(0)
+        n = max(len(e), 1)
+        return {"metric": float(e.mean()) if len(e) else float("inf"), "loss": sum(losses) / n,
+                "add_sym_mean_m": float(e.mean()) if len(e) else None,
+                "add_sym_median_m": float(np.median(e)) if len(e) else None,
+                "add_sym_acc_0.05": float((e < 0.05).mean()) if len(e) else None,
+                "add_sym_acc_0.1": float((e < 0.1).mean()) if len(e) else None, "n": len(e)}
+
+
+def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
+               variants: int = 4, aug: AugmentConfig | None = None, resume: bool = False,
+               cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
+               command: str = "", progress: bool = True) -> dict:
+    """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry."""
+    run_dir = Path(run_dir)
+    aug = aug or AugmentConfig()
+    torch.manual_seed(settings.seed)
+    pd = load_pose_data(cfg, data, variants, settings.seed, aug, cache_dir if cache_dir is not None else run_dir / "cache",
+                        val_fraction, max_frames, progress)
+    trainer = PoseTrainer(cfg, pd, settings.device)
+    params = list(trainer.fusion.parameters()) + list(trainer.pose.parameters())
+    optimizer = torch.optim.Adam(params, lr=settings.lr)
+    provenance = {"stage": "pose", "config": cfg.name, "seed": settings.seed, "command": command,
+                  "data": pd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
+                  "variants": variants, "augment": aug.to_dict(), "val_fraction": val_fraction,
+                  "samples": {"train": int(len(pd.train_idx)), "val": int(len(pd.val_idx))},
+                  "device": settings.device, "torch": torch.__version__}
+    return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
+                        lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
+                        resume=resume, progress=progress)
