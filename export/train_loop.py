@@ -153,7 +153,7 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
             torch.nn.utils.clip_grad_norm_(params, s.grad_clip)
             optimizer.step()
             n_done += 1
-            parts = {"loss": float(loss), **parts}
+            parts = {"loss": float(loss.detach()), **parts}
             for name, v in parts.items():
                 sums[name] = sums.get(name, 0.0) + float(v)
             bar.set_postfix(loss=f"{sums['loss'] / n_done:.4f}", lr=f"{lr:.2e}")

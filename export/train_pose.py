@@ -172,7 +172,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                   "data": pd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "variants": variants, "augment": aug.to_dict(), "val_fraction": val_fraction,
                   "samples": {"train": int(len(pd.train_idx)), "val": int(len(pd.val_idx))},
-                  "device": settings.device, "torch": torch.__version__}
+                  "device": settings.device, "torch": str(torch.__version__)}
     return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
                         lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
                         resume=resume, progress=progress)

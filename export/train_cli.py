@@ -1,0 +1,160 @@
+"""`pallet6d train`: train the detector or the pose stage on BOP datasets, and merge the two checkpoints.
+
+    pallet6d train detector|pose --config paper|edge|densefusion --data DIR [DIR ...] --out RUN_DIR
+                   [--epochs E] [--batch B] [--lr LR] [--seed S] [--resume] [--device cpu|cuda] [--max-minutes M]
+    pallet6d train merge --detector RUN/best.pt --pose RUN/best.pt --out model.pt
+    pallet6d export --config edge --checkpoint model.pt --int8 --out models/edge
+
+RUN_DIR receives `last.pt`, `best.pt` (lowest validation metric: pose = mean symmetric ADD of the most
+confident hypothesis; detector = validation loss), `train_log.jsonl` (one line per epoch: losses, validation,
+lr, seconds) and `cache/` (prepared samples, reused while the data and settings are unchanged). A run is
+stopped cleanly by `--max-minutes` and continued with `--resume` (same arguments).
+
+Default recipe for the shipped `edge` bundle (and, unchanged, the `densefusion` ablation)
+------------------------------------------------------------------------------------------
+Data (training seeds are 1000+, never the test seeds 9001-9003 of `benchmarks/accuracy.py`)::
+
+    pallet6d sim --preset virtual-clean    --frames 400 --seed 1000 --out data/train/virtual-clean
+    pallet6d sim --preset virtual-occluded --frames 800 --seed 1001 --out data/train/virtual-occluded
+    pallet6d sim --preset indoor-noisy     --frames 400 --seed 1002 --out data/train/indoor-noisy
+
+Training (`RECIPES` holds these defaults; flags override them)::
+
+    D="data/train/virtual-clean data/train/virtual-occluded data/train/indoor-noisy"
+    pallet6d train detector --config edge --data $D --out runs/edge-det        # 40 epochs, batch 16, lr 2e-3
+    pallet6d train pose     --config edge --data $D --out runs/edge-pose       # 20 epochs, batch 16, lr 3e-4,
+                                                                               # 4 variants per pallet
+    pallet6d train merge --detector runs/edge-det/best.pt --pose runs/edge-pose/best.pt --out runs/edge.pt
+    pallet6d export --config edge --checkpoint runs/edge.pt --int8 --out models/edge
+
+Ablation: the same commands with `--config densefusion` (and `paper` for the attention model at paper size);
+same data, seeds, epochs and batch, so the only difference is the network.
+
+Cost (measured on this 2-core machine, see the training report; scale with the frame counts): sample
+preparation is a one-off (cached); see `RECIPES` comments for seconds per epoch. On CUDA (`--device cuda`)
+an epoch takes seconds, so raise `--epochs` there rather than adding data.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import sys
+from pathlib import Path
+
+from .config import CONFIGS, get_config
+
+HELP = "train the detector or the pose stage on BOP datasets (sim presets or annotated recordings)"
+
+log = logging.getLogger(__name__)
+
+# (config, stage) -> defaults. Pose: 4 variants x ~2 pallets x 1600 frames ~ 12k samples per epoch.
+RECIPES: dict[tuple[str, str], dict] = {
+    ("edge", "detector"): {"epochs": 40, "batch": 16, "lr": 2e-3},
+    ("edge", "pose"): {"epochs": 20, "batch": 16, "lr": 3e-4, "variants": 4},
+    ("paper", "detector"): {"epochs": 40, "batch": 8, "lr": 2e-3},
+    ("paper", "pose"): {"epochs": 20, "batch": 16, "lr": 3e-4, "variants": 4},
+    ("densefusion", "detector"): {"epochs": 40, "batch": 8, "lr": 2e-3},
+    ("densefusion", "pose"): {"epochs": 20, "batch": 16, "lr": 3e-4, "variants": 4},
+    ("tiny", "detector"): {"epochs": 3, "batch": 2, "lr": 2e-3},
+    ("tiny", "pose"): {"epochs": 3, "batch": 4, "lr": 1e-3, "variants": 2},
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("stage", choices=("detector", "pose", "merge"),
+                        help="what to train, or 'merge' a detector and a pose checkpoint for `pallet6d export`")
+    parser.add_argument("--config", choices=sorted(CONFIGS), help="network variant (detector/pose)")
+    parser.add_argument("--data", nargs="+", type=Path, help="BOP dataset roots (e.g. from `pallet6d sim`)")
+    parser.add_argument("--out", type=Path, required=True, help="run folder (detector/pose) or merged file (merge)")
+    parser.add_argument("--epochs", type=int, help="total epochs (default: the config's recipe)")
+    parser.add_argument("--batch", type=int, help="samples per step (default: the recipe)")
+    parser.add_argument("--lr", type=float, help="peak learning rate (default: the recipe)")
+    parser.add_argument("--variants", type=int, help="pose: augmented views prepared per pallet (default 4)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
+    parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
+    parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device (default cpu)")
+    parser.add_argument("--max-minutes", type=float, default=0.0, help="stop cleanly after M minutes (0: no limit)")
+    parser.add_argument("--max-frames", type=int, help="use at most N frames of each dataset")
+    parser.add_argument("--val-fraction", type=float, default=0.1, help="frames held out for validation (0.1)")
+    parser.add_argument("--cache-dir", type=Path, help="prepared-sample cache (default RUN_DIR/cache)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars (background runs)")
+    parser.add_argument("--detector", type=Path, help="merge: detector checkpoint")
+    parser.add_argument("--pose", type=Path, help="merge: pose checkpoint")
+
+
+def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path) -> dict:
+    """One checkpoint with detector + fusion + pose weights (the `export_bundle` format) and both provenances.
+
+    :raises ValueError: wrong stages or configs that differ.
+    """
+    from .train_loop import load_checkpoint, save_checkpoint
+
+    det, pose = load_checkpoint(detector_ckpt), load_checkpoint(pose_ckpt)
+    if det.get("stage") != "detector" or pose.get("stage") != "pose":
+        raise ValueError(f"expected a detector and a pose checkpoint, got stages {det.get('stage')!r} and "
+                         f"{pose.get('stage')!r}")
+    if det["config"] != pose["config"]:
+        raise ValueError(f"the detector was trained with config {det['config']!r}, the pose stage with "
+                         f"{pose['config']!r}: export needs one config")
+    merged = {"config": det["config"], "detector": det["detector"], "fusion": pose["fusion"], "pose": pose["pose"],
+              "format": det["format"], "format_version": det["format_version"], "stage": "merged",
+              "provenance": {"detector": {**det["provenance"], "checkpoint": str(detector_ckpt),
+                                          "epoch": det["epoch"], "val": det["val"]},
+                             "pose": {**pose["provenance"], "checkpoint": str(pose_ckpt), "epoch": pose["epoch"],
+                                      "val": pose["val"]}}}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out, merged)
+    return merged
+
+
+def main(args: argparse.Namespace) -> int:
+    from .train_data import AugmentConfig
+    from .train_loop import LoopSettings
+
+    if args.stage == "merge":
+        if not args.detector or not args.pose:
+            print("pallet6d train merge: needs --detector CKPT and --pose CKPT", file=sys.stderr)
+            return 2
+        try:
+            merge_checkpoints(args.detector, args.pose, args.out)
+        except ValueError as exc:
+            print(f"pallet6d train merge: {exc}", file=sys.stderr)
+            return 1
+        print(f"wrote {args.out}; export it with: pallet6d export --config <config> --checkpoint {args.out} "
+              "--int8 --out models/<name>")
+        return 0
+    if not args.config or not args.data:
+        print(f"pallet6d train {args.stage}: needs --config and --data", file=sys.stderr)
+        return 2
+    if args.device == "cuda":
+        import torch
+        if not torch.cuda.is_available():
+            print("pallet6d train: --device cuda but torch sees no CUDA device", file=sys.stderr)
+            return 2
+    recipe = RECIPES.get((args.config, args.stage), RECIPES[("edge", args.stage)])
+    command = "pallet6d train " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
+    try:
+        settings = LoopSettings(epochs=args.epochs or recipe["epochs"], batch=args.batch or recipe["batch"],
+                                lr=args.lr or recipe["lr"], seed=args.seed, max_minutes=args.max_minutes,
+                                warmup_epochs=1.0 if args.stage == "detector" else 0.0, device=args.device)
+        cfg = get_config(args.config)
+        common = dict(resume=args.resume, cache_dir=args.cache_dir, val_fraction=args.val_fraction,
+                      max_frames=args.max_frames, command=command, progress=not args.no_progress)
+        if args.resume and not (args.out / "last.pt").exists():
+            print(f"pallet6d train: --resume but {args.out / 'last.pt'} does not exist", file=sys.stderr)
+            return 2
+        if args.stage == "pose":
+            from .train_pose import train_pose
+            entry = train_pose(cfg, args.data, args.out, settings, variants=args.variants or recipe["variants"],
+                               aug=AugmentConfig(), **common)
+        else:
+            from .train_detector import train_detector
+            entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), **common)
+    except (ValueError, FloatingPointError) as exc:
+        print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
+        return 1
+    print(f"{args.stage} run {args.out}: last epoch {entry.get('epoch')}, "
+          + ", ".join(f"{k}={v:.4g}" for k, v in entry.items() if k.startswith("val_") and isinstance(v, float)))
+    print(f"checkpoints: {args.out / 'last.pt'}, {args.out / 'best.pt'}; log: {args.out / 'train_log.jsonl'}")
+    return 0

@@ -1,0 +1,152 @@
+"""Detector training: the YOLOv8-style detector on letterboxed frames with YOLOv8's loss (`losses.DetectorLoss`).
+
+Frames are letterboxed to the config's input size once (the runtime's `letterbox`, grey 114 padding) and
+cached; every epoch applies HSV gains, blur, noise and horizontal flips (boxes flipped with the image) with
+an epoch-seeded generator. Targets are the visible boxes of pallets at least 10 % visible, the boxes the
+evaluation matches against. Validation: loss, and precision/recall at IoU 0.5 of the runtime's decoding
+(`runtime.detector.decode_yolov8`, score 0.25).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from pallet6d.runtime.bop import BopDataset
+from pallet6d.runtime.detector import decode_yolov8
+from pallet6d.runtime.evaluation import box_iou
+
+from .config import ModelConfig
+from .detector import build_detector
+from .losses import DetectorLoss
+from .train_data import AugmentConfig, DetectorSamples, augment_rgb, build_detector_samples, flip_horizontal, \
+    load_or_build
+from .train_loop import LoopSettings, train_epochs
+
+__all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DetectorData:
+    samples: DetectorSamples
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+    fingerprints: list[dict]
+
+
+def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, cache_dir: str | Path | None,
+                       val_fraction: float = 0.1, max_frames: int | None = None,
+                       progress: bool = True) -> DetectorData:
+    """Letterboxed frames of every dataset (cached), split into train/val frames."""
+    from tqdm import tqdm
+
+    parts, fps = [], []
+    for root in data:
+        n = len(BopDataset(root))
+        settings = {"input_hw": list(cfg.detector.input_hw), "max_frames": max_frames}
+        with tqdm(total=n if max_frames is None else min(n, max_frames), desc=f"letterbox {Path(root).name}",
+                  unit="frame", disable=not progress, leave=False) as bar:
+            s, fp = load_or_build("detector", root, settings, cache_dir,
+                                  lambda: build_detector_samples(root, cfg.detector.input_hw, max_frames, bar.update))
+        parts.append(s)
+        fps.append(fp)
+    samples = DetectorSamples.concat(parts)
+    n = len(samples)
+    rng = np.random.default_rng(seed)
+    n_val = int(round(val_fraction * n)) if n > 2 else 0
+    perm = rng.permutation(n)
+    val_idx, train_idx = np.sort(perm[:n_val]), np.sort(perm[n_val:])
+    if n_val == 0:   # tiny datasets: validate on the training frames
+        val_idx = train_idx
+    log.info("detector frames: %d train, %d val", len(train_idx), n_val)
+    return DetectorData(samples, train_idx, val_idx, fps)
+
+
+class DetectorTrainer:
+    def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu") -> None:
+        self.cfg, self.data, self.aug, self.device = cfg, data, aug, torch.device(device)
+        self.detector = build_detector(cfg.detector).to(self.device)
+        self.loss = DetectorLoss(self.detector)
+
+    @property
+    def nets(self) -> dict[str, torch.nn.Module]:
+        return {"detector": self.detector}
+
+    def batch(self, idx: np.ndarray, rng: np.random.Generator | None) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Augmented (rng given) or clean inputs: (B, 3, H, W) float in [0, 1], B targets (n_i, 5) cls+xyxy."""
+        s = self.data.samples
+        images, targets = [], []
+        for i in idx:
+            img, boxes = s.images[i], np.asarray(s.boxes[i], np.float32).reshape(-1, 4)
+            if rng is not None:
+                img = augment_rgb(img, rng, self.aug)
+                if rng.random() < self.aug.flip_prob:
+                    img, boxes = flip_horizontal(img, boxes)
+            images.append(img)
+            t = np.zeros((len(boxes), 5), np.float32)   # class 0: pallet
+            t[:, 1:] = boxes
+            targets.append(torch.from_numpy(t).to(self.device))
+        x = torch.from_numpy(np.stack(images)).to(self.device).permute(0, 3, 1, 2).float().div_(255.0)
+        return x.contiguous(), targets
+
+    def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
+        x, targets = self.batch(self.data.train_idx[idx], rng)
+        loss, parts = self.loss(self.detector.forward_raw(x), targets)
+        return loss, {k: float(v) for k, v in parts.items() if k != "fg"}
+
+    def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
+        idx_all = self.data.val_idx
+        total, tp, n_pred, n_gt = 0.0, 0, 0, 0
+        for i in range(0, len(idx_all), batch):
+            idx = idx_all[i:i + batch]
+            x, targets = self.batch(idx, None)
+            raw = self.detector.forward_raw(x)
+            loss, _ = self.loss(raw, targets)
+            total += float(loss) * len(idx)
+            decoded = self.detector.head.decode(raw).cpu().numpy()
+            for k, t in enumerate(targets):
+                det = decode_yolov8(decoded[k], score_threshold, 0.5, (0,), 100)
+                gt = t[:, 1:].cpu().numpy()
+                n_pred, n_gt = n_pred + len(det.boxes_xyxy), n_gt + len(gt)
+                if len(det.boxes_xyxy) and len(gt):
+                    m = box_iou(det.boxes_xyxy, gt) >= iou
+                    used: set[int] = set()
+                    for row in m:   # decode returns boxes by descending score
+                        j = next((j for j in np.flatnonzero(row) if j not in used), None)
+                        if j is not None:
+                            used.add(int(j))
+                    tp += len(used)
+        loss = total / max(len(idx_all), 1)
+        return {"metric": loss, "loss": loss, "precision": tp / n_pred if n_pred else 0.0,
+                "recall": tp / n_gt if n_gt else 0.0, "n_gt": n_gt}
+
+
+def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
+                   aug: AugmentConfig | None = None, resume: bool = False, cache_dir: str | Path | None = None,
+                   val_fraction: float = 0.1, max_frames: int | None = None, command: str = "",
+                   progress: bool = True) -> dict:
+    """Train the detector on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry."""
+    run_dir = Path(run_dir)
+    aug = aug or AugmentConfig()
+    torch.manual_seed(settings.seed)
+    dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
+                            val_fraction, max_frames, progress)
+    trainer = DetectorTrainer(cfg, dd, aug, settings.device)
+    # YOLOv8 practice: no weight decay on BatchNorm weights and biases
+    decay = [p for n, p in trainer.detector.named_parameters() if p.ndim > 1]
+    no_decay = [p for n, p in trainer.detector.named_parameters() if p.ndim <= 1]
+    optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": 5e-4}, {"params": no_decay, "weight_decay": 0.0}],
+                                  lr=settings.lr, betas=(0.937, 0.999))
+    provenance = {"stage": "detector", "config": cfg.name, "seed": settings.seed, "command": command,
+                  "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
+                  "augment": aug.to_dict(), "val_fraction": val_fraction,
+                  "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx))},
+                  "device": settings.device, "torch": str(torch.__version__)}
+    return train_epochs(run_dir, "detector", cfg.name, trainer.nets, optimizer, settings, len(dd.train_idx),
+                        trainer.step, trainer.validate, provenance, resume=resume, progress=progress)
