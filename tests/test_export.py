@@ -219,3 +219,37 @@ def test_checkpoint_round_trip_and_external_detector(tmp_path, tiny_bundle):
                             ["images"], ["output0"])
     with pytest.raises(ExportError, match="not the YOLOv8 layout"):
         export_bundle(cfg, tmp_path / "ext4", random_init=True, detector_onnx=not_yolo, classes=("pallet",), calib=calib)
+
+
+def test_quaternion_convention_matches_runtime_geometry():
+    from pallet6d.export.losses import quat_to_rot
+    from pallet6d.runtime.geometry import quat_to_rot as np_quat_to_rot
+    q = np.random.default_rng(0).standard_normal((5, 4))
+    np.testing.assert_allclose(quat_to_rot(torch.from_numpy(q)).numpy(), np_quat_to_rot(q), atol=1e-12)
+
+
+def test_detector_output_is_cxcywh_pixels_of_each_anchor():
+    """Force every side's DFL distribution onto bin k: each anchor's box is then centred on the anchor
+    with width = height = 2 k stride, and scores = sigmoid(class bias), in the YOLOv8 layout."""
+    torch.manual_seed(0)
+    cfg = DetectorConfig(scale="custom", depth_multiple=0.33, width_multiple=0.0625, max_channels=64, input_hw=(64, 96))
+    det = build_detector(cfg).eval()
+    k = 3
+    with torch.no_grad():
+        for box, cls in zip(det.head.box, det.head.cls):
+            box[-1].weight.zero_()
+            bias = torch.full((4, cfg.reg_max), -50.0)
+            bias[:, k] = 50.0
+            box[-1].bias.copy_(bias.flatten())
+            cls[-1].weight.zero_()
+            cls[-1].bias.fill_(0.0)
+        out = det(torch.rand(1, 3, 64, 96))[0]
+    centres, sizes = [], []
+    for s in (8, 16, 32):
+        ys, xs = np.mgrid[0:64 // s, 0:96 // s]
+        centres.append(np.stack([(xs.ravel() + 0.5) * s, (ys.ravel() + 0.5) * s]))
+        sizes.append(np.full(xs.size, 2 * k * s, float))
+    np.testing.assert_allclose(out[:2].numpy(), np.concatenate(centres, 1), atol=1e-4)
+    np.testing.assert_allclose(out[2].numpy(), np.concatenate(sizes), atol=1e-4)
+    np.testing.assert_allclose(out[3].numpy(), np.concatenate(sizes), atol=1e-4)
+    np.testing.assert_allclose(out[4].numpy(), 0.5, atol=1e-6)
