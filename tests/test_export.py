@@ -253,3 +253,14 @@ def test_detector_output_is_cxcywh_pixels_of_each_anchor():
     np.testing.assert_allclose(out[2].numpy(), np.concatenate(sizes), atol=1e-4)
     np.testing.assert_allclose(out[3].numpy(), np.concatenate(sizes), atol=1e-4)
     np.testing.assert_allclose(out[4].numpy(), 0.5, atol=1e-6)
+
+
+def test_parity_failure_stops_the_export(tmp_path):
+    from pallet6d.export.onnx_io import ParityError, check_parity
+    torch.manual_seed(0)
+    a, b = torch.nn.Conv2d(3, 4, 3), torch.nn.Conv2d(3, 4, 3)
+    x = (torch.rand(1, 3, 8, 8),)
+    path = export_graph(a, x, tmp_path / "a.onnx", ["x"], ["y"])
+    assert check_parity(a, x, path, ["x"], ["y"])["y"]["max_abs"] < 1e-5
+    with pytest.raises(ParityError, match="does not reproduce"):
+        check_parity(b, x, path, ["x"], ["y"])
