@@ -1,0 +1,130 @@
+"""`pallet6d eval`: accuracy of a model bundle on a BOP dataset (runtime only: no torch).
+
+Runs `PalletEstimator` on every frame, matches estimates to ground truth and scores them with
+`pallet6d.runtime.evaluation` (pallets >= 10 % visible count; a missed pallet is a failure), prints a
+table and optionally writes a JSON summary (`summarize`'s keys: n_gt, precision, recall, add_acc,
+add_sym_acc, adds_acc, AUCs, by_distance) with per-pallet records.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+MIN_VISIB_FRACT = 0.1   # evaluation.evaluate_frame's default: less visible pallets are not scored
+
+HELP = "accuracy of a model bundle on a BOP dataset (precision, recall, ADD / symmetric ADD accuracy)"
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--bundle", required=True, type=Path, help="model bundle folder")
+    parser.add_argument("--data", required=True, type=Path, help="BOP dataset root (e.g. from `pallet6d sim`)")
+    parser.add_argument("--split", help="split folder (default: the only one)")
+    parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
+    parser.add_argument("--json", type=Path, help="write the summary and per-pallet records here")
+    parser.add_argument("--max-frames", type=int, default=0, help="evaluate at most N frames (0: all)")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
+    parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
+    parser.add_argument("--min-fit", type=float, default=0.2, help="reject poses whose fit score is below this")
+    parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
+    parser.add_argument("--gt-boxes", action="store_true",
+                        help="skip the detector: feed the ground-truth visible boxes to the pose stage "
+                             "(scores the pose stage alone)")
+
+
+def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_frames: int = 0,
+                     progress: bool = False, gt_boxes: bool = False) -> dict:
+    """Run `estimator` on a BOP dataset and score it.
+
+    :param gt_boxes: give the pose stage the visible boxes of the pallets >= 10 % visible instead of detections.
+
+    :return: {"summary": summarize(...) + frames/seconds, "records": per-pallet dicts}.
+    :raises ValueError: not a BOP dataset, or a frame the estimator rejects.
+    """
+    from .bop import BopDataset
+    from .evaluation import Estimate, GroundTruth, evaluate_frame, records_to_dicts, summarize
+
+    ds = BopDataset(data, split)
+    n = len(ds) if not max_frames else min(len(ds), max_frames)
+    records, tp, fp = [], 0, 0
+    n_no_box = 0
+    t0 = time.perf_counter()
+    frames = range(n)
+    if progress:
+        from tqdm import tqdm
+        frames = tqdm(frames, desc=f"eval {Path(data).name}", unit="frame", file=sys.stderr)
+    for i in frames:
+        f = ds[i]
+        gts = []
+        for g in f.gts:
+            if g.bbox_visib_xywh is None:
+                n_no_box += 1
+                continue
+            x, y, w, h = (float(v) for v in g.bbox_visib_xywh)
+            vf = float(g.visib_fract) if np.isfinite(g.visib_fract) else 1.0
+            gts.append(GroundTruth(g.T_cam_model, np.array([x, y, x + w, y + h]), vf))
+        if gt_boxes:
+            boxes = np.array([g.box_visib_xyxy for g in gts if g.visib_fract >= MIN_VISIB_FRACT]).reshape(-1, 4)
+            result = estimator.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
+        else:
+            result = estimator.estimate(f.rgb, f.depth_m, f.K)
+        estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in result.poses]
+        recs, f_tp, f_fp = evaluate_frame(i, estimates, gts, estimator.model_points_m, estimator.symmetries)
+        records.extend(recs)
+        tp, fp = tp + f_tp, fp + f_fp
+    if n_no_box:
+        log.warning("%s: %d annotations without a visible box (no scene_gt_info.json entry) were not scored",
+                    data, n_no_box)
+    summary = {"frames": n, "detector": "ground-truth boxes" if gt_boxes else "bundle", "seconds": round(time.perf_counter() - t0, 2), **summarize(records, tp, fp),
+               "true_positives": tp, "false_positives": fp}
+    return {"summary": summary, "records": records_to_dicts(records)}
+
+
+def format_table(summary: dict) -> str:
+    """A human-readable table of a summary."""
+    lines = [f"frames {summary['frames']}   pallets (>= 10% visible) {summary['n_gt']}   "
+             f"detected {summary['n_detected']}",
+             f"precision {summary['precision']:.3f}   recall {summary['recall']:.3f}",
+             f"{'threshold':>10} {'ADD':>8} {'ADD-sym':>8} {'ADD-S':>8}"]
+    for t in summary["add_acc"]:
+        lines.append(f"{float(t) * 100:>8.0f}cm {summary['add_acc'][t]:>8.3f} {summary['add_sym_acc'][t]:>8.3f} "
+                     f"{summary['adds_acc'][t]:>8.3f}")
+    lines.append(f"{'AUC<10cm':>10} {summary['add_auc_10cm']:>8.3f} {summary['add_sym_auc_10cm']:>8.3f} "
+                 f"{summary['adds_auc_10cm']:>8.3f}")
+    for b in summary.get("by_distance", []):
+        to = "inf" if b["to_m"] is None else f"{b['to_m']:g}"
+        acc = ", ".join(f"@{float(k) * 100:.0f}cm {v:.2f}" for k, v in b["add_sym_acc"].items())
+        lines.append(f"  {b['from_m']:g}-{to} m: n={b['n_gt']:<4} ADD-sym {acc}")
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    from .bundle import BundleError
+    from .estimator import PalletEstimator
+
+    try:
+        est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
+                                          score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed)
+    except (BundleError, FileNotFoundError, ValueError) as exc:
+        print(f"pallet6d eval: cannot load bundle {args.bundle}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        out = evaluate_dataset(est, args.data, args.split, args.max_frames, progress=True, gt_boxes=args.gt_boxes)
+    except (ValueError, OSError) as exc:
+        print(f"pallet6d eval: {args.data}: {exc}", file=sys.stderr)
+        return 1
+    print(format_table(out["summary"]))
+    if args.json:
+        doc = {"bundle": str(args.bundle), "data": str(args.data), "graphs": "int8" if args.int8 else "fp32",
+               **out["summary"], "records": out["records"]}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {args.json}")
+    return 0
