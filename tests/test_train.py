@@ -1,0 +1,192 @@
+"""Training: data preparation (targets, augmentation, cache), learning on a tiny batch, checkpoints, resume,
+checkpoint -> export_bundle -> PalletEstimator. Tiny config, the 3-frame `sim_bop_dataset` fixture."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from pallet6d.export.calib_data import make_calibration_set, pose_input_spec  # noqa: E402
+from pallet6d.export.config import get_config  # noqa: E402
+from pallet6d.export.train_data import (NO_AUGMENT, AugmentConfig, augment_depth, build_pose_samples,  # noqa: E402
+                                        dataset_fingerprint, flip_horizontal, jitter_box, load_or_build)
+from pallet6d.export.train_detector import DetectorTrainer, load_detector_data  # noqa: E402
+from pallet6d.export.train_loop import LoopSettings, load_checkpoint, lr_at  # noqa: E402
+from pallet6d.export.train_pose import PoseTrainer, load_pose_data, train_pose  # noqa: E402
+
+CFG = get_config("tiny")
+
+
+@pytest.fixture(scope="module")
+def pose_data(sim_bop_dataset, tmp_path_factory):
+    return load_pose_data(CFG, [sim_bop_dataset], variants=1, seed=0, aug=NO_AUGMENT,
+                          cache_dir=tmp_path_factory.mktemp("cache"), progress=False)
+
+
+def _overfit(trainer, step_fn, n_steps: int, lr: float) -> tuple[float, float]:
+    params = [p for net in trainer.nets.values() for p in net.parameters()]
+    opt = torch.optim.Adam(params, lr=lr)
+    for net in trainer.nets.values():
+        net.train()
+    losses = []
+    for _ in range(n_steps):
+        loss = step_fn()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    return float(np.mean(losses[:3])), float(np.mean(losses[-3:]))
+
+
+def test_pose_targets_put_the_model_on_the_observed_points(sim_bop_dataset):
+    """T_gt is in the centred frame: model points under T_gt must lie on the sampled (centred) points."""
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.export.train_data import model_points_for
+
+    cfg = CFG.replace(pose=CFG.pose.__class__(num_points=64, point_dims=(16, 16), global_dims=(32, 64),
+                                              head_dims=(32, 16, 16), attention_heads=2))
+    s = build_pose_samples(sim_bop_dataset, pose_input_spec(cfg), variants=1, seed=0, aug=NO_AUGMENT)
+    model, _ = model_points_for(BopDataset(sim_bop_dataset), 1, 3000, "epal")
+    fractions = []
+    for k in range(len(s)):
+        T = s.T_gt[k].astype(np.float64)
+        model_cam = model @ T[:3, :3].T + T[:3, 3]
+        d = np.linalg.norm(s.points[k][:, None, :] - model_cam[None], axis=2).min(1)
+        fractions.append(np.mean(d < 0.03))
+    # mask-free boxes include some background, but most sampled points of a visible pallet are on it
+    assert np.median(fractions) > 0.5
+    assert s.points.shape[1:] == (64, 3) and np.allclose(s.points.mean(1), 0, atol=1e-4)
+
+
+def test_pose_training_reduces_loss_on_a_tiny_batch(pose_data):
+    torch.manual_seed(0)
+    trainer = PoseTrainer(CFG, pose_data)
+    idx = pose_data.train_idx[:4]
+    first, last = _overfit(trainer, lambda: trainer.forward_loss(idx)[0], 30, 2e-3)
+    assert last < 0.7 * first, (first, last)
+
+
+def test_detector_training_reduces_loss_on_a_tiny_batch(sim_bop_dataset, tmp_path):
+    torch.manual_seed(0)
+    dd = load_detector_data(CFG, [sim_bop_dataset], seed=0, cache_dir=tmp_path, progress=False)
+    trainer = DetectorTrainer(CFG, dd, NO_AUGMENT)
+    x, targets = trainer.batch(dd.train_idx[:2], None)
+    assert sum(len(t) for t in targets) > 0
+    first, last = _overfit(trainer, lambda: trainer.loss(trainer.detector.forward_raw(x), targets)[0], 25, 3e-3)
+    assert last < 0.7 * first, (first, last)
+
+
+def test_flip_keeps_boxes_on_the_object():
+    img = np.zeros((20, 40, 3), np.uint8)
+    img[5:10, 2:8] = 255
+    flipped, boxes = flip_horizontal(img, np.array([[2, 5, 8, 10]]))
+    x1, y1, x2, y2 = boxes[0].astype(int)
+    assert (x1, y1, x2, y2) == (32, 5, 38, 10)
+    assert flipped[y1:y2, x1:x2].min() == 255 and flipped.sum() == img.sum()
+
+
+def test_box_jitter_and_depth_augmentation_are_seeded_and_sane():
+    box = np.array([100.0, 50.0, 200.0, 100.0])
+    a = jitter_box(box, np.random.default_rng(1), 0.08, 0.05)
+    assert np.array_equal(a, jitter_box(box, np.random.default_rng(1), 0.08, 0.05))
+    boxes = np.array([jitter_box(box, np.random.default_rng(i), 0.08, 0.05) for i in range(200)])
+    assert np.all(boxes[:, 2] > boxes[:, 0]) and abs(np.mean(boxes[:, 2] - boxes[:, 0]) - 100) < 5
+    depth = np.full((30, 40), 2.0, np.float32)
+    depth[0, 0] = 0.0
+    out = augment_depth(depth, np.random.default_rng(0), AugmentConfig(depth_dropout_prob=1.0))
+    assert out[0, 0] == 0.0 and (out == 0).sum() > 1 and np.all(out >= 0)
+    assert 0 < np.std(out[out > 0] - 2.0) < 0.05
+
+
+def test_cache_is_reused_and_invalidated(sim_bop_dataset, tmp_path):
+    spec = pose_input_spec(CFG)
+    calls = []
+
+    def build(variants):
+        calls.append(variants)
+        return build_pose_samples(sim_bop_dataset, spec, variants, 0, NO_AUGMENT)
+
+    a, fp = load_or_build("pose", sim_bop_dataset, {"v": 1}, tmp_path, lambda: build(1))
+    b, _ = load_or_build("pose", sim_bop_dataset, {"v": 1}, tmp_path, lambda: build(1))
+    assert calls == [1] and np.array_equal(a.points, b.points) and np.array_equal(a.T_gt, b.T_gt)
+    load_or_build("pose", sim_bop_dataset, {"v": 2}, tmp_path, lambda: build(2))
+    assert calls == [1, 2]
+    assert fp["frames"] == 3 and fp["sim"][0]["preset"] == "virtual-occluded" and fp["sim"][0]["seed"] == 7
+    assert fp == dataset_fingerprint(sim_bop_dataset)
+
+
+def test_lr_schedule():
+    s = LoopSettings(epochs=10, batch=2, lr=1e-3, warmup_epochs=1.0)
+    assert lr_at(s, 0.0) < 1e-4 and lr_at(s, 1.0) == pytest.approx(1e-3 * (0.05 + 0.95 * 0.5 * (1 + np.cos(0.1 * np.pi))))
+    assert lr_at(s, 10.0) == pytest.approx(5e-5)
+    with pytest.raises(ValueError):
+        LoopSettings(epochs=0, batch=2, lr=1e-3)
+
+
+@pytest.fixture(scope="module")
+def pose_run(sim_bop_dataset, tmp_path_factory):
+    run = tmp_path_factory.mktemp("pose_run")
+    s = LoopSettings(epochs=1, batch=4, lr=1e-3, seed=3)
+    train_pose(CFG, [sim_bop_dataset], run, s, variants=1, command="test", progress=False)
+    first = load_checkpoint(run / "last.pt")
+    train_pose(CFG, [sim_bop_dataset], run, LoopSettings(epochs=2, batch=4, lr=1e-3, seed=3), variants=1,
+               resume=True, progress=False)
+    return run, first
+
+
+def test_checkpoint_and_resume_continue_at_the_right_epoch(pose_run):
+    run, first = pose_run
+    assert first["epoch"] == 1 and first["stage"] == "pose" and first["config"] == "tiny"
+    prov = first["provenance"]
+    assert prov["seed"] == 3 and prov["command"] == "test" and prov["data"][0]["frames"] == 3
+    last = load_checkpoint(run / "last.pt")
+    assert last["epoch"] == 2
+    lines = [json.loads(x) for x in (run / "train_log.jsonl").read_text().splitlines()]
+    assert [x["epoch"] for x in lines] == [1, 2]
+    assert all(np.isfinite(x["train_loss"]) and x["seconds"] >= 0 and "lr" in x for x in lines)
+    changed = any(not torch.equal(first["pose"][k], last["pose"][k]) for k in first["pose"])
+    assert changed
+    assert (run / "best.pt").exists()
+    with pytest.raises(ValueError, match="not a pallet6d training checkpoint|no checkpoint"):
+        load_checkpoint(run / "missing.pt")
+
+
+def test_checkpoint_exports_to_a_bundle_the_runtime_loads(pose_run, sim_bop_dataset, tmp_path):
+    from pallet6d.export.bundle_export import export_bundle
+    from pallet6d.export.train_cli import merge_checkpoints
+    from pallet6d.export.train_detector import train_detector
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.runtime.estimator import PalletEstimator
+
+    run, _ = pose_run
+    train_detector(CFG, [sim_bop_dataset], tmp_path / "det", LoopSettings(epochs=1, batch=2, lr=1e-3),
+                   progress=False)
+    merged = merge_checkpoints(tmp_path / "det" / "last.pt", run / "best.pt", tmp_path / "model.pt")
+    assert set(merged["provenance"]) == {"detector", "pose"}
+    with pytest.raises(ValueError, match="detector and a pose"):
+        merge_checkpoints(run / "best.pt", run / "best.pt", tmp_path / "bad.pt")
+    calib = make_calibration_set(CFG, frames=2, max_crops=4, seed=0, synthetic=True)
+    export_bundle(CFG, tmp_path / "bundle", checkpoint=tmp_path / "model.pt", calib=calib)
+    est = PalletEstimator.from_bundle(tmp_path / "bundle", threads=1, min_fit=0.0)
+    f = BopDataset(sim_bop_dataset)[0]
+    boxes = [[x, y, x + w, y + h] for x, y, w, h in (g.bbox_visib_xywh for g in f.gts if g.visib_fract > 0.3)]
+    result = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
+    assert len(result.poses) + len(result.rejected) == len(boxes)
+    assert all(np.isfinite(p.T_cam_pallet).all() for p in result.poses)
+    # the exported pose graph carries the trained weights, not a fresh initialisation
+    import onnxruntime as ort
+    from pallet6d.export.pose import build_pose
+
+    net = build_pose(CFG.pose, CFG.fusion.feature_dim).eval()
+    net.load_state_dict(torch.load(tmp_path / "model.pt", weights_only=True)["pose"])
+    rng = np.random.default_rng(0)
+    pts = rng.normal(0, 0.3, (2, CFG.pose.num_points, 3)).astype(np.float32)
+    feats = rng.normal(0, 1, (2, CFG.pose.num_points, CFG.fusion.feature_dim)).astype(np.float32)
+    sess = ort.InferenceSession(str(tmp_path / "bundle" / "pose.onnx"), providers=["CPUExecutionProvider"])
+    conf_onnx = sess.run(["conf"], {"points": pts, "features": feats})[0]
+    with torch.no_grad():
+        conf_torch = net(torch.from_numpy(pts), torch.from_numpy(feats))[2].numpy()
+    np.testing.assert_allclose(conf_onnx, conf_torch, atol=1e-4)
