@@ -1,0 +1,177 @@
+"""Accuracy of a model bundle on held-out synthetic test sets, plotted like the paper's Fig. 4.
+
+    python benchmarks/accuracy.py --bundle models/edge [--int8] [--frames 300] [--out benchmarks/results/accuracy]
+
+Test sets: one per sim preset, generated once (or reused) under `--data-root` with the seeds below. Training
+data uses seeds 1000 and up (`pallet6d train` recipe); test seeds 9001-9003 are never used for training, so
+test scenes are never seen during training.
+
+Writes to `--out`: `<preset>.json` (the `pallet6d eval` summary + per-pallet records), `accuracy_vs_threshold.png`
+(ADD and symmetric ADD accuracy vs threshold 0-20 cm, one line per preset), `add_histogram.png` (per-pallet
+symmetric-ADD distribution), `accuracy_by_distance.png`, and `accuracy.md` (our numbers beside the paper's).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("accuracy")
+
+TEST_SEEDS = {"virtual-clean": 9001, "virtual-occluded": 9002, "indoor-noisy": 9003}
+# paper section 4.2: ADD accuracy at 5 cm / 10 cm (None: not reported)
+PAPER = {"virtual-clean": {"0.05": 1.00, "0.1": None}, "virtual-occluded": {"0.05": 0.88, "0.1": None},
+         "indoor-noisy": {"0.05": 0.56, "0.1": 0.82}}
+CURVE_THRESHOLDS_M = np.linspace(0.0, 0.2, 81)
+
+
+def ensure_test_set(preset: str, frames: int, root: Path) -> Path:
+    """The test set of `preset` with `frames` frames (generated when missing or of another size)."""
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.sim.dataset import write_dataset
+    from pallet6d.sim.presets import get_preset
+
+    out = root / f"{preset}-seed{TEST_SEEDS[preset]}-{frames}"
+    try:
+        if len(BopDataset(out)) == frames:
+            log.info("reusing %s", out)
+            return out
+    except ValueError:
+        pass
+    log.info("generating %s (%d frames, seed %d)", out, frames, TEST_SEEDS[preset])
+    t = time.perf_counter()
+    write_dataset(get_preset(preset), frames, TEST_SEEDS[preset], out, split="test")
+    log.info("generated in %.0f s", time.perf_counter() - t)
+    return out
+
+
+def accuracy_curve(errors_m: list, thresholds_m: np.ndarray) -> np.ndarray:
+    """Fraction of errors below each threshold; None (missed) counts as a failure."""
+    e = np.array([np.inf if v is None else v for v in errors_m], dtype=np.float64)
+    if e.size == 0:
+        return np.zeros(len(thresholds_m))
+    return (e[None, :] < thresholds_m[:, None]).mean(1)
+
+
+def plot(results: dict[str, dict], out: Path) -> list[Path]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, key, title in ((axes[0], "add_m", "ADD"), (axes[1], "add_sym_m", "symmetric ADD")):
+        for preset, doc in results.items():
+            acc = accuracy_curve([r[key] for r in doc["records"]], CURVE_THRESHOLDS_M)
+            ax.plot(CURVE_THRESHOLDS_M * 100, acc * 100, label=f"{preset} (n={doc['n_gt']})")
+            paper = PAPER.get(preset, {})
+            for t, v in paper.items():
+                if v is not None and key == "add_m":
+                    ax.plot(float(t) * 100, v * 100, "x", color=ax.lines[-1].get_color())
+        ax.set_xlabel("threshold (cm)")
+        ax.set_title(f"{title} accuracy (x: paper)" if key == "add_m" else f"{title} accuracy")
+        ax.grid(alpha=0.3)
+        ax.set_xlim(0, 20)
+        ax.set_ylim(0, 100)
+    axes[0].set_ylabel("accuracy (%) of pallets >= 10% visible")
+    axes[0].legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    paths.append(out / "accuracy_vs_threshold.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, len(results), figsize=(4 * len(results), 3.5), squeeze=False)
+    for ax, (preset, doc) in zip(axes[0], results.items()):
+        e = np.array([r["add_sym_m"] for r in doc["records"] if r["add_sym_m"] is not None])
+        missed = sum(r["add_sym_m"] is None for r in doc["records"])
+        ax.hist(np.clip(e, 0, 1.0), bins=40, range=(0, 1.0), color="tab:blue")
+        ax.set_title(f"{preset}: {len(e)} estimated, {missed} missed", fontsize=9)
+        ax.set_xlabel("symmetric ADD per pallet (m, clipped at 1)")
+    axes[0][0].set_ylabel("pallets")
+    fig.tight_layout()
+    paths.append(out / "add_histogram.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for preset, doc in results.items():
+        bins = doc["by_distance"]
+        if bins:
+            centres = [(b["from_m"] + (b["to_m"] if b["to_m"] is not None else b["from_m"] + 2)) / 2 for b in bins]
+            ax.plot(centres, [b["add_sym_acc"]["0.05"] * 100 for b in bins], "o-", label=f"{preset} @5cm")
+            ax.plot(centres, [b["add_sym_acc"]["0.1"] * 100 for b in bins], "s--", label=f"{preset} @10cm",
+                    color=ax.lines[-1].get_color())
+    ax.set_xlabel("distance to pallet (m)")
+    ax.set_ylabel("symmetric ADD accuracy (%)")
+    ax.set_ylim(0, 100)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    paths.append(out / "accuracy_by_distance.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+    return paths
+
+
+def markdown(results: dict[str, dict], bundle: str, precision: str, frames: int) -> str:
+    def pct(v):
+        return "-" if v is None else f"{100 * v:.0f}%"
+
+    lines = [f"# Accuracy of `{bundle}` ({precision})", "",
+             f"Held-out sim test sets ({frames} frames each; seeds {TEST_SEEDS}); pallets >= 10% visible; "
+             "a missed pallet is a failure. Paper numbers: section 4.2 (ADD, its own datasets).", "",
+             "| dataset | pallets | recall | precision | ADD @5cm | ADD @10cm | ADD-sym @5cm | ADD-sym @10cm "
+             "| paper ADD @5cm | paper ADD @10cm |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for preset, d in results.items():
+        p = PAPER.get(preset, {})
+        lines.append(f"| {preset} | {d['n_gt']} | {pct(d['recall'])} | {pct(d['precision'])} | "
+                     f"{pct(d['add_acc']['0.05'])} | {pct(d['add_acc']['0.1'])} | {pct(d['add_sym_acc']['0.05'])} | "
+                     f"{pct(d['add_sym_acc']['0.1'])} | {pct(p.get('0.05'))} | {pct(p.get('0.1'))} |")
+    lines += ["", "![accuracy vs threshold](accuracy_vs_threshold.png)", "", "![histogram](add_histogram.png)", "",
+              "![by distance](accuracy_by_distance.png)", ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--bundle", required=True, type=Path)
+    ap.add_argument("--int8", action="store_true")
+    ap.add_argument("--frames", type=int, default=300, help="frames per test set (default 300)")
+    ap.add_argument("--presets", nargs="+", default=list(TEST_SEEDS), choices=list(TEST_SEEDS))
+    ap.add_argument("--data-root", type=Path, default=Path("benchmarks/data"), help="where test sets are kept")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/accuracy"))
+    ap.add_argument("--gt-boxes", action="store_true", help="score the pose stage alone on ground-truth boxes")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.runtime.eval_cli import evaluate_dataset, format_table
+
+    precision = "int8" if args.int8 else "fp32"
+    est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision=precision)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for preset in args.presets:
+        data = ensure_test_set(preset, args.frames, args.data_root)
+        out = evaluate_dataset(est, data, max_frames=args.frames, progress=True, gt_boxes=args.gt_boxes)
+        doc = {"bundle": str(args.bundle), "graphs": precision, "data": str(data), "preset": preset,
+               "test_seed": TEST_SEEDS[preset], **out["summary"], "records": out["records"]}
+        (args.out / f"{preset}.json").write_text(json.dumps(doc, indent=1) + "\n")
+        results[preset] = doc
+        print(f"== {preset}\n{format_table(out['summary'])}")
+    paths = plot(results, args.out)
+    md = args.out / "accuracy.md"
+    md.write_text(markdown(results, str(args.bundle), precision + (", GT boxes" if args.gt_boxes else ""), args.frames))
+    print(f"wrote {md} and {', '.join(p.name for p in paths)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
