@@ -156,7 +156,7 @@ class PoseTrainer:
 
 
 def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
-               variants: int = 4, aug: AugmentConfig | None = None, resume: bool = False,
+               variants: int = 2, aug: AugmentConfig | None = None, resume: bool = False,
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
                command: str = "", progress: bool = True) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry."""
