@@ -51,11 +51,10 @@ def ensure_test_set(preset: str, frames: int, root: Path) -> Path:
 
 
 def accuracy_curve(errors_m: list, thresholds_m: np.ndarray) -> np.ndarray:
-    """Fraction of errors below each threshold; None (missed) counts as a failure."""
-    e = np.array([np.inf if v is None else v for v in errors_m], dtype=np.float64)
-    if e.size == 0:
-        return np.zeros(len(thresholds_m))
-    return (e[None, :] < thresholds_m[:, None]).mean(1)
+    """Fraction of JSON per-pallet errors below each threshold; None (missed) counts as a failure."""
+    from pallet6d.runtime.metrics import accuracy_curve as curve
+
+    return curve(np.array([np.inf if v is None else v for v in errors_m], dtype=np.float64), thresholds_m)
 
 
 def plot(results: dict[str, dict], out: Path) -> list[Path]:

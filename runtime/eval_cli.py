@@ -49,7 +49,7 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
     :raises ValueError: not a BOP dataset, or a frame the estimator rejects.
     """
     from .bop import BopDataset
-    from .evaluation import Estimate, GroundTruth, evaluate_frame, records_to_dicts, summarize
+    from .evaluation import Estimate, evaluate_frame, ground_truths_from_bop, records_to_dicts, summarize
 
     ds = BopDataset(data, split)
     n = len(ds) if not max_frames else min(len(ds), max_frames)
@@ -62,14 +62,8 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
         frames = tqdm(frames, desc=f"eval {Path(data).name}", unit="frame", file=sys.stderr)
     for i in frames:
         f = ds[i]
-        gts = []
-        for g in f.gts:
-            if g.bbox_visib_xywh is None:
-                n_no_box += 1
-                continue
-            x, y, w, h = (float(v) for v in g.bbox_visib_xywh)
-            vf = float(g.visib_fract) if np.isfinite(g.visib_fract) else 1.0
-            gts.append(GroundTruth(g.T_cam_model, np.array([x, y, x + w, y + h]), vf))
+        gts, skipped = ground_truths_from_bop(f.gts)
+        n_no_box += skipped
         if gt_boxes:
             boxes = np.array([g.box_visib_xyxy for g in gts if g.visib_fract >= MIN_VISIB_FRACT]).reshape(-1, 4)
             result = estimator.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)

@@ -18,8 +18,8 @@ import numpy as np
 
 from . import metrics
 
-__all__ = ["GroundTruth", "Estimate", "PalletRecord", "box_iou", "evaluate_frame", "summarize",
-           "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M"]
+__all__ = ["GroundTruth", "Estimate", "PalletRecord", "box_iou", "ground_truths_from_bop", "evaluate_frame",
+           "summarize", "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M"]
 
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.1)
 DEFAULT_DISTANCE_BINS_M = (0.0, 2.0, 3.0, 4.0, 5.0, 8.0, np.inf)
@@ -56,6 +56,24 @@ class PalletRecord:
     adds_m: float
     rot_err_sym_deg: float
     trans_err_m: float
+
+
+def ground_truths_from_bop(bop_gts: Sequence) -> tuple[list[GroundTruth], int]:
+    """`GroundTruth`s of one BOP frame's annotations (`pallet6d.runtime.bop.BopGT`).
+
+    Annotations without a visible box (a BOP set without scene_gt_info.json) cannot be matched and are
+    skipped; an unknown visible fraction (NaN) counts as fully visible.
+    :return: (ground truths, number of annotations skipped).
+    """
+    out, skipped = [], 0
+    for g in bop_gts:
+        if g.bbox_visib_xywh is None:
+            skipped += 1
+            continue
+        x, y, w, h = (float(v) for v in g.bbox_visib_xywh)
+        visib = float(g.visib_fract) if np.isfinite(g.visib_fract) else 1.0
+        out.append(GroundTruth(g.T_cam_model, np.array([x, y, x + w, y + h]), visib))
+    return out, skipped
 
 
 def box_iou(a_xyxy: np.ndarray, b_xyxy: np.ndarray) -> np.ndarray:

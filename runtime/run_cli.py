@@ -23,7 +23,8 @@ log = logging.getLogger(__name__)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True,
                         help="replay:DIR, bop:DIR, bag:FILE, realsense[:SERIAL] or oakd[:MXID]")
-    parser.add_argument("--bundle", default="models/default", help="model bundle folder (default: models/default)")
+    parser.add_argument("--bundle", default="models/epal-default",
+                        help="model bundle folder (default: models/epal-default)")
     parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--out", type=Path, help="write overlay PNGs (3D boxes and axes) here")
@@ -37,28 +38,34 @@ def _bop_frames(root: str) -> Iterator[tuple[object, list | None]]:
     """(RGBDFrame, ground truth list) for each image of a BOP dataset, in order."""
     from .bop import BopDataset
     from .cameras import RGBDFrame
-    from .evaluation import GroundTruth
+    from .evaluation import ground_truths_from_bop
 
     ds = BopDataset(root)
     for i in range(len(ds)):
         f = ds[i]
         frame = RGBDFrame.from_depth_m(f.rgb, f.depth_m, f.K, timestamp_s=float(i), frame_number=i,
                                        source=f"bop:{root}", depth_scale_m=float(f.depth_scale_mm) * 1e-3)
-        gts = []
-        for g in f.gts:
-            if g.bbox_visib_xywh is None:
-                continue
-            x, y, w, h = (float(v) for v in g.bbox_visib_xywh)
-            gts.append(GroundTruth(g.T_cam_model, np.array([x, y, x + w, y + h]), float(g.visib_fract)))
+        gts, _ = ground_truths_from_bop(f.gts)
         yield frame, gts
 
 
 def _source_frames(spec: str) -> Iterator[tuple[object, list | None]]:
-    from .cameras import open_source
+    """Frames of a camera or recording. A live camera is read through `LatestFrame`: the estimator is
+    slower than the camera, so it always gets the newest frame and stale ones are dropped, never queued.
+    Recordings are played frame by frame, so none is skipped."""
+    from .cameras import LatestFrame, open_source
 
-    with open_source(spec) as cam:
-        for frame in cam:
+    source = open_source(spec)
+    if not source.live:
+        with source:
+            for frame in source:
+                yield frame, None
+        return
+    with LatestFrame(source) as grab:
+        while (frame := grab.get(timeout_s=5.0)) is not None:
             yield frame, None
+        log.info("%s: %d frames received, %d dropped while the estimator was busy", spec, grab.received,
+                 grab.dropped)
 
 
 def main(args: argparse.Namespace) -> int:

@@ -38,3 +38,45 @@ def test_run_on_bop_prints_json_lines_ground_truth_and_overlays(bundle_dir, bop_
 def test_run_with_a_missing_bundle_fails_clearly(tmp_path, capsys):
     rc = main(["run", "--source", f"bop:{tmp_path}", "--bundle", str(tmp_path / "nope")])
     assert rc == 2 and "cannot load bundle" in capsys.readouterr().err
+
+
+def test_live_sources_go_through_latest_frame(monkeypatch):
+    """A live camera is read by the newest-frame grabber: frames come out in order, the newest is never
+    lost, and the camera is stopped at the end."""
+    from camera_fixtures import K_SMALL, box_frame
+
+    from pallet6d.runtime import cameras, run_cli
+
+    class FakeLive(cameras.FrameSource):
+        live = True
+
+        def __init__(self):
+            super().__init__("fake-live")
+            self.frames = [box_frame(i) for i in range(5)]
+            self.stopped = False
+
+        def _start(self):
+            self._K, self._depth_scale_m = K_SMALL, 0.001
+
+        def _read(self):
+            return self.frames.pop(0) if self.frames else None
+
+        def _stop(self):
+            self.stopped = True
+
+    src = FakeLive()
+    monkeypatch.setattr(cameras, "open_source", lambda spec: src)
+    got = [frame.frame_number for frame, gt in run_cli._source_frames("fake")]
+    assert got and got == sorted(got) and got[-1] == 104
+    assert src.stopped
+
+
+def test_ground_truths_from_bop_frame(bop_dir):
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.runtime.evaluation import ground_truths_from_bop
+
+    frame = BopDataset(bop_dir)[0]
+    gts, skipped = ground_truths_from_bop(frame.gts)
+    assert skipped == 0 and len(gts) == len(frame.gts)
+    x, y, w, h = frame.gts[0].bbox_visib_xywh
+    assert gts[0].box_visib_xyxy.tolist() == [x, y, x + w, y + h]
