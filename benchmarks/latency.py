@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -116,8 +117,31 @@ def footprint(bundle: str, precision: str) -> dict:
     return {"import_s": float(import_s), "peak_rss_mb": float(rss_mb), "torch_loaded": torch_loaded == "True"}
 
 
-def _markdown(results: list[dict], footprints: dict) -> str:
+def run_info(bundles: list[str]) -> dict:
+    """What was measured, where and how: enough to reproduce the table and to judge it."""
+    import platform
+
+    import onnxruntime
+
+    from pallet6d.runtime.bundle import load_bundle
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip() or None
+    return {"command": " ".join([Path(sys.argv[0]).as_posix()] + sys.argv[1:]),
+            "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "git_commit": commit,
+            "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(),
+            "python": platform.python_version(), "onnxruntime": onnxruntime.__version__, "numpy": np.__version__,
+            "bundles": {b.config: {"name": b.name, "random_init": bool(b.provenance.get("random_init"))}
+                        for b in map(load_bundle, bundles)}}
+
+
+def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
+    weights = ", ".join(f"{c}: {'random-init' if v['random_init'] else 'trained'} ({v['name']})"
+                        for c, v in info["bundles"].items())
     lines = ["# Runtime latency (ms, 1224x370, this machine)", "",
+             f"`{info['command']}` at {info['git_commit']} on {info['date_utc']}; {info['cpus']} CPUs, "
+             f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}. Weights: {weights} "
+             "(latency does not depend on the weights' values).", "",
              "| bundle | precision | threads | pallets | " + " | ".join(f"{s} p50" for s in STAGES[:-1])
              + " | total p50 | total p95 | total p99 | torch eager nets p50 | onnx nets p50 | torch/onnx |",
              "|" + "---|" * (4 + len(STAGES) - 1 + 6)]
@@ -168,10 +192,12 @@ def main() -> int:
                     results.append(r)
                     print(json.dumps({k: v for k, v in r.items() if k != "stages"} |
                                      {"total_p50": stages["total"]["p50"]}), flush=True)
+    info = run_info(args.bundle)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "latency.json").write_text(json.dumps({"results": results, "footprint": footprints}, indent=1))
-    (args.out / "latency.md").write_text(_markdown(results, footprints))
-    print(_markdown(results, footprints))
+    (args.out / "latency.json").write_text(json.dumps({"run": info, "results": results, "footprint": footprints},
+                                                      indent=1))
+    (args.out / "latency.md").write_text(_markdown(results, footprints, info))
+    print(_markdown(results, footprints, info))
     return 0
 
 
