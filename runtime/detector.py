@@ -138,7 +138,7 @@ def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: flo
     """Decode one image's YOLOv8 output and run class-aware NMS.
 
     :param output: (4 + nc, A) or (1, 4 + nc, A): cx, cy, w, h in input pixels, then class scores.
-    :param score_threshold: keep anchors whose best class score is >= this.
+    :param score_threshold: keep anchors whose best class score is above this (as ultralytics: 1.0 keeps nothing).
     :param iou_threshold: NMS IoU above which the lower-scoring box of the same class is dropped.
     :param class_ids: classes to keep (None = all).
     :param max_detections: at most this many, highest score first.
@@ -154,7 +154,7 @@ def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: flo
     cls_scores = out[4:]                                   # (nc, A)
     best = cls_scores.argmax(axis=0)
     score = cls_scores[best, np.arange(out.shape[1])]
-    keep = score >= score_threshold
+    keep = score > score_threshold
     if class_ids is not None:
         keep &= np.isin(best, np.asarray(class_ids, dtype=np.int64))
     keep &= np.all(np.isfinite(out[:4]), axis=0)

@@ -20,3 +20,25 @@ def sim_bop_dataset(tmp_path_factory):
     config = get_preset(SIM_BOP_PRESET).with_image_size(*SIM_BOP_SIZE)
     write_dataset(config, SIM_BOP_FRAMES, SIM_BOP_SEED, root, split="train")
     return root
+
+
+@pytest.fixture(scope="session")
+def bundle_dir(tmp_path_factory):
+    """A random-init `tiny` bundle from `pallet6d export`, built once per session (about 3 s).
+
+    `PALLET6D_TEST_BUNDLE=/path/to/bundle` uses an existing bundle instead."""
+    import os
+    from pathlib import Path
+
+    env = os.environ.get("PALLET6D_TEST_BUNDLE")
+    if env:
+        return Path(env)
+    pytest.importorskip("torch")
+    from pallet6d.runtime.cli import main
+
+    out = tmp_path_factory.mktemp("bundle") / "tiny"
+    # one torch thread and two calibration frames: a tiny export is dominated by thread start-up on 2 cores
+    rc = main(["export", "--config", "tiny", "--random-init", "--torch-threads", "1", "--calib-frames", "2",
+               "--out", str(out)])
+    assert rc == 0, "pallet6d export --config tiny --random-init failed"
+    return out

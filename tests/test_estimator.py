@@ -14,13 +14,6 @@ from pallet6d.runtime.results import FrameResult, PalletPose
 from pallet6d.sim.generate import generate_frame
 from pallet6d.sim.presets import get_preset
 
-from conftest_runtime_bundle import make_tiny_bundle
-
-
-@pytest.fixture(scope="session")
-def bundle_dir(tmp_path_factory):
-    return make_tiny_bundle(tmp_path_factory)
-
 
 @pytest.fixture(scope="module")
 def frame():

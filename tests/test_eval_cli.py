@@ -6,12 +6,10 @@ import json
 
 import pytest
 
-from conftest_runtime_bundle import make_tiny_bundle
-
 
 @pytest.fixture(scope="module")
-def tiny_bundle(tmp_path_factory):
-    return make_tiny_bundle(tmp_path_factory)
+def tiny_bundle(bundle_dir):
+    return bundle_dir
 
 
 def _counted_gt(root) -> int:

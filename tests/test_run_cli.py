@@ -5,13 +5,6 @@ import pytest
 
 from pallet6d.runtime.cli import main
 
-from conftest_runtime_bundle import make_tiny_bundle
-
-
-@pytest.fixture(scope="session")
-def bundle_dir(tmp_path_factory):
-    return make_tiny_bundle(tmp_path_factory)
-
 
 @pytest.fixture(scope="module")
 def bop_dir(tmp_path_factory):
