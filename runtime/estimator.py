@@ -47,7 +47,7 @@ STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose
 class EstimatorOptions:
     """Run-time choices (the model's own sizes and normalisation come from the bundle, never from here).
 
-    :ivar score_threshold: minimum detector class score.
+    :ivar score_threshold: detector class score a box must exceed.
     :ivar iou_threshold: NMS IoU above which the weaker box of the same class goes.
     :ivar max_pallets: at most this many detections (highest scores) go to the pose stage.
     :ivar depth_range_m: (min, max) depth of a pixel to become a point; None = the bundle's.
