@@ -76,7 +76,9 @@ def _warm_up_batchnorm(model: torch.nn.Module, batches: list[tuple[torch.Tensor,
     model.eval()
 
 
-def _load_checkpoint(path: Path, nets: dict[str, torch.nn.Module], cfg: ModelConfig, need: tuple[str, ...]) -> None:
+def _load_checkpoint(path: Path, nets: dict[str, torch.nn.Module], cfg: ModelConfig,
+                     need: tuple[str, ...]) -> dict | None:
+    """Load the networks' weights; return the checkpoint's training provenance (recipe, data, seeds) if any."""
     try:
         ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as exc:
@@ -93,6 +95,8 @@ def _load_checkpoint(path: Path, nets: dict[str, torch.nn.Module], cfg: ModelCon
             nets[key].load_state_dict(ckpt[key])
         except RuntimeError as exc:
             raise ExportError(f"checkpoint {path}: {key} weights do not fit config {cfg.name!r}: {exc}") from None
+    training = ckpt.get("provenance")
+    return training if isinstance(training, dict) else None
 
 
 def _external_detector(path: Path, classes: tuple[str, ...] | None) -> tuple[tuple[int, int], tuple[str, ...]]:
@@ -179,8 +183,9 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=det_hw, classes=det_classes))
     calib = calib or make_calibration_set(cfg, frames=calib_frames, seed=seed)
     need = ("fusion", "pose") if detector_onnx is not None else ("detector", "fusion", "pose")
+    training = None
     if checkpoint is not None:
-        _load_checkpoint(Path(checkpoint), nets, cfg, need)
+        training = _load_checkpoint(Path(checkpoint), nets, cfg, need)
     else:
         t = torch.from_numpy
         _warm_up_batchnorm(nets["detector"], [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)])
@@ -279,7 +284,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                        "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                        "random_init": bool(random_init), "checkpoint": None if checkpoint is None else str(checkpoint),
                        "detector_onnx": None if detector_onnx is None else str(detector_onnx),
-                       "training": None, "calibration": calib.source, "model_config": cfg.to_dict()},
+                       "training": training, "calibration": calib.source, "model_config": cfg.to_dict()},
         "checks": checks,
         "scores": {},
     }

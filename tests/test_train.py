@@ -169,7 +169,12 @@ def test_checkpoint_exports_to_a_bundle_the_runtime_loads(pose_run, sim_bop_data
     with pytest.raises(ValueError, match="detector and a pose"):
         merge_checkpoints(run / "best.pt", run / "best.pt", tmp_path / "bad.pt")
     calib = make_calibration_set(CFG, frames=2, max_crops=4, seed=0, synthetic=True)
-    export_bundle(CFG, tmp_path / "bundle", checkpoint=tmp_path / "model.pt", calib=calib)
+    manifest = export_bundle(CFG, tmp_path / "bundle", checkpoint=tmp_path / "model.pt", calib=calib)
+    # the training recipe, data and seeds travel into the bundle's provenance
+    training = manifest["provenance"]["training"]
+    assert set(training) == {"detector", "pose"} and training["pose"]["seed"] == merged["provenance"]["pose"]["seed"]
+    assert training["detector"]["stage"] == "detector" and training["pose"]["stage"] == "pose"
+    assert training["pose"]["data"][0]["frames"] == len(BopDataset(sim_bop_dataset))
     est = PalletEstimator.from_bundle(tmp_path / "bundle", threads=1, min_fit=0.0)
     f = BopDataset(sim_bop_dataset)[0]
     boxes = [[x, y, x + w, y + h] for x, y, w, h in (g.bbox_visib_xywh for g in f.gts if g.visib_fract > 0.3)]
