@@ -14,9 +14,9 @@ Default recipe for the shipped `edge` bundle (and, unchanged, the `densefusion` 
 ------------------------------------------------------------------------------------------
 Data (training seeds are 1000+, never the test seeds 9001-9003 of `benchmarks/accuracy.py`)::
 
-    pallet6d sim --preset virtual-clean    --frames 300 --seed 1000 --out data/train/virtual-clean
-    pallet6d sim --preset virtual-occluded --frames 600 --seed 1001 --out data/train/virtual-occluded
-    pallet6d sim --preset indoor-noisy     --frames 300 --seed 1002 --out data/train/indoor-noisy
+    pallet6d sim --preset virtual-clean    --frames 400 --seed 1000 --out data/train/virtual-clean
+    pallet6d sim --preset virtual-occluded --frames 800 --seed 1001 --out data/train/virtual-occluded
+    pallet6d sim --preset indoor-noisy     --frames 400 --seed 1002 --out data/train/indoor-noisy
 
 Training (`RECIPES` holds these defaults; flags override them)::
 
@@ -30,14 +30,14 @@ Training (`RECIPES` holds these defaults; flags override them)::
 Ablation: the same commands with `--config densefusion` (and `paper` for the attention model at paper size);
 same data, seeds, epochs and batch, so the only difference is the network.
 
-Cost, measured on the 2-core machine while shared with other jobs (load ~5): sim ~2.3 frames/s at
-1224x370; pose-sample preparation ~0.1 s per frame and view (cached, one-off); edge pose training ~0.31 s
-per sample and epoch (112 s for 360 samples), edge detector ~0.35 s per frame and epoch. The recipe's
-1200 frames give ~8.4k pose samples (~3.5 pallets/frame x 2 views): ~45 min per pose epoch, ~3.5 h for 5;
-~7 min per detector epoch, ~2.3 h for 20 (expect roughly half on an unshared machine). Run each in the
-background with `--no-progress --max-minutes M` and `--resume`. On CUDA (`--device cuda`) epochs take
-seconds to a minute: use `--epochs 40` (pose) and `--epochs 100` (detector) there rather than more data.
-The `densefusion`/`paper` networks are ~10x the edge pose FLOPs: train them on CUDA.
+Cost on this 2-core machine, detector and pose trained side by side with one torch thread each
+(`OMP_NUM_THREADS=1`; 2026-11-21): sim ~2 frames/s per core at 1224x370; the 1600 frames above give 1440
+detector training frames (~2 min per detector epoch: 12 epochs in 24 min reached validation precision 0.89,
+recall 0.88) and ~6.2k pose samples with 1 view per pallet (~19 min per pose epoch; sample preparation is a
+one-off of a few minutes, cached). The pose stage is the long pole: 5 epochs x 2 views is ~3 h. Run each in
+the background with `--no-progress --max-minutes M` and continue with `--resume`. On CUDA (`--device cuda`)
+epochs take seconds to a minute: use `--epochs 40` (pose) and `--epochs 100` (detector) there rather than
+more data. The `densefusion`/`paper` networks are ~5x the edge pose-stage FLOPs: train them on CUDA.
 """
 from __future__ import annotations
 
