@@ -18,22 +18,19 @@ import numpy as np
 
 MIN_VISIB_FRACT = 0.1   # evaluation.evaluate_frame's default: less visible pallets are not scored
 
+from .estimator_cli import add_estimator_arguments, load_estimator
+
 HELP = "accuracy of a model bundle on a BOP dataset (precision, recall, ADD / symmetric ADD accuracy)"
 
 log = logging.getLogger(__name__)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--bundle", required=True, type=Path, help="model bundle folder")
+    add_estimator_arguments(parser)
     parser.add_argument("--data", required=True, type=Path, help="BOP dataset root (e.g. from `pallet6d sim`)")
     parser.add_argument("--split", help="split folder (default: the only one)")
-    parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--json", type=Path, help="write the summary and per-pallet records here")
     parser.add_argument("--max-frames", type=int, default=0, help="evaluate at most N frames (0: all)")
-    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
-    parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
-    parser.add_argument("--min-fit", type=float, default=0.2, help="reject poses whose fit score is below this")
-    parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
     parser.add_argument("--gt-boxes", action="store_true",
                         help="skip the detector: feed the ground-truth visible boxes to the pose stage "
                              "(scores the pose stage alone)")
@@ -100,14 +97,8 @@ def format_table(summary: dict) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    from .bundle import BundleError
-    from .estimator import PalletEstimator
-
-    try:
-        est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
-                                          score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed)
-    except (BundleError, FileNotFoundError, ValueError) as exc:
-        print(f"pallet6d eval: cannot load bundle {args.bundle}: {exc}", file=sys.stderr)
+    est = load_estimator(args, "eval")
+    if est is None:
         return 2
     try:
         out = evaluate_dataset(est, args.data, args.split, args.max_frames, progress=True, gt_boxes=args.gt_boxes)

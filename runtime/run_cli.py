@@ -15,6 +15,8 @@ from typing import Iterator
 
 import numpy as np
 
+from .estimator_cli import add_estimator_arguments, load_estimator
+
 HELP = "estimate pallet poses on a camera or recording (one JSON line per frame)"
 
 log = logging.getLogger(__name__)
@@ -23,15 +25,9 @@ log = logging.getLogger(__name__)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True,
                         help="replay:DIR, bop:DIR, bag:FILE, realsense[:SERIAL] or oakd[:MXID]")
-    parser.add_argument("--bundle", default="models/epal-default",
-                        help="model bundle folder (default: models/epal-default)")
-    parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
-    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
+    add_estimator_arguments(parser, bundle_default="models/epal-default")
     parser.add_argument("--out", type=Path, help="write overlay PNGs (3D boxes and axes) here")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: all)")
-    parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
-    parser.add_argument("--min-fit", type=float, default=0.2, help="reject poses whose fit score is below this")
-    parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
 
 
 def _bop_frames(root: str) -> Iterator[tuple[object, list | None]]:
@@ -69,15 +65,10 @@ def _source_frames(spec: str) -> Iterator[tuple[object, list | None]]:
 
 
 def main(args: argparse.Namespace) -> int:
-    from .bundle import BundleError
     from .cameras import CameraError
-    from .estimator import PalletEstimator
 
-    try:
-        est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
-                                          score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed)
-    except (BundleError, FileNotFoundError, ValueError) as exc:
-        print(f"pallet6d run: cannot load bundle {args.bundle}: {exc}", file=sys.stderr)
+    est = load_estimator(args, "run")
+    if est is None:
         return 2
     frames = _bop_frames(args.source[4:]) if args.source.lower().startswith("bop:") else _source_frames(args.source)
     if args.out:

@@ -1,0 +1,32 @@
+"""The estimator options that `pallet6d run` and `pallet6d eval` share, and loading the estimator from them."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str | None = None) -> None:
+    """--bundle, --int8, --threads, --score-threshold, --min-fit, --seed."""
+    if bundle_default is None:
+        parser.add_argument("--bundle", required=True, help="model bundle folder")
+    else:
+        parser.add_argument("--bundle", default=bundle_default, help=f"model bundle folder (default: {bundle_default})")
+    parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
+    parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
+    parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
+    parser.add_argument("--min-fit", type=float, default=0.2, help="reject poses whose fit score is below this")
+    parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
+
+
+def load_estimator(args: argparse.Namespace, command: str):
+    """The `PalletEstimator` the arguments describe, or None after printing why it cannot be loaded."""
+    from .bundle import BundleError
+    from .estimator import PalletEstimator
+
+    try:
+        return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
+                                           precision="int8" if args.int8 else "fp32",
+                                           score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed)
+    except (BundleError, FileNotFoundError, ValueError) as exc:
+        print(f"pallet6d {command}: cannot load bundle {args.bundle}: {exc}", file=sys.stderr)
+        return None
