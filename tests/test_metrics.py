@@ -80,3 +80,15 @@ def test_auc():
     assert m.auc(np.linspace(0, 0.1, 10001)) == pytest.approx(0.5, abs=2e-3)
     with pytest.raises(ValueError):
         m.auc(np.zeros(3), max_threshold_m=0)
+
+
+def test_eur_pallet_model_turned_180_about_z():
+    """The real EPAL model and its own symmetry transforms: ADD sees a large error, symmetric ADD none."""
+    from pallet6d.sim.pallets import get_pallet_model
+
+    epal = get_pallet_model("epal")
+    pts = epal.surface_points(1000, seed=0)
+    R_gt = quat_to_rot(np.array([0.95, 0.05, 0.3, 0.0]))
+    R_est = R_gt @ Rz180
+    assert m.add(R_est, T_GT, R_gt, T_GT, pts) > 0.3
+    assert m.add_sym(R_est, T_GT, R_gt, T_GT, pts, epal.symmetries) == pytest.approx(0.0, abs=1e-9)
