@@ -131,6 +131,27 @@ def _image_key(k: str, path: Path) -> int:
         raise BopFormatError(f"{path}: key {k!r} is not an image id") from None
 
 
+def _read_image_map(path: Path, lists: bool = False) -> dict[int, Any]:
+    """A per-scene JSON file keyed by image id -> {im_id: entry}; `lists`: every entry must be a list."""
+    raw = _read_json(path)
+    if not isinstance(raw, dict):
+        raise BopFormatError(f"{path}: expected an object keyed by image id")
+    out = {}
+    for k, entry in raw.items():
+        im_id = _image_key(k, path)
+        if lists and not isinstance(entry, list):
+            raise BopFormatError(f"{path}: image {im_id}: expected a list of annotations")
+        out[im_id] = entry
+    return out
+
+
+def _pose_from_mm(R: np.ndarray, t_mm: np.ndarray) -> np.ndarray:
+    """4x4 metres from a BOP rotation (9 values) and translation in millimetres."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R.reshape(3, 3), t_mm / 1000.0
+    return T
+
+
 # --- models ----------------------------------------------------------------------------------------------
 
 def models_info_entry(diameter_m: float, min_m, size_m, symmetries: np.ndarray | None = None) -> dict:
@@ -361,32 +382,21 @@ class BopDataset:
     @staticmethod
     def _load_scene(d: Path) -> dict[str, Any]:
         cam_path = d / "scene_camera.json"
-        raw = _read_json(cam_path)
-        if not isinstance(raw, dict):
-            raise BopFormatError(f"{cam_path}: expected an object keyed by image id")
         camera = {}
-        for k, entry in raw.items():
-            im_id = _image_key(k, cam_path)
+        for im_id, entry in _read_image_map(cam_path).items():
             K = _field(entry, "cam_K", cam_path, f"image {im_id}", 9).reshape(3, 3)
             scale = _field(entry, "depth_scale", cam_path, f"image {im_id}") if "depth_scale" in entry else 1.0
             if not scale > 0:
                 raise BopFormatError(f"{cam_path}: image {im_id}: field 'depth_scale' must be positive, got {scale}")
             T = None
             if "cam_R_w2c" in entry and "cam_t_w2c" in entry:
-                T = np.eye(4)
-                T[:3, :3] = _field(entry, "cam_R_w2c", cam_path, f"image {im_id}", 9).reshape(3, 3)
-                T[:3, 3] = _field(entry, "cam_t_w2c", cam_path, f"image {im_id}", 3) / 1000.0
+                T = _pose_from_mm(_field(entry, "cam_R_w2c", cam_path, f"image {im_id}", 9),
+                                  _field(entry, "cam_t_w2c", cam_path, f"image {im_id}", 3))
             camera[im_id] = (K, scale, T)
         gt: dict[int, list] = {}
         gt_path = d / "scene_gt.json"
         if gt_path.exists():
-            raw = _read_json(gt_path)
-            if not isinstance(raw, dict):
-                raise BopFormatError(f"{gt_path}: expected an object keyed by image id")
-            for k, entries in raw.items():
-                im_id = _image_key(k, gt_path)
-                if not isinstance(entries, list):
-                    raise BopFormatError(f"{gt_path}: image {im_id}: expected a list of annotations")
+            for im_id, entries in _read_image_map(gt_path, lists=True).items():
                 items = []
                 for j, e in enumerate(entries):
                     where = f"image {im_id} annotation {j}"
@@ -397,18 +407,12 @@ class BopDataset:
                         raise BopFormatError(f"{gt_path}: {where}: field 'cam_R_m2c' is not a rotation matrix")
                     if obj != int(obj) or obj < 1:
                         raise BopFormatError(f"{gt_path}: {where}: field 'obj_id' must be a positive integer")
-                    T = np.eye(4)
-                    T[:3, :3], T[:3, 3] = R, t / 1000.0
-                    items.append((int(obj), T))
+                    items.append((int(obj), _pose_from_mm(R, t)))
                 gt[im_id] = items
         info: dict[int, list] = {}
         info_path = d / "scene_gt_info.json"
         if info_path.exists():
-            raw = _read_json(info_path)
-            if not isinstance(raw, dict):
-                raise BopFormatError(f"{info_path}: expected an object keyed by image id")
-            for k, entries in raw.items():
-                im_id = _image_key(k, info_path)
+            for im_id, entries in _read_image_map(info_path).items():
                 if not isinstance(entries, list) or len(entries) != len(gt.get(im_id, [])):
                     raise BopFormatError(f"{info_path}: image {im_id}: expected one entry per scene_gt.json "
                                          f"annotation ({len(gt.get(im_id, []))})")
