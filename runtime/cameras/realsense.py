@@ -27,6 +27,7 @@ import numpy as np
 from .base import FrameSource
 from .errors import CameraDisconnected, CameraError, CameraNotFound, CameraTimeout
 from .frame import RGBDFrame
+from .rsbag_playback import BagPlayback
 
 __all__ = ["RealSenseCamera", "FILTER_NAMES", "list_realsense_serials"]
 
@@ -96,7 +97,6 @@ class RealSenseCamera(FrameSource):
         self._blocks: list = []
         self._z_fix = None
         self._playback = None
-        self._paused = False
 
     # -- SDK calls (one place each, so tests can stand in for the device) -------------------------
     def _device_present(self) -> bool:
@@ -104,50 +104,20 @@ class RealSenseCamera(FrameSource):
 
     def _open(self) -> None:
         rs = _rs()
-        cfg = rs.config()
         ctx = rs.context()
         self._playback = None
         if self.bag_path is not None:
             if not self.bag_path.is_file():
                 raise CameraNotFound(f"RealSense recording {self.bag_path} does not exist")
-            # Load the recording into our own context and pause it before streaming starts: a pipeline
-            # started straight from the file can lose the first frameset to a start-up race (measured).
-            try:
-                bag_dev = ctx.load_device(str(self.bag_path))
-            except RuntimeError as exc:
-                raise CameraError(f"{self.name}: not a playable RealSense recording: {exc}") from None
-            self._playback = bag_dev.as_playback()
-            self._playback.set_real_time(self.realtime)
-            self._playback.pause()
-            self._paused = True
-            cfg.enable_device(bag_dev.get_info(rs.camera_info.serial_number))
+            self._playback = BagPlayback(rs, ctx, self.bag_path, self.realtime)
+            device, color, depth = self._playback.device, self._playback.color_profile, self._playback.depth_profile
         else:
-            serials = list_realsense_serials()
-            if not serials:
-                raise CameraNotFound("no RealSense camera connected (check the USB 3 cable and `rs-enumerate-devices`)")
-            serial = self.device_serial or self.serial
-            if serial is not None and serial not in serials:
-                raise CameraNotFound(f"no RealSense with serial {serial}; connected: {', '.join(serials)}")
-            cfg.enable_device(serial or serials[0])
-            cfg.enable_stream(rs.stream.color, self.color_size[0], self.color_size[1], rs.format.rgb8, self.fps)
-            cfg.enable_stream(rs.stream.depth, self.depth_size[0], self.depth_size[1], rs.format.z16, self.fps)
-        pipe = rs.pipeline(ctx)
-        try:
-            profile = pipe.start(cfg)
-        except RuntimeError as exc:
-            raise CameraError(f"{self.name}: cannot start streaming: {exc}") from None
+            device, color, depth = self._start_pipeline(rs, ctx)
         self._ctx = ctx
-        self._pipe = pipe
-        device = profile.get_device()
         try:
             self.device_serial = device.get_info(rs.camera_info.serial_number)
         except RuntimeError:
             self.device_serial = ""
-        try:
-            color = profile.get_stream(rs.stream.color).as_video_stream_profile()
-            profile.get_stream(rs.stream.depth)
-        except RuntimeError:
-            raise CameraError(f"{self.name}: needs both a colour and a depth stream") from None
         intr = color.get_intrinsics()
         if any(abs(c) > 1e-6 for c in intr.coeffs):
             log.warning("%s: colour stream has distortion %s %s; K ignores it", self.name, intr.model, list(intr.coeffs))
@@ -156,11 +126,37 @@ class RealSenseCamera(FrameSource):
         self._depth_scale_m = float(device.first_depth_sensor().get_depth_scale())
         self._align = rs.align(rs.stream.color)
         self._blocks = self._make_filters(rs)
-        ext = profile.get_stream(rs.stream.depth).get_extrinsics_to(profile.get_stream(rs.stream.color))
+        ext = depth.get_extrinsics_to(color)
         self._z_fix = self._depth_z_to_color_z(np.array(ext.rotation).reshape(3, 3).T, np.array(ext.translation),
                                                intr.width, intr.height)
         log.info("%s: device %s, colour %dx%d, depth scale %.6g m, filters %s", self.name, self.device_serial,
                  intr.width, intr.height, self._depth_scale_m, list(self.filters) or "none")
+
+    def _start_pipeline(self, rs, ctx):
+        """Stream from a live camera; its device and colour and depth stream profiles."""
+        serials = list_realsense_serials()
+        if not serials:
+            raise CameraNotFound("no RealSense camera connected (check the USB 3 cable and `rs-enumerate-devices`)")
+        serial = self.device_serial or self.serial
+        if serial is not None and serial not in serials:
+            raise CameraNotFound(f"no RealSense with serial {serial}; connected: {', '.join(serials)}")
+        cfg = rs.config()
+        cfg.enable_device(serial or serials[0])
+        cfg.enable_stream(rs.stream.color, self.color_size[0], self.color_size[1], rs.format.rgb8, self.fps)
+        cfg.enable_stream(rs.stream.depth, self.depth_size[0], self.depth_size[1], rs.format.z16, self.fps)
+        pipe = rs.pipeline(ctx)
+        try:
+            profile = pipe.start(cfg)
+        except RuntimeError as exc:
+            raise CameraError(f"{self.name}: cannot start streaming: {exc}") from None
+        self._pipe = pipe
+        try:
+            color = profile.get_stream(rs.stream.color).as_video_stream_profile()
+            depth = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+        except RuntimeError:
+            self._close()
+            raise CameraError(f"{self.name}: needs both a colour and a depth stream") from None
+        return profile.get_device(), color, depth
 
     def _depth_z_to_color_z(self, R_color_depth: np.ndarray, t_color_depth: np.ndarray, width: int, height: int):
         """Per-pixel (a, b) with z_color = (z_depth + b) / a for an aligned depth image, or None for identity.
@@ -209,33 +205,19 @@ class RealSenseCamera(FrameSource):
                 pipe.stop()
             except RuntimeError as exc:  # already stopped, or the device is gone
                 log.debug("%s: pipeline stop: %s", self.name, exc)
-        if self._playback is not None:
-            try:
-                self._ctx.unload_device(str(self.bag_path))
-            except RuntimeError as exc:
-                log.debug("%s: unload: %s", self.name, exc)
-            self._playback = None
+        playback, self._playback = self._playback, None
+        if playback is not None:
+            playback.close()
 
     def _wait_frames(self):
         """The next frameset, or None when none came within `timeout_s` (or a recording ended)."""
         if self.bag_path is None:
             ok, frames = self._pipe.try_wait_for_frames(int(self.timeout_s * 1000))
             return frames if ok else None
-        if self._paused:  # resumed at the first read, see _open
-            self._playback.resume()
-            self._paused = False
-        # recordings: poll in short steps so the end of the file is noticed at once
-        deadline = time.monotonic() + self.timeout_s
-        while True:
-            ok, frames = self._pipe.try_wait_for_frames(50)
-            if ok:
-                return frames
-            if self._playback_ended() or time.monotonic() >= deadline:
-                return None
+        return self._playback.wait(self.timeout_s)
 
     def _playback_ended(self) -> bool:
-        rs = _rs()
-        return self._playback.current_status() == rs.playback_status.stopped
+        return self._playback.ended()
 
     def _to_frame(self, frames) -> RGBDFrame:
         fs = frames
