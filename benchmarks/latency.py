@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "fit", "total")
+STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit", "total")
 
 
 def _pct(values: list[float]) -> dict:

@@ -14,6 +14,7 @@ Variants (`CONFIGS`):
   (~150 ms fp32 on 2 cores); width/2 cuts conv cost ~4x and crop 96 vs 120 another ~1.56x, which puts
   fusion+pose at a few GFLOP per pallet (measured numbers in the export report / manifest `scores`).
 - ``densefusion``: ``paper`` without any attention block (the paper's ablation baseline).
+- ``edge-densefusion``: ``edge`` without any attention block (the same ablation at the shipped size).
 - ``tiny``: minimal widths for fast tests (never for deployment).
 """
 from __future__ import annotations
@@ -183,6 +184,15 @@ CONFIGS: dict[str, ModelConfig] = {
                             up_channels=(128, 64, 32), branch_dim=32, attention=True, attention_stride=8),
         pose=PoseConfig(num_points=256, point_dims=(64, 128), global_dims=(256, 512), head_dims=(320, 128, 64),
                         attention=True),
+    ),
+    # the edge network without either attention block: the DenseFusion ablation at the shipped size
+    "edge-densefusion": ModelConfig(
+        name="edge-densefusion",
+        detector=DetectorConfig(scale="n", input_hw=(192, 640)),
+        fusion=FusionConfig(crop_hw=(96, 96), resnet_widths=(32, 64, 128, 256), psp_out=512,
+                            up_channels=(128, 64, 32), branch_dim=32, attention=False),
+        pose=PoseConfig(num_points=256, point_dims=(64, 128), global_dims=(256, 512), head_dims=(320, 128, 64),
+                        attention=False),
     ),
     "densefusion": ModelConfig(
         name="densefusion",

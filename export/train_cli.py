@@ -57,6 +57,8 @@ log = logging.getLogger(__name__)
 RECIPES: dict[tuple[str, str], dict] = {
     ("edge", "detector"): {"epochs": 20, "batch": 16, "lr": 2e-3},
     ("edge", "pose"): {"epochs": 5, "batch": 16, "lr": 3e-4, "variants": 2},
+    ("edge-densefusion", "detector"): {"epochs": 20, "batch": 16, "lr": 2e-3},
+    ("edge-densefusion", "pose"): {"epochs": 5, "batch": 16, "lr": 3e-4, "variants": 2},
     ("paper", "detector"): {"epochs": 20, "batch": 8, "lr": 2e-3},
     ("paper", "pose"): {"epochs": 5, "batch": 16, "lr": 3e-4, "variants": 2},
     ("densefusion", "detector"): {"epochs": 20, "batch": 8, "lr": 2e-3},

@@ -122,6 +122,11 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
             net.load_state_dict(ckpt[k])
         optimizer.load_state_dict(ckpt["optimizer"])
         start_epoch, best = int(ckpt["epoch"]), float(ckpt["best_metric"])
+        # a resumed run may go on longer than first planned (a larger --epochs): keep what came before
+        before = ckpt.get("provenance", {})
+        earlier = [*before.get("earlier_runs", []),
+                   {"command": before.get("command", ""), "epochs": before.get("epochs"), "stopped_at_epoch": start_epoch}]
+        provenance = {**provenance, "earlier_runs": earlier}
         log.info("resuming %s at epoch %d (best metric so far %.4g)", run_dir, start_epoch, best)
     if n_train < 1:
         raise ValueError("no training samples")

@@ -42,6 +42,8 @@ manifest.json (format_version 1)::
       "pallet_model": {
         "name": "epal", "size_m": [1.2, 0.8, 0.144], "diameter_m": 1.44,
         "points_file": "pallet_points.npy",   # (n, 3) float32, pallet frame, metres
+        "boxes_m": [[[x0,y0,z0],[x1,y1,z1]], ...],   # optional: boards/blocks as (k, 2, 3) min/max corners
+                                                     # (pose refinement; without them it is skipped)
         "symmetries": [[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], ...]   # (S, 4, 4), identity first, metres
       },
       "files": {"detector.onnx": "<sha256 hex>", ...},          # every file above; verified on load
@@ -205,13 +207,15 @@ class PoseSpec:
 
 @dataclass(frozen=True)
 class PalletSpec:
-    """:ivar symmetries: (S, 4, 4) float64, identity first. :ivar points_file: (n, 3) float32 metres."""
+    """:ivar symmetries: (S, 4, 4) float64, identity first. :ivar points_file: (n, 3) float32 metres.
+    :ivar boxes_m: (k, 2, 3) float64 min/max corners of the boards and blocks, pallet frame, or None."""
 
     name: str
     size_m: tuple[float, float, float]
     diameter_m: float
     points_file: Path
     symmetries: np.ndarray
+    boxes_m: np.ndarray | None = None
 
     def points(self) -> np.ndarray:
         """(n, 3) float32 model points in the pallet frame, metres."""
@@ -348,8 +352,14 @@ def load_bundle(path: str | Path, verify_sha256: bool = True) -> Bundle:
     sym = np.asarray(pm.get("symmetries", list), dtype=np.float64)
     if sym.ndim != 3 or sym.shape[1:] != (4, 4) or not np.allclose(sym[0], np.eye(4)):
         raise pm.fail("symmetries", f"must be (S, 4, 4) rigid transforms with the identity first, got shape {sym.shape}")
+    boxes = None
+    if pm.data.get("boxes_m") is not None:
+        boxes = np.asarray(pm.get("boxes_m", list), dtype=np.float64)
+        if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0 or not np.all(np.isfinite(boxes)) \
+                or np.any(boxes[:, 1] <= boxes[:, 0]):
+            raise pm.fail("boxes_m", f"must be (k, 2, 3) finite min/max corners with max > min, got shape {boxes.shape}")
     pallet = PalletSpec(name=pm.str("name"), size_m=pm.floats("size_m", 3), diameter_m=pm.num("diameter_m"),
-                        points_file=pm.file("points_file", root), symmetries=sym)
+                        points_file=pm.file("points_file", root), symmetries=sym, boxes_m=boxes)
     precision = m.get("precision", list)
     if "fp32" not in precision or not set(precision) <= {"fp32", "int8"}:
         raise m.fail("precision", f"must list 'fp32' and optionally 'int8', got {precision!r}")

@@ -6,6 +6,7 @@ Pipeline (paper section 3, batched over the pallets of a frame):
     -> crop / encode / select + sample N points / back-project / centre   pose_inputs.py (shared with training)
     -> fusion.onnx (B crops at once) -> gather features at the sampled pixels
     -> pose.onnx (B pallets at once) -> most confident per-point hypothesis   selection.py
+    -> robust point-to-plane ICP on the box's depth, pallet as boards/blocks  refine.py
     -> geometric fit check against the depth image                           fit.py
 
 `predict(...)` returns the accepted `PalletPose`s; `estimate(...)` returns the whole `FrameResult`:
@@ -29,6 +30,7 @@ import numpy as np
 from .bundle import Bundle, BundleError, load_bundle
 from .detector import Detections, decode_yolov8, letterbox, to_nchw, undo_letterbox
 from .fit import fit_score
+from .refine import box_points, refine_pose
 from .geometry import clamp_box
 from .inputs import check_rgbd
 from .pose_inputs import PoseBatch, gather_features, prepare_pose_inputs
@@ -40,7 +42,7 @@ __all__ = ["EstimatorOptions", "PalletEstimator"]
 
 log = logging.getLogger(__name__)
 
-STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "fit")
+STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
 
 
 @dataclass(frozen=True)
@@ -55,6 +57,10 @@ class EstimatorOptions:
     :ivar min_confidence: best per-point confidence below this -> rejected ("low_confidence").
     :ivar min_fit: fit score below this -> rejected ("poor_fit"); 0 disables the check.
     :ivar fit_tol_m: distance tolerance of the fit score, metres.
+    :ivar refine: refine each pose on the box's depth by robust point-to-plane ICP against the pallet's
+        boards and blocks (`refine.py`; needs `boxes_m` in the bundle's pallet model, else skipped).
+    :ivar refine_points: at most this many depth points of the box go into the refinement.
+    :ivar refine_iterations: refinement steps (0 disables it too).
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     """
@@ -67,6 +73,9 @@ class EstimatorOptions:
     min_confidence: float = 0.0
     min_fit: float = 0.2
     fit_tol_m: float = 0.04
+    refine: bool = True
+    refine_points: int = 600
+    refine_iterations: int = 20
     nonfinite_depth: str = "raise"
     seed: int = 0
 
@@ -85,6 +94,9 @@ class EstimatorOptions:
             raise ValueError(f"min_fit must be in [0, 1], got {self.min_fit}")
         if not self.fit_tol_m > 0:
             raise ValueError(f"fit_tol_m must be positive, got {self.fit_tol_m}")
+        if int(self.refine_points) < 10 or int(self.refine_iterations) < 0:
+            raise ValueError(f"refine_points must be >= 10 and refine_iterations >= 0, got {self.refine_points}, "
+                             f"{self.refine_iterations}")
 
 
 class PalletEstimator:
@@ -114,6 +126,10 @@ class PalletEstimator:
         self.model_points_m = bundle.pallet.points().astype(np.float64)
         self.model_size_m = np.asarray(bundle.pallet.size_m, dtype=np.float64)
         self.symmetries = np.asarray(bundle.pallet.symmetries, dtype=np.float64)
+        self.model_boxes_m = bundle.pallet.boxes_m
+        self.refines = bool(self.options.refine and self.options.refine_iterations > 0 and self.model_boxes_m is not None)
+        if self.options.refine and self.model_boxes_m is None:
+            log.warning("bundle %s has no pallet boxes_m: poses are not refined", bundle.name)
         det = bundle.detector
         names = [c.lower() for c in bundle.classes]
         # a detector from another toolchain may know more classes than pallets: use the pallet ones
@@ -280,6 +296,12 @@ class PalletEstimator:
             T, conf, _ = select_poses(out[q.quat_output], out[q.trans_output], out[q.conf_output],
                                       sub.points, sub.centres, "wxyz")
             timings["selection"] = _ms(t)
+            t = time.perf_counter()
+            if self.refines:
+                for k, i in enumerate(go):
+                    obs = box_points(depth_m, K, det.boxes_xyxy[i], o.refine_points, self.spec.depth_range_m)
+                    T[k] = refine_pose(T[k], obs, self.model_boxes_m, iterations=o.refine_iterations).T_cam_pallet
+            timings["refine"] = _ms(t)
             t = time.perf_counter()
             for k, i in enumerate(go):
                 obs = sub.points[k].astype(np.float64) + sub.centres[k]

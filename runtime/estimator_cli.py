@@ -16,6 +16,8 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
     parser.add_argument("--min-fit", type=float, default=0.2, help="reject poses whose fit score is below this")
     parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
+    parser.add_argument("--no-refine", action="store_true",
+                        help="report the network's poses without the ICP refinement on the depth")
 
 
 def load_estimator(args: argparse.Namespace, command: str):
@@ -26,7 +28,8 @@ def load_estimator(args: argparse.Namespace, command: str):
     try:
         return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32",
-                                           score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed)
+                                           score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,
+                                           refine=not args.no_refine)
     except (BundleError, FileNotFoundError, ValueError) as exc:
         print(f"pallet6d {command}: cannot load bundle {args.bundle}: {exc}", file=sys.stderr)
         return None

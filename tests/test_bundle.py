@@ -107,6 +107,8 @@ def test_swapped_graph_is_caught(bundle):
     (lambda m: m["detector"].__setitem__("num_classes", 2), "'detector.num_classes' is 2 but 'classes' names 1"),
     (lambda m: m["pose"].__setitem__("quaternion_order", "xyzw"), "'pose.quaternion_order' must be 'wxyz'"),
     (lambda m: m["pallet_model"].__setitem__("symmetries", [[[2]]]), "symmetries"),
+    (lambda m: m["pallet_model"].__setitem__("boxes_m", [[0, 0, 0]]), "'pallet_model.boxes_m' must be \\(k, 2, 3\\)"),
+    (lambda m: m["pallet_model"].__setitem__("boxes_m", [[[0, 0, 0], [1, -1, 1]]]), "max > min"),
     (lambda m: m["files"].pop("pose.onnx"), "lacks the sha256 of 'pose.onnx'"),
     (lambda m: m["fusion"].__setitem__("file", "../outside.onnx"), "outside the bundle"),
     (lambda m: m.__setitem__("precision", ["fp32", "int8"]), "not every graph has a file_int8"),
@@ -138,3 +140,16 @@ def test_bundle_check_cli(good, bundle, capsys):
     assert "detector (detector.onnx): onnxruntime cannot load it" in err
     assert cli.main(["bundle", "info", str(good)]) == 0
     assert json.loads(capsys.readouterr().out)["num_points"] == 32
+
+
+def test_boxes_are_optional_and_refinement_follows_them(good, bundle, caplog):
+    from pallet6d.runtime.estimator import PalletEstimator
+
+    assert load_bundle(good).pallet.boxes_m.shape[1:] == (2, 3)
+    assert PalletEstimator.from_bundle(good, threads=1).refines
+    edit_manifest(bundle, lambda m: m["pallet_model"].pop("boxes_m"))
+    assert load_bundle(bundle).pallet.boxes_m is None
+    with caplog.at_level("WARNING"):
+        est = PalletEstimator.from_bundle(bundle, threads=1)
+    assert not est.refines and "no pallet boxes_m" in caplog.text
+    assert not PalletEstimator.from_bundle(good, threads=1, refine=False).refines

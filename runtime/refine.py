@@ -1,0 +1,215 @@
+"""Pose refinement: robust point-to-plane ICP of the observed depth onto the pallet's box model (numpy only).
+
+The network's pose is a good first guess (a few cm, a few degrees); the depth points of the detection then
+pin it down, as classical registration does after PoseCNN or DenseFusion. A pallet is a union of boards and
+blocks, so the closest model surface point and its normal are exact and cheap (no k-d tree, no mesh).
+
+Points of the box that are not pallet (floor, rack, load, what shows through the fork pockets) must not pull
+the pose: only correspondences within a distance that shrinks over the iterations count, each with a Tukey
+weight, and a prior on the network's pose keeps directions the visible surfaces do not constrain (sliding
+along a single visible face) where the network put them.
+
+Measured on the simulator: from poses a few cm / degrees off, exact depth brings most back to < 1 mm (a
+few stop in a local minimum about 2 cm off, where boards repeat); D435-like depth at 3-5 m (sigma of
+several cm, half of it correlated over patches) leaves several cm, which is the data's own limit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .fit import _free_space_violation, distance_to_boxes
+from .geometry import backproject_pixels, clamp_box, invert_T, select_pixels, transform_points
+
+__all__ = ["box_points", "closest_on_boxes", "shift_hypotheses", "best_shift", "RefineResult", "refine_pose"]
+
+
+def box_points(depth_m: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, max_points: int,
+               depth_range_m: tuple[float, float]) -> np.ndarray:
+    """Observed points of a detection box for refinement: every valid pixel, thinned by an even stride.
+
+    :return: (n, 3) camera frame, metres, n <= max_points (0 when the box holds no valid depth).
+    """
+    box_i = clamp_box(box_xyxy, depth_m.shape)
+    if box_i is None:
+        return np.zeros((0, 3))
+    v, u = select_pixels(depth_m, box_i, None, depth_range_m[0], depth_range_m[1])
+    if len(v) > max_points:
+        keep = np.linspace(0, len(v) - 1, max_points).round().astype(np.int64)  # deterministic, spread over the box
+        v, u = v[keep], u[keep]
+    return backproject_pixels(u, v, depth_m[v, u], K)
+
+
+def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest point on the surface of a union of axis-aligned boxes, with its outward normal.
+
+    Inside a box the nearest face of that box counts (faces shared by touching boxes are rare targets:
+    observed points lie on the outer surface).
+
+    :param pts: (n, 3) points in the boxes' frame, metres.
+    :param boxes_m: (k, 2, 3) min and max corners.
+    :return: (closest (n, 3), unit normal (n, 3), distance (n,)) in metres.
+    """
+    p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+    boxes = np.asarray(boxes_m, dtype=np.float64)
+    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0:
+        raise ValueError(f"boxes_m must be (k, 2, 3) with k >= 1, got shape {boxes.shape}")
+    n = len(p)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    lo, hi = boxes[None, :, 0], boxes[None, :, 1]              # (1, k, 3)
+    pk = p[:, None, :]                                         # (n, 1, 3)
+    clamped = np.clip(pk, lo, hi)                               # (n, k, 3)
+    gap = pk - clamped
+    d_out = np.sqrt((gap * gap).sum(-1))                        # (n, k), 0 inside
+    to_face = np.concatenate([pk - lo, hi - pk], axis=-1)       # (n, k, 6): -x -y -z +x +y +z faces
+    face = to_face.argmin(-1)                                   # (n, k)
+    d_in = np.take_along_axis(to_face, face[..., None], -1)[..., 0]
+    inside = d_out <= 0.0
+    dist = np.where(inside, d_in, d_out)
+    j = dist.argmin(1)                                          # nearest box per point
+    rows = np.arange(n)
+    d = dist[rows, j]
+    q = clamped[rows, j].copy()
+    normal = np.zeros((n, 3))
+    out = ~inside[rows, j]
+    normal[out] = gap[rows, j][out] / np.maximum(d_out[rows, j][out, None], 1e-12)
+    f = face[rows, j]
+    ins = np.flatnonzero(~out)
+    axis, positive = f[ins] % 3, f[ins] >= 3
+    q[ins, axis] = np.where(positive, boxes[j[ins], 1, axis], boxes[j[ins], 0, axis])
+    normal[ins, axis] = np.where(positive, 1.0, -1.0)
+    return q, normal, d
+
+
+def _exp_se3(delta: np.ndarray) -> np.ndarray:
+    """(4, 4) transform of a small motion (rotation vector w, translation v) = delta[:3], delta[3:]."""
+    w, v = delta[:3], delta[3:]
+    theta = float(np.linalg.norm(w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if theta < 1e-12:
+        R = np.eye(3) + K
+    else:
+        R = np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta ** 2 * K @ K
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, v
+    return T
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """:ivar T_cam_pallet: refined pose. :ivar iterations: steps run. :ivar n_inliers: correspondences in
+    the last step. :ivar rms_m: their weighted point-to-plane RMS, metres. :ivar moved_m: translation
+    change from the input pose, metres. :ivar converged: the last step was below the tolerance."""
+
+    T_cam_pallet: np.ndarray
+    iterations: int
+    n_inliers: int
+    rms_m: float
+    moved_m: float
+    converged: bool
+
+
+def refine_pose(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, iterations: int = 20,
+                corr_start_m: float = 0.08, corr_end_m: float = 0.015, prior_rot_rad: float = 0.1,
+                prior_trans_m: float = 0.1, min_inliers: int = 30, tol: float = 1e-4) -> RefineResult:
+    """Refine a pallet pose on observed points: robust point-to-plane Gauss-Newton with a prior.
+
+    The prior (the input pose, with standard deviations `prior_rot_rad`, `prior_trans_m`) weighs against
+    the data scaled by their own noise, estimated from the residuals: exact depth moves the pose freely,
+    while noisy stereo depth at 4-5 m (sigma of several cm) cannot drag it along directions only grazing
+    surfaces constrain.
+
+    :param T_cam_pallet: (4, 4) initial pose, pallet -> camera.
+    :param pts_cam: (n, 3) observed points of the detection, camera frame, metres (background included).
+    :param boxes_m: (k, 2, 3) the pallet's boards and blocks, pallet frame.
+    :param corr_start_m: correspondence distance of the first step; it shrinks geometrically to
+        `corr_end_m` at the last step.
+    :param prior_rot_rad: how far (1 sigma) the input rotation may be off, radians.
+    :param prior_trans_m: how far (1 sigma) the input translation may be off, metres.
+    :param min_inliers: with fewer correspondences the step stops (the pose reached so far is kept).
+    :param tol: stop when a step moves by less than this (radians + metres).
+    :return: RefineResult; with too few inliers at the first step the input pose comes back unchanged.
+    """
+    T0 = np.asarray(T_cam_pallet, dtype=np.float64)
+    if T0.shape != (4, 4) or not np.all(np.isfinite(T0)):
+        raise ValueError(f"T_cam_pallet must be a finite (4, 4) transform, got shape {T0.shape}")
+    if not 0 < corr_end_m <= corr_start_m:
+        raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
+    pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    T_pal_cam = invert_T(T0)
+    prior = np.diag([prior_rot_rad ** -2] * 3 + [prior_trans_m ** -2] * 3)
+    xi = np.zeros(6)
+    n_in, rms, done, converged = 0, float("nan"), 0, False
+    steps = max(int(iterations), 0)
+    for it in range(steps):
+        thr = corr_start_m * (corr_end_m / corr_start_m) ** (it / max(steps - 1, 1))
+        p = transform_points(T_pal_cam, pts)
+        q, nrm, d = closest_on_boxes(p, boxes_m)
+        use = d < thr
+        if use.sum() < min_inliers:
+            break
+        p, q, nrm, d = p[use], q[use], nrm[use], d[use]
+        w = (1.0 - (d / thr) ** 2) ** 2                         # Tukey biweight
+        r = ((p - q) * nrm).sum(1)                              # signed point-to-plane residual
+        J = np.hstack([np.cross(p, nrm), nrm])                  # d r / d (w, v) of a motion applied to p
+        var = max(float((w * r * r).sum() / w.sum()), 0.002 ** 2)   # observation noise, metres^2
+        H = (J * w[:, None]).T @ J / var + prior
+        g = (J * w[:, None]).T @ r / var + prior @ xi
+        delta = -np.linalg.solve(H, g)
+        xi = xi + delta                                         # motion so far (small-motion sum)
+        T_pal_cam = _exp_se3(delta) @ T_pal_cam
+        n_in, rms, done = int(use.sum()), float(np.sqrt((w * r * r).sum() / w.sum())), it + 1
+        if np.abs(delta).sum() < tol and it >= steps // 2:  # converged at a tight threshold
+            converged = True
+            break
+    T = invert_T(T_pal_cam)
+    return RefineResult(T, done, n_in, rms, float(np.linalg.norm(T[:3, 3] - T0[:3, 3])), converged)
+
+
+def shift_hypotheses(step_m: float = 0.05, extent_xy_m: tuple[float, float] = (0.6, 0.4)) -> np.ndarray:
+    """(H, 3) shifts of the pallet in its own x/y plane on a grid, the zero shift first.
+
+    The network gets the rotation right long before the position along the pallet's own axes: where the
+    centre lies behind the visible face, or which part of a long face it sees. ICP cannot cross such gaps
+    (its correspondences would reach into the background), so a grid of shifts is scored first.
+    """
+    xs = np.arange(-extent_xy_m[0], extent_xy_m[0] + 1e-9, step_m)
+    ys = np.arange(-extent_xy_m[1], extent_xy_m[1] + 1e-9, step_m)
+    grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+    grid = grid[np.argsort(np.abs(grid).sum(1), kind="stable")]      # zero first, then nearest
+    return np.hstack([grid, np.zeros((len(grid), 1))])
+
+
+def best_shift(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, model_pts: np.ndarray,
+               depth_m: np.ndarray, K: np.ndarray, shifts_m: np.ndarray, tol_m: float = 0.03,
+               finalists: int = 6) -> tuple[np.ndarray, float]:
+    """The pose shifted (in the pallet frame) to where the model best explains the observed depth.
+
+    Every shift is scored by its inlier fraction (observed points within `tol_m` of the model); the best
+    `finalists` also by free space (model surface where the camera saw through it), and the winner
+    maximises inliers * (1 - violation). Ties keep the smaller shift.
+
+    :param shifts_m: (H, 3) pallet-frame shifts, the zero shift first (`shift_hypotheses`).
+    :return: (shifted (4, 4) pose, its score).
+    """
+    T = np.asarray(T_cam_pallet, dtype=np.float64)
+    pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return T, 0.0
+    p = transform_points(invert_T(T), pts).astype(np.float32)          # (n, 3) pallet frame
+    shifted = p[None] - shifts_m[:, None].astype(np.float32)            # points as seen by each shifted model
+    d = distance_to_boxes(shifted.reshape(-1, 3), boxes_m).reshape(len(shifts_m), len(p))
+    inliers = (d <= tol_m).mean(1)
+    order = set(np.argsort(-inliers, kind="stable")[:finalists].tolist()) | {0}
+    best_T, best = T, -1.0
+    for h in sorted(order):                                               # smaller shifts first: ties keep them
+        Th = T.copy()
+        Th[:3, 3] = T[:3, :3] @ shifts_m[h] + T[:3, 3]
+        viol = _free_space_violation(transform_points(Th, model_pts), depth_m, K, tol_m)
+        score = float(inliers[h]) * (1.0 - viol)
+        if score > best + 1e-9:
+            best_T, best = Th, score
+    return best_T, best
