@@ -28,6 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_estimator_arguments(parser, bundle_default="models/epal-default")
     parser.add_argument("--out", type=Path, help="write overlay PNGs (3D boxes and axes) here")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: all)")
+    parser.add_argument("--format", choices=("json", "text"), default="json",
+                        help="json: one JSON line per frame (default); text: a readable report")
 
 
 def _bop_frames(root: str) -> Iterator[tuple[object, list | None]]:
@@ -83,7 +85,7 @@ def main(args: argparse.Namespace) -> int:
             if gts is not None:
                 line["gt"], f_tp, f_fp = _evaluate(est, frame.frame_number, result, gts, records)
                 tp, fp = tp + f_tp, fp + f_fp
-            print(json.dumps(line), flush=True)
+            print(json.dumps(line) if args.format == "json" else _text(line), flush=True)
             if args.out:
                 _write_overlay(args.out / f"{n:06d}.png", frame, result, est, gts)
             n += 1
@@ -93,10 +95,30 @@ def main(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         pass
     if records or tp or fp:
+        from .eval_cli import format_table
         from .evaluation import summarize
-        print(json.dumps({"summary": {"frames": n, **summarize(records, tp, fp)}}), flush=True)
+        summary = {"frames": n, **summarize(records, tp, fp)}
+        print(json.dumps({"summary": summary}) if args.format == "json" else "\n" + format_table(summary), flush=True)
     log.info("%d frames", n)
     return 0
+
+
+def _text(line: dict) -> str:
+    """A frame's JSON line as a few readable lines: the poses, then each ground-truth pallet's error."""
+    out = [f"frame {line['frame']}: {len(line['poses'])} pallet(s), {len(line['rejected'])} rejected, "
+           f"{line['timings_ms']['total']:.0f} ms"]
+    for p in line["poses"]:
+        t, q = p["t_m"], p["quat_wxyz"]
+        out.append(f"  {p['class']}  t_cam = ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:.3f}) m  q_wxyz = "
+                   f"({q[0]:+.3f}, {q[1]:+.3f}, {q[2]:+.3f}, {q[3]:+.3f})  confidence {p['confidence']:.2f}  "
+                   f"fit {p['fit']['score']:.2f}")
+    for g in line.get("gt", []):
+        where = f"  ground truth at {g['distance_m']:.1f} m ({100 * g['visib_fract']:.0f}% visible): "
+        if not g["detected"] or g["add_sym_m"] is None:
+            out.append(where + "missed")
+        else:
+            out.append(where + f"ADD {100 * g['add_m']:.1f} cm, ADD-sym {100 * g['add_sym_m']:.1f} cm")
+    return "\n".join(out)
 
 
 def _evaluate(est, frame_number: int, result, gts: list, records: list) -> tuple[list[dict], int, int]:

@@ -28,6 +28,18 @@ def test_run_on_bop_prints_json_lines_ground_truth_and_overlays(bundle_dir, bop_
     assert len(pngs) == 2 and cv2.imread(str(pngs[0])).shape == (370, 1224, 3)
 
 
+def test_run_text_report_names_poses_errors_and_summary(bundle_dir, bop_dir, capsys):
+    args = ["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
+            "--score-threshold", "0", "--min-fit", "0", "--max-frames", "1"]
+    assert main(args) == 0
+    frame = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert main(args + ["--format", "text"]) == 0
+    text = capsys.readouterr().out
+    assert text.startswith(f"frame 0: {len(frame['poses'])} pallet(s)")
+    assert text.count("t_cam = (") == len(frame["poses"]) and text.count("ground truth at") == len(frame["gt"])
+    assert "precision" in text and "ADD-sym" in text and "{" not in text
+
+
 def test_run_with_a_missing_bundle_fails_clearly(tmp_path, capsys):
     rc = main(["run", "--source", f"bop:{tmp_path}", "--bundle", str(tmp_path / "nope")])
     assert rc == 2 and "cannot load bundle" in capsys.readouterr().err
