@@ -19,10 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fit import _free_space_violation, distance_to_boxes
 from .geometry import backproject_pixels, clamp_box, invert_T, select_pixels, transform_points
 
-__all__ = ["box_points", "closest_on_boxes", "shift_hypotheses", "best_shift", "RefineResult", "refine_pose"]
+__all__ = ["box_points", "closest_on_boxes", "RefineResult", "refine_pose"]
 
 
 def box_points(depth_m: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, max_points: int,
@@ -168,48 +167,3 @@ def refine_pose(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarr
     T = invert_T(T_pal_cam)
     return RefineResult(T, done, n_in, rms, float(np.linalg.norm(T[:3, 3] - T0[:3, 3])), converged)
 
-
-def shift_hypotheses(step_m: float = 0.05, extent_xy_m: tuple[float, float] = (0.6, 0.4)) -> np.ndarray:
-    """(H, 3) shifts of the pallet in its own x/y plane on a grid, the zero shift first.
-
-    The network gets the rotation right long before the position along the pallet's own axes: where the
-    centre lies behind the visible face, or which part of a long face it sees. ICP cannot cross such gaps
-    (its correspondences would reach into the background), so a grid of shifts is scored first.
-    """
-    xs = np.arange(-extent_xy_m[0], extent_xy_m[0] + 1e-9, step_m)
-    ys = np.arange(-extent_xy_m[1], extent_xy_m[1] + 1e-9, step_m)
-    grid = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
-    grid = grid[np.argsort(np.abs(grid).sum(1), kind="stable")]      # zero first, then nearest
-    return np.hstack([grid, np.zeros((len(grid), 1))])
-
-
-def best_shift(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, model_pts: np.ndarray,
-               depth_m: np.ndarray, K: np.ndarray, shifts_m: np.ndarray, tol_m: float = 0.03,
-               finalists: int = 6) -> tuple[np.ndarray, float]:
-    """The pose shifted (in the pallet frame) to where the model best explains the observed depth.
-
-    Every shift is scored by its inlier fraction (observed points within `tol_m` of the model); the best
-    `finalists` also by free space (model surface where the camera saw through it), and the winner
-    maximises inliers * (1 - violation). Ties keep the smaller shift.
-
-    :param shifts_m: (H, 3) pallet-frame shifts, the zero shift first (`shift_hypotheses`).
-    :return: (shifted (4, 4) pose, its score).
-    """
-    T = np.asarray(T_cam_pallet, dtype=np.float64)
-    pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
-    if len(pts) == 0:
-        return T, 0.0
-    p = transform_points(invert_T(T), pts).astype(np.float32)          # (n, 3) pallet frame
-    shifted = p[None] - shifts_m[:, None].astype(np.float32)            # points as seen by each shifted model
-    d = distance_to_boxes(shifted.reshape(-1, 3), boxes_m).reshape(len(shifts_m), len(p))
-    inliers = (d <= tol_m).mean(1)
-    order = set(np.argsort(-inliers, kind="stable")[:finalists].tolist()) | {0}
-    best_T, best = T, -1.0
-    for h in sorted(order):                                               # smaller shifts first: ties keep them
-        Th = T.copy()
-        Th[:3, 3] = T[:3, :3] @ shifts_m[h] + T[:3, 3]
-        viol = _free_space_violation(transform_points(Th, model_pts), depth_m, K, tol_m)
-        score = float(inliers[h]) * (1.0 - viol)
-        if score > best + 1e-9:
-            best_T, best = Th, score
-    return best_T, best
