@@ -57,27 +57,24 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     n = len(p)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    lo, hi = boxes[None, :, 0], boxes[None, :, 1]              # (1, k, 3)
-    pk = p[:, None, :]                                         # (n, 1, 3)
-    clamped = np.clip(pk, lo, hi)                               # (n, k, 3)
-    gap = pk - clamped
-    d_out = np.sqrt((gap * gap).sum(-1))                        # (n, k), 0 inside
-    to_face = np.concatenate([pk - lo, hi - pk], axis=-1)       # (n, k, 6): -x -y -z +x +y +z faces
-    face = to_face.argmin(-1)                                   # (n, k)
-    d_in = np.take_along_axis(to_face, face[..., None], -1)[..., 0]
-    inside = d_out <= 0.0
-    dist = np.where(inside, d_in, d_out)
-    j = dist.argmin(1)                                          # nearest box per point
-    rows = np.arange(n)
-    d = dist[rows, j]
-    q = clamped[rows, j].copy()
+    lo, hi = boxes[:, 0], boxes[:, 1]                           # (k, 3)
+    below, above = lo[None] - p[:, None], p[:, None] - hi[None]    # (n, k, 3): > 0 outside that side
+    gap = np.maximum(np.maximum(below, above), 0.0)
+    d_out = np.sqrt((gap * gap).sum(-1))                         # (n, k), 0 inside
+    d_in = np.minimum(-below, -above).min(-1)                    # (n, k) depth below the nearest face
+    dist = np.where(d_out > 0.0, d_out, np.maximum(d_in, 0.0))
+    j = dist.argmin(1)                                           # nearest box per point
+    d = dist[np.arange(n), j]
+    blo, bhi = lo[j], hi[j]                                      # (n, 3) the chosen boxes
+    q = np.clip(p, blo, bhi)
     normal = np.zeros((n, 3))
-    out = ~inside[rows, j]
-    normal[out] = gap[rows, j][out] / np.maximum(d_out[rows, j][out, None], 1e-12)
-    f = face[rows, j]
-    ins = np.flatnonzero(~out)
-    axis, positive = f[ins] % 3, f[ins] >= 3
-    q[ins, axis] = np.where(positive, boxes[j[ins], 1, axis], boxes[j[ins], 0, axis])
+    out = d_out[np.arange(n), j] > 0.0
+    normal[out] = (p[out] - q[out]) / d[out, None]
+    ins = np.flatnonzero(~out)                                   # inside: move to the nearest face
+    to_face = np.concatenate([p[ins] - blo[ins], bhi[ins] - p[ins]], axis=1)   # -x -y -z +x +y +z
+    f = to_face.argmin(1)
+    axis, positive = f % 3, f >= 3
+    q[ins, axis] = np.where(positive, bhi[ins, axis], blo[ins, axis])
     normal[ins, axis] = np.where(positive, 1.0, -1.0)
     return q, normal, d
 
