@@ -1,0 +1,28 @@
+"""benchmarks/accuracy.py --write-scores: the summary lands in the manifest and the bundle still loads."""
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+from pallet6d.runtime.bundle import check_bundle
+
+_spec = importlib.util.spec_from_file_location("accuracy", Path(__file__).parents[1] / "benchmarks" / "accuracy.py")
+accuracy = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(accuracy)
+
+
+def test_write_scores_records_each_preset_per_precision(bundle_dir, tmp_path, capsys):
+    bundle = tmp_path / "b"
+    shutil.copytree(bundle_dir, bundle)
+    summary = {"test_seed": 9001, "n_gt": 10, "frames": 5, "precision": 0.9, "recall": 0.8,
+               "add_acc": {"0.02": 0.1, "0.05": 0.5, "0.1": 0.7}, "add_sym_acc": {"0.02": 0.2, "0.05": 0.6, "0.1": 0.8},
+               "records": [{"add_m": 0.01}]}
+    accuracy.write_scores(bundle, "fp32", {"virtual-clean": summary}, "python benchmarks/accuracy.py --bundle b")
+    accuracy.write_scores(bundle, "int8", {"virtual-clean": dict(summary, recall=0.7)}, "cmd int8")
+    scores = json.loads((bundle / "manifest.json").read_text())["scores"]
+    assert set(scores) == {"fp32", "int8"}
+    clean = scores["fp32"]["virtual-clean"]
+    assert clean["add_sym_acc"]["0.05"] == 0.6 and clean["recall"] == 0.8 and clean["test_seed"] == 9001
+    assert "records" not in clean and scores["int8"]["virtual-clean"]["recall"] == 0.7
+    assert scores["fp32"]["command"].startswith("python benchmarks/accuracy.py")
+    assert check_bundle(bundle) == []
