@@ -101,10 +101,11 @@ def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path) -> dict:
     if det.get("stage") != "detector" or pose.get("stage") != "pose":
         raise ValueError(f"expected a detector and a pose checkpoint, got stages {det.get('stage')!r} and "
                          f"{pose.get('stage')!r}")
-    if det["config"] != pose["config"]:
-        raise ValueError(f"the detector was trained with config {det['config']!r}, the pose stage with "
-                         f"{pose['config']!r}: export needs one config")
-    merged = {"config": det["config"], "detector": det["detector"], "fusion": pose["fusion"], "pose": pose["pose"],
+    # one detector serves variants that differ only in the pose stage (edge and its ablation edge-densefusion)
+    if get_config(det["config"]).detector != get_config(pose["config"]).detector:
+        raise ValueError(f"the detector was trained with config {det['config']!r}, whose detector differs from "
+                         f"that of the pose stage's {pose['config']!r}: export needs one config")
+    merged = {"config": pose["config"], "detector": det["detector"], "fusion": pose["fusion"], "pose": pose["pose"],
               "format": det["format"], "format_version": det["format_version"], "stage": "merged",
               "provenance": {"detector": {**det["provenance"], "checkpoint": str(detector_ckpt),
                                           "epoch": det["epoch"], "val": det["val"]},

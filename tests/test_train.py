@@ -168,6 +168,16 @@ def test_checkpoint_exports_to_a_bundle_the_runtime_loads(pose_run, sim_bop_data
     assert set(merged["provenance"]) == {"detector", "pose"}
     with pytest.raises(ValueError, match="detector and a pose"):
         merge_checkpoints(run / "best.pt", run / "best.pt", tmp_path / "bad.pt")
+    # one detector serves every variant with the same detector network (edge and its ablation
+    # edge-densefusion); a detector of another network is refused
+    det_ckpt = torch.load(tmp_path / "det" / "last.pt", weights_only=False)
+    pose_ckpt = torch.load(run / "best.pt", weights_only=False)
+    torch.save({**det_ckpt, "config": "edge"}, tmp_path / "det-edge.pt")
+    torch.save({**pose_ckpt, "config": "edge-densefusion"}, tmp_path / "pose-edf.pt")
+    assert merge_checkpoints(tmp_path / "det-edge.pt", tmp_path / "pose-edf.pt", tmp_path / "m2.pt")["config"] \
+        == "edge-densefusion"
+    with pytest.raises(ValueError, match="whose detector differs"):
+        merge_checkpoints(tmp_path / "det-edge.pt", run / "best.pt", tmp_path / "m3.pt")
     calib = make_calibration_set(CFG, frames=2, max_crops=4, seed=0, synthetic=True)
     manifest = export_bundle(CFG, tmp_path / "bundle", checkpoint=tmp_path / "model.pt", calib=calib)
     # the training recipe, data and seeds travel into the bundle's provenance
