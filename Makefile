@@ -8,6 +8,9 @@ SUDO      := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 # Debian packages the Python dependencies need at import time (pyrealsense2 -> libusb).
 DEB_PKGS  := libusb-1.0-0
 RUN_OUT   ?= out/demo
+BUNDLE    ?= models/epal-default
+# the built-in recording: 8 frames of the generator's occluded warehouse, deterministic (seed 7)
+DEMO_REC  := $(RUN_OUT)/recording
 
 .PHONY: run test setup sys-deps clean
 
@@ -28,8 +31,12 @@ sys-deps:
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq $$missing >/dev/null; \
 	fi
 
-run: $(STAMP)
-	$(PY) -m pallet6d.runtime.cli sim --preset virtual-occluded --frames 8 --seed 7 --out $(RUN_OUT) --preview
+run: $(STAMP) $(DEMO_REC)/.done
+	$(PY) -m pallet6d.runtime.cli run --bundle $(BUNDLE) --source bop:$(DEMO_REC) --format text --out $(RUN_OUT)/overlays
+
+$(DEMO_REC)/.done: | $(STAMP)
+	$(PY) -m pallet6d.runtime.cli sim --preset virtual-occluded --frames 8 --seed 7 --out $(DEMO_REC) --preview
+	@touch $@
 
 test: $(STAMP)
 	$(PY) -m pytest -q
