@@ -27,15 +27,18 @@ Training (`RECIPES` holds these defaults; flags override them)::
     pallet6d train merge --detector runs/edge-det/best.pt --pose runs/edge-pose/best.pt --out runs/edge.pt
     pallet6d export --config edge --checkpoint runs/edge.pt --int8 --out models/edge
 
-Ablation: the same commands with `--config densefusion` (and `paper` for the attention model at paper size);
-same data, seeds, epochs and batch, so the only difference is the network.
+Ablation: the same commands with `--config edge-densefusion` (the edge network without attention; `merge`
+takes the edge detector for it) or `densefusion` / `paper` at paper size; same data, seeds, epochs and batch, so
+the only difference is the network.
 
 Cost on this 2-core machine, detector and pose trained side by side with one torch thread each
 (`OMP_NUM_THREADS=1`; 2026-11-21): sim ~2 frames/s per core at 1224x370; the 1600 frames above give 1440
 detector training frames (~2 min per detector epoch: 12 epochs in 24 min reached validation precision 0.89,
 recall 0.88) and ~6.2k pose samples with 1 view per pallet (~19 min per pose epoch; sample preparation is a
 one-off of a few minutes, cached). The pose stage is the long pole: 5 epochs x 2 views is ~3 h. Run each in
-the background with `--no-progress --max-minutes M` and continue with `--resume`. On CUDA (`--device cuda`)
+the background with `--no-progress --max-minutes M` and continue with `--resume` (a larger `--epochs` with
+`--resume` extends a finished run). The shipped `models/epal-default` came from 30 detector epochs (60 min) and
+8 pose epochs x 1 view (151 min) this way (commands in benchmarks/results/README.md). On CUDA (`--device cuda`)
 epochs take seconds to a minute: use `--epochs 40` (pose) and `--epochs 100` (detector) there rather than
 more data. The `densefusion`/`paper` networks are ~5x the edge pose-stage FLOPs: train them on CUDA.
 """
