@@ -124,11 +124,11 @@ def _write_json(path: Path, obj: Any) -> None:
     tmp.replace(path)
 
 
-def _image_key(k: str, path: Path) -> int:
+def _int_key(k: str, path: Path, what: str = "an image id") -> int:
     try:
         return int(k)
     except ValueError:
-        raise BopFormatError(f"{path}: key {k!r} is not an image id") from None
+        raise BopFormatError(f"{path}: key {k!r} is not {what}") from None
 
 
 def _read_image_map(path: Path, lists: bool = False) -> dict[int, Any]:
@@ -138,7 +138,7 @@ def _read_image_map(path: Path, lists: bool = False) -> dict[int, Any]:
         raise BopFormatError(f"{path}: expected an object keyed by image id")
     out = {}
     for k, entry in raw.items():
-        im_id = _image_key(k, path)
+        im_id = _int_key(k, path)
         if lists and not isinstance(entry, list):
             raise BopFormatError(f"{path}: image {im_id}: expected a list of annotations")
         out[im_id] = entry
@@ -194,7 +194,7 @@ def read_models_info(path) -> dict[int, dict]:
         raise BopFormatError(f"{path}: expected an object keyed by obj_id")
     out = {}
     for k, entry in raw.items():
-        obj_id = _image_key(k, path)
+        obj_id = _int_key(k, path, "an obj_id")
         _field(entry, "diameter", path, f"obj_id {obj_id}")
         for i, T in enumerate(entry.get("symmetries_discrete", [])):
             _field({"symmetries_discrete": T}, "symmetries_discrete", path, f"obj_id {obj_id} symmetry {i}", 16)
