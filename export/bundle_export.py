@@ -40,12 +40,15 @@ from .fusion import build_fusion
 from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
 from .pose import build_pose
 from .quantize import quantize_graph
+from .weights_fp16 import store_weights_fp16
 
 __all__ = ["export_bundle", "ExportError"]
 
 log = logging.getLogger(__name__)
 
 DET_IN, DET_OUT = "images", "output0"
+# float16 weight storage may change a graph's outputs by at most this relative RMS (measured: ~5e-4)
+FP16_WEIGHTS_REL_RMS = 5e-3
 
 
 class ExportError(ValueError):
@@ -142,8 +145,9 @@ def _external_detector(path: Path, classes: tuple[str, ...] | None) -> tuple[tup
     return (h, w), tuple(classes)
 
 
-def _int8_report(fp32: Path, int8: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
-    s32, s8 = ort_session(fp32), ort_session(int8)
+def _graph_diff(ref_path: Path, test_path: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
+    """Per output: how `test_path`'s outputs differ from `ref_path`'s on `feeds` (compare_outputs)."""
+    s32, s8 = ort_session(ref_path), ort_session(test_path)
     ref, got = {}, {}
     for f in feeds:
         for k, v in run_session(s32, f).items():
@@ -161,8 +165,11 @@ def _batches(arrays: list[np.ndarray], size: int) -> list[list[np.ndarray]]:
 def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoint: str | Path | None = None,
                   random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
-                  calib: CalibrationSet | None = None, calib_frames: int = 8) -> dict:
+                  calib: CalibrationSet | None = None, calib_frames: int = 8, fp16_weights: bool = True) -> dict:
     """Export `cfg`'s networks to a bundle folder `out` and return its manifest.
+
+    With `fp16_weights` the float32 graphs keep their weights as float16 on disk (`weights_fp16`: half the
+    size, same float32 arithmetic); int8 graphs are quantized from the full float32 weights before that.
 
     :raises ExportError: bad arguments, checkpoint or external detector.
     :raises onnx_io.ParityError: an exported graph does not reproduce its torch model.
@@ -226,15 +233,15 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                         "fusion_per_pallet": round(count_gflops(files["fusion"]), 3),
                         "pose_per_pallet": round(count_gflops(files["pose"]), 3)}
 
+    n_cal = max(1, (3 * len(calib.rgb_crops)) // 4)   # calibrate on 3/4, report the difference on the rest
+    n_img = max(1, (3 * len(calib.images)) // 4)
+    det_feeds = [{det_in: calib.images[i:i + 1]} for i in range(len(calib.images))]
+    fus_feeds = [{"rgb": r, "depth": d} for r, d in _batches([calib.rgb_crops, calib.depth_crops], 4)]
+    pose_feeds = [{"points": p, "features": f} for p, f in _batches([calib.points, point_feats], 4)]
+    split = {"detector": n_img, "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
+    feeds = {"detector": det_feeds, "fusion": fus_feeds, "pose": pose_feeds}
     int8_files: dict[str, Path | None] = {"detector": None, "fusion": None, "pose": None}
     if int8:
-        n_cal = max(1, (3 * len(calib.rgb_crops)) // 4)   # calibrate on 3/4, report the difference on the rest
-        n_img = max(1, (3 * len(calib.images)) // 4)
-        det_feeds = [{det_in: calib.images[i:i + 1]} for i in range(len(calib.images))]
-        fus_feeds = [{"rgb": r, "depth": d} for r, d in _batches([calib.rgb_crops, calib.depth_crops], 4)]
-        pose_feeds = [{"points": p, "features": f} for p, f in _batches([calib.points, point_feats], 4)]
-        split = {"detector": n_img, "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
-        feeds = {"detector": det_feeds, "fusion": fus_feeds, "pose": pose_feeds}
         # the detector's last box/class convs (their logits feed the DFL softmax / sigmoid directly) and the
         # pose net's first layer (metric points in, 5 mm steps if quantized) stay float: cheap, and precise
         exclude = {"detector": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv"), "fusion": (), "pose": ("/conv1/Conv",)}
@@ -242,8 +249,20 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         for stage in ("detector", "fusion", "pose"):
             cal, held = feeds[stage][:split[stage]], feeds[stage][split[stage]:] or feeds[stage][-1:]
             int8_files[stage] = quantize_graph(files[stage], out / f"{stage}.int8.onnx", cal, exclude[stage])
-            checks["int8"][stage] = _int8_report(files[stage], int8_files[stage], held)
+            checks["int8"][stage] = _graph_diff(files[stage], int8_files[stage], held)
         checks["int8"]["note"] = "int8 vs fp32 on calibration inputs held out from calibration"
+    if fp16_weights:
+        checks["weights_fp16"] = {}
+        for stage in ("detector", "fusion", "pose") if detector_onnx is None else ("fusion", "pose"):
+            half = out / f"{stage}.fp16-weights.onnx"
+            storage = store_weights_fp16(files[stage], half)
+            diff = _graph_diff(files[stage], half, feeds[stage][split[stage]:] or feeds[stage][-1:])
+            worst = max(v["rel_rms"] for v in diff.values())
+            if not worst <= FP16_WEIGHTS_REL_RMS:
+                raise ExportError(f"{stage}: float16 weights change the output by {worst:.2g} relative RMS "
+                                  f"(limit {FP16_WEIGHTS_REL_RMS}); export with fp16_weights=False")
+            half.replace(files[stage])
+            checks["weights_fp16"][stage] = {**storage.to_dict(), "vs_fp32_weights": diff}
 
     from pallet6d.sim.pallets import get_pallet_model  # the pallet geometry lives with the simulator
     pallet = get_pallet_model(cfg.pallet)

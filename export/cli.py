@@ -24,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--int8", action="store_true", help="also write static int8 (QDQ) graphs")
     parser.add_argument("--detector-onnx", help="use this YOLOv8 ONNX graph (ultralytics export layout) as detector")
     parser.add_argument("--classes", help="comma-separated class names of --detector-onnx (default: its metadata)")
+    parser.add_argument("--fp32-weights", action="store_true",
+                        help="keep the float graphs' weights float32 on disk (default: float16 on disk, half the size; "
+                             "the arithmetic is float32 either way)")
     parser.add_argument("--calib-frames", type=int, default=8, help="simulated frames for calibration (default 8)")
     parser.add_argument("--torch-threads", type=int, default=0,
                         help="torch intra-op threads (0 = torch's default); 1 is fastest for --config tiny on a busy machine")
@@ -43,7 +46,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         manifest = export_bundle(get_config(args.config), args.out, seed=args.seed, checkpoint=args.checkpoint,
                                  random_init=args.random_init, int8=args.int8, detector_onnx=args.detector_onnx,
-                                 classes=classes, name=args.name, command=command, calib_frames=args.calib_frames)
+                                 classes=classes, name=args.name, command=command, calib_frames=args.calib_frames,
+                                 fp16_weights=not args.fp32_weights)
     except (ExportError, ParityError) as exc:
         print(f"pallet6d export: {exc}", file=sys.stderr)
         return 1
