@@ -165,7 +165,8 @@ def _batches(arrays: list[np.ndarray], size: int) -> list[list[np.ndarray]]:
 def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoint: str | Path | None = None,
                   random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
-                  calib: CalibrationSet | None = None, calib_frames: int = 8, fp16_weights: bool = True) -> dict:
+                  calib: CalibrationSet | None = None, calib_frames: int = 8, calib_crops: int = 96,
+                  fp16_weights: bool = True) -> dict:
     """Export `cfg`'s networks to a bundle folder `out` and return its manifest.
 
     With `fp16_weights` the float32 graphs keep their weights as float16 on disk (`weights_fp16`: half the
@@ -188,7 +189,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     if detector_onnx is not None:
         det_hw, det_classes = _external_detector(Path(detector_onnx), classes)
         cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=det_hw, classes=det_classes))
-    calib = calib or make_calibration_set(cfg, frames=calib_frames, seed=seed)
+    calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed)
     need = ("fusion", "pose") if detector_onnx is not None else ("detector", "fusion", "pose")
     training = None
     if checkpoint is not None:
@@ -242,9 +243,11 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     feeds = {"detector": det_feeds, "fusion": fus_feeds, "pose": pose_feeds}
     int8_files: dict[str, Path | None] = {"detector": None, "fusion": None, "pose": None}
     if int8:
-        # the detector's last box/class convs (their logits feed the DFL softmax / sigmoid directly) and the
-        # pose net's first layer (metric points in, 5 mm steps if quantized) stay float: cheap, and precise
-        exclude = {"detector": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv"), "fusion": (), "pose": ("/conv1/Conv",)}
+        # float, cheap and precise: the detector's last box/class convs (their logits feed the DFL softmax /
+        # sigmoid directly); the pose net's first layer (metric points in: 5 mm steps if quantized) and its
+        # heads' output convs (a uint8 translation offset has ~1 cm steps; a uint8 confidence ties the argmax)
+        exclude = {"detector": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv"), "fusion": (),
+                   "pose": ("/conv1/Conv", "/head_[rtc]/head_[rtc].6/Conv")}
         checks["int8"] = {}
         for stage in ("detector", "fusion", "pose"):
             cal, held = feeds[stage][:split[stage]], feeds[stage][split[stage]:] or feeds[stage][-1:]

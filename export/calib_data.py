@@ -26,7 +26,8 @@ log = logging.getLogger(__name__)
 class CalibrationSet:
     """:ivar images: (F, 3, H, W) float32 in [0, 1], letterboxed detector inputs.
     :ivar rgb_crops: (P, 3, h, w). :ivar depth_crops: (P, 1, h, w). :ivar points: (P, N, 3). :ivar choose: (P, N).
-    :ivar source: where the data came from (recorded in the manifest)."""
+    :ivar source: where the data came from (recorded in the manifest).
+    :ivar crop_sources: (P,) the preset each crop was taken from."""
 
     images: np.ndarray
     rgb_crops: np.ndarray
@@ -34,6 +35,7 @@ class CalibrationSet:
     points: np.ndarray
     choose: np.ndarray
     source: str
+    crop_sources: tuple[str, ...] = ()
 
 
 def pose_input_spec(cfg: ModelConfig) -> PoseInputSpec:
@@ -53,7 +55,7 @@ def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets:
 
     rng = np.random.default_rng(seed)
     spec = pose_input_spec(cfg)
-    images, batches = [], []
+    images, batches = [], {p: [] for p in presets}
     for i in range(frames):
         preset = presets[i % len(presets)]
         frame = generate_frame(get_preset(preset), seed, i)
@@ -67,14 +69,25 @@ def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets:
             boxes.append(np.array([x, y, x + w, y + h]) + jitter)
         if boxes:
             b = prepare_pose_inputs(frame.rgb, frame.depth_m, frame.K, np.array(boxes), spec, rng)
-            batches.append(b.take(np.flatnonzero(b.usable)))
-    if not batches or sum(len(b) for b in batches) == 0:
+            batches[preset].append(b.take(np.flatnonzero(b.usable)))
+    keys = ("rgb_crops", "depth_crops", "points", "choose")
+    pools = [{k: np.concatenate([getattr(b, k) for b in bs]) for k in keys} for bs in batches.values() if bs]
+    if not pools or sum(len(p["points"]) for p in pools) == 0:
         raise RuntimeError("the simulator produced no usable pallet crops for calibration")
-    cat = {k: np.concatenate([getattr(b, k) for b in batches])[:max_crops]
-           for k in ("rgb_crops", "depth_crops", "points", "choose")}
-    return CalibrationSet(np.stack(images), **cat,
+    # crops taken from the presets in turn: each preset gets an equal share (a cluttered virtual frame holds
+    # several pallets, an indoor one usually one) and the held-out last quarter mixes them all
+    order, depth = [], 0
+    while len(order) < max_crops and any(depth < len(p["points"]) for p in pools):
+        order += [(j, depth) for j, p in enumerate(pools) if depth < len(p["points"])]
+        depth += 1
+    order = order[:max_crops]
+    cat = {k: np.stack([pools[j][k][i] for j, i in order]) for k in keys}
+    names = [p for p, bs in batches.items() if bs]
+    crop_sources = tuple(names[j] for j, _ in order)
+    counts = {name: crop_sources.count(name) for name in names}
+    return CalibrationSet(np.stack(images), **cat, crop_sources=crop_sources,
                           source=f"pallet6d.sim presets {list(presets)}, {frames} frames, seed {seed}, "
-                                 f"{len(cat['points'])} ground-truth crops with 5% box jitter")
+                                 f"{len(order)} ground-truth crops with 5% box jitter {counts}")
 
 
 def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int) -> CalibrationSet:
@@ -101,12 +114,12 @@ def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int) -> Cali
         np.array([1.2, 0.8, 0.144])[face]
     choose = rng.integers(0, h * w, (p, n))
     return CalibrationSet(images.astype(np.float32), rgb.astype(np.float32), depth.astype(np.float32),
-                          pts.astype(np.float32), choose.astype(np.int64),
+                          pts.astype(np.float32), choose.astype(np.int64), crop_sources=("synthetic",) * p,
                           source=f"synthetic: smooth random images/crops and box-surface points (seed {seed}); "
                                  "pallet6d.sim was not available")
 
 
-def make_calibration_set(cfg: ModelConfig, frames: int = 8, max_crops: int = 32, seed: int = 0,
+def make_calibration_set(cfg: ModelConfig, frames: int = 8, max_crops: int = 96, seed: int = 0,
                          presets: tuple[str, ...] = ("virtual-occluded", "indoor-noisy", "virtual-clean"),
                          synthetic: bool = False) -> CalibrationSet:
     """Calibration inputs from the simulator, or synthetic ones when it is not installed or `synthetic`."""

@@ -28,6 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep the float graphs' weights float32 on disk (default: float16 on disk, half the size; "
                              "the arithmetic is float32 either way)")
     parser.add_argument("--calib-frames", type=int, default=8, help="simulated frames for calibration (default 8)")
+    parser.add_argument("--calib-crops", type=int, default=96,
+                        help="pallet crops for calibration, taken from the presets in turn (default 96)")
     parser.add_argument("--torch-threads", type=int, default=0,
                         help="torch intra-op threads (0 = torch's default); 1 is fastest for --config tiny on a busy machine")
     parser.add_argument("--name", help="bundle name (default: the output folder's name)")
@@ -47,6 +49,7 @@ def main(args: argparse.Namespace) -> int:
         manifest = export_bundle(get_config(args.config), args.out, seed=args.seed, checkpoint=args.checkpoint,
                                  random_init=args.random_init, int8=args.int8, detector_onnx=args.detector_onnx,
                                  classes=classes, name=args.name, command=command, calib_frames=args.calib_frames,
+                                 calib_crops=args.calib_crops,
                                  fp16_weights=not args.fp32_weights)
     except (ExportError, ParityError) as exc:
         print(f"pallet6d export: {exc}", file=sys.stderr)

@@ -271,3 +271,14 @@ def test_parity_failure_stops_the_export(tmp_path):
     assert check_parity(a, x, path, ["x"], ["y"])["y"]["max_abs"] < 1e-5
     with pytest.raises(ParityError, match="does not reproduce"):
         check_parity(b, x, path, ["x"], ["y"])
+
+
+def test_calibration_crops_come_from_the_presets_in_turn():
+    # an indoor frame holds one pallet, a cluttered virtual one several: taking crops in turn gives each
+    # preset its share, and the held-out last quarter (the int8 report) still mixes them
+    presets = ("virtual-occluded", "indoor-noisy", "virtual-clean")
+    calib = make_calibration_set(get_config("tiny"), frames=6, max_crops=5, seed=0, presets=presets)
+    assert len(calib.rgb_crops) == len(calib.points) == len(calib.crop_sources) == 5
+    assert set(calib.crop_sources[:3]) == set(presets)
+    assert max(calib.crop_sources.count(p) for p in presets) - min(calib.crop_sources.count(p) for p in presets) <= 1
+    assert calib.images.shape[0] == 6 and "5 ground-truth crops" in calib.source
