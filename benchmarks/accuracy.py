@@ -148,6 +148,8 @@ def main(argv=None) -> int:
     ap.add_argument("--gt-boxes", action="store_true", help="score the pose stage alone on ground-truth boxes")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-refine", action="store_true", help="the network's poses without the ICP refinement")
+    ap.add_argument("--seed", type=int, default=0,
+                    help="seed of the per-pallet point sampling (EstimatorOptions.seed): run a few to see the spread")
     ap.add_argument("--write-scores", action="store_true",
                     help="record the summary in the bundle's manifest.json under scores.<fp32|int8>")
     args = ap.parse_args(argv)
@@ -158,7 +160,7 @@ def main(argv=None) -> int:
 
     precision = "int8" if args.int8 else "fp32"
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision=precision,
-                                      refine=not args.no_refine)
+                                      refine=not args.no_refine, seed=args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for preset in args.presets:
@@ -171,7 +173,8 @@ def main(argv=None) -> int:
         print(f"== {preset}\n{format_table(out['summary'])}")
     paths = plot(results, args.out)
     md = args.out / "accuracy.md"
-    variant = precision + (", GT boxes" if args.gt_boxes else "") + (", no refinement" if args.no_refine else "")
+    variant = precision + (", GT boxes" if args.gt_boxes else "") + (", no refinement" if args.no_refine else "") \
+        + (f", sampling seed {args.seed}" if args.seed else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")
     if args.write_scores:
