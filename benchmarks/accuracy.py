@@ -13,6 +13,7 @@ symmetric-ADD distribution), `accuracy_by_distance.png`, and `accuracy.md` (our 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import logging
 import sys
@@ -183,14 +184,21 @@ def main(argv=None) -> int:
 
 
 def write_scores(bundle: Path, precision: str, results: dict[str, dict], command: str) -> None:
-    """Put the summaries in manifest.json `scores` (the manifest itself carries no sha256 of its own)."""
+    """Put the summaries in manifest.json `scores` (the manifest itself carries no sha256 of its own).
+
+    The read-modify-write holds an exclusive lock on the manifest: the fp32 and int8 runs may finish together."""
     path = bundle / "manifest.json"
-    manifest = json.loads(path.read_text())
     keep = ("n_gt", "frames", "precision", "recall", "add_acc", "add_sym_acc", "add_sym_median_m", "adds_acc")
-    manifest.setdefault("scores", {})[precision] = {
-        "command": command, "protocol": "held-out sim test sets, pallets >= 10% visible, a miss is a failure",
-        **{preset: {"test_seed": d["test_seed"], **{k: d[k] for k in keep if k in d}} for preset, d in results.items()}}
-    path.write_text(json.dumps(manifest, indent=2) + "\n")
+    with open(path, "r+", encoding="utf-8") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        manifest = json.loads(f.read())
+        manifest.setdefault("scores", {})[precision] = {
+            "command": command, "protocol": "held-out sim test sets, pallets >= 10% visible, a miss is a failure",
+            **{preset: {"test_seed": d["test_seed"], **{k: d[k] for k in keep if k in d}}
+               for preset, d in results.items()}}
+        f.seek(0)
+        f.write(json.dumps(manifest, indent=2) + "\n")
+        f.truncate()
     print(f"wrote scores.{precision} into {path}")
 
 
