@@ -151,6 +151,8 @@ def test_nan_depth_as_missing_option(bundle_dir, frame):
 def test_bad_options_and_precision(bundle_dir):
     with pytest.raises(ValueError, match="max_pallets"):
         EstimatorOptions(max_pallets=0)
+    with pytest.raises(ValueError, match="refine_margin"):
+        EstimatorOptions(refine_margin=-0.1)
     with pytest.raises(ValueError, match="precision"):
         PalletEstimator.from_bundle(bundle_dir, precision="fp16")
 
@@ -184,12 +186,21 @@ def test_runtime_prediction_never_imports_torch(bundle_dir):
     assert int(n) >= 1 and has_torch == "False"
 
 
-def test_refinement_never_fits_the_depth_worse_than_the_network(bundle_dir, frame, boxes, est):
+@pytest.mark.parametrize("margin", [0.0, 0.02, 1.0])
+def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(bundle_dir, frame, boxes, margin):
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine_margin=margin)
     plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine=False)
     assert est.refines and not plain.refines
     r, r0 = (e.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes) for e in (est, plain))
     assert len(r.poses) == len(r0.poses) == len(boxes)
+    kept = 0
     for p, p0 in zip(r.poses, r0.poses):
-        assert p.fit.score >= p0.fit.score - 1e-12
-        if p.fit.score > p0.fit.score:  # the refined pose won, so it moved
-            assert not np.allclose(p.T_cam_pallet, p0.T_cam_pallet)
+        if np.allclose(p.T_cam_pallet, p0.T_cam_pallet):   # the network's pose stayed
+            assert p.fit.score == pytest.approx(p0.fit.score)
+        else:                                              # the refined pose won by the margin
+            assert p.fit.score >= p0.fit.score + margin - 1e-12
+            kept += 1
+    if margin >= 1.0:
+        assert kept == 0
+    if margin == 0.0:
+        assert kept >= 1   # on this rendered frame ICP does improve some network poses
