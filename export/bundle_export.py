@@ -147,12 +147,12 @@ def _external_detector(path: Path, classes: tuple[str, ...] | None) -> tuple[tup
 
 def _graph_diff(ref_path: Path, test_path: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
     """Per output: how `test_path`'s outputs differ from `ref_path`'s on `feeds` (compare_outputs)."""
-    s32, s8 = ort_session(ref_path), ort_session(test_path)
+    ref_sess, test_sess = ort_session(ref_path), ort_session(test_path)
     ref, got = {}, {}
     for f in feeds:
-        for k, v in run_session(s32, f).items():
+        for k, v in run_session(ref_sess, f).items():
             ref.setdefault(k, []).append(v)
-        for k, v in run_session(s8, f).items():
+        for k, v in run_session(test_sess, f).items():
             got.setdefault(k, []).append(v)
     return {k: compare_outputs(np.concatenate(ref[k]), np.concatenate(got[k])).to_dict() for k in ref}
 
@@ -264,8 +264,9 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
             diff = _graph_diff(files[stage], half, feeds[stage][split[stage]:] or feeds[stage][-1:])
             worst = max(v["rel_rms"] for v in diff.values())
             if not worst <= FP16_WEIGHTS_REL_RMS:
+                half.unlink()
                 raise ExportError(f"{stage}: float16 weights change the output by {worst:.2g} relative RMS "
-                                  f"(limit {FP16_WEIGHTS_REL_RMS}); export with fp16_weights=False")
+                                  f"(limit {FP16_WEIGHTS_REL_RMS}); export with --fp32-weights")
             half.replace(files[stage])
             checks["weights_fp16"][stage] = {**storage.to_dict(), "vs_fp32_weights": diff}
 

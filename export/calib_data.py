@@ -76,10 +76,10 @@ def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets:
         raise RuntimeError("the simulator produced no usable pallet crops for calibration")
     # crops taken from the presets in turn: each preset gets an equal share (a cluttered virtual frame holds
     # several pallets, an indoor one usually one) and the held-out last quarter mixes them all
-    order, depth = [], 0
-    while len(order) < max_crops and any(depth < len(p["points"]) for p in pools):
-        order += [(j, depth) for j, p in enumerate(pools) if depth < len(p["points"])]
-        depth += 1
+    order, rank = [], 0
+    while len(order) < max_crops and any(rank < len(p["points"]) for p in pools):
+        order += [(j, rank) for j, p in enumerate(pools) if rank < len(p["points"])]
+        rank += 1
     order = order[:max_crops]
     cat = {k: np.stack([pools[j][k][i] for j, i in order]) for k in keys}
     names = [p for p, bs in batches.items() if bs]

@@ -27,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fp32-weights", action="store_true",
                         help="keep the float graphs' weights float32 on disk (default: float16 on disk, half the size; "
                              "the arithmetic is float32 either way)")
-    parser.add_argument("--calib-frames", type=int, default=8, help="simulated frames for calibration (default 8)")
+    parser.add_argument("--calib-frames", type=int, default=96,
+                        help="simulated frames for calibration, the presets in turn (default 96: ~32 indoor crops)")
     parser.add_argument("--calib-crops", type=int, default=96,
                         help="pallet crops for calibration, taken from the presets in turn (default 96)")
     parser.add_argument("--torch-threads", type=int, default=0,
