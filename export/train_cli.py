@@ -37,10 +37,10 @@ detector training frames (~2 min per detector epoch: 12 epochs in 24 min reached
 recall 0.88) and ~6.2k pose samples with 1 view per pallet (~19 min per pose epoch; sample preparation is a
 one-off of a few minutes, cached). The pose stage is the long pole: 5 epochs x 2 views is ~3 h. Run each in
 the background with `--no-progress --max-minutes M` and continue with `--resume` (a larger `--epochs` with
-`--resume` extends a finished run). The shipped `models/epal-default` came from 30 detector epochs (60 min) and
-8 pose epochs x 1 view (151 min) this way (commands in benchmarks/results/README.md). On CUDA (`--device cuda`)
-epochs take seconds to a minute: use `--epochs 40` (pose) and `--epochs 100` (detector) there rather than
-more data. The `densefusion`/`paper` networks are ~5x the edge pose-stage FLOPs: train them on CUDA.
+`--resume` extends a finished run). The shipped `models/epal-default` came from 45 detector epochs (90 min) and
+13 pose epochs x 1 view (245 min) this way, each run once extended (commands in benchmarks/results/README.md).
+On CUDA (`--device cuda`) epochs take seconds to a minute: use `--epochs 40` (pose) and `--epochs 100`
+(detector) there rather than more data. The `densefusion`/`paper` networks are ~5x the edge pose-stage FLOPs: train them on CUDA.
 """
 from __future__ import annotations
 

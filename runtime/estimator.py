@@ -59,9 +59,9 @@ class EstimatorOptions:
     :ivar fit_tol_m: distance tolerance of the fit score, metres.
     :ivar refine: refine each pose on the box's depth by robust point-to-plane ICP against the pallet's
         boards and blocks (`refine.py`; needs `boxes_m` in the bundle's pallet model, else skipped). The
-        refined pose is kept only when its fit score is at least the network pose's (measured on 100
-        indoor-noisy test frames, 3-epoch network: ICP alone lost 8 points of ADD-sym at 10 cm to the
-        stereo noise; with this gate refinement gains 7).
+        refined pose is kept only when its fit score beats the network pose's by `refine_margin` (measured
+        on 100 indoor-noisy test frames, 3-epoch network: ICP alone lost 8 points of ADD-sym at 10 cm to
+        the stereo noise; with a gate refinement gained 7).
     :ivar refine_margin: the refined pose must beat the network's fit score by this much to be kept: ICP's
         pose is fitted to the very points the score counts, so its score is biased upwards (chosen on validation
         frames, seeds 8001-8003, shipped 13-epoch network: 0.02 gained 5 points of ADD-sym at 5 cm on
@@ -317,7 +317,7 @@ class PalletEstimator:
             for k, i in enumerate(go):
                 obs = sub.points[k].astype(np.float64) + sub.centres[k]
                 fit = fit_score(T[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
-                if self.refines:  # noisy depth can pull ICP off: keep whichever pose explains the depth better
+                if self.refines:  # noisy depth can pull ICP off: keep ICP's pose only if it clearly explains the depth better
                     fit_net = fit_score(T_net[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
                     if fit.score < fit_net.score + o.refine_margin:
                         T[k], fit = T_net[k], fit_net
