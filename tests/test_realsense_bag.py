@@ -1,6 +1,7 @@
 """RealSense .bag round trip: sim frames -> rosbags writer -> pyrealsense2 playback with real alignment."""
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -159,6 +160,22 @@ def test_bag_slow_reader_gets_every_frame_in_order(tmp_path, sim_frames):
             numbers.append(frame.frame_number)
             time.sleep(0.1)
     assert numbers == list(range(7, 14))
+
+
+def test_bag_closed_early_does_not_hang(tmp_path, sim_frames):
+    # a daemon stopped mid-recording: the playback is blocked on the full queue when the sensors stop
+    # (an SDK syncer in that place deadlocks; CI hung on it)
+    path = tmp_path / "early.bag"
+    _write_bag(path, (sim_frames * 4)[:12], identity=True)
+    for n_read in (0, 1, 3):
+        cam = RealSenseCamera(bag_path=path)
+        cam.start()
+        numbers = [cam.read().frame_number for _ in range(n_read)]
+        assert numbers == list(range(7, 7 + n_read))
+        closer = threading.Thread(target=cam.stop, daemon=True)
+        closer.start()
+        closer.join(timeout=30)
+        assert not closer.is_alive(), f"stop() hung after {n_read} frames"
 
 
 def test_missing_bag_and_bad_options(tmp_path):
