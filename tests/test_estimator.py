@@ -152,7 +152,9 @@ def test_bad_options_and_precision(bundle_dir):
     with pytest.raises(ValueError, match="max_pallets"):
         EstimatorOptions(max_pallets=0)
     with pytest.raises(ValueError, match="refine_margin"):
-        EstimatorOptions(refine_margin=-0.1)
+        EstimatorOptions(refine_margin=-1.1)
+    with pytest.raises(ValueError, match="refine_max_rms_m"):
+        EstimatorOptions(refine_max_rms_m=0.0)
     with pytest.raises(ValueError, match="precision"):
         PalletEstimator.from_bundle(bundle_dir, precision="fp16")
 
@@ -186,9 +188,11 @@ def test_runtime_prediction_never_imports_torch(bundle_dir):
     assert int(n) >= 1 and has_torch == "False"
 
 
-@pytest.mark.parametrize("margin", [0.0, 0.02, 1.0])
-def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(bundle_dir, frame, boxes, margin):
-    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine_margin=margin)
+@pytest.mark.parametrize("margin, max_rms_m", [(0.0, 1.0), (0.02, 1.0), (1.0, 1.0), (0.0, 1e-9)])
+def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(bundle_dir, frame, boxes, margin,
+                                                                               max_rms_m):
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine_margin=margin,
+                                      refine_max_rms_m=max_rms_m)
     plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine=False)
     assert est.refines and not plain.refines
     r, r0 = (e.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes) for e in (est, plain))
@@ -200,7 +204,19 @@ def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(b
         else:                                              # the refined pose won by the margin
             assert p.fit.score >= p0.fit.score + margin - 1e-12
             kept += 1
-    if margin >= 1.0:
+    if margin >= 1.0 or max_rms_m < 1e-6:  # no ICP result has a residual that small
         assert kept == 0
-    if margin == 0.0:
+    elif margin == 0.0:
         assert kept >= 1   # on this rendered frame ICP does improve some network poses
+
+
+def test_noisy_depth_keeps_the_network_pose(bundle_dir, frame, boxes):
+    # stereo-like noise (2 cm) pulls ICP off; its residual stays above refine_max_rms_m, so the network's pose stays
+    rng = np.random.default_rng(3)
+    depth = np.where(frame.depth_m > 0, frame.depth_m + rng.normal(0, 0.02, frame.depth_m.shape), 0).astype(np.float32)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0)
+    plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine=False)
+    r, r0 = (e.estimate_boxes(frame.rgb, depth, frame.K, boxes_xyxy=boxes) for e in (est, plain))
+    assert len(r.poses) == len(r0.poses) == len(boxes) >= 1
+    for p, p0 in zip(r.poses, r0.poses):
+        np.testing.assert_allclose(p.T_cam_pallet, p0.T_cam_pallet)
