@@ -24,7 +24,8 @@ from pallet6d.runtime.evaluation import box_iou, ground_truths_from_bop
 
 THRESHOLDS_M = (0.02, 0.05, 0.1)
 GATES = [("network alone", None, None), ("ICP always", 1.0, -1.0)] + \
-    [(f"RMS < {r * 1000:g} mm, margin {m:g}", r, m) for r in (0.003, 0.004, 0.005, 1.0) for m in (0.0, 0.02)]
+    [(f"RMS < {r * 1000:g} mm, margin {m:g}", r, m) for r in (0.003, 0.004, 0.005) for m in (0.0, 0.02)] + \
+    [(f"fit score only, margin {m:g}", 1.0, m) for m in (0.0, 0.02)]
 
 
 class _RmsLog:
