@@ -73,19 +73,22 @@ def test_bag_plays_with_alignment(tmp_path, sim_frames):
     path = tmp_path / "sim.bag"
     K_depth, size_d, raw_depths = _write_bag(path, sim_frames, identity=False)
 
-    # the bag carries the depth camera's own intrinsics and the extrinsics, as a real D435 bag does
-    pipe, cfg = rs.pipeline(), rs.config()
-    cfg.enable_device_from_file(str(path), repeat_playback=False)
-    prof = pipe.start(cfg)
+    # the bag carries the depth camera's own intrinsics and the extrinsics, as a real D435 bag does (read from the
+    # recorded stream profiles; nothing streams, so no SDK thread outlives the check)
+    ctx = rs.context()
+    device = ctx.load_device(str(path))
     try:
-        dprof = prof.get_stream(rs.stream.depth).as_video_stream_profile()
+        profiles = {p.stream_type(): p.as_video_stream_profile() for s in device.query_sensors()
+                    for p in s.get_stream_profiles()}
+        dprof, cprof = profiles[rs.stream.depth], profiles[rs.stream.color]
         di = dprof.get_intrinsics()
         assert (di.width, di.height) == size_d and di.fx == pytest.approx(K_depth[0, 0])
-        ext = dprof.get_extrinsics_to(prof.get_stream(rs.stream.color))
+        ext = dprof.get_extrinsics_to(cprof)
         np.testing.assert_allclose(np.array(ext.rotation).reshape(3, 3).T, T_COLOR_DEPTH[:3, :3], atol=1e-6)
         np.testing.assert_allclose(ext.translation, T_COLOR_DEPTH[:3, 3], atol=1e-7)
     finally:
-        pipe.stop()
+        del device
+        ctx.unload_device(str(path))
 
     with open_source(f"bag:{path}") as cam:
         assert isinstance(cam, RealSenseCamera) and not cam.live
