@@ -3,6 +3,9 @@ from __future__ import annotations
 
 import datetime
 import os
+import signal
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -11,8 +14,11 @@ os.environ.setdefault("DEPTHAI_SEARCH_TIMEOUT", "500")  # ms: a missing device i
 dai = pytest.importorskip("depthai", reason="depthai (extra 'oakd') is not installed")
 
 from pallet6d.runtime.cameras import CameraError, CameraNotFound, open_source  # noqa: E402
-from pallet6d.runtime.cameras.oakd import OakDCamera, frame_from_oakd, list_oakd_ids, oakd_intrinsics  # noqa: E402
+from pallet6d.runtime.cameras.oakd import (OakDCamera, _dai, frame_from_oakd, list_oakd_ids,  # noqa: E402
+                                           oakd_intrinsics)
 from camera_fixtures import K_SMALL, box_frame  # noqa: E402
+
+_dai()  # this module imported depthai at collection: undo its crash handler for the rest of the suite too
 
 
 def _img(array: np.ndarray, kind, seq: int, t_s: float):
@@ -91,3 +97,11 @@ def test_device_streams():
     assert frame.rgb.shape == (360, 640, 3) and frame.depth.shape == (360, 640)
     np.testing.assert_array_equal(frame.K, K)
     assert (frame.depth > 0).mean() > 0.2
+
+
+def test_a_crash_after_importing_depthai_ends_the_process():
+    # depthai's crash handler allocates, so a crash inside free() deadlocked it: the process must die instead
+    code = "import os; from pallet6d.runtime.cameras.oakd import _dai; _dai(); os.abort()"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == -signal.SIGABRT
+    assert "Stack trace" not in out.stderr  # depthai's handler did not run

@@ -9,7 +9,9 @@ tested on a host-only pipeline without a device.
 from __future__ import annotations
 
 import datetime
+import faulthandler
 import logging
+import signal
 
 import cv2
 import numpy as np
@@ -27,12 +29,34 @@ log = logging.getLogger(__name__)
 OAKD_DEPTH_SCALE_M = 0.001  # StereoDepth.depth is always uint16 millimetres
 
 
+_FATAL_SIGNALS = ("SIGSEGV", "SIGABRT", "SIGBUS", "SIGILL", "SIGFPE")
+
+
 def _dai():
     try:
         import depthai as dai
     except ImportError as exc:
         raise CameraError(f"depthai is not usable ({exc}); install it with: pip install 'pallet6d[oakd]'") from None
+    _restore_fatal_signal_handlers()
     return dai
+
+
+def _restore_fatal_signal_handlers() -> None:
+    """Undo the crash handler depthai installs on import, so a crash ends the process.
+
+    Its handler writes a crash report, which allocates: after a heap corruption detected inside free() it
+    deadlocks on the allocator's lock (seen here with pyrealsense2 in the same process), so a daemon
+    would hang instead of dying and being restarted by its supervisor. faulthandler's own handler
+    (async-signal-safe) is reinstalled when it was on.
+    """
+    try:
+        for name in _FATAL_SIGNALS:
+            signal.signal(getattr(signal, name), signal.SIG_DFL)
+    except ValueError:  # not the main thread: leave the handlers as they are
+        log.debug("depthai imported outside the main thread; its crash handler stays")
+        return
+    if faulthandler.is_enabled():
+        faulthandler.enable()
 
 
 def list_oakd_ids() -> list[str]:
