@@ -40,6 +40,50 @@ def test_closest_picks_the_nearest_box_and_handles_empty():
         closest_on_boxes(np.zeros((1, 3)), np.zeros((2, 3)))
 
 
+def _closest_reference(pt, boxes):
+    """One point, box by box: the outside distance, or inside the depth below the nearest face."""
+    best = None
+    for lo, hi in boxes:
+        q = np.clip(pt, lo, hi)
+        d_out = float(np.linalg.norm(pt - q))
+        if d_out > 0:
+            cand = (d_out, q, (pt - q) / d_out)
+        else:
+            to_face = np.concatenate([pt - lo, hi - pt])
+            f = int(to_face.argmin())
+            q = pt.copy()
+            q[f % 3] = hi[f % 3] if f >= 3 else lo[f % 3]
+            n = np.zeros(3)
+            n[f % 3] = 1.0 if f >= 3 else -1.0
+            cand = (float(to_face[f]), q, n)
+        if best is None or cand[0] < best[0]:
+            best = cand
+    return best
+
+
+def test_closest_matches_a_box_by_box_reference_on_the_pallet():
+    rng = np.random.default_rng(3)
+    boxes = np.asarray(EPAL.boxes_m)
+    pts = rng.uniform([-0.7, -0.5, -0.12], [0.7, 0.5, 0.12], (400, 3))
+    pts[::4] = np.round(pts[::4], 2)             # on faces and edges exactly
+    q, n, d = closest_on_boxes(pts, boxes)
+    for i, pt in enumerate(pts):
+        d_ref, q_ref, n_ref = _closest_reference(pt, boxes)
+        assert d[i] == pytest.approx(d_ref, abs=1e-12)
+        np.testing.assert_allclose(q[i], q_ref, atol=1e-12)
+        np.testing.assert_allclose(n[i], n_ref, atol=1e-12)
+
+
+def test_closest_inside_one_box_but_nearer_to_another_outside():
+    boxes = np.array([[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], [[0.5, 0.0, 0.0], [2.0, 1.0, 1.0]]])   # overlapping
+    # 0.45 below the first box's nearest face but 0.05 outside the second: the second's face is nearer;
+    # 0.02 below the first box's top face and inside the second too: the top face
+    q, n, d = closest_on_boxes(np.array([[0.45, 0.5, 0.5], [0.7, 0.5, 0.98]]), boxes)
+    np.testing.assert_allclose(q, [[0.5, 0.5, 0.5], [0.7, 0.5, 1.0]], atol=1e-12)
+    np.testing.assert_allclose(n, [[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(d, [0.05, 0.02], atol=1e-12)
+
+
 def _scene(name, seed):
     frame = sim_generate.generate_frame(get_preset(name), seed=seed)
     gt = frame.pallet(frame.target_instance)
