@@ -133,6 +133,12 @@ def markdown(results: dict[str, dict], bundle: str, precision: str, frames: int)
         lines.append(f"| {preset} | {d['n_gt']} | {pct(d['recall'])} | {pct(d['precision'])} | "
                      f"{pct(d['add_acc']['0.05'])} | {pct(d['add_acc']['0.1'])} | {pct(d['add_sym_acc']['0.05'])} | "
                      f"{pct(d['add_sym_acc']['0.1'])} | {pct(p.get('0.05'))} | {pct(p.get('0.1'))} |")
+    lines += ["", "Where the failures are, by visible fraction of the pallet (share of that bin's pallets; symmetric ADD):",
+              "", "| dataset | visible | pallets | < 5 cm | 5-10 cm | >= 10 cm | missed |", "|---|---|---|---|---|---|---|"]
+    for preset, d in results.items():
+        for b in d.get("by_visibility", []):
+            lines.append(f"| {preset} | {b['from']:g}-{b['to']:g} | {b['n_gt']} | {pct(b['add_sym_lt_5cm'])} | "
+                         f"{pct(b['add_sym_5_10cm'])} | {pct(b['add_sym_ge_10cm'])} | {pct(b['missed'])} |")
     lines += ["", "![accuracy vs threshold](accuracy_vs_threshold.png)", "", "![histogram](add_histogram.png)", "",
               "![by distance](accuracy_by_distance.png)", ""]
     return "\n".join(lines)

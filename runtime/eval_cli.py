@@ -93,6 +93,9 @@ def format_table(summary: dict) -> str:
         to = "inf" if b["to_m"] is None else f"{b['to_m']:g}"
         acc = ", ".join(f"@{float(k) * 100:.0f}cm {v:.2f}" for k, v in b["add_sym_acc"].items())
         lines.append(f"  {b['from_m']:g}-{to} m: n={b['n_gt']:<4} ADD-sym {acc}")
+    for b in summary.get("by_visibility", []):
+        lines.append(f"  {b['from']:g}-{b['to']:g} visible: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, "
+                     f"5-10cm {b['add_sym_5_10cm']:.2f}, >=10cm {b['add_sym_ge_10cm']:.2f}, missed {b['missed']:.2f}")
     return "\n".join(lines)
 
 

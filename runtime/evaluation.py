@@ -19,10 +19,12 @@ import numpy as np
 from . import metrics
 
 __all__ = ["GroundTruth", "Estimate", "PalletRecord", "box_iou", "ground_truths_from_bop", "evaluate_frame",
-           "summarize", "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M"]
+           "summarize", "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M",
+           "DEFAULT_VISIBILITY_BINS"]
 
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.1)
 DEFAULT_DISTANCE_BINS_M = (0.0, 2.0, 3.0, 4.0, 5.0, 8.0, np.inf)
+DEFAULT_VISIBILITY_BINS = (0.1, 0.3, 0.6, 1.0)
 
 
 @dataclass(frozen=True)
@@ -133,9 +135,12 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
 
 def summarize(records: Iterable[PalletRecord], true_positives: int, false_positives: int,
               thresholds_m: Sequence[float] = DEFAULT_THRESHOLDS_M,
-              distance_bins_m: Sequence[float] = DEFAULT_DISTANCE_BINS_M) -> dict:
+              distance_bins_m: Sequence[float] = DEFAULT_DISTANCE_BINS_M,
+              visibility_bins: Sequence[float] = DEFAULT_VISIBILITY_BINS) -> dict:
     """Machine-readable summary: n_gt, precision, recall, add_acc / add_sym_acc / adds_acc per threshold
-    (keys are the thresholds in metres as strings, e.g. "0.05"), AUC to 10 cm, accuracy by distance."""
+    (keys are the thresholds in metres as strings, e.g. "0.05"), AUC to 10 cm, accuracy by distance, and by
+    visible fraction where the failures are: missed (no pose reported), symmetric ADD >= 10 cm, 5-10 cm, < 5 cm
+    (fractions of that bin's pallets; the last bin includes its upper edge)."""
     records = list(records)
     n_gt = len(records)
     n_pred = true_positives + false_positives
@@ -162,6 +167,20 @@ def summarize(records: Iterable[PalletRecord], true_positives: int, false_positi
             by_distance.append({"from_m": lo, "to_m": None if np.isinf(hi) else hi, "n_gt": int(sel.sum()),
                                 "add_sym_acc": {f"{t:g}": float(a) for t, a in zip(thresholds_m, acc)}})
     out["by_distance"] = by_distance
+    visib = np.array([r.visib_fract for r in records])
+    detected = np.array([r.detected for r in records], dtype=bool)
+    by_visibility = []
+    edges = list(visibility_bins)
+    for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = (visib >= lo) & ((visib < hi) | ((k == len(edges) - 2) & (visib <= hi)))
+        n = int(sel.sum())
+        if n:
+            e = add_sym[sel & detected]
+            by_visibility.append({"from": lo, "to": hi, "n_gt": n, "missed": float((sel & ~detected).sum() / n),
+                                  "add_sym_ge_10cm": float((e >= 0.1).sum() / n),
+                                  "add_sym_5_10cm": float(((e >= 0.05) & (e < 0.1)).sum() / n),
+                                  "add_sym_lt_5cm": float((e < 0.05).sum() / n)})
+    out["by_visibility"] = by_visibility
     return out
 
 

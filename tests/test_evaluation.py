@@ -51,6 +51,20 @@ def test_hidden_pallets_do_not_count_and_their_detections_are_ignored():
     assert s["n_gt"] == 0 and s["recall"] == 0.0 and s["by_distance"] == []
 
 
+def test_outcomes_by_visibility():
+    # boxes far apart so each estimate matches its own pallet; errors along x: 3 cm, 7 cm, 30 cm, missed
+    gts = [gt(0.0, [0, 0, 100, 50], visib=0.2), gt(0.0, [200, 0, 300, 50], visib=0.2),
+           gt(0.0, [400, 0, 500, 50], visib=1.0), gt(0.0, [600, 0, 700, 50], visib=0.7)]
+    ests = [est(0.03, [0, 0, 100, 50]), est(0.07, [200, 0, 300, 50]), est(0.3, [400, 0, 500, 50])]
+    records, tp, fp = evaluate_frame(0, ests, gts, PTS, SYMS)
+    bins = summarize(records, tp, fp)["by_visibility"]
+    assert [(b["from"], b["to"], b["n_gt"]) for b in bins] == [(0.1, 0.3, 2), (0.6, 1.0, 2)]   # empty bin left out
+    low, high = bins
+    assert (low["add_sym_lt_5cm"], low["add_sym_5_10cm"], low["add_sym_ge_10cm"], low["missed"]) == (0.5, 0.5, 0, 0)
+    assert (high["add_sym_lt_5cm"], high["add_sym_5_10cm"], high["add_sym_ge_10cm"], high["missed"]) == (0, 0, .5, .5)
+    assert summarize([], 0, 0)["by_visibility"] == []
+
+
 def test_one_estimate_matches_one_pallet():
     gts = [gt(0.0, [0, 0, 100, 50]), gt(0.0, [0, 0, 100, 52])]
     records, tp, fp = evaluate_frame(0, [est(0.0, [0, 0, 100, 50])], gts, PTS, SYMS)
