@@ -3,6 +3,10 @@
 On a BOP dataset (`--source bop:DIR`, e.g. from `pallet6d sim`) the ground truth is read too: each
 line then carries ADD and symmetry-aware ADD per ground-truth pallet (metres), and a summary line
 (`"summary": {...}`, the `pallet6d.runtime.evaluation` protocol) ends the run.
+
+A frame whose estimation fails gets an error line (`{"frame": N, "error": "..."}`) and the run goes on: one bad
+frame must not stop a forklift's perception. Only `--max-failures` failures in a row (a fault that persists) end
+the run, with exit status 1, as a camera that fails does: the supervisor then restarts it.
 """
 from __future__ import annotations
 
@@ -30,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: all)")
     parser.add_argument("--format", choices=("json", "text"), default="json",
                         help="json: one JSON line per frame (default); text: a readable report")
+    parser.add_argument("--max-failures", type=int, default=10,
+                        help="give up (exit 1) after this many frames in a row whose estimation failed (default 10)")
 
 
 def _bop_frames(root: str) -> Iterator[tuple[object, list | None]]:
@@ -75,12 +81,32 @@ def main(args: argparse.Namespace) -> int:
     frames = _bop_frames(args.source[4:]) if args.source.lower().startswith("bop:") else _source_frames(args.source)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-    records, tp, fp, n = [], 0, 0, 0
+    if args.max_failures < 1:
+        print(f"pallet6d run: --max-failures must be >= 1, got {args.max_failures}", file=sys.stderr)
+        return 2
+    records, tp, fp, n, failures = [], 0, 0, 0, 0
     try:
         for frame, gts in frames:
             if args.max_frames and n >= args.max_frames:
                 break
-            result = est.estimate(frame)
+            try:
+                result = est.estimate(frame)
+            except Exception as exc:  # noqa: BLE001 - any one frame's failure is reported, never fatal alone
+                failures += 1
+                n += 1
+                log.warning("frame %d: estimation failed (%d in a row)", frame.frame_number, failures, exc_info=True)
+                err = {"frame": int(frame.frame_number), "timestamp_s": frame.timestamp_s,
+                       "error": f"{type(exc).__name__}: {exc}"}
+                if gts is not None:  # its pallets count as missed
+                    err["gt"], _, _ = _evaluate(est, frame.frame_number, None, gts, records)
+                print(json.dumps(err) if args.format == "json" else f"frame {err['frame']}: error: {err['error']}",
+                      flush=True)
+                if failures >= args.max_failures:
+                    print(f"pallet6d run: {args.source}: {failures} frames in a row failed, giving up; last: "
+                          f"{err['error']}", file=sys.stderr)
+                    return 1
+                continue
+            failures = 0
             line = {"frame": int(frame.frame_number), "timestamp_s": frame.timestamp_s, **result.to_dict()}
             if gts is not None:
                 line["gt"], f_tp, f_fp = _evaluate(est, frame.frame_number, result, gts, records)
@@ -125,7 +151,8 @@ def _evaluate(est, frame_number: int, result, gts: list, records: list) -> tuple
     """Per-pallet ADD / ADD-sym of one frame (evaluation protocol); appends to `records`."""
     from .evaluation import Estimate, evaluate_frame
 
-    estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in result.poses]
+    poses = result.poses if result is not None else []   # None: the frame's estimation failed
+    estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in poses]
     recs, tp, fp = evaluate_frame(frame_number, estimates, gts, est.model_points_m, est.symmetries)
     records.extend(recs)
 

@@ -45,6 +45,41 @@ def test_run_with_a_missing_bundle_fails_clearly(tmp_path, capsys):
     assert rc == 2 and "cannot load bundle" in capsys.readouterr().err
 
 
+def _failing_estimate(monkeypatch, fail_frames):
+    from pallet6d.runtime.estimator import PalletEstimator
+
+    real = PalletEstimator.estimate
+
+    def estimate(self, rgb, *args, **kwargs):
+        if getattr(rgb, "frame_number", None) in fail_frames:
+            raise RuntimeError("onnxruntime: simulated failure")
+        return real(self, rgb, *args, **kwargs)
+
+    monkeypatch.setattr(PalletEstimator, "estimate", estimate)
+
+
+def test_one_failing_frame_is_reported_and_the_run_goes_on(bundle_dir, bop_dir, monkeypatch, capsys):
+    _failing_estimate(monkeypatch, {0})
+    rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
+               "--score-threshold", "0", "--min-fit", "0"])
+    assert rc == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert lines[0]["frame"] == 0 and "simulated failure" in lines[0]["error"] and "poses" not in lines[0]
+    assert all(not g["detected"] for g in lines[0]["gt"])          # the failed frame's pallets count as missed
+    assert lines[1]["frame"] == 1 and "poses" in lines[1]
+    assert lines[-1]["summary"]["n_gt"] == len(lines[0]["gt"]) + len(lines[1]["gt"])
+
+
+def test_failures_in_a_row_end_the_run(bundle_dir, bop_dir, monkeypatch, capsys):
+    _failing_estimate(monkeypatch, {0, 1})
+    rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
+               "--max-failures", "2"])
+    out = capsys.readouterr()
+    assert rc == 1 and "2 frames in a row failed" in out.err
+    assert [json.loads(x)["frame"] for x in out.out.splitlines()] == [0, 1]
+    assert main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--max-failures", "0"]) == 2
+
+
 def test_live_sources_go_through_latest_frame(monkeypatch):
     """A live camera is read by the newest-frame grabber: frames come out in order, the newest is never
     lost, and the camera is stopped at the end."""
