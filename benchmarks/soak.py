@@ -1,0 +1,123 @@
+"""Soak run: the estimator on a looping recording for a long while; resident memory and latency per window.
+
+A forklift runs the estimator for months: memory must level off after the warm-up and latency must not creep
+up. This reads a recording in a loop through the same camera layer as `pallet6d run` and, every `--window`
+frames, records the process's resident memory and the window's latency percentiles (never run by the tests).
+
+    python benchmarks/soak.py --bundle models/epal-default [--int8] [--source bop:DIR|replay:DIR] --minutes 10 \\
+        --out benchmarks/results/soak
+
+Without `--source` it makes a 30-frame `virtual-occluded` recording (seed 7, as `make run`) in a temporary folder.
+Writes soak.json and soak.md in `--out`.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+
+def rss_mb() -> float:
+    """Current resident set size of this process, MB (Linux /proc; elsewhere the peak from getrusage)."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+    except OSError:
+        import resource
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def default_source(root: Path) -> str:
+    """Generate the default recording in a subprocess, so the generator's imports do not count in the RSS."""
+    cmd = [sys.executable, "-m", "pallet6d.runtime.cli", "sim", "--preset", "virtual-occluded", "--frames", "30",
+           "--seed", "7", "--out", str(root)]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"soak: could not generate the default recording:\n{done.stderr[-2000:]}")
+    return f"bop:{root}"
+
+
+def soak(bundle: str, precision: str, threads: int, source: str, minutes: float, window: int) -> dict:
+    from pallet6d.runtime.cameras import open_source
+    from pallet6d.runtime.estimator import PalletEstimator
+
+    rss_start = rss_mb()
+    est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision)
+    windows, ms, poses, frames = [], [], 0, 0
+    t_start = time.perf_counter()
+    with open_source(source, loop=True) as cam:
+        for frame in cam:
+            result = est.estimate(frame)
+            ms.append(result.timings_ms["total"])
+            poses += len(result.poses)
+            frames += 1
+            if frames % window == 0:
+                elapsed = time.perf_counter() - t_start
+                windows.append({"frames": frames, "minutes": round(elapsed / 60, 2), "rss_mb": round(rss_mb(), 1),
+                                "p50_ms": round(float(np.percentile(ms, 50)), 1),
+                                "p95_ms": round(float(np.percentile(ms, 95)), 1), "poses_per_frame": poses / len(ms)})
+                print(json.dumps(windows[-1]), flush=True)
+                ms, poses = [], 0
+                if elapsed >= minutes * 60:
+                    break
+    if len(windows) < 2:
+        raise SystemExit("soak: fewer than two windows; run longer or use a smaller --window")
+    after_warmup = windows[1:]
+    x = np.array([w["frames"] for w in after_warmup], float)
+    y = np.array([w["rss_mb"] for w in after_warmup], float)
+    slope = float(np.polyfit(x, y, 1)[0]) * 1000 if len(x) >= 2 else 0.0
+    return {"bundle": bundle, "precision": precision, "threads": threads, "source": source, "frames": frames,
+            "rss_before_mb": round(rss_start, 1), "rss_growth_after_first_window_mb": round(y[-1] - y[0], 1),
+            "rss_slope_mb_per_1000_frames": round(slope, 3), "windows": windows}
+
+
+def markdown(doc: dict, command: str) -> str:
+    w = doc["windows"]
+    lines = ["# Soak run", "", f"`{command}` on {doc['created']}, {doc['machine']}.", "",
+             f"{doc['frames']} frames of `{doc['source']}` in a loop, {doc['precision']}, onnxruntime threads={doc['threads']}. "
+             f"RSS before loading the bundle {doc['rss_before_mb']} MB; from the end of the first window to the end "
+             f"{doc['rss_growth_after_first_window_mb']:+} MB (fitted slope {doc['rss_slope_mb_per_1000_frames']:+} "
+             "MB per 1000 frames).", "",
+             "| frames | minutes | RSS (MB) | p50 ms | p95 ms | poses / frame |", "|---|---|---|---|---|---|"]
+    lines += [f"| {x['frames']} | {x['minutes']} | {x['rss_mb']} | {x['p50_ms']} | {x['p95_ms']} | "
+              f"{x['poses_per_frame']:.2f} |" for x in w]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--bundle", default="models/epal-default")
+    ap.add_argument("--int8", action="store_true")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--source", help="bop:DIR or replay:DIR, played in a loop (default: a generated recording)")
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--window", type=int, default=200, help="frames per reported window")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/soak"))
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        source = args.source or default_source(Path(tmp) / "recording")
+        doc = soak(args.bundle, "int8" if args.int8 else "fp32", args.threads, source, args.minutes, args.window)
+    if not args.source:
+        doc["source"] = "generated: pallet6d sim --preset virtual-occluded --frames 30 --seed 7"
+    doc["created"] = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+    doc["machine"] = f"{os.cpu_count()} CPUs, {platform.machine()}, Python {platform.python_version()}"
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "soak.json").write_text(json.dumps(doc, indent=1) + "\n")
+    command = " ".join(["python benchmarks/soak.py", *sys.argv[1:]])
+    (args.out / "soak.md").write_text(markdown(doc, command))
+    print(f"RSS {doc['rss_growth_after_first_window_mb']:+} MB after the first window "
+          f"({doc['rss_slope_mb_per_1000_frames']:+} MB / 1000 frames); wrote {args.out}/soak.md")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
