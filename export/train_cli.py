@@ -84,6 +84,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device (default cpu)")
+    parser.add_argument("--amp", action="store_true",
+                        help="bfloat16 autocast of the forward passes: about 1.8x faster on CPUs with AVX512-BF16 or "
+                             "AMX, slower on CPUs without (weights, validation and export stay float32)")
     parser.add_argument("--max-minutes", type=float, default=0.0, help="stop cleanly after M minutes (0: no limit)")
     parser.add_argument("--max-frames", type=int, help="use at most N frames of each dataset")
     parser.add_argument("--val-fraction", type=float, default=0.1, help="frames held out for validation (0.1)")
@@ -148,7 +151,8 @@ def main(args: argparse.Namespace) -> int:
     try:
         settings = LoopSettings(epochs=args.epochs or recipe["epochs"], batch=args.batch or recipe["batch"],
                                 lr=args.lr or recipe["lr"], seed=args.seed, max_minutes=args.max_minutes,
-                                warmup_epochs=1.0 if args.stage == "detector" else 0.0, device=args.device)
+                                warmup_epochs=1.0 if args.stage == "detector" else 0.0, device=args.device,
+                                amp=args.amp)
         cfg = get_config(args.config)
         common = dict(resume=args.resume, cache_dir=args.cache_dir, val_fraction=args.val_fraction,
                       max_frames=args.max_frames, command=command, progress=not args.no_progress)

@@ -25,7 +25,7 @@ from .detector import build_detector
 from .losses import DetectorLoss
 from .train_data import AugmentConfig, DetectorSamples, augment_rgb, build_detector_samples, flip_horizontal, \
     load_or_build
-from .train_loop import LoopSettings, train_epochs
+from .train_loop import LoopSettings, autocast, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
 
@@ -69,8 +69,9 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
 
 
 class DetectorTrainer:
-    def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu") -> None:
-        self.cfg, self.data, self.aug, self.device = cfg, data, aug, torch.device(device)
+    def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu",
+                 amp: bool = False) -> None:
+        self.cfg, self.data, self.aug, self.device, self.amp = cfg, data, aug, torch.device(device), amp
         self.detector = build_detector(cfg.detector).to(self.device)
         self.loss = DetectorLoss(self.detector)
 
@@ -97,7 +98,9 @@ class DetectorTrainer:
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
         x, targets = self.batch(self.data.train_idx[idx], rng)
-        loss, parts = self.loss(self.detector.forward_raw(x), targets)
+        with autocast(self.device.type, self.amp):
+            raw = self.detector.forward_raw(x)
+        loss, parts = self.loss([r.float() for r in raw], targets)
         return loss, {k: float(v) for k, v in parts.items() if k != "fg"}
 
     def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
@@ -137,7 +140,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     torch.manual_seed(settings.seed)
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
                             val_fraction, max_frames, progress)
-    trainer = DetectorTrainer(cfg, dd, aug, settings.device)
+    trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases
     decay = [p for n, p in trainer.detector.named_parameters() if p.ndim > 1]
     no_decay = [p for n, p in trainer.detector.named_parameters() if p.ndim <= 1]
@@ -147,6 +150,6 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,
                   "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx))},
-                  "device": settings.device, "torch": str(torch.__version__)}
+                  "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}
     return train_epochs(run_dir, "detector", cfg.name, trainer.nets, optimizer, settings, len(dd.train_idx),
                         trainer.step, trainer.validate, provenance, resume=resume, progress=progress)

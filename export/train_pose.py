@@ -24,7 +24,7 @@ from .fusion import build_fusion
 from .losses import pose_loss
 from .pose import build_pose
 from .train_data import AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for
-from .train_loop import LoopSettings, train_epochs
+from .train_loop import LoopSettings, autocast, train_epochs
 
 __all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "train_pose"]
 
@@ -103,8 +103,9 @@ def gather_points(features: torch.Tensor, choose: torch.Tensor) -> torch.Tensor:
 class PoseTrainer:
     """Fusion + pose networks, and the loss/metric on a batch of `PoseData` samples."""
 
-    def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015) -> None:
-        self.cfg, self.data, self.device, self.w = cfg, data, torch.device(device), w
+    def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015,
+                 amp: bool = False) -> None:
+        self.cfg, self.data, self.device, self.w, self.amp = cfg, data, torch.device(device), w, amp
         self.fusion = build_fusion(cfg.fusion).to(self.device)
         self.pose = build_pose(cfg.pose, cfg.fusion.feature_dim).to(self.device)
         self.model_points = {k: torch.from_numpy(v).to(self.device) for k, v in data.model_points.items()}
@@ -114,14 +115,17 @@ class PoseTrainer:
     def nets(self) -> dict[str, torch.nn.Module]:
         return {"fusion": self.fusion, "pose": self.pose}
 
-    def forward_loss(self, idx: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """:return: loss (scalar), d (B, N) per-point symmetric ADD (metres), conf (B, N)."""
+    def forward_loss(self, idx: np.ndarray, amp: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:param amp: networks under bfloat16 autocast (the loss stays float32).
+        :return: loss (scalar), d (B, N) per-point symmetric ADD (metres), conf (B, N)."""
         s = self.data.samples
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
         rgb, depth, pts, choose = t(s.rgb_crops[idx]), t(s.depth_crops[idx]), t(s.points[idx]), t(s.choose[idx])
         T_gt, obj = t(s.T_gt[idx]), s.obj_id[idx]
-        feats = self.fusion(rgb, depth)
-        quat, trans, conf = self.pose(pts, gather_points(feats, choose))
+        with autocast(self.device.type, amp):
+            feats = self.fusion(rgb, depth)
+            out = self.pose(pts, gather_points(feats, choose))
+        quat, trans, conf = (o.float() for o in out)
         # one loss call per pallet model (symmetry sets may differ between models), weighted by count
         loss = quat.new_zeros(())
         d = quat.new_zeros(conf.shape)
@@ -134,7 +138,7 @@ class PoseTrainer:
         return loss, d, conf
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
-        loss, d, _ = self.forward_loss(idx)
+        loss, d, _ = self.forward_loss(idx, amp=self.amp)
         return loss, {"dis": float(d.detach().mean())}
 
     def validate(self, batch: int = 16) -> dict:
@@ -165,14 +169,14 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     torch.manual_seed(settings.seed)
     pd = load_pose_data(cfg, data, variants, settings.seed, aug, cache_dir if cache_dir is not None else run_dir / "cache",
                         val_fraction, max_frames, progress)
-    trainer = PoseTrainer(cfg, pd, settings.device)
+    trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp)
     params = list(trainer.fusion.parameters()) + list(trainer.pose.parameters())
     optimizer = torch.optim.Adam(params, lr=settings.lr)
     provenance = {"stage": "pose", "config": cfg.name, "seed": settings.seed, "command": command,
                   "data": pd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "variants": variants, "augment": aug.to_dict(), "val_fraction": val_fraction,
                   "samples": {"train": int(len(pd.train_idx)), "val": int(len(pd.val_idx))},
-                  "device": settings.device, "torch": str(torch.__version__)}
+                  "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}
     return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
                         lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
                         resume=resume, progress=progress)

@@ -79,6 +79,30 @@ def test_detector_training_reduces_loss_on_a_tiny_batch(sim_bop_dataset, tmp_pat
     assert last < 0.7 * first, (first, last)
 
 
+def test_bf16_autocast_runs_the_networks_in_bfloat16_and_still_learns(pose_data, sim_bop_dataset, tmp_path):
+    torch.manual_seed(0)
+    trainer = PoseTrainer(CFG, pose_data, amp=True)
+    idx = pose_data.train_idx[:4]
+    for net in trainer.nets.values():
+        net.eval()
+    with torch.no_grad():
+        loss32, d32, _ = trainer.forward_loss(idx)
+        loss16, d16, _ = trainer.forward_loss(idx, amp=True)
+    assert loss16.dtype == torch.float32 and d16.dtype == torch.float32      # the loss is float32 either way
+    assert not torch.equal(d16, d32)                                         # bfloat16 did run
+    assert torch.allclose(d16, d32, rtol=0.05, atol=0.01)
+    first, last = _overfit(trainer, lambda: trainer.step(idx, np.random.default_rng(0))[0], 30, 2e-3)
+    assert last < 0.7 * first, (first, last)
+    assert all(p.dtype == torch.float32 for net in trainer.nets.values() for p in net.parameters())
+
+    torch.manual_seed(0)
+    dd = load_detector_data(CFG, [sim_bop_dataset], seed=0, cache_dir=tmp_path, progress=False)
+    det = DetectorTrainer(CFG, dd, NO_AUGMENT, amp=True)
+    first, last = _overfit(det, lambda: det.step(np.arange(min(2, len(dd.train_idx))), np.random.default_rng(0))[0],
+                           25, 3e-3)
+    assert last < 0.7 * first, (first, last)
+
+
 def test_flip_keeps_boxes_on_the_object():
     img = np.zeros((20, 40, 3), np.uint8)
     img[5:10, 2:8] = 255
