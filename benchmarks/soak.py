@@ -69,24 +69,28 @@ def soak(bundle: str, precision: str, threads: int, source: str, minutes: float,
                 ms, poses = [], 0
                 if elapsed >= minutes * 60:
                     break
-    if len(windows) < 2:
-        raise SystemExit("soak: fewer than two windows; run longer or use a smaller --window")
-    after_warmup = windows[1:]
-    x = np.array([w["frames"] for w in after_warmup], float)
-    y = np.array([w["rss_mb"] for w in after_warmup], float)
-    slope = float(np.polyfit(x, y, 1)[0]) * 1000 if len(x) >= 2 else 0.0
+    if len(windows) < 3:
+        raise SystemExit("soak: fewer than three windows; run longer or use a smaller --window")
     return {"bundle": bundle, "precision": precision, "threads": threads, "source": source, "frames": frames,
-            "rss_before_mb": round(rss_start, 1), "rss_growth_after_first_window_mb": round(y[-1] - y[0], 1),
-            "rss_slope_mb_per_1000_frames": round(slope, 3), "windows": windows}
+            "rss_before_mb": round(rss_start, 1), **rss_summary(windows), "windows": windows}
+
+
+def rss_summary(windows: list[dict]) -> dict:
+    """Memory growth after the first (warm-up) window: the peak of the second half minus the peak of the first
+    (RSS rises and falls with the frames' content, so single readings or a fitted slope mislead), and the range."""
+    rss = [w["rss_mb"] for w in windows[1:]]
+    half = len(rss) // 2
+    return {"rss_min_mb": min(rss), "rss_max_mb": max(rss),
+            "rss_peak_growth_mb": round(max(rss[half:]) - max(rss[:half]), 1)}
 
 
 def markdown(doc: dict, command: str) -> str:
     w = doc["windows"]
     lines = ["# Soak run", "", f"`{command}` on {doc['created']}, {doc['machine']}.", "",
              f"{doc['frames']} frames of `{doc['source']}` in a loop, {doc['precision']}, onnxruntime threads={doc['threads']}. "
-             f"RSS before loading the bundle {doc['rss_before_mb']} MB; from the end of the first window to the end "
-             f"{doc['rss_growth_after_first_window_mb']:+} MB (fitted slope {doc['rss_slope_mb_per_1000_frames']:+} "
-             "MB per 1000 frames).", "",
+             f"RSS before loading the bundle {doc['rss_before_mb']} MB; after the first window it stays within "
+             f"{doc['rss_min_mb']}-{doc['rss_max_mb']} MB, and the peak of the second half minus that of the first "
+             f"is {doc['rss_peak_growth_mb']:+} MB.", "",
              "| frames | minutes | RSS (MB) | p50 ms | p95 ms | poses / frame |", "|---|---|---|---|---|---|"]
     lines += [f"| {x['frames']} | {x['minutes']} | {x['rss_mb']} | {x['p50_ms']} | {x['p95_ms']} | "
               f"{x['poses_per_frame']:.2f} |" for x in w]
@@ -114,8 +118,8 @@ def main(argv=None) -> int:
     (args.out / "soak.json").write_text(json.dumps(doc, indent=1) + "\n")
     command = " ".join(["python benchmarks/soak.py", *sys.argv[1:]])
     (args.out / "soak.md").write_text(markdown(doc, command))
-    print(f"RSS {doc['rss_growth_after_first_window_mb']:+} MB after the first window "
-          f"({doc['rss_slope_mb_per_1000_frames']:+} MB / 1000 frames); wrote {args.out}/soak.md")
+    print(f"RSS {doc['rss_min_mb']}-{doc['rss_max_mb']} MB after the first window, peak growth "
+          f"{doc['rss_peak_growth_mb']:+} MB; wrote {args.out}/soak.md")
     return 0
 
 
