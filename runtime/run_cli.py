@@ -75,15 +75,15 @@ def _source_frames(spec: str) -> Iterator[tuple[object, list | None]]:
 def main(args: argparse.Namespace) -> int:
     from .cameras import CameraError
 
+    if args.max_failures < 1:   # before loading the bundle: a wrong option fails at once
+        print(f"pallet6d run: --max-failures must be >= 1, got {args.max_failures}", file=sys.stderr)
+        return 2
     est = load_estimator(args, "run")
     if est is None:
         return 2
     frames = _bop_frames(args.source[4:]) if args.source.lower().startswith("bop:") else _source_frames(args.source)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
-    if args.max_failures < 1:
-        print(f"pallet6d run: --max-failures must be >= 1, got {args.max_failures}", file=sys.stderr)
-        return 2
     records, tp, fp, n, failures = [], 0, 0, 0, 0
     try:
         for frame, gts in frames:
