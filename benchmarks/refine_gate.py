@@ -45,7 +45,8 @@ def pallet_rows(bundle: str, data: Path, precision: str, threads: int) -> np.nda
     """(n, 5): ADD-sym of the network's pose, of ICP's pose (m), their fit scores, ICP's RMS (m; nan: no result)."""
     plain = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, refine=False, min_fit=0.0)
     icp = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
-                                      refine_max_rms_m=1e9, refine_margin=-1.0)  # always ICP's pose
+                                      refine_max_rms_m=1e9, refine_margin=-1.0,
+                                      refine_starts=0)  # always ICP's pose
     pts, sym = plain.model_points_m, plain.symmetries
     rms_log = _RmsLog()
     estimator_module.refine_pose = rms_log

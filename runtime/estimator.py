@@ -33,8 +33,8 @@ from .fit import fit_score
 from .geometry import clamp_box
 from .inputs import check_rgbd
 from .pose_inputs import PoseBatch, gather_features, prepare_pose_inputs
-from .refine import box_points, refine_pose
-from .results import FrameResult, PalletPose, Rejection
+from .refine import MAX_STARTS, best_landing, box_points, refine_pose
+from .results import FitScore, FrameResult, PalletPose, Rejection
 from .selection import select_poses
 from .sessions import OnnxModel
 
@@ -71,6 +71,17 @@ class EstimatorOptions:
         match it; -1: ICP's pose whenever its RMS allows).
     :ivar refine_points: at most this many depth points of the box go into the refinement.
     :ivar refine_iterations: refinement steps (0 disables it too).
+    :ivar refine_starts: then also run ICP from this many poses around the pose so far (yaw +-15, +-30
+        degrees, +-10, +-20 cm along the pallet's length: `refine.start_offsets`); a landing that ICP trusts
+        (`refine_start_max_rms_m`) and that explains the box's depth better (fit score at
+        `refine_select_tol_m`) replaces it. It pulls the network's larger errors back into ICP's basin.
+        0 turns it off. Measured on the validation sets: `benchmarks/results/refine-starts.md`.
+    :ivar refine_start_points: depth points each extra start uses (an even subset of `refine_points`).
+    :ivar refine_select_tol_m: tolerance of the fit score that compares landings, metres (tighter than
+        `fit_tol_m`: on depth clean enough to trust ICP, 1.5 cm separates the right landing).
+    :ivar refine_start_max_rms_m: a landing counts only when its ICP RMS is below this, metres. Stricter
+        than `refine_max_rms_m`: on stereo-noisy depth some landings reach 3-4 mm by chance and then win
+        wrongly; on clean depth most landings that help are below 3 mm.
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     """
@@ -88,6 +99,10 @@ class EstimatorOptions:
     refine_margin: float = 0.0
     refine_points: int = 600
     refine_iterations: int = 20
+    refine_starts: int = 8
+    refine_start_points: int = 300
+    refine_select_tol_m: float = 0.015
+    refine_start_max_rms_m: float = 0.003
     nonfinite_depth: str = "raise"
     seed: int = 0
 
@@ -113,6 +128,14 @@ class EstimatorOptions:
         if int(self.refine_points) < 10 or int(self.refine_iterations) < 0:
             raise ValueError(f"refine_points must be >= 10 and refine_iterations >= 0, got {self.refine_points}, "
                              f"{self.refine_iterations}")
+        if not 0 <= int(self.refine_starts) <= MAX_STARTS:
+            raise ValueError(f"refine_starts must be in [0, {MAX_STARTS}], got {self.refine_starts}")
+        if int(self.refine_start_points) < 10:
+            raise ValueError(f"refine_start_points must be >= 10, got {self.refine_start_points}")
+        if not self.refine_select_tol_m > 0:
+            raise ValueError(f"refine_select_tol_m must be positive, got {self.refine_select_tol_m}")
+        if not self.refine_start_max_rms_m > 0:
+            raise ValueError(f"refine_start_max_rms_m must be positive, got {self.refine_start_max_rms_m}")
 
 
 class PalletEstimator:
@@ -314,23 +337,19 @@ class PalletEstimator:
             timings["selection"] = _ms(t)
             t = time.perf_counter()
             T_net = T.copy()
-            icp_trusted = np.zeros(len(go), dtype=bool)
+            fits: list[FitScore | None] = [None] * len(go)
             if self.refines:
                 for k, i in enumerate(go):
-                    obs = box_points(depth_m, K, det.boxes_xyxy[i], o.refine_points, self.spec.depth_range_m)
-                    res = refine_pose(T[k], obs, self.model_boxes_m, iterations=o.refine_iterations)
-                    # noisy depth pulls ICP off: its residual tells whether the depth is clean enough to trust it
-                    if np.isfinite(res.rms_m) and res.rms_m < o.refine_max_rms_m:
-                        T[k], icp_trusted[k] = res.T_cam_pallet, True
+                    box_obs = box_points(depth_m, K, det.boxes_xyxy[i], o.refine_points, self.spec.depth_range_m)
+                    obs = sub.points[k].astype(np.float64) + sub.centres[k]
+                    T[k], fits[k] = self._refine(T_net[k], obs, box_obs, depth_m, K)
             timings["refine"] = _ms(t)
             t = time.perf_counter()
             for k, i in enumerate(go):
-                obs = sub.points[k].astype(np.float64) + sub.centres[k]
-                fit = fit_score(T[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
-                if icp_trusted[k]:  # and it must explain the depth at least as well as the network's pose
-                    fit_net = fit_score(T_net[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
-                    if fit.score < fit_net.score + o.refine_margin:
-                        T[k], fit = T_net[k], fit_net
+                fit = fits[k]
+                if fit is None:
+                    obs = sub.points[k].astype(np.float64) + sub.centres[k]
+                    fit = fit_score(T[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
                 pose = PalletPose(T[k], conf[k], det.scores[i], det.boxes_xyxy[i], int(sub.n_valid[k]), fit,
                                   self._class_name(int(det.class_ids[i])))
                 if conf[k] < o.min_confidence:
@@ -349,6 +368,33 @@ class PalletEstimator:
         return FrameResult(poses=[p for _, p in sorted(accepted, key=lambda x: x[0])],
                            rejected=[r for _, r in sorted(rejected, key=lambda x: x[0])],
                            timings_ms=timings, image_hw=hw)
+
+    def _refine(self, T_net: np.ndarray, obs_cam: np.ndarray, box_obs_cam: np.ndarray, depth_m: np.ndarray,
+                K: np.ndarray) -> tuple[np.ndarray, FitScore | None]:
+        """One detection's pose after refinement, and its fit score when already computed (else None).
+
+        :param T_net: (4, 4) the network's pose. :param obs_cam: (n, 3) the sampled points of the detection
+        (the fit score's), camera frame. :param box_obs_cam: (m, 3) the box's depth points for ICP.
+        """
+        o = self.options
+        T, fit = T_net, None
+        res = refine_pose(T_net, box_obs_cam, self.model_boxes_m, iterations=o.refine_iterations)
+        # noisy depth pulls ICP off: its residual tells whether the depth is clean enough to trust it, and
+        # then it must explain the depth at least as well as the network's pose
+        if np.isfinite(res.rms_m) and res.rms_m < o.refine_max_rms_m:
+            fit_icp = fit_score(res.T_cam_pallet, obs_cam, self.model_points_m, depth_m, K, o.fit_tol_m)
+            fit_net = fit_score(T_net, obs_cam, self.model_points_m, depth_m, K, o.fit_tol_m)
+            T, fit = (res.T_cam_pallet, fit_icp) if fit_icp.score >= fit_net.score + o.refine_margin else (T_net, fit_net)
+        if o.refine_starts > 0:
+            # the network's larger errors lie outside ICP's basin: ICP from starts around the pose, and a
+            # trusted landing that explains the depth better at a tight tolerance replaces it
+            T_best, j = best_landing(T, box_obs_cam, self.model_boxes_m, o.refine_starts, o.refine_start_points,
+                                     lambda T_: fit_score(T_, box_obs_cam, self.model_points_m, depth_m, K,
+                                                          o.refine_select_tol_m, self.model_boxes_m).score,
+                                     o.refine_start_max_rms_m, o.refine_iterations)
+            if j >= 0:
+                T, fit = T_best, None
+        return T, fit
 
 
 def _ms(t: float) -> float:

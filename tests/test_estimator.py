@@ -10,6 +10,7 @@ import pytest
 from pallet6d.runtime.bundle import BundleError
 from pallet6d.runtime.cameras import RGBDFrame
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
+from pallet6d.runtime.metrics import add_sym
 from pallet6d.runtime.results import FrameResult, PalletPose
 from pallet6d.sim.generate import generate_frame
 from pallet6d.sim.presets import get_preset
@@ -155,6 +156,13 @@ def test_bad_options_and_precision(bundle_dir):
         EstimatorOptions(refine_margin=-1.1)
     with pytest.raises(ValueError, match="refine_max_rms_m"):
         EstimatorOptions(refine_max_rms_m=0.0)
+    for bad in ({"refine_starts": -1}, {"refine_starts": 9}):
+        with pytest.raises(ValueError, match="refine_starts"):
+            EstimatorOptions(**bad)
+    with pytest.raises(ValueError, match="refine_select_tol_m"):
+        EstimatorOptions(refine_select_tol_m=0.0)
+    with pytest.raises(ValueError, match="refine_start_max_rms_m"):
+        EstimatorOptions(refine_start_max_rms_m=-0.001)
     with pytest.raises(ValueError, match="precision"):
         PalletEstimator.from_bundle(bundle_dir, precision="fp16")
 
@@ -192,7 +200,7 @@ def test_runtime_prediction_never_imports_torch(bundle_dir):
 def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(bundle_dir, frame, boxes, margin,
                                                                                max_rms_m):
     est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine_margin=margin,
-                                      refine_max_rms_m=max_rms_m)
+                                      refine_max_rms_m=max_rms_m, refine_starts=0)
     plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine=False)
     assert est.refines and not plain.refines
     r, r0 = (e.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes) for e in (est, plain))
@@ -208,6 +216,38 @@ def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(b
         assert kept == 0
     elif margin == 0.0:
         assert kept >= 1   # on this rendered frame ICP does improve some network poses
+
+
+def test_extra_starts_bring_back_a_network_pose_turned_out_of_icps_basin(bundle_dir, frame, boxes, monkeypatch):
+    from pallet6d.runtime import estimator as estimator_module
+    from pallet6d.runtime.geometry import make_T
+    from pallet6d.sim.pallets import get_pallet_model
+
+    # the network says: each pallet's true pose turned 20 degrees about its vertical axis
+    T_gt = np.stack([p.T_cam_pallet for p in sorted(frame.pallets, key=lambda p: -p.visib_fract)[:len(boxes)]])
+    a = np.deg2rad(20.0)
+    turn = make_T(np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]), np.zeros(3))
+
+    def network_pose(quat, trans, conf, points, centres, order):
+        return T_gt @ turn, np.ones(len(T_gt)), np.zeros(len(T_gt), np.int64)
+
+    monkeypatch.setattr(estimator_module, "select_poses", network_pose)
+    pallet = get_pallet_model("epal")
+    pts = pallet.surface_points(500, seed=0)
+
+    def errors(est):
+        r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+        assert len(r.poses) == len(boxes)
+        return np.array([add_sym(p.T_cam_pallet[:3, :3], p.T_cam_pallet[:3, 3], T[:3, :3], T[:3, 3], pts,
+                                 pallet.symmetries) for p, T in zip(r.poses, T_gt)])
+
+    kw = dict(threads=1, score_threshold=0.0, min_fit=0.0)
+    e_off = errors(PalletEstimator.from_bundle(bundle_dir, refine=False, **kw))
+    e_icp = errors(PalletEstimator.from_bundle(bundle_dir, refine_starts=0, **kw))
+    e_starts = errors(PalletEstimator.from_bundle(bundle_dir, **kw))
+    assert np.all(e_off > 0.1)
+    assert np.sum(e_icp < 0.05) <= 1                 # ICP alone keeps most where the network put them
+    assert np.sum(e_starts < 0.01) >= len(boxes) - 1, e_starts
 
 
 def test_noisy_depth_keeps_the_network_pose(bundle_dir, frame, boxes):

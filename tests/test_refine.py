@@ -4,7 +4,9 @@ import pytest
 
 from pallet6d.runtime.geometry import make_T, quat_to_rot
 from pallet6d.runtime.metrics import add_sym
-from pallet6d.runtime.refine import box_points, closest_on_boxes, refine_pose
+from pallet6d.runtime.fit import fit_score
+from pallet6d.runtime.refine import (MAX_STARTS, best_landing, box_points, closest_on_boxes, refine_pose,
+                                     refine_poses, start_offsets)
 
 sim_generate = pytest.importorskip("pallet6d.sim.generate")
 from pallet6d.sim.pallets import get_pallet_model  # noqa: E402
@@ -143,6 +145,62 @@ def test_refine_without_points_returns_the_input_unchanged():
 def test_refine_bad_input(T, kwargs, match):
     with pytest.raises(ValueError, match=match):
         refine_pose(T, np.zeros((10, 3)), EPAL.boxes_m, **kwargs)
+
+
+def test_refine_poses_runs_each_start_as_refine_pose_alone():
+    T_gt, pts = _scene("virtual-occluded", 2)
+    starts = [T_gt @ P for P in _perturbations(5, seed=4)]
+    starts.append(make_T(np.eye(3), np.array([0.0, 0.0, 50.0])))    # no points near it: stops at once
+    batched = refine_poses(np.stack(starts), pts, EPAL.boxes_m)
+    assert len(batched) == len(starts)
+    for T0, b in zip(starts, batched):
+        a = refine_pose(T0, pts, EPAL.boxes_m)
+        assert (a.iterations, a.n_inliers, a.converged) == (b.iterations, b.n_inliers, b.converged)
+        np.testing.assert_allclose(b.T_cam_pallet, a.T_cam_pallet, atol=1e-9)
+    assert batched[-1].iterations == 0 and batched[0].iterations > 0
+    np.testing.assert_array_equal(batched[-1].T_cam_pallet, starts[-1])
+    with pytest.raises(ValueError, match="finite \\(4, 4\\)"):
+        refine_poses(np.eye(4), pts, EPAL.boxes_m)
+
+
+def test_start_offsets_are_yaw_turns_and_slides_along_the_length():
+    offs = start_offsets(MAX_STARTS)
+    assert offs.shape == (MAX_STARTS, 4, 4) and start_offsets(0).shape == (0, 4, 4)
+    for S in offs:
+        np.testing.assert_allclose(S[:3, :3] @ S[:3, :3].T, np.eye(3), atol=1e-12)
+        assert S[2, 2] == 1.0 and S[1, 3] == 0.0 and S[2, 3] == 0.0     # about z, along x only
+        assert (S[0, 3] != 0.0) != (abs(S[0, 1]) > 0.1)                   # a turn or a slide, never both
+    for n in (-1, MAX_STARTS + 1):
+        with pytest.raises(ValueError, match="number of starts"):
+            start_offsets(n)
+
+
+def _depth_score(name, seed):
+    frame = sim_generate.generate_frame(get_preset(name), seed=seed)
+    _, pts = _scene(name, seed)
+    return lambda T: fit_score(T, pts, MODEL_PTS, frame.depth_m, frame.K, 0.015, EPAL.boxes_m).score
+
+
+@pytest.mark.parametrize("yaw_deg, shift_m", [(18.0, 0.0), (-18.0, 0.14), (25.0, -0.2), (0.0, 0.14), (0.0, 0.22)])
+def test_best_landing_recovers_turns_and_slides_that_icp_alone_keeps(yaw_deg, shift_m):
+    T_gt, pts = _scene("virtual-clean", 0)
+    a = np.deg2rad(yaw_deg) / 2
+    T0 = T_gt @ make_T(quat_to_rot(np.array([np.cos(a), 0, 0, np.sin(a)])), np.array([shift_m, 0.0, 0.0]))
+    T_icp = refine_pose(T0, pts, EPAL.boxes_m).T_cam_pallet
+    assert _err(T_icp, T_gt) > 0.09                               # out of ICP's basin: 9-20 cm off
+    T, k = best_landing(T_icp, pts, EPAL.boxes_m, MAX_STARTS, 300, _depth_score("virtual-clean", 0), 0.004)
+    assert k >= 0 and _err(T, T_gt) < 0.01
+
+
+def test_best_landing_keeps_a_right_pose_and_handles_no_starts():
+    T_gt, pts = _scene("virtual-occluded", 2)
+    score = _depth_score("virtual-occluded", 2)
+    T, k = best_landing(T_gt, pts, EPAL.boxes_m, MAX_STARTS, 300, score, 0.004)
+    assert _err(T, T_gt) < 0.005
+    for n, p in ((0, pts), (MAX_STARTS, np.zeros((0, 3)))):
+        T, k = best_landing(T_gt, p, EPAL.boxes_m, n, 300, score, 0.004)
+        assert k == -1
+        np.testing.assert_array_equal(T, T_gt)
 
 
 def test_box_points_thin_evenly_and_handle_empty_boxes():
