@@ -7,6 +7,7 @@ Pipeline (paper section 3, batched over the pallets of a frame):
     -> fusion.onnx (B crops at once) -> gather features at the sampled pixels
     -> pose.onnx (B pallets at once) -> most confident per-point hypothesis   selection.py
     -> robust point-to-plane ICP on the box's depth, pallet as boards/blocks  refine.py
+       (+ ICP from starts around the pose; the landing that fits best wins)
     -> geometric fit check against the depth image                           fit.py
 
 `predict(...)` returns the accepted `PalletPose`s; `estimate(...)` returns the whole `FrameResult`:

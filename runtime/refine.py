@@ -12,6 +12,8 @@ along a single visible face) where the network put them.
 Measured on the simulator: from poses a few cm / degrees off, exact depth brings most back to < 1 mm (a
 few stop in a local minimum about 2 cm off, where boards repeat); D435-like depth at 3-5 m (sigma of
 several cm, half of it correlated over patches) leaves several cm, which is the data's own limit.
+From 15-30 degrees or 10-20 cm off, ICP stops in a wrong minimum: `best_landing` runs it again from
+starts around the pose (`start_offsets`, batched by `refine_poses`) and a fit score picks the landing.
 """
 from __future__ import annotations
 
