@@ -65,6 +65,8 @@ def test_eval_bad_inputs(tiny_bundle, sim_bop_dataset, tmp_path, capsys):
     assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "cannot load bundle" in err and str(tmp_path) in err
+    assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--refine-starts", "9"]) == 2
+    assert "refine_starts must be in [0, 8]" in capsys.readouterr().err
 
 
 def test_eval_cli_does_not_import_torch():
