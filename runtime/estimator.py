@@ -385,7 +385,8 @@ class PalletEstimator:
         if np.isfinite(res.rms_m) and res.rms_m < o.refine_max_rms_m:
             fit_icp = fit_score(res.T_cam_pallet, obs_cam, self.model_points_m, depth_m, K, o.fit_tol_m)
             fit_net = fit_score(T_net, obs_cam, self.model_points_m, depth_m, K, o.fit_tol_m)
-            T, fit = (res.T_cam_pallet, fit_icp) if fit_icp.score >= fit_net.score + o.refine_margin else (T_net, fit_net)
+            keep_icp = fit_icp.score >= fit_net.score + o.refine_margin
+            T, fit = (res.T_cam_pallet, fit_icp) if keep_icp else (T_net, fit_net)
         if o.refine_starts > 0:
             # the network's larger errors lie outside ICP's basin: ICP from starts around the pose, and a
             # trusted landing that explains the depth better at a tight tolerance replaces it

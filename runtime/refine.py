@@ -185,7 +185,8 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     """`refine_pose` from several starting poses on the same points at once (one numpy pass per step).
 
     Each start runs exactly as `refine_pose` would run it alone (its own prior, stopping and result);
-    batching only shares the per-step array work, which for a few hundred points is mostly overhead.
+    batching saves only the per-call overhead (about 7 % for 9 starts of 600 points: the closest-point
+    search is most of the time either way).
 
     :param T_cam_pallet: (m, 4, 4) starting poses, pallet -> camera.
     :return: m RefineResults, in the order of the starts.
