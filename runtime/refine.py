@@ -199,6 +199,10 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     m, n = len(T0), len(pts)
+    boxes = np.asarray(boxes_m, dtype=np.float64)
+    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0:
+        raise ValueError(f"boxes_m must be (k, 2, 3) with k >= 1, got shape {boxes.shape}")
+    model_lo, model_hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
     T_pal_cam = np.stack([invert_T(T) for T in T0])
     prior = np.diag([prior_rot_rad ** -2] * 3 + [prior_trans_m ** -2] * 3)
     xi = np.zeros((m, 6))
@@ -212,8 +216,12 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
             break
         thr = corr_start_m * (corr_end_m / corr_start_m) ** (it / max(steps - 1, 1))
         p = transform_points(T_pal_cam[a], np.broadcast_to(pts, (len(a), n, 3)))        # (a, n, 3)
-        q, nrm, d = closest_on_boxes(p.reshape(-1, 3), boxes_m)
-        q, nrm, d = q.reshape(len(a), n, 3), nrm.reshape(len(a), n, 3), d.reshape(len(a), n)
+        # only points within thr of the model's bounding box can correspond: skip the rest of the box's
+        # background (floor, rack, load) in the closest-point search, which is most of the time
+        near = np.all((p > model_lo - thr) & (p < model_hi + thr), axis=-1)                 # (a, n)
+        q, nrm, d = np.zeros_like(p), np.zeros_like(p), np.full((len(a), n), np.inf)
+        if near.any():
+            q[near], nrm[near], d[near] = closest_on_boxes(p[near], boxes_m)
         use = d < thr                                                                     # (a, n)
         n_use = use.sum(1)
         starved = n_use < min_inliers                 # this start stops here, keeping its pose so far
