@@ -155,7 +155,7 @@ def main(argv=None) -> int:
     ap.add_argument("--gt-boxes", action="store_true", help="score the pose stage alone on ground-truth boxes")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-refine", action="store_true", help="the network's poses without the ICP refinement")
-    ap.add_argument("--refine-starts", type=int, default=8, help="extra ICP starts on clean depth (EstimatorOptions)")
+    ap.add_argument("--refine-starts", type=int, default=4, help="extra ICP starts on clean depth (EstimatorOptions)")
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of the per-pallet point sampling (EstimatorOptions.seed): run a few to see the spread")
     ap.add_argument("--write-scores", action="store_true",
@@ -183,7 +183,7 @@ def main(argv=None) -> int:
     paths = plot(results, args.out)
     md = args.out / "accuracy.md"
     variant = precision + (", GT boxes" if args.gt_boxes else "") + (", no refinement" if args.no_refine else "") \
-        + (f", {args.refine_starts} extra ICP starts" if args.refine_starts != 8 and not args.no_refine else "") \
+        + (f", {args.refine_starts} extra ICP starts" if args.refine_starts != 4 and not args.no_refine else "") \
         + (f", sampling seed {args.seed}" if args.seed else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")

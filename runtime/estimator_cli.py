@@ -18,9 +18,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str
     parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
     parser.add_argument("--no-refine", action="store_true",
                         help="report the network's poses without the ICP refinement on the depth")
-    parser.add_argument("--refine-starts", type=int, default=8,
+    parser.add_argument("--refine-starts", type=int, default=4,
                         help="extra ICP starts around each pose, 0-8; a landing counts on clean depth only "
-                             "(default 8; 0 is faster)")
+                             "(default 4; 0 is faster)")
 
 
 def load_estimator(args: argparse.Namespace, command: str):

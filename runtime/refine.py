@@ -105,7 +105,8 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
 # useful first. On clean depth the network's large errors are yaw errors of 10-30 degrees and slides along
 # the pallet's length, outside ICP's basin from the network's pose; from one of these starts ICP often
 # lands on the right pose, and the fit score tells which landing is right (validation, virtual-occluded:
-# 70.7 -> 78.9 % of detected pallets within 5 cm with all 8; `benchmarks/results/refine-starts.md`).
+# 70.7 -> 78.9 % of detected pallets within 5 cm with all 8, and the first 4 did as well end to end;
+# `benchmarks/results/refine-starts.md`).
 _START_YAW_DEG = (15.0, -15.0, 0.0, 0.0, 30.0, -30.0, 0.0, 0.0)
 _START_SHIFT_X_M = (0.0, 0.0, 0.1, -0.1, 0.0, 0.0, 0.2, -0.2)
 MAX_STARTS = len(_START_YAW_DEG)
