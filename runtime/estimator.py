@@ -76,7 +76,7 @@ class EstimatorOptions:
         `refine.start_offsets` (yaw +-15 degrees, +-10 cm along the pallet's length, then +-30 degrees,
         +-20 cm); a landing that ICP trusts (`refine_start_max_rms_m`) and that explains the box's depth
         better (fit score at `refine_select_tol_m`) replaces it. It pulls the network's larger errors back
-        into ICP's basin. 0 turns it off; 4 did as well as 8 on the validation sets at half the time
+        into ICP's basin. 0 turns it off; 4 did as well as 8 on the validation sets in 60 % of the time
         (`benchmarks/results/refine-starts.md`).
     :ivar refine_start_points: depth points each extra start uses (an even subset of `refine_points`).
     :ivar refine_select_tol_m: tolerance of the fit score that compares landings, metres (tighter than
