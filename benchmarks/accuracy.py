@@ -155,7 +155,8 @@ def main(argv=None) -> int:
     ap.add_argument("--gt-boxes", action="store_true", help="score the pose stage alone on ground-truth boxes")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--no-refine", action="store_true", help="the network's poses without the ICP refinement")
-    ap.add_argument("--refine-starts", type=int, default=4, help="extra ICP starts on clean depth (EstimatorOptions)")
+    ap.add_argument("--refine-starts", type=int, default=None,
+                    help="extra ICP starts around each pose (default: EstimatorOptions.refine_starts)")
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of the per-pallet point sampling (EstimatorOptions.seed): run a few to see the spread")
     ap.add_argument("--write-scores", action="store_true",
@@ -168,8 +169,8 @@ def main(argv=None) -> int:
 
     precision = "int8" if args.int8 else "fp32"
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision=precision,
-                                      refine=not args.no_refine, refine_starts=args.refine_starts,
-                                      seed=args.seed)
+                                      refine=not args.no_refine, seed=args.seed,
+                                      **({} if args.refine_starts is None else {"refine_starts": args.refine_starts}))
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for preset in args.presets:
@@ -183,7 +184,7 @@ def main(argv=None) -> int:
     paths = plot(results, args.out)
     md = args.out / "accuracy.md"
     variant = precision + (", GT boxes" if args.gt_boxes else "") + (", no refinement" if args.no_refine else "") \
-        + (f", {args.refine_starts} extra ICP starts" if args.refine_starts != 4 and not args.no_refine else "") \
+        + (f", {args.refine_starts} extra ICP starts" if args.refine_starts is not None and not args.no_refine else "") \
         + (f", sampling seed {args.seed}" if args.seed else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")

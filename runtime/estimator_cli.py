@@ -18,9 +18,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str
     parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
     parser.add_argument("--no-refine", action="store_true",
                         help="report the network's poses without the ICP refinement on the depth")
-    parser.add_argument("--refine-starts", type=int, default=4,
+    parser.add_argument("--refine-starts", type=int, default=None,
                         help="extra ICP starts around each pose, 0-8; a landing counts on clean depth only "
-                             "(default 4; 0 is faster)")
+                             "(default: EstimatorOptions.refine_starts, 4; 0 is fastest)")
 
 
 def load_estimator(args: argparse.Namespace, command: str):
@@ -29,10 +29,12 @@ def load_estimator(args: argparse.Namespace, command: str):
     from .estimator import PalletEstimator
 
     try:
+        # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
+        extra = {} if args.refine_starts is None else {"refine_starts": args.refine_starts}
         return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32",
                                            score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,
-                                           refine=not args.no_refine, refine_starts=args.refine_starts)
+                                           refine=not args.no_refine, **extra)
     except (BundleError, FileNotFoundError, ValueError) as exc:
         print(f"pallet6d {command}: cannot load bundle {args.bundle}: {exc}", file=sys.stderr)
         return None

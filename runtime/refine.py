@@ -44,6 +44,14 @@ def box_points(depth_m: np.ndarray, K: np.ndarray, box_xyxy: np.ndarray, max_poi
     return backproject_pixels(u, v, depth_m[v, u], K)
 
 
+def _check_boxes(boxes_m: np.ndarray) -> np.ndarray:
+    """(k, 2, 3) float64 min/max corners with k >= 1, or ValueError."""
+    boxes = np.asarray(boxes_m, dtype=np.float64)
+    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0:
+        raise ValueError(f"boxes_m must be (k, 2, 3) with k >= 1, got shape {boxes.shape}")
+    return boxes
+
+
 def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest point on the surface of a union of axis-aligned boxes, with its outward normal.
 
@@ -55,9 +63,7 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     :return: (closest (n, 3), unit normal (n, 3), distance (n,)) in metres.
     """
     p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    boxes = np.asarray(boxes_m, dtype=np.float64)
-    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0:
-        raise ValueError(f"boxes_m must be (k, 2, 3) with k >= 1, got shape {boxes.shape}")
+    boxes = _check_boxes(boxes_m)
     n = len(p)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
@@ -200,9 +206,7 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     m, n = len(T0), len(pts)
-    boxes = np.asarray(boxes_m, dtype=np.float64)
-    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0:
-        raise ValueError(f"boxes_m must be (k, 2, 3) with k >= 1, got shape {boxes.shape}")
+    boxes = _check_boxes(boxes_m)
     model_lo, model_hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
     T_pal_cam = np.stack([invert_T(T) for T in T0])
     prior = np.diag([prior_rot_rad ** -2] * 3 + [prior_trans_m ** -2] * 3)
