@@ -8,7 +8,9 @@
 RUN_DIR receives `last.pt`, `best.pt` (lowest validation metric: pose = mean symmetric ADD of the most
 confident hypothesis; detector = validation loss), `train_log.jsonl` (one line per epoch: losses, validation,
 lr, seconds) and `cache/` (prepared samples, reused while the data and settings are unchanged). A run is
-stopped cleanly by `--max-minutes` and continued with `--resume` (same arguments).
+stopped cleanly by `--max-minutes` and continued with `--resume` (same arguments). `--init CKPT` starts a new
+run from a checkpoint's weights (fine-tuning, e.g. on more data, with a fresh schedule); the checkpoint's path and
+sha256 go into the new run's provenance.
 
 Default recipe for the shipped `edge` bundle (and, unchanged, the `densefusion` ablation)
 ------------------------------------------------------------------------------------------
@@ -83,6 +85,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--variants", type=int, help="pose: augmented views prepared per pallet (default 2)")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
+    parser.add_argument("--init", type=Path,
+                        help="start from this checkpoint's weights (a run's best.pt or a merged file): fine-tuning "
+                             "with a fresh schedule, e.g. on more data; ignored with --resume")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device (default cpu)")
     parser.add_argument("--amp", action="store_true",
                         help="bfloat16 autocast of the forward passes: about 1.8x faster on CPUs with AVX512-BF16 or "
@@ -155,7 +160,8 @@ def main(args: argparse.Namespace) -> int:
                                 amp=args.amp)
         cfg = get_config(args.config)
         common = dict(resume=args.resume, cache_dir=args.cache_dir, val_fraction=args.val_fraction,
-                      max_frames=args.max_frames, command=command, progress=not args.no_progress)
+                      max_frames=args.max_frames, command=command, progress=not args.no_progress,
+                      init=args.init)
         if args.resume and not (args.out / "last.pt").exists():
             print(f"pallet6d train: --resume but {args.out / 'last.pt'} does not exist", file=sys.stderr)
             return 2

@@ -12,7 +12,7 @@ Targets: the network predicts, per centred point p_i, a rotation and an offset; 
 centred frame: ``T_gt_centred = T_cam_pallet`` with ``centre`` subtracted from its translation.
 
 Detector samples are letterboxed to the config's input size once (cached as uint8 with the boxes in input
-pixels); flips, HSV jitter, blur and noise are applied per epoch.
+pixels); zoom/shift, flips, HSV jitter, blur and noise are applied per epoch.
 """
 from __future__ import annotations
 
@@ -31,7 +31,8 @@ from pallet6d.runtime.detector import letterbox
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
-           "augment_rgb", "augment_depth", "flip_horizontal", "build_pose_samples", "build_detector_samples",
+           "augment_rgb", "augment_depth", "flip_horizontal", "zoom_and_shift", "build_pose_samples",
+           "build_detector_samples",
            "load_or_build", "model_points_for", "MIN_VISIB_FRACT", "CACHE_VERSION"]
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,9 @@ class AugmentConfig:
     :ivar depth_dropout_prob: probability of dropping random rectangles of depth (stereo holes).
     :ivar depth_noise_sigma_m: depth noise std at 1 m; grows with z^2 like stereo depth.
     :ivar flip_prob: probability of a horizontal flip (detector only: the pose stage needs true geometry).
+    :ivar zoom_range: detector only: the frame is scaled by a factor drawn from [1 - r, 1 + r] about a random
+        point (YOLOv8's `scale`); zooming out shows far, small pallets more often than the sim's camera paths do.
+    :ivar shift_fraction: detector only: random shift of that zoomed frame, as a fraction of its size.
     """
 
     box_scale_sigma: float = 0.08
@@ -61,12 +65,14 @@ class AugmentConfig:
     depth_dropout_prob: float = 0.5
     depth_noise_sigma_m: float = 0.004
     flip_prob: float = 0.5
+    zoom_range: float = 0.4
+    shift_fraction: float = 0.1
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
-NO_AUGMENT = AugmentConfig(0.0, 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0, 0.0, 0.0)
+NO_AUGMENT = AugmentConfig(0.0, 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 # --------------------------------------------------------------------------------------- fingerprints
@@ -166,6 +172,39 @@ def flip_horizontal(image: np.ndarray, boxes_xyxy: np.ndarray) -> tuple[np.ndarr
     boxes = np.asarray(boxes_xyxy, dtype=np.float32).reshape(-1, 4).copy()
     boxes[:, [0, 2]] = w - boxes[:, [2, 0]]
     return np.ascontiguousarray(image[:, ::-1]), boxes
+
+
+def zoom_and_shift(image: np.ndarray, boxes_xyxy: np.ndarray, rng: np.random.Generator, zoom_range: float,
+                   shift_fraction: float, fill: int = 114, min_area_kept: float = 0.2,
+                   min_side_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Scale an image about its centre by s ~ U[1 - zoom_range, 1 + zoom_range], shift it by up to
+    `shift_fraction` of its size, and move the boxes with it (YOLOv8's random scale/translate).
+
+    Boxes are clipped to the image; one keeps when at least `min_area_kept` of its area stays inside and both
+    sides stay `min_side_px` or longer (a pallet cut by the image border is still a pallet).
+
+    :param image: (H, W, 3) uint8. :param boxes_xyxy: (n, 4) pixels.
+    :return: the new (H, W, 3) image (uncovered area filled with `fill`, the letterbox grey) and (m, 4) boxes.
+    """
+    h, w = image.shape[:2]
+    boxes = np.asarray(boxes_xyxy, dtype=np.float32).reshape(-1, 4)
+    s = float(rng.uniform(1.0 - zoom_range, 1.0 + zoom_range))
+    tx = float(rng.uniform(-shift_fraction, shift_fraction)) * w
+    ty = float(rng.uniform(-shift_fraction, shift_fraction)) * h
+    # x' = s (x - cx) + cx + tx
+    A = np.array([[s, 0.0, (1.0 - s) * w / 2 + tx], [0.0, s, (1.0 - s) * h / 2 + ty]], dtype=np.float64)
+    out = cv2.warpAffine(image, A, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=(fill, fill, fill))
+    moved = boxes.copy()
+    moved[:, [0, 2]] = boxes[:, [0, 2]] * s + A[0, 2]
+    moved[:, [1, 3]] = boxes[:, [1, 3]] * s + A[1, 2]
+    clipped = moved.copy()
+    clipped[:, [0, 2]] = np.clip(moved[:, [0, 2]], 0, w)
+    clipped[:, [1, 3]] = np.clip(moved[:, [1, 3]], 0, h)
+    side_w, side_h = clipped[:, 2] - clipped[:, 0], clipped[:, 3] - clipped[:, 1]
+    area_moved = np.maximum((moved[:, 2] - moved[:, 0]) * (moved[:, 3] - moved[:, 1]), 1e-9)
+    keep = (side_w >= min_side_px) & (side_h >= min_side_px) & (side_w * side_h >= min_area_kept * area_moved)
+    return np.ascontiguousarray(out), clipped[keep].astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------------- models

@@ -1,9 +1,9 @@
 """Detector training: the YOLOv8-style detector on letterboxed frames with YOLOv8's loss (`losses.DetectorLoss`).
 
 Frames are letterboxed to the config's input size once (the runtime's `letterbox`, grey 114 padding) and
-cached; every epoch applies HSV gains, blur, noise and horizontal flips (boxes flipped with the image) with
-an epoch-seeded generator. Targets are the visible boxes of pallets at least 10 % visible, the boxes the
-evaluation matches against. Validation: loss, and precision/recall at IoU 0.5 of the runtime's decoding
+cached; every epoch applies a random zoom and shift, HSV gains, blur, noise and horizontal flips (boxes moved
+with the image) with an epoch-seeded generator. Targets are the visible boxes of pallets at least 10 % visible,
+the boxes the evaluation matches against. Validation: loss, and precision/recall at IoU 0.5 of the runtime's decoding
 (`runtime.detector.decode_yolov8`, score 0.25).
 """
 from __future__ import annotations
@@ -24,7 +24,7 @@ from .config import ModelConfig
 from .detector import build_detector
 from .losses import DetectorLoss
 from .train_data import AugmentConfig, DetectorSamples, augment_rgb, build_detector_samples, flip_horizontal, \
-    load_or_build
+    load_or_build, zoom_and_shift
 from .train_loop import LoopSettings, autocast, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
@@ -86,6 +86,8 @@ class DetectorTrainer:
         for i in idx:
             img, boxes = s.images[i], np.asarray(s.boxes[i], np.float32).reshape(-1, 4)
             if rng is not None:
+                if self.aug.zoom_range or self.aug.shift_fraction:
+                    img, boxes = zoom_and_shift(img, boxes, rng, self.aug.zoom_range, self.aug.shift_fraction)
                 img = augment_rgb(img, rng, self.aug)
                 if rng.random() < self.aug.flip_prob:
                     img, boxes = flip_horizontal(img, boxes)
@@ -133,7 +135,7 @@ class DetectorTrainer:
 def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
                    aug: AugmentConfig | None = None, resume: bool = False, cache_dir: str | Path | None = None,
                    val_fraction: float = 0.1, max_frames: int | None = None, command: str = "",
-                   progress: bool = True) -> dict:
+                   progress: bool = True, init: str | Path | None = None) -> dict:
     """Train the detector on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry."""
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
@@ -152,4 +154,4 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                   "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx))},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}
     return train_epochs(run_dir, "detector", cfg.name, trainer.nets, optimizer, settings, len(dd.train_idx),
-                        trainer.step, trainer.validate, provenance, resume=resume, progress=progress)
+                        trainer.step, trainer.validate, provenance, resume=resume, progress=progress, init=init)

@@ -14,6 +14,7 @@ Checkpoint (``torch.save`` of plain types, loadable with ``weights_only=True``):
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -102,6 +103,26 @@ def load_checkpoint(path: str | Path) -> dict:
     return ckpt
 
 
+def load_init_weights(path: str | Path, nets: dict[str, torch.nn.Module]) -> dict:
+    """Load each net's weights from a checkpoint; return what to record of it (path, sha256, config, epoch).
+
+    :raises ValueError: not a checkpoint, a net missing from it, or weights that do not fit the net.
+    """
+    ckpt = load_checkpoint(path)
+    for k, net in nets.items():
+        if k not in ckpt:
+            raise ValueError(f"--init {path} has no {k!r} weights (it is a {ckpt.get('stage')!r} checkpoint)")
+        try:
+            net.load_state_dict(ckpt[k])
+        except RuntimeError as exc:
+            raise ValueError(f"--init {path}: its {k!r} weights do not fit config's network: "
+                             f"{str(exc).splitlines()[0]}") from None
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    log.info("starting from the weights of %s (%s)", path, ", ".join(nets))
+    return {"checkpoint": str(path), "sha256": digest, "stage": ckpt.get("stage"), "config": ckpt.get("config"),
+            "epoch": ckpt.get("epoch")}
+
+
 def _batches(n: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
     """Shuffled index batches; a final batch of one sample is dropped (BatchNorm needs two)."""
     perm = rng.permutation(n)
@@ -113,8 +134,11 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
                  optimizer: torch.optim.Optimizer, s: LoopSettings, n_train: int,
                  step: Callable[[np.ndarray, np.random.Generator], tuple[torch.Tensor, dict]],
                  validate: Callable[[], dict], provenance: dict, resume: bool = False,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, init: str | Path | None = None) -> dict:
     """Train `nets` for the remaining epochs; return the last log entry.
+
+    :param init: a checkpoint (of this stage, or merged) whose weights start a new run: fine-tuning with a
+        fresh schedule and optimizer. Ignored when resuming (the run's own last.pt has the weights).
 
     :param step: (index batch, rng) -> (loss to minimise, {name: float} to log).
     :param validate: () -> {"metric": float (lower is better), ...}; nets are in eval mode during it.
@@ -139,6 +163,8 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
                    {"command": before.get("command", ""), "epochs": before.get("epochs"), "stopped_at_epoch": start_epoch}]
         provenance = {**provenance, "earlier_runs": earlier}
         log.info("resuming %s at epoch %d (best metric so far %.4g)", run_dir, start_epoch, best)
+    elif init is not None:
+        provenance = {**provenance, "init": load_init_weights(init, nets)}
     if n_train < 1:
         raise ValueError("no training samples")
     t_start = time.monotonic()

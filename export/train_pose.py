@@ -162,7 +162,7 @@ class PoseTrainer:
 def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
                variants: int = 2, aug: AugmentConfig | None = None, resume: bool = False,
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
-               command: str = "", progress: bool = True) -> dict:
+               command: str = "", progress: bool = True, init: str | Path | None = None) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry."""
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
@@ -179,4 +179,4 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}
     return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
                         lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
-                        resume=resume, progress=progress)
+                        resume=resume, progress=progress, init=init)

@@ -17,6 +17,7 @@ starts around the pose (`start_offsets`, batched by `refine_poses`) and a fit sc
 """
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -148,7 +149,8 @@ def _exp_se3(delta: np.ndarray) -> np.ndarray:
 class RefineResult:
     """:ivar T_cam_pallet: refined pose. :ivar iterations: steps run. :ivar n_inliers: correspondences in
     the last step. :ivar rms_m: their weighted point-to-plane RMS, metres. :ivar moved_m: translation
-    change from the input pose, metres. :ivar converged: the last step was below the tolerance."""
+    change from the input pose, metres. :ivar converged: the last step was below the tolerance.
+    :ivar stopped_near: stopped early on reaching the `stop_near` pose of `refine_poses`."""
 
     T_cam_pallet: np.ndarray
     iterations: int
@@ -156,6 +158,7 @@ class RefineResult:
     rms_m: float
     moved_m: float
     converged: bool
+    stopped_near: bool = False
 
 
 def refine_pose(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, iterations: int = 20,
@@ -188,7 +191,8 @@ def refine_pose(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarr
 
 def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, iterations: int = 20,
                  corr_start_m: float = 0.08, corr_end_m: float = 0.015, prior_rot_rad: float = 0.1,
-                 prior_trans_m: float = 0.1, min_inliers: int = 30, tol: float = 1e-4) -> list[RefineResult]:
+                 prior_trans_m: float = 0.1, min_inliers: int = 30, tol: float = 1e-4,
+                 stop_near: np.ndarray | None = None, stop_near_m: float = 0.005) -> list[RefineResult]:
     """`refine_pose` from several starting poses on the same points at once (one numpy pass per step).
 
     Each start runs exactly as `refine_pose` would run it alone (its own prior, stopping and result);
@@ -196,6 +200,9 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     search is most of the time either way).
 
     :param T_cam_pallet: (m, 4, 4) starting poses, pallet -> camera.
+    :param stop_near: optional (4, 4) pose, e.g. an ICP result the starts surround: a start that comes within
+        `stop_near_m` of it (largest displacement of the model box's corners) stops there, flagged
+        `stopped_near`, since it would only land on that pose again. Saves the rest of its iterations.
     :return: m RefineResults, in the order of the starts.
     """
     T0 = np.asarray(T_cam_pallet, dtype=np.float64)
@@ -212,8 +219,11 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     prior = np.diag([prior_rot_rad ** -2] * 3 + [prior_trans_m ** -2] * 3)
     xi = np.zeros((m, 6))
     n_in, rms, done = np.zeros(m, dtype=np.int64), np.full(m, np.nan), np.zeros(m, dtype=np.int64)
-    converged = np.zeros(m, dtype=bool)
+    converged, stopped = np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
     active = np.ones(m, dtype=bool)
+    if stop_near is not None:
+        corners = np.array(list(itertools.product(*zip(model_lo, model_hi))))               # (8, 3) pallet frame
+        corners_cam = transform_points(np.asarray(stop_near, dtype=np.float64), corners)
     steps = max(int(iterations), 0)
     for it in range(steps):
         a = np.flatnonzero(active)
@@ -250,17 +260,24 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
         n_in[a], rms[a], done[a] = n_use, np.sqrt((w * r * r).sum(1) / wsum), it + 1
         conv = (np.abs(delta).sum(1) < tol) & (it >= steps // 2)    # converged at a tight threshold
         converged[a[conv]], active[a[conv]] = True, False
+        if stop_near is not None:
+            # corners of the model box under each start's pose, mapped back by stop_near's inverse: no move
+            # at all leaves them where they are
+            here = transform_points(T_pal_cam[a], np.broadcast_to(corners_cam, (len(a), 8, 3)))
+            near_pose = np.linalg.norm(here - corners, axis=-1).max(1) < stop_near_m
+            stopped[a[near_pose]], active[a[near_pose]] = True, False
     out = []
     for i in range(m):
         T = invert_T(T_pal_cam[i])
         out.append(RefineResult(T, int(done[i]), int(n_in[i]), float(rms[i]),
-                                float(np.linalg.norm(T[:3, 3] - T0[i, :3, 3])), bool(converged[i])))
+                                float(np.linalg.norm(T[:3, 3] - T0[i, :3, 3])), bool(converged[i]),
+                                bool(stopped[i])))
     return out
 
 
 def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, n_starts: int,
                  start_points: int, score: Callable[[np.ndarray], float], max_rms_m: float,
-                 iterations: int = 20) -> tuple[np.ndarray, int]:
+                 iterations: int = 20, stop_near_m: float = 0.005) -> tuple[np.ndarray, int]:
     """ICP from the first `n_starts` of `start_offsets` around a refined pose; the best-scoring landing wins.
 
     A landing counts only when ICP trusts it (final RMS below `max_rms_m`), as for the pose itself.
@@ -269,6 +286,7 @@ def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     :param pts_cam: (n, 3) the detection's depth points, camera frame, metres; each start uses an even
         subset of `start_points` of them.
     :param score: pose -> how well it explains the depth (higher is better), e.g. a `fit_score`.
+    :param stop_near_m: a start that comes this close to `T_cam_pallet` stops (0: every start runs to the end).
     :return: (the winning (4, 4) pose, the index of its start, or -1 for `T_cam_pallet` itself).
     """
     T = np.asarray(T_cam_pallet, dtype=np.float64)
@@ -277,8 +295,11 @@ def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     if n_starts <= 0 or len(pts) == 0:
         return best_T, best_k
     pick = np.linspace(0, len(pts) - 1, min(int(start_points), len(pts))).round().astype(np.int64)
-    for k, r in enumerate(refine_poses(T @ start_offsets(n_starts), pts[pick], boxes_m, iterations=iterations)):
-        if np.isfinite(r.rms_m) and r.rms_m < max_rms_m:
+    # a start that comes back to within stop_near_m of T stops there: it would only land on T again
+    landings = refine_poses(T @ start_offsets(n_starts), pts[pick], boxes_m, iterations=iterations,
+                            stop_near=T if stop_near_m > 0 else None, stop_near_m=stop_near_m)
+    for k, r in enumerate(landings):
+        if not r.stopped_near and np.isfinite(r.rms_m) and r.rms_m < max_rms_m:
             s = score(r.T_cam_pallet)
             if s > best:
                 best_T, best_k, best = r.T_cam_pallet, k, s

@@ -163,6 +163,24 @@ def test_refine_poses_runs_each_start_as_refine_pose_alone():
         refine_poses(np.eye(4), pts, EPAL.boxes_m)
 
 
+def test_starts_that_come_back_to_the_pose_stop_early():
+    T_gt, pts = _scene("virtual-clean", 0)
+    T_icp = refine_pose(T_gt, pts, EPAL.boxes_m).T_cam_pallet
+    starts = T_icp @ start_offsets(MAX_STARTS)
+    full = refine_poses(starts, pts, EPAL.boxes_m)
+    early = refine_poses(starts, pts, EPAL.boxes_m, stop_near=T_icp, stop_near_m=0.005)
+    came_back = [k for k, r in enumerate(full) if _err(r.T_cam_pallet, T_icp) < 0.002]
+    assert len(came_back) >= 2        # measured: the +-10 cm slides land on it again, the turns go elsewhere
+    for k, (a, b) in enumerate(zip(full, early)):
+        assert not a.stopped_near
+        if b.stopped_near:
+            # stopped within 5 mm (box corners) of the pose, before running all of its steps
+            assert k in came_back and b.iterations < a.iterations and _err(b.T_cam_pallet, T_icp) < 0.005
+        else:   # a start that never came near runs exactly as before
+            np.testing.assert_allclose(b.T_cam_pallet, a.T_cam_pallet, atol=1e-12)
+    assert sum(b.stopped_near for b in early) >= len(came_back) - 1
+
+
 def test_start_offsets_are_yaw_turns_and_slides_along_the_length():
     offs = start_offsets(MAX_STARTS)
     assert offs.shape == (MAX_STARTS, 4, 4) and start_offsets(0).shape == (0, 4, 4)
@@ -188,8 +206,10 @@ def test_best_landing_recovers_turns_and_slides_that_icp_alone_keeps(yaw_deg, sh
     T0 = T_gt @ make_T(quat_to_rot(np.array([np.cos(a), 0, 0, np.sin(a)])), np.array([shift_m, 0.0, 0.0]))
     T_icp = refine_pose(T0, pts, EPAL.boxes_m).T_cam_pallet
     assert _err(T_icp, T_gt) > 0.09                               # out of ICP's basin: 9-20 cm off
-    T, k = best_landing(T_icp, pts, EPAL.boxes_m, MAX_STARTS, 300, _depth_score("virtual-clean", 0), 0.004)
-    assert k >= 0 and _err(T, T_gt) < 0.01
+    for stop_near_m in (0.0, 0.005):    # stopping the starts that come back changes nothing here
+        T, k = best_landing(T_icp, pts, EPAL.boxes_m, MAX_STARTS, 300, _depth_score("virtual-clean", 0), 0.004,
+                            stop_near_m=stop_near_m)
+        assert k >= 0 and _err(T, T_gt) < 0.01
 
 
 def test_best_landing_keeps_a_right_pose_and_handles_no_starts():

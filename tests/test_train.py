@@ -12,9 +12,10 @@ torch = pytest.importorskip("torch")
 from pallet6d.export.calib_data import make_calibration_set, pose_input_spec  # noqa: E402
 from pallet6d.export.config import get_config  # noqa: E402
 from pallet6d.export.train_data import (NO_AUGMENT, AugmentConfig, augment_depth, build_pose_samples,  # noqa: E402
-                                        dataset_fingerprint, flip_horizontal, jitter_box, load_or_build)
+                                        dataset_fingerprint, flip_horizontal, jitter_box, load_or_build,
+                                        zoom_and_shift)
 from pallet6d.export.train_detector import DetectorTrainer, load_detector_data  # noqa: E402
-from pallet6d.export.train_loop import LoopSettings, load_checkpoint, lr_at  # noqa: E402
+from pallet6d.export.train_loop import LoopSettings, load_checkpoint, load_init_weights, lr_at  # noqa: E402
 from pallet6d.export.train_pose import PoseTrainer, load_pose_data, train_pose  # noqa: E402
 
 CFG = get_config("tiny")
@@ -110,6 +111,59 @@ def test_flip_keeps_boxes_on_the_object():
     x1, y1, x2, y2 = boxes[0].astype(int)
     assert (x1, y1, x2, y2) == (32, 5, 38, 10)
     assert flipped[y1:y2, x1:x2].min() == 255 and flipped.sum() == img.sum()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_zoom_and_shift_moves_boxes_with_the_image(seed):
+    img = np.full((64, 160, 3), 114, np.uint8)
+    img[20:40, 50:100] = 255
+    out, boxes = zoom_and_shift(img, np.array([[50, 20, 100, 40]]), np.random.default_rng(seed), 0.4, 0.1)
+    assert out.shape == img.shape and boxes.shape == (1, 4)
+    ys, xs = np.nonzero(out[..., 0] > 200)
+    # the white block's pixel extent is the moved box (to a pixel of interpolation)
+    np.testing.assert_allclose([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], boxes[0], atol=1.5)
+
+
+def test_zoom_and_shift_clips_and_drops_boxes_pushed_out():
+    img = np.full((50, 100, 3), 114, np.uint8)
+    boxes = np.array([[0, 10, 30, 40], [90, 10, 100, 20], [40, 10, 60, 30]], np.float32)
+
+    class Draws:  # rng stand-in: zoom 1, shift +0.2 of the width, +0.5 of the height
+        def __init__(self):
+            self.values = [1.0, 0.2, 0.5]
+
+        def uniform(self, lo, hi):
+            return self.values.pop(0)
+
+    out, moved = zoom_and_shift(img, boxes, Draws(), 0.0, 0.5)
+    # +20 px right, +25 px down: the first and third boxes are cut at the bottom (half or more stays: kept),
+    # the second leaves the image
+    np.testing.assert_allclose(moved, [[20, 35, 50, 50], [60, 35, 80, 50]])
+    assert out[:25].max() == 114
+    out, same = zoom_and_shift(img, boxes, np.random.default_rng(0), 0.0, 0.0)
+    np.testing.assert_allclose(same, boxes)
+    np.testing.assert_array_equal(out, img)
+    assert zoom_and_shift(img, np.zeros((0, 4)), np.random.default_rng(0), 0.4, 0.1)[1].shape == (0, 4)
+
+
+def test_init_starts_from_a_checkpoints_weights(pose_run, sim_bop_dataset, tmp_path):
+    from pallet6d.export.fusion import build_fusion
+    from pallet6d.export.pose import build_pose
+
+    run, _ = pose_run
+    nets = {"fusion": build_fusion(CFG.fusion), "pose": build_pose(CFG.pose, CFG.fusion.feature_dim)}
+    info = load_init_weights(run / "best.pt", nets)
+    best = load_checkpoint(run / "best.pt")
+    assert all(torch.equal(v, best["pose"][k]) for k, v in nets["pose"].state_dict().items())
+    assert info["stage"] == "pose" and len(info["sha256"]) == 64 and info["checkpoint"] == str(run / "best.pt")
+    with pytest.raises(ValueError, match="no 'detector' weights"):
+        load_init_weights(run / "best.pt", {"detector": torch.nn.Linear(2, 2)})
+    with pytest.raises(ValueError, match="do not fit"):
+        load_init_weights(run / "best.pt", {"pose": torch.nn.Linear(2, 2)})
+    # a fine-tuning run records where its weights came from
+    train_pose(CFG, [sim_bop_dataset], tmp_path / "ft",
+               LoopSettings(epochs=1, batch=4, lr=1e-4, seed=1), variants=1, progress=False, init=run / "best.pt")
+    assert load_checkpoint(tmp_path / "ft" / "last.pt")["provenance"]["init"]["sha256"] == info["sha256"]
 
 
 def test_box_jitter_and_depth_augmentation_are_seeded_and_sane():
