@@ -137,12 +137,11 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
                  progress: bool = True, init: str | Path | None = None) -> dict:
     """Train `nets` for the remaining epochs; return the last log entry.
 
-    :param init: a checkpoint (of this stage, or merged) whose weights start a new run: fine-tuning with a
-        fresh schedule and optimizer. Ignored when resuming (the run's own last.pt has the weights).
-
     :param step: (index batch, rng) -> (loss to minimise, {name: float} to log).
     :param validate: () -> {"metric": float (lower is better), ...}; nets are in eval mode during it.
     :param provenance: stored in every checkpoint (seed, command, data fingerprints, ...).
+    :param init: a checkpoint (of this stage, or merged) whose weights start a new run: fine-tuning with a
+        fresh schedule and optimizer. Ignored when resuming (the run's own last.pt has the weights).
     """
     from tqdm import tqdm
 

@@ -261,8 +261,8 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
         conv = (np.abs(delta).sum(1) < tol) & (it >= steps // 2)    # converged at a tight threshold
         converged[a[conv]], active[a[conv]] = True, False
         if stop_near is not None:
-            # corners of the model box under each start's pose, mapped back by stop_near's inverse: no move
-            # at all leaves them where they are
+            # stop_near's box corners (camera frame) taken into each start's pallet frame come back
+            # unmoved when the two poses agree
             here = transform_points(T_pal_cam[a], np.broadcast_to(corners_cam, (len(a), 8, 3)))
             near_pose = np.linalg.norm(here - corners, axis=-1).max(1) < stop_near_m
             stopped[a[near_pose]], active[a[near_pose]] = True, False
