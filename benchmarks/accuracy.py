@@ -157,6 +157,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-refine", action="store_true", help="the network's poses without the ICP refinement")
     ap.add_argument("--refine-starts", type=int, default=None,
                     help="extra ICP starts around each pose (default: EstimatorOptions.refine_starts)")
+    ap.add_argument("--max-pallets", type=int, default=None,
+                    help="pose at most this many detections per frame (default: EstimatorOptions.max_pallets)")
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of the per-pallet point sampling (EstimatorOptions.seed): run a few to see the spread")
     ap.add_argument("--write-scores", action="store_true",
@@ -170,7 +172,8 @@ def main(argv=None) -> int:
     precision = "int8" if args.int8 else "fp32"
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision=precision,
                                       refine=not args.no_refine, seed=args.seed,
-                                      **({} if args.refine_starts is None else {"refine_starts": args.refine_starts}))
+                                      **{k: v for k, v in (("refine_starts", args.refine_starts),
+                                                           ("max_pallets", args.max_pallets)) if v is not None})
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for preset in args.presets:
@@ -185,6 +188,7 @@ def main(argv=None) -> int:
     md = args.out / "accuracy.md"
     variant = precision + (", GT boxes" if args.gt_boxes else "") + (", no refinement" if args.no_refine else "") \
         + (f", {args.refine_starts} extra ICP starts" if args.refine_starts is not None and not args.no_refine else "") \
+        + (f", at most {args.max_pallets} pallets per frame" if args.max_pallets is not None else "") \
         + (f", sampling seed {args.seed}" if args.seed else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")

@@ -58,6 +58,17 @@ def test_eval_max_frames(tiny_bundle, sim_bop_dataset, tmp_path):
     assert doc["frames"] == 1 and all(r["frame"] == 0 for r in doc["records"])
 
 
+def test_eval_max_pallets_caps_the_pallets_posed_per_frame(tiny_bundle, sim_bop_dataset, tmp_path):
+    from pallet6d.runtime.cli import main
+
+    out = tmp_path / "e.json"
+    assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--json", str(out),
+                 "--gt-boxes", "--min-fit", "0", "--max-pallets", "1", "--threads", "1"]) == 0
+    doc = json.loads(out.read_text())
+    per_frame = [sum(r["detected"] for r in doc["records"] if r["frame"] == f) for f in range(doc["frames"])]
+    assert max(per_frame) == 1 and doc["n_detected"] < doc["n_gt"]
+
+
 def test_eval_bad_inputs(tiny_bundle, sim_bop_dataset, tmp_path, capsys):
     from pallet6d.runtime.cli import main
 
@@ -67,6 +78,8 @@ def test_eval_bad_inputs(tiny_bundle, sim_bop_dataset, tmp_path, capsys):
     assert "cannot load bundle" in err and str(tmp_path) in err
     assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--refine-starts", "9"]) == 2
     assert "refine_starts must be in [0, 8]" in capsys.readouterr().err
+    assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--max-pallets", "0"]) == 2
+    assert "max_pallets must be >= 1" in capsys.readouterr().err
 
 
 def test_eval_cli_does_not_import_torch():
