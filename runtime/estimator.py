@@ -229,6 +229,15 @@ class PalletEstimator:
         """
         return self.estimate(rgb, depth, K, depth_scale).poses
 
+    def detect(self, rgb: np.ndarray) -> Detections:
+        """The detector stage alone: boxes (image pixels, xyxy), scores and class ids after NMS, highest score
+        first, at most `max_pallets`. :param rgb: (H, W, 3) uint8 RGB."""
+        if not isinstance(rgb, np.ndarray) or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
+            raise ValueError(f"rgb must be an (H, W, 3) uint8 array, got "
+                             f"{getattr(rgb, 'shape', type(rgb).__name__)} {getattr(rgb, 'dtype', '')}")
+        det = self._detect(rgb, {})
+        return det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
+
     def estimate(self, rgb, depth=None, K=None, depth_scale=None) -> FrameResult:
         """Like `predict`, but the whole `FrameResult` (accepted, rejected, timings)."""
         t0 = time.perf_counter()

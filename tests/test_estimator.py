@@ -60,6 +60,20 @@ def test_end_to_end_types_shapes_and_determinism(est, frame):
     json.dumps(r1.to_dict())  # serialisable as one JSON line
 
 
+def test_detect_is_the_detector_stage_of_estimate(est, frame):
+    det = est.detect(frame.rgb)
+    r = est.estimate(frame.rgb, frame.depth_m, frame.K)
+    h, w = frame.depth_m.shape
+    assert 1 <= len(det) <= est.options.max_pallets and np.all(np.diff(det.scores) <= 0)
+    assert np.all(det.boxes_xyxy[:, [0, 2]] >= -1) and np.all(det.boxes_xyxy[:, [0, 2]] <= w + 1)
+    assert np.all(det.boxes_xyxy[:, [1, 3]] >= -1) and np.all(det.boxes_xyxy[:, [1, 3]] <= h + 1)
+    posed = sorted([*(p.box_xyxy for p in r.poses), *(x.box_xyxy for x in r.rejected)], key=lambda b: tuple(b))
+    np.testing.assert_allclose(posed, sorted(det.boxes_xyxy.tolist(), key=tuple))
+    for bad in (frame.rgb[..., 0], frame.rgb.astype(np.float32), None):
+        with pytest.raises(ValueError, match="rgb must be an \\(H, W, 3\\) uint8"):
+            est.detect(bad)
+
+
 def test_predict_returns_the_accepted_poses(est, frame):
     poses = est.predict(frame.rgb, frame.depth_m, frame.K)
     assert [p.to_dict() for p in poses] == [p.to_dict() for p in est.estimate(frame.rgb, frame.depth_m, frame.K).poses]
