@@ -104,6 +104,23 @@ def test_four_pallets_batched_equal_one_at_a_time(est, frame, boxes):
         assert single.poses[0].n_valid_points == pose.n_valid_points
 
 
+def test_graphs_run_in_chunks_of_graph_batch_with_the_same_poses(est, frame, boxes, monkeypatch):
+    from pallet6d.runtime import estimator as estimator_module
+
+    whole = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    calls = []
+    fusion_run = est.fusion.run
+    monkeypatch.setattr(est.fusion, "run", lambda feeds, out: calls.append(len(next(iter(feeds.values()))))
+                        or fusion_run(feeds, out))
+    monkeypatch.setattr(estimator_module, "GRAPH_BATCH", 3)
+    chunked = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    assert calls == [3, 1]
+    assert len(chunked.poses) == len(whole.poses) == 4
+    for a, b in zip(whole.poses, chunked.poses):
+        np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet, atol=1e-5)
+        assert a.confidence == pytest.approx(b.confidence, abs=1e-5)
+
+
 def test_rejections_are_reported_with_reasons(bundle_dir, frame, boxes):
     depth = frame.depth_m.copy()
     x1, y1, x2, y2 = boxes[1].astype(int)
