@@ -52,8 +52,8 @@ class AugmentConfig:
     :ivar depth_dropout_prob: probability of dropping random rectangles of depth (stereo holes).
     :ivar depth_noise_sigma_m: depth noise std at 1 m; grows with z^2 like stereo depth.
     :ivar flip_prob: probability of a horizontal flip (detector only: the pose stage needs true geometry).
-    :ivar zoom_range: detector only: the frame is scaled by a factor drawn from [1 - r, 1 + r] about a random
-        point (YOLOv8's `scale`); zooming out shows far, small pallets more often than the sim's camera paths do.
+    :ivar zoom_range: detector only: the frame is scaled about its centre by a factor drawn from [1 - r, 1 + r]
+        (YOLOv8's `scale`); zooming out shows far, small pallets more often than the sim's camera paths do.
     :ivar shift_fraction: detector only: random shift of that zoomed frame, as a fraction of its size.
     """
 

@@ -115,7 +115,7 @@ def load_init_weights(path: str | Path, nets: dict[str, torch.nn.Module]) -> dic
         try:
             net.load_state_dict(ckpt[k])
         except RuntimeError as exc:
-            raise ValueError(f"--init {path}: its {k!r} weights do not fit config's network: "
+            raise ValueError(f"--init {path}: its {k!r} weights do not fit this config's network: "
                              f"{str(exc).splitlines()[0]}") from None
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
     log.info("starting from the weights of %s (%s)", path, ", ".join(nets))

@@ -44,7 +44,7 @@ __all__ = ["EstimatorOptions", "PalletEstimator"]
 log = logging.getLogger(__name__)
 
 # The fusion and pose graphs run on at most this many pallets at once. onnxruntime's memory arena keeps the
-# largest batch it has seen: 16 pallets in one batch held about 90 MB more for good than 8 (soak, session 7),
+# largest batch it has seen: 16 pallets in one batch held about 95 MB more for good than 8 (soak, session 7),
 # while batches larger than 8 save little time per pallet.
 GRAPH_BATCH = 8
 STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
