@@ -32,7 +32,7 @@ from .bundle import Bundle, BundleError, load_bundle
 from .detector import Detections, decode_yolov8, letterbox, to_nchw, undo_letterbox
 from .fit import fit_score
 from .geometry import clamp_box
-from .inputs import check_rgbd
+from .inputs import check_rgb, check_rgbd
 from .pose_inputs import PoseBatch, gather_features, prepare_pose_inputs
 from .refine import MAX_STARTS, best_landing, box_points, refine_pose
 from .results import FitScore, FrameResult, PalletPose, Rejection
@@ -235,12 +235,8 @@ class PalletEstimator:
 
     def detect(self, rgb: np.ndarray) -> Detections:
         """The detector stage alone: boxes (image pixels, xyxy), scores and class ids after NMS, highest score
-        first, at most `max_pallets`. :param rgb: (H, W, 3) uint8 RGB."""
-        if not isinstance(rgb, np.ndarray) or rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
-            raise ValueError(f"rgb must be an (H, W, 3) uint8 array, got "
-                             f"{getattr(rgb, 'shape', type(rgb).__name__)} {getattr(rgb, 'dtype', '')}")
-        det = self._detect(rgb, {})
-        return det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
+        first, at most `max_pallets` (as `decode_yolov8` returns them). :param rgb: (H, W, 3) uint8 RGB."""
+        return self._detect(check_rgb(rgb), {})
 
     def estimate(self, rgb, depth=None, K=None, depth_scale=None) -> FrameResult:
         """Like `predict`, but the whole `FrameResult` (accepted, rejected, timings)."""
@@ -341,7 +337,6 @@ class PalletEstimator:
             sub = batch.take(np.asarray(go))
             f, q = self.bundle.fusion, self.bundle.pose
             outs = []
-            timings["fusion"] = timings["pose"] = 0.0
             for c in range(0, len(go), GRAPH_BATCH):   # see GRAPH_BATCH: bounds the graphs' memory
                 part = slice(c, c + GRAPH_BATCH)
                 t = time.perf_counter()

@@ -9,9 +9,20 @@ import numpy as np
 
 from .geometry import check_K
 
-__all__ = ["check_rgbd"]
+__all__ = ["check_rgb", "check_rgbd"]
 
 NONFINITE_MODES = ("raise", "as_missing")
+
+
+def check_rgb(rgb) -> np.ndarray:
+    """Validate an (H, W, 3) uint8 RGB image and return it."""
+    if not isinstance(rgb, np.ndarray):
+        raise TypeError(f"rgb must be a numpy array (H, W, 3) uint8, got {type(rgb).__name__}")
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"rgb must be (H, W, 3), got shape {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise TypeError(f"rgb must be uint8 (0-255), got dtype {rgb.dtype}")
+    return rgb
 
 
 def check_rgbd(rgb, depth, K, depth_scale_m: float | None = None,
@@ -26,14 +37,9 @@ def check_rgbd(rgb, depth, K, depth_scale_m: float | None = None,
     :param nonfinite_depth: "raise" on NaN/inf in float depth, or "as_missing" to read them as no data
         (drivers that follow ROS REP 118 mark missing depth with NaN/inf).
     """
-    if not isinstance(rgb, np.ndarray):
-        raise TypeError(f"rgb must be a numpy array (H, W, 3) uint8, got {type(rgb).__name__}")
+    check_rgb(rgb)
     if not isinstance(depth, np.ndarray):
         raise TypeError(f"depth must be a numpy array (H, W), got {type(depth).__name__}")
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"rgb must be (H, W, 3), got shape {rgb.shape}")
-    if rgb.dtype != np.uint8:
-        raise TypeError(f"rgb must be uint8 (0-255), got dtype {rgb.dtype}")
     if depth.ndim != 2:
         raise ValueError(f"depth must be a single-channel (H, W) image, got shape {depth.shape}")
     if depth.shape != rgb.shape[:2]:

@@ -69,8 +69,11 @@ def test_detect_is_the_detector_stage_of_estimate(est, frame):
     assert np.all(det.boxes_xyxy[:, [1, 3]] >= -1) and np.all(det.boxes_xyxy[:, [1, 3]] <= h + 1)
     posed = sorted([*(p.box_xyxy for p in r.poses), *(x.box_xyxy for x in r.rejected)], key=lambda b: tuple(b))
     np.testing.assert_allclose(posed, sorted(det.boxes_xyxy.tolist(), key=tuple))
-    for bad in (frame.rgb[..., 0], frame.rgb.astype(np.float32), None):
-        with pytest.raises(ValueError, match="rgb must be an \\(H, W, 3\\) uint8"):
+    # the same checks and messages as estimate's
+    for bad, error, match in ((frame.rgb[..., 0], ValueError, "rgb must be \\(H, W, 3\\)"),
+                              (frame.rgb.astype(np.float32), TypeError, "rgb must be uint8"),
+                              (None, TypeError, "rgb must be a numpy array")):
+        with pytest.raises(error, match=match):
             est.detect(bad)
 
 
