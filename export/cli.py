@@ -22,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--random-init", action="store_true", help="export untrained networks (to build/test the runtime)")
     parser.add_argument("--seed", type=int, default=0, help="seed for initialisation and calibration data")
     parser.add_argument("--int8", action="store_true", help="also write static int8 (QDQ) graphs")
+    parser.add_argument("--int8-stages",
+                        help="with --int8: comma-separated stages to quantize (default detector,fusion: the pose "
+                             "net loses accuracy when quantized); the others run their float graph at int8 too")
     parser.add_argument("--detector-onnx", help="use this YOLOv8 ONNX graph (ultralytics export layout) as detector")
     parser.add_argument("--classes", help="comma-separated class names of --detector-onnx (default: its metadata)")
     parser.add_argument("--fp32-weights", action="store_true",
@@ -38,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from .bundle_export import ExportError, export_bundle
+    from .bundle_export import INT8_STAGES, ExportError, export_bundle
     from .onnx_io import ParityError
 
     if args.torch_threads > 0:
@@ -51,7 +54,9 @@ def main(args: argparse.Namespace) -> int:
                                  random_init=args.random_init, int8=args.int8, detector_onnx=args.detector_onnx,
                                  classes=classes, name=args.name, command=command, calib_frames=args.calib_frames,
                                  calib_crops=args.calib_crops,
-                                 fp16_weights=not args.fp32_weights)
+                                 fp16_weights=not args.fp32_weights,
+                                 int8_stages=INT8_STAGES if args.int8_stages is None else
+                                 tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()))
     except (ExportError, ParityError) as exc:
         print(f"pallet6d export: {exc}", file=sys.stderr)
         return 1

@@ -30,7 +30,7 @@ manifest.json (format_version 1)::
         "feature_dim": 64
       },
       "pose": {
-        "file": "pose.onnx", "file_int8": "pose.int8.onnx" | null,
+        "file": "pose.onnx", "file_int8": "pose.int8.onnx" | "pose.onnx" | null,   # a float graph may run at int8
         "points_input": "points", "features_input": "features",        # (B, N, 3) centred metres, (B, N, C)
         "quat_output": "quat", "trans_output": "trans", "conf_output": "conf",   # (B, N, 4), (B, N, 3), (B, N)
         "num_points": 256, "depth_range_m": [0.1, 10.0],

@@ -184,8 +184,24 @@ def test_int8_graphs_run_and_correlate(tiny_bundle):
     f32 = run_session(ort_session(b.graph("fusion")), feeds)["features"]
     f8 = run_session(ort_session(b.graph("fusion", "int8")), feeds)["features"]
     assert f8.shape == f32.shape and np.corrcoef(f32.ravel(), f8.ravel())[0, 1] > 0.9
-    for stage, o in (("detector", "output0"), ("fusion", "features"), ("pose", "quat"), ("pose", "trans")):
+    for stage, o in (("detector", "output0"), ("fusion", "features")):
         assert manifest["checks"]["int8"][stage][o]["corr"] > 0.9, (stage, manifest["checks"]["int8"][stage])
+    # by default the pose net is not quantized: precision int8 runs its float graph
+    assert b.graph("pose", "int8") == b.graph("pose") and not (out / "pose.int8.onnx").exists()
+    assert manifest["checks"]["int8"]["pose"] == "float graph (not quantized)"
+
+
+def test_int8_stages_choose_what_is_quantized(tmp_path, tiny_bundle):
+    calib = tiny_bundle[2]
+    manifest = export_bundle(get_config("tiny"), tmp_path / "all", random_init=True, int8=True, calib=calib,
+                             int8_stages=("detector", "fusion", "pose"))
+    b = load_bundle(tmp_path / "all")
+    assert b.graph("pose", "int8").name == "pose.int8.onnx"
+    for o in ("quat", "trans"):
+        assert manifest["checks"]["int8"]["pose"][o]["corr"] > 0.9, manifest["checks"]["int8"]["pose"]
+    with pytest.raises(ExportError, match="int8 stages"):
+        export_bundle(get_config("tiny"), tmp_path / "bad", random_init=True, int8=True, calib=calib,
+                      int8_stages=("pose", "refine"))
 
 
 def test_export_refuses_bad_arguments(tmp_path, tiny_bundle):
