@@ -51,7 +51,7 @@ DET_IN, DET_OUT = "images", "output0"
 FP16_WEIGHTS_REL_RMS = 5e-3
 STAGES = ("detector", "fusion", "pose")
 # Stages quantized by default. The pose net stays float: quantizing it cost 2-3 points of ADD-sym at 5 cm
-# on noisy depth (validation indoor-noisy, session 8: int8 pose 75.7 %, float pose 78.0 %, all-float 78.7 %)
+# on noisy depth (validation indoor-noisy, session-7 networks: int8 pose 75.7 %, float pose 78.0 %, all float 78.7 %)
 # and saved only 2 ms per pallet on 2 cores (0.7 of a pallet's 5.6 GFLOP).
 INT8_STAGES = ("detector", "fusion")
 
