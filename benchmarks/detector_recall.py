@@ -16,13 +16,12 @@ from pathlib import Path
 import numpy as np
 
 HEIGHT_BINS_PX = ((0, 15), (15, 25), (25, 40), (40, 100000))
-MIN_VISIB_FRACT = 0.1
 
 
 def rows_for(est, data: Path, max_frames: int) -> np.ndarray:
     """(n, 4): visible fraction, visible box height px, best IoU, that detection's score; one row per pallet."""
     from pallet6d.runtime.bop import BopDataset
-    from pallet6d.runtime.evaluation import box_iou
+    from pallet6d.runtime.evaluation import MIN_VISIB_FRACT, box_iou
 
     ds = BopDataset(data)
     rows = []

@@ -28,6 +28,7 @@ import numpy as np
 
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.detector import letterbox
+from pallet6d.runtime.evaluation import MIN_VISIB_FRACT
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
@@ -37,7 +38,6 @@ __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerpri
 
 log = logging.getLogger(__name__)
 
-MIN_VISIB_FRACT = 0.1     # the evaluation's convention: less visible pallets are neither trained on nor scored
 CACHE_VERSION = 1         # bump when the cached arrays' meaning changes
 
 

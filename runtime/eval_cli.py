@@ -16,8 +16,6 @@ from pathlib import Path
 
 import numpy as np
 
-MIN_VISIB_FRACT = 0.1   # evaluation.evaluate_frame's default: less visible pallets are not scored
-
 from .estimator_cli import add_estimator_arguments, load_estimator
 
 HELP = "accuracy of a model bundle on a BOP dataset (precision, recall, ADD / symmetric ADD accuracy)"
@@ -46,7 +44,8 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
     :raises ValueError: not a BOP dataset, or a frame the estimator rejects.
     """
     from .bop import BopDataset
-    from .evaluation import Estimate, evaluate_frame, ground_truths_from_bop, records_to_dicts, summarize
+    from .evaluation import (MIN_VISIB_FRACT, Estimate, evaluate_frame, ground_truths_from_bop, records_to_dicts,
+                             summarize)
 
     ds = BopDataset(data, split)
     n = len(ds) if not max_frames else min(len(ds), max_frames)

@@ -20,8 +20,9 @@ from . import metrics
 
 __all__ = ["GroundTruth", "Estimate", "PalletRecord", "box_iou", "ground_truths_from_bop", "evaluate_frame",
            "summarize", "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M",
-           "DEFAULT_VISIBILITY_BINS"]
+           "DEFAULT_VISIBILITY_BINS", "MIN_VISIB_FRACT"]
 
+MIN_VISIB_FRACT = 0.1   # the BOP convention: a pallet counts (is trained on, scored) when >= 10 % visible
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.1)
 DEFAULT_DISTANCE_BINS_M = (0.0, 2.0, 3.0, 4.0, 5.0, 8.0, np.inf)
 DEFAULT_VISIBILITY_BINS = (0.1, 0.3, 0.6, 1.0)
@@ -93,7 +94,7 @@ def box_iou(a_xyxy: np.ndarray, b_xyxy: np.ndarray) -> np.ndarray:
 
 def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[GroundTruth], model_pts: np.ndarray,
                    symmetries: np.ndarray, iou_threshold: float = 0.5,
-                   min_visib_fract: float = 0.1) -> tuple[list[PalletRecord], int, int]:
+                   min_visib_fract: float = MIN_VISIB_FRACT) -> tuple[list[PalletRecord], int, int]:
     """Match one frame's estimates to its ground truth and measure the pose errors.
 
     :param model_pts: (n, 3) model points, metres; :param symmetries: (S, 4, 4).
