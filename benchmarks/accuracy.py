@@ -139,6 +139,13 @@ def markdown(results: dict[str, dict], bundle: str, precision: str, frames: int)
         for b in d.get("by_visibility", []):
             lines.append(f"| {preset} | {b['from']:g}-{b['to']:g} | {b['n_gt']} | {pct(b['add_sym_lt_5cm'])} | "
                          f"{pct(b['add_sym_5_10cm'])} | {pct(b['add_sym_ge_10cm'])} | {pct(b['missed'])} |")
+    lines += ["", "Pallets wholly in view and pallets cut by the image border (whose pose rests on the part in view):",
+              "", "| dataset | where | pallets | < 5 cm | 5-10 cm | >= 10 cm | missed |", "|---|---|---|---|---|---|---|"]
+    for preset, d in results.items():
+        for b in d.get("by_truncation", []):
+            where = "cut by the border" if b["truncated"] else "in view"
+            lines.append(f"| {preset} | {where} | {b['n_gt']} | {pct(b['add_sym_lt_5cm'])} | "
+                         f"{pct(b['add_sym_5_10cm'])} | {pct(b['add_sym_ge_10cm'])} | {pct(b['missed'])} |")
     lines += ["", "![accuracy vs threshold](accuracy_vs_threshold.png)", "", "![histogram](add_histogram.png)", "",
               "![by distance](accuracy_by_distance.png)", ""]
     return "\n".join(lines)

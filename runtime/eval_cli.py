@@ -58,7 +58,7 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
         frames = tqdm(frames, desc=f"eval {Path(data).name}", unit="frame", file=sys.stderr)
     for i in frames:
         f = ds[i]
-        gts, skipped = ground_truths_from_bop(f.gts)
+        gts, skipped = ground_truths_from_bop(f.gts, f.rgb.shape[:2])
         n_no_box += skipped
         if gt_boxes:
             boxes = np.array([g.box_visib_xyxy for g in gts if g.visib_fract >= MIN_VISIB_FRACT]).reshape(-1, 4)
@@ -94,6 +94,10 @@ def format_table(summary: dict) -> str:
         lines.append(f"  {b['from_m']:g}-{to} m: n={b['n_gt']:<4} ADD-sym {acc}")
     for b in summary.get("by_visibility", []):
         lines.append(f"  {b['from']:g}-{b['to']:g} visible: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, "
+                     f"5-10cm {b['add_sym_5_10cm']:.2f}, >=10cm {b['add_sym_ge_10cm']:.2f}, missed {b['missed']:.2f}")
+    for b in summary.get("by_truncation", []):
+        where = "cut by the image border" if b["truncated"] else "wholly in view"
+        lines.append(f"  {where}: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, "
                      f"5-10cm {b['add_sym_5_10cm']:.2f}, >=10cm {b['add_sym_ge_10cm']:.2f}, missed {b['missed']:.2f}")
     return "\n".join(lines)
 

@@ -30,11 +30,14 @@ DEFAULT_VISIBILITY_BINS = (0.1, 0.3, 0.6, 1.0)
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """:param T_cam_model: (4, 4) metres; :param box_visib_xyxy: (4,) visible 2D box, pixels."""
+    """:param T_cam_model: (4, 4) metres; :param box_visib_xyxy: (4,) visible 2D box, pixels;
+    :param truncated: the pallet's whole projected box reaches beyond the image (KITTI's truncation): part of it
+        is out of view, not hidden behind something."""
 
     T_cam_model: np.ndarray
     box_visib_xyxy: np.ndarray
     visib_fract: float
+    truncated: bool = False
 
 
 @dataclass(frozen=True)
@@ -59,13 +62,17 @@ class PalletRecord:
     adds_m: float
     rot_err_sym_deg: float
     trans_err_m: float
+    truncated: bool = False
 
 
-def ground_truths_from_bop(bop_gts: Sequence) -> tuple[list[GroundTruth], int]:
+def ground_truths_from_bop(bop_gts: Sequence, image_hw: tuple[int, int] | None = None
+                           ) -> tuple[list[GroundTruth], int]:
     """`GroundTruth`s of one BOP frame's annotations (`pallet6d.runtime.bop.BopGT`).
 
     Annotations without a visible box (a BOP set without scene_gt_info.json) cannot be matched and are
     skipped; an unknown visible fraction (NaN) counts as fully visible.
+    :param image_hw: (H, W) of the frame: marks pallets whose whole box (`bbox_obj`) leaves the image as
+        truncated. Without it, or without `bbox_obj`, none is.
     :return: (ground truths, number of annotations skipped).
     """
     out, skipped = [], 0
@@ -75,8 +82,16 @@ def ground_truths_from_bop(bop_gts: Sequence) -> tuple[list[GroundTruth], int]:
             continue
         x, y, w, h = (float(v) for v in g.bbox_visib_xywh)
         visib = float(g.visib_fract) if np.isfinite(g.visib_fract) else 1.0
-        out.append(GroundTruth(g.T_cam_model, np.array([x, y, x + w, y + h]), visib))
+        out.append(GroundTruth(g.T_cam_model, np.array([x, y, x + w, y + h]), visib,
+                               _leaves_image(g.bbox_obj_xywh, image_hw)))
     return out, skipped
+
+
+def _leaves_image(box_xywh, image_hw: tuple[int, int] | None) -> bool:
+    if box_xywh is None or image_hw is None:
+        return False
+    x, y, w, h = (float(v) for v in box_xywh)
+    return x < 0 or y < 0 or x + w > image_hw[1] or y + h > image_hw[0]
 
 
 def box_iou(a_xyxy: np.ndarray, b_xyxy: np.ndarray) -> np.ndarray:
@@ -130,7 +145,8 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
                         rot_err_sym_deg=metrics.rotation_error_sym_deg(R, R_gt, symmetries),
                         trans_err_m=metrics.translation_error_m(t, t_gt))
         records.append(PalletRecord(frame=frame, distance_m=float(np.linalg.norm(t_gt)),
-                                    visib_fract=float(g.visib_fract), detected=j in matched_est, **errs))
+                                    visib_fract=float(g.visib_fract), detected=j in matched_est,
+                                    truncated=bool(g.truncated), **errs))
     return records, tp, fp
 
 
@@ -141,7 +157,8 @@ def summarize(records: Iterable[PalletRecord], true_positives: int, false_positi
     """Machine-readable summary: n_gt, precision, recall, add_acc / add_sym_acc / adds_acc per threshold
     (keys are the thresholds in metres as strings, e.g. "0.05"), AUC to 10 cm, accuracy by distance, and by
     visible fraction where the failures are: missed (no pose reported), symmetric ADD >= 10 cm, 5-10 cm, < 5 cm
-    (fractions of that bin's pallets; the last bin includes its upper edge)."""
+    (fractions of that bin's pallets; the last bin includes its upper edge), and the same split for pallets
+    wholly in view and pallets cut by the image border (`by_truncation`)."""
     records = list(records)
     n_gt = len(records)
     n_pred = true_positives + false_positives
@@ -170,18 +187,25 @@ def summarize(records: Iterable[PalletRecord], true_positives: int, false_positi
     out["by_distance"] = by_distance
     visib = np.array([r.visib_fract for r in records])
     detected = np.array([r.detected for r in records], dtype=bool)
+
+    def outcome(sel: np.ndarray) -> dict:
+        n = int(sel.sum())
+        e = add_sym[sel & detected]
+        return {"n_gt": n, "missed": float((sel & ~detected).sum() / n),
+                "add_sym_ge_10cm": float((e >= 0.1).sum() / n),
+                "add_sym_5_10cm": float(((e >= 0.05) & (e < 0.1)).sum() / n),
+                "add_sym_lt_5cm": float((e < 0.05).sum() / n)}
+
     by_visibility = []
     edges = list(visibility_bins)
     for k, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
         sel = (visib >= lo) & ((visib < hi) | ((k == len(edges) - 2) & (visib <= hi)))
-        n = int(sel.sum())
-        if n:
-            e = add_sym[sel & detected]
-            by_visibility.append({"from": lo, "to": hi, "n_gt": n, "missed": float((sel & ~detected).sum() / n),
-                                  "add_sym_ge_10cm": float((e >= 0.1).sum() / n),
-                                  "add_sym_5_10cm": float(((e >= 0.05) & (e < 0.1)).sum() / n),
-                                  "add_sym_lt_5cm": float((e < 0.05).sum() / n)})
+        if sel.any():
+            by_visibility.append({"from": lo, "to": hi, **outcome(sel)})
     out["by_visibility"] = by_visibility
+    truncated = np.array([r.truncated for r in records], dtype=bool)
+    out["by_truncation"] = [{"truncated": bool(t), **outcome(truncated == t)} for t in (False, True)
+                            if (truncated == t).any()]
     return out
 
 

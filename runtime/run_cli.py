@@ -49,7 +49,7 @@ def _bop_frames(root: str) -> Iterator[tuple[object, list | None]]:
         f = ds[i]
         frame = RGBDFrame.from_depth_m(f.rgb, f.depth_m, f.K, timestamp_s=float(i), frame_number=i,
                                        source=f"bop:{root}", depth_scale_m=float(f.depth_scale_mm) * 1e-3)
-        gts, _ = ground_truths_from_bop(f.gts)
+        gts, _ = ground_truths_from_bop(f.gts, f.rgb.shape[:2])
         yield frame, gts
 
 

@@ -26,3 +26,19 @@ def test_write_scores_records_each_preset_per_precision(bundle_dir, tmp_path, ca
     assert "records" not in clean and scores["int8"]["virtual-clean"]["recall"] == 0.7
     assert scores["fp32"]["command"].startswith("python benchmarks/accuracy.py")
     assert check_bundle(bundle) == []
+
+
+def test_markdown_reports_pallets_cut_by_the_image_border():
+    import numpy as np
+
+    from pallet6d.runtime.evaluation import PalletRecord, summarize
+
+    def rec(err_m, truncated):
+        return PalletRecord(frame=0, distance_m=3.0, visib_fract=0.2 if truncated else 0.9, detected=err_m is not None,
+                            add_m=np.inf if err_m is None else err_m, add_sym_m=np.inf if err_m is None else err_m,
+                            adds_m=np.inf, rot_err_sym_deg=0.0, trans_err_m=0.0, truncated=truncated)
+
+    summary = summarize([rec(0.01, False), rec(0.02, False), rec(None, True), rec(0.3, True)], 3, 0)
+    table = accuracy.markdown({"virtual-clean": summary}, "b", "fp32", 1)
+    assert "| virtual-clean | in view | 2 | 100% | 0% | 0% | 0% |" in table
+    assert "| virtual-clean | cut by the border | 2 | 0% | 0% | 50% | 50% |" in table

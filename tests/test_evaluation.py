@@ -65,6 +65,39 @@ def test_outcomes_by_visibility():
     assert summarize([], 0, 0)["by_visibility"] == []
 
 
+def test_outcomes_in_view_and_cut_by_the_image_border():
+    truncated = GroundTruth(make_T(np.eye(3), [2.0, 0, 3.0]), np.array([200, 0, 300, 50], float), 0.2, truncated=True)
+    gts = [gt(0.0, [0, 0, 100, 50]), truncated, gt(4.0, [400, 0, 500, 50])]
+    ests = [est(0.01, [0, 0, 100, 50]), est(2.3, [200, 0, 300, 50])]   # in view: 1 cm and missed; cut: 30 cm
+    records, tp, fp = evaluate_frame(0, ests, gts, PTS, SYMS)
+    assert [r.truncated for r in records] == [False, True, False]
+    in_view, cut = summarize(records, tp, fp)["by_truncation"]
+    assert (in_view["truncated"], in_view["n_gt"], in_view["add_sym_lt_5cm"], in_view["missed"]) == (False, 2, .5, .5)
+    assert (cut["truncated"], cut["n_gt"], cut["add_sym_ge_10cm"], cut["missed"]) == (True, 1, 1.0, 0.0)
+    assert summarize(records[:1], 1, 0)["by_truncation"] == [
+        {"truncated": False, "n_gt": 1, "missed": 0.0, "add_sym_ge_10cm": 0.0, "add_sym_5_10cm": 0.0,
+         "add_sym_lt_5cm": 1.0}]   # a group without pallets is left out
+
+
+@pytest.mark.parametrize("bbox_obj, image_hw, truncated", [
+    ([10, 10, 50, 20], (100, 200), False),
+    ([150, 10, 50, 20], (100, 200), False),   # touches the right edge: still in view
+    ([151, 10, 50, 20], (100, 200), True),
+    ([-1, 10, 50, 20], (100, 200), True),
+    ([10, 90, 50, 20], (100, 200), True),
+    ([-1, 10, 50, 20], None, False),          # image size unknown
+    (None, (100, 200), False),                # no bbox_obj in the annotations
+])
+def test_ground_truth_truncation_from_bop(bbox_obj, image_hw, truncated):
+    from pallet6d.runtime.bop import BopGT
+    from pallet6d.runtime.evaluation import ground_truths_from_bop
+
+    g = BopGT(1, make_T(np.eye(3), [0, 0, 3.0]), bbox_obj_xywh=None if bbox_obj is None else np.array(bbox_obj),
+              bbox_visib_xywh=np.array([20, 20, 10, 10]), visib_fract=0.5)
+    gts, skipped = ground_truths_from_bop([g], image_hw)
+    assert skipped == 0 and gts[0].truncated is truncated
+
+
 def test_one_estimate_matches_one_pallet():
     gts = [gt(0.0, [0, 0, 100, 50]), gt(0.0, [0, 0, 100, 52])]
     records, tp, fp = evaluate_frame(0, [est(0.0, [0, 0, 100, 50])], gts, PTS, SYMS)
