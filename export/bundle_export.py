@@ -84,15 +84,30 @@ def _warm_up_batchnorm(model: torch.nn.Module, batches: list[tuple[torch.Tensor,
     model.eval()
 
 
-def _load_checkpoint(path: Path, nets: dict[str, torch.nn.Module], cfg: ModelConfig,
-                     need: tuple[str, ...]) -> dict | None:
-    """Load the networks' weights; return the checkpoint's training provenance (recipe, data, seeds) if any."""
+def _read_checkpoint(path: Path) -> dict:
     try:
         ckpt = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as exc:
         raise ExportError(f"cannot read checkpoint {path}: {exc}") from None
     if not isinstance(ckpt, dict):
         raise ExportError(f"checkpoint {path}: expected a dict with 'detector'/'fusion'/'pose' state dicts")
+    return ckpt
+
+
+def trained_input_hw(ckpt: dict) -> tuple[int, int] | None:
+    """The detector input (H, W) a checkpoint's detector was trained at (`pallet6d train detector
+    --detector-input`), from its provenance; None when not recorded (then the config's size applies)."""
+    prov = ckpt.get("provenance")
+    if not isinstance(prov, dict):
+        return None
+    det = prov if prov.get("stage") == "detector" else prov.get("detector")
+    hw = det.get("input_hw") if isinstance(det, dict) else None
+    return (int(hw[0]), int(hw[1])) if hw is not None else None
+
+
+def _load_checkpoint(path: Path, ckpt: dict, nets: dict[str, torch.nn.Module], cfg: ModelConfig,
+                     need: tuple[str, ...]) -> dict | None:
+    """Load the networks' weights; return the checkpoint's training provenance (recipe, data, seeds) if any."""
     if ckpt.get("config") not in (None, cfg.name):
         raise ExportError(f"checkpoint {path} was trained with config {ckpt.get('config')!r}, not {cfg.name!r}")
     for key in need:
@@ -190,6 +205,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ExportError(f"output folder {out} is not empty; choose a new folder")
+    ckpt = _read_checkpoint(Path(checkpoint)) if checkpoint is not None else None
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(seed)
     nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
@@ -199,11 +215,16 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     if detector_onnx is not None:
         det_hw, det_classes = _external_detector(Path(detector_onnx), classes)
         cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=det_hw, classes=det_classes))
+    elif ckpt is not None and trained_input_hw(ckpt) not in (None, cfg.detector.input_hw):
+        # the detector is fully convolutional: export it at the size it was trained at
+        log.info("detector input %s, as trained (config %s: %s)", trained_input_hw(ckpt), cfg.name,
+                 cfg.detector.input_hw)
+        cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=trained_input_hw(ckpt)))
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed)
     need = ("fusion", "pose") if detector_onnx is not None else ("detector", "fusion", "pose")
     training = None
     if checkpoint is not None:
-        training = _load_checkpoint(Path(checkpoint), nets, cfg, need)
+        training = _load_checkpoint(Path(checkpoint), ckpt, nets, cfg, need)
     else:
         t = torch.from_numpy
         _warm_up_batchnorm(nets["detector"], [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)])

@@ -10,7 +10,9 @@ confident hypothesis; detector = validation loss), `train_log.jsonl` (one line p
 lr, seconds) and `cache/` (prepared samples, reused while the data and settings are unchanged). A run is
 stopped cleanly by `--max-minutes` and continued with `--resume` (same arguments). `--init CKPT` starts a new
 run from a checkpoint's weights (fine-tuning, e.g. on more data, with a fresh schedule); the checkpoint's path and
-sha256 go into the new run's provenance.
+sha256 go into the new run's provenance. `--detector-input HxW` trains the detector at another letterboxed size
+than the config's (it is fully convolutional); the size is recorded in the checkpoint, and `pallet6d export`
+exports the detector at the size it was trained at.
 
 Default recipe for the shipped `edge` bundle (and, unchanged, the `densefusion` ablation)
 ------------------------------------------------------------------------------------------
@@ -47,6 +49,7 @@ On CUDA (`--device cuda`) epochs take seconds to a minute: use `--epochs 40` (po
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import shlex
 import sys
@@ -97,8 +100,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-fraction", type=float, default=0.1, help="frames held out for validation (0.1)")
     parser.add_argument("--cache-dir", type=Path, help="prepared-sample cache (default RUN_DIR/cache)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars (background runs)")
+    parser.add_argument("--detector-input", type=_hw, metavar="HxW",
+                        help="detector: train at this letterboxed input size instead of the config's (multiples "
+                             "of 32, e.g. 256x832 for small, far pallets); export uses the size it was trained at")
     parser.add_argument("--detector", type=Path, help="merge: detector checkpoint")
     parser.add_argument("--pose", type=Path, help="merge: pose checkpoint")
+
+
+def _hw(text: str) -> tuple[int, int]:
+    try:
+        h, w = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected HxW, e.g. 256x832, got {text!r}") from None
+    return h, w
 
 
 def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path) -> dict:
@@ -159,6 +173,11 @@ def main(args: argparse.Namespace) -> int:
                                 warmup_epochs=1.0 if args.stage == "detector" else 0.0, device=args.device,
                                 amp=args.amp)
         cfg = get_config(args.config)
+        if args.detector_input is not None:
+            if args.stage != "detector":
+                print("pallet6d train: --detector-input is for the detector stage", file=sys.stderr)
+                return 2
+            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=args.detector_input))
         common = dict(resume=args.resume, cache_dir=args.cache_dir, val_fraction=args.val_fraction,
                       max_frames=args.max_frames, command=command, progress=not args.no_progress,
                       init=args.init)

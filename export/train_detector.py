@@ -148,7 +148,8 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     no_decay = [p for n, p in trainer.detector.named_parameters() if p.ndim <= 1]
     optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": 5e-4}, {"params": no_decay, "weight_decay": 0.0}],
                                   lr=settings.lr, betas=(0.937, 0.999))
-    provenance = {"stage": "detector", "config": cfg.name, "seed": settings.seed, "command": command,
+    provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
+                  "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,
                   "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx))},

@@ -152,12 +152,15 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
         if ckpt.get("stage") != stage or ckpt.get("config") != config_name:
             raise ValueError(f"{run_dir / LAST} is a {ckpt.get('stage')!r}/{ckpt.get('config')!r} run, not "
                              f"{stage!r}/{config_name!r}")
+        before = ckpt.get("provenance", {})
+        if before.get("input_hw", provenance.get("input_hw")) != provenance.get("input_hw"):
+            raise ValueError(f"{run_dir / LAST} was trained at input {before['input_hw']}, not "
+                             f"{provenance.get('input_hw')}: resume with the same --detector-input")
         for k, net in nets.items():
             net.load_state_dict(ckpt[k])
         optimizer.load_state_dict(ckpt["optimizer"])
         start_epoch, best = int(ckpt["epoch"]), float(ckpt["best_metric"])
         # a resumed run may go on longer than first planned (a larger --epochs): keep what came before
-        before = ckpt.get("provenance", {})
         earlier = [*before.get("earlier_runs", []),
                    {"command": before.get("command", ""), "epochs": before.get("epochs"), "stopped_at_epoch": start_epoch}]
         provenance = {**provenance, "earlier_runs": earlier}

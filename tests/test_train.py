@@ -283,3 +283,38 @@ def test_checkpoint_exports_to_a_bundle_the_runtime_loads(pose_run, sim_bop_data
     with torch.no_grad():
         conf_torch = net(torch.from_numpy(pts), torch.from_numpy(feats))[2].numpy()
     np.testing.assert_allclose(conf_onnx, conf_torch, atol=1e-4)
+
+
+def test_detector_trained_at_another_input_size_exports_at_that_size(pose_run, sim_bop_dataset, tmp_path):
+    import dataclasses
+
+    from pallet6d.export.bundle_export import export_bundle, trained_input_hw
+    from pallet6d.export.train_cli import merge_checkpoints
+    from pallet6d.export.train_detector import train_detector
+    from pallet6d.runtime.bundle import load_bundle
+
+    big = CFG.replace(detector=dataclasses.replace(CFG.detector, input_hw=(96, 160)))
+    train_detector(big, [sim_bop_dataset], tmp_path / "det", LoopSettings(epochs=1, batch=2, lr=1e-3),
+                   progress=False)
+    det = load_checkpoint(tmp_path / "det" / "last.pt")
+    assert det["provenance"]["input_hw"] == [96, 160] and trained_input_hw(det) == (96, 160)
+    with pytest.raises(ValueError, match="trained at input"):   # resuming at the config's size is refused
+        train_detector(CFG, [sim_bop_dataset], tmp_path / "det", LoopSettings(epochs=2, batch=2, lr=1e-3),
+                       resume=True, progress=False)
+    merged = merge_checkpoints(tmp_path / "det" / "last.pt", pose_run[0] / "best.pt", tmp_path / "model.pt")
+    assert trained_input_hw(merged) == (96, 160)
+    calib = make_calibration_set(big, frames=2, max_crops=4, seed=0, synthetic=True)
+    export_bundle(CFG, tmp_path / "bundle", checkpoint=tmp_path / "model.pt", calib=calib)
+    assert tuple(load_bundle(tmp_path / "bundle").detector.input_hw) == (96, 160)
+    assert trained_input_hw({"provenance": {"stage": "pose"}}) is None and trained_input_hw({}) is None
+
+
+def test_train_cli_parses_the_detector_input_size():
+    import argparse
+
+    from pallet6d.export.train_cli import _hw
+
+    assert _hw("256x832") == (256, 832) and _hw("256X832") == (256, 832)
+    for bad in ("256", "256x", "axb", "1x2x3"):
+        with pytest.raises(argparse.ArgumentTypeError, match="HxW"):
+            _hw(bad)
