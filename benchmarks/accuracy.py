@@ -16,6 +16,7 @@ import argparse
 import fcntl
 import json
 import logging
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -32,18 +33,22 @@ CURVE_THRESHOLDS_M = np.linspace(0.0, 0.2, 81)
 
 
 def ensure_test_set(preset: str, frames: int, root: Path) -> Path:
-    """The test set of `preset` with `frames` frames (generated when missing or of another size)."""
+    """The test set of `preset` with `frames` frames (generated when missing, of another size, or annotated by
+    an older generator: `GT_INFO_VERSION`)."""
     from pallet6d.runtime.bop import BopDataset
-    from pallet6d.sim.dataset import write_dataset
+    from pallet6d.sim.dataset import GT_INFO_VERSION, write_dataset
     from pallet6d.sim.presets import get_preset
 
     out = root / f"{preset}-seed{TEST_SEEDS[preset]}-{frames}"
     try:
-        if len(BopDataset(out)) == frames:
+        meta = json.loads((out / "test" / "sim_config_000000.json").read_text())
+        if len(BopDataset(out)) == frames and meta.get("gt_info_version", 1) == GT_INFO_VERSION:
             log.info("reusing %s", out)
             return out
-    except ValueError:
+    except (OSError, ValueError):
         pass
+    if out.exists():
+        shutil.rmtree(out)
     log.info("generating %s (%d frames, seed %d)", out, frames, TEST_SEEDS[preset])
     t = time.perf_counter()
     write_dataset(get_preset(preset), frames, TEST_SEEDS[preset], out, split="test")

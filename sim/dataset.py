@@ -16,10 +16,13 @@ from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
 from pallet6d.sim.presets import SimConfig
 from pallet6d.sim.preview import draw_preview
 
-__all__ = ["IMAGES_PER_SCENE", "write_models", "frame_to_bop_gts", "write_dataset"]
+__all__ = ["GT_INFO_VERSION", "IMAGES_PER_SCENE", "write_models", "frame_to_bop_gts", "write_dataset"]
 
 log = logging.getLogger(__name__)
 IMAGES_PER_SCENE = 1000   # as in BOP's train_pbr: scene folders are chunks of 1000 frames
+# what the annotations mean, written into each sim_config: 2 = px_count_all / visib_fract count the silhouette
+# out of view too (BOP's calc_gt_info); 1 (before 2026-11-22, or absent) counted only the part in the image
+GT_INFO_VERSION = 2
 
 
 def write_models(root) -> None:
@@ -53,8 +56,8 @@ def write_dataset(config: SimConfig, frames: int, seed: int, out, split: str = "
     out = Path(out)
     write_models(out)
     previews: list[Path] = []
-    meta = {"generator": "pallet6d.sim", "seed": seed, "start": start, "frames": frames,
-            "config": dataclasses.asdict(config)}
+    meta = {"generator": "pallet6d.sim", "gt_info_version": GT_INFO_VERSION, "seed": seed, "start": start,
+            "frames": frames, "config": dataclasses.asdict(config)}
     (out / split).mkdir(parents=True, exist_ok=True)
     (out / split / f"sim_config_{start:06d}.json").write_text(json.dumps(meta, indent=1))
     with BopWriter(out, split) as writer:

@@ -43,6 +43,8 @@ class PalletGT:
     """Ground truth of one pallet in a frame.
 
     T_cam_pallet: (4, 4) metres. mask_visib / mask_full: (H, W) bool (full = the pallet rendered alone).
+    px_count_all counts the whole silhouette, outside the image too (BOP), so visib_fract drops when the
+    image border cuts the pallet.
     bbox_*_xywh: (4,) int pixels; bbox_obj is the whole projected pallet and may extend past the image.
     box3d_cam: (8, 3) corners of the pallet's bounding box in the camera frame (order of `box_corners`).
     px_count_valid: visible pixels with sensor depth.
@@ -113,6 +115,25 @@ def _pack(scene: Scene):
     return T_cam_box[:, :3, :3], T_cam_box[:, :3, 3], half, material, color, seed, inst
 
 
+def _silhouette_px_count(boxes_m: np.ndarray, T_cam_pallet: np.ndarray, K: np.ndarray,
+                         image_hw: tuple[int, int]) -> int:
+    """Pixels of a pallet's whole silhouette, the part outside the image included: as BOP's calc_gt_info,
+    on a canvas 3x the image with the image in its centre. So a pallet cut by the image border is that much
+    less visible (`px_count_all`, `visib_fract`), not fully visible.
+
+    :param boxes_m: (k, 2, 3) the pallet's boards and blocks, pallet frame.
+    """
+    h, w = image_hw
+    K_canvas = K.astype(np.float64).copy()
+    K_canvas[0, 2] += w
+    K_canvas[1, 2] += h
+    lo, hi = boxes_m[:, 0], boxes_m[:, 1]
+    R = np.repeat(T_cam_pallet[None, :3, :3], len(lo), axis=0)
+    rc = raycast_boxes(R, transform_points(T_cam_pallet, (lo + hi) / 2), (hi - lo) / 2, K_canvas, (3 * h, 3 * w),
+                       group=np.ones(len(lo), dtype=np.int64))
+    return int(rc.full_masks[1].sum()) if 1 in rc.full_masks else 0
+
+
 def _pallet_gts(scene: Scene, depth_sensor: np.ndarray, inst_img: np.ndarray,
                 full_masks: dict[int, np.ndarray]) -> list[PalletGT]:
     h, w = scene.image_hw
@@ -134,6 +155,8 @@ def _pallet_gts(scene: Scene, depth_sensor: np.ndarray, inst_img: np.ndarray,
         half = model.size_m / 2
         box3d = transform_points(T_cam_pallet, box_corners(np.stack([-half, half])[None])[0])
         n_all, n_vis = int(full.sum()), int(visib.sum())
+        if full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any():
+            n_all = max(n_all, _silhouette_px_count(model.boxes_m, T_cam_pallet, scene.K, (h, w)))
         out.append(PalletGT(
             instance_id=p.instance_id, model_name=p.model_name, obj_id=obj_id_of(p.model_name),
             T_cam_pallet=T_cam_pallet, mask_visib=visib, mask_full=full, bbox_obj_xywh=bbox_obj,

@@ -42,3 +42,19 @@ def test_markdown_reports_pallets_cut_by_the_image_border():
     table = accuracy.markdown({"virtual-clean": summary}, "b", "fp32", 1)
     assert "| virtual-clean | in view | 2 | 100% | 0% | 0% | 0% |" in table
     assert "| virtual-clean | cut by the border | 2 | 0% | 0% | 50% | 50% |" in table
+
+
+def test_test_sets_annotated_by_an_older_generator_are_made_again(tmp_path):
+    from pallet6d.sim.dataset import GT_INFO_VERSION
+
+    out = accuracy.ensure_test_set("indoor-noisy", 1, tmp_path)
+    meta_path = out / "test" / "sim_config_000000.json"
+    assert json.loads(meta_path.read_text())["gt_info_version"] == GT_INFO_VERSION
+    stamp = (out / "test" / "000000" / "scene_gt_info.json").stat().st_mtime_ns
+    assert accuracy.ensure_test_set("indoor-noisy", 1, tmp_path) == out          # current: reused
+    assert (out / "test" / "000000" / "scene_gt_info.json").stat().st_mtime_ns == stamp
+    meta = json.loads(meta_path.read_text())
+    del meta["gt_info_version"]                                                  # as written before version 2
+    meta_path.write_text(json.dumps(meta))
+    accuracy.ensure_test_set("indoor-noisy", 1, tmp_path)
+    assert json.loads(meta_path.read_text())["gt_info_version"] == GT_INFO_VERSION

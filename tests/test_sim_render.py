@@ -85,6 +85,18 @@ def test_gt_fields_are_consistent():
                                atol=1e-9)
 
 
+def test_image_border_cuts_the_visible_fraction_as_bop_counts_it():
+    whole = render_scene(pallet_scene()).pallets[0]
+    scene = pallet_scene()
+    scene.K = K_SMALL.copy()
+    scene.K[0, 2] -= 150.0          # the same view shifted 150 px left: the border cuts the pallet
+    (cut,) = render_scene(scene).pallets
+    assert cut.px_count_all == whole.px_count_all      # the whole silhouette, the part out of view included
+    assert cut.mask_full.sum() < 0.8 * whole.mask_full.sum()
+    assert cut.visib_fract == pytest.approx(cut.mask_full.sum() / whole.px_count_all)
+    assert cut.bbox_obj_xywh[0] < 0 and whole.visib_fract == pytest.approx(1.0)
+
+
 def test_occluder_reduces_visible_fraction():
     T = g.make_T(np.eye(3), [-1.37, -0.04, 0.4])   # covers about half of the pallet
     wall = Box(T, [0.3, 0.3, 0.4], MATERIALS.index("cardboard"), [0.6, 0.5, 0.3])
