@@ -215,11 +215,10 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     if detector_onnx is not None:
         det_hw, det_classes = _external_detector(Path(detector_onnx), classes)
         cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=det_hw, classes=det_classes))
-    elif ckpt is not None and trained_input_hw(ckpt) not in (None, cfg.detector.input_hw):
+    elif ckpt is not None and (hw := trained_input_hw(ckpt)) not in (None, cfg.detector.input_hw):
         # the detector is fully convolutional: export it at the size it was trained at
-        log.info("detector input %s, as trained (config %s: %s)", trained_input_hw(ckpt), cfg.name,
-                 cfg.detector.input_hw)
-        cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=trained_input_hw(ckpt)))
+        log.info("detector input %s, as trained (config %s: %s)", hw, cfg.name, cfg.detector.input_hw)
+        cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=hw))
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed)
     need = ("fusion", "pose") if detector_onnx is not None else ("detector", "fusion", "pose")
     training = None

@@ -115,6 +115,10 @@ def _pack(scene: Scene):
     return T_cam_box[:, :3, :3], T_cam_box[:, :3, 3], half, material, color, seed, inst
 
 
+def _touches_border(mask: np.ndarray) -> bool:
+    return bool(mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any())
+
+
 def _silhouette_px_count(boxes_m: np.ndarray, T_cam_pallet: np.ndarray, K: np.ndarray,
                          image_hw: tuple[int, int]) -> int:
     """Pixels of a pallet's whole silhouette, the part outside the image included: as BOP's calc_gt_info,
@@ -155,7 +159,7 @@ def _pallet_gts(scene: Scene, depth_sensor: np.ndarray, inst_img: np.ndarray,
         half = model.size_m / 2
         box3d = transform_points(T_cam_pallet, box_corners(np.stack([-half, half])[None])[0])
         n_all, n_vis = int(full.sum()), int(visib.sum())
-        if full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any():
+        if _touches_border(full):
             n_all = max(n_all, _silhouette_px_count(model.boxes_m, T_cam_pallet, scene.K, (h, w)))
         out.append(PalletGT(
             instance_id=p.instance_id, model_name=p.model_name, obj_id=obj_id_of(p.model_name),
@@ -214,7 +218,7 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
         full = rc.full_masks.get(scene.target_instance)
         n_all = 0 if full is None else int(full.sum())
         # The whole target must be inside the image (its silhouette does not touch the border) ...
-        inside = n_all > 0 and not (full[0].any() or full[-1].any() or full[:, 0].any() or full[:, -1].any())
+        inside = n_all > 0 and not _touches_border(full)
         visib = int((inst_img == scene.target_instance).sum()) / n_all if n_all else 0.0
         best = max(best, visib if inside else 0.0)
         if inside and visib >= config.min_target_visib:
