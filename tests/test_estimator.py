@@ -190,7 +190,7 @@ def test_bad_options_and_precision(bundle_dir):
         EstimatorOptions(refine_margin=-1.1)
     with pytest.raises(ValueError, match="refine_max_rms_m"):
         EstimatorOptions(refine_max_rms_m=0.0)
-    for bad in ({"refine_starts": -1}, {"refine_starts": 9}):
+    for bad in ({"refine_starts": -1}, {"refine_starts": 15}):
         with pytest.raises(ValueError, match="refine_starts"):
             EstimatorOptions(**bad)
     with pytest.raises(ValueError, match="refine_select_tol_m"):

@@ -76,8 +76,8 @@ def test_eval_bad_inputs(tiny_bundle, sim_bop_dataset, tmp_path, capsys):
     assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "cannot load bundle" in err and str(tmp_path) in err
-    assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--refine-starts", "9"]) == 2
-    assert "refine_starts must be in [0, 8]" in capsys.readouterr().err
+    assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--refine-starts", "15"]) == 2
+    assert "refine_starts must be in [0, 14]" in capsys.readouterr().err
     assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--max-pallets", "0"]) == 2
     assert "max_pallets must be >= 1" in capsys.readouterr().err
 
