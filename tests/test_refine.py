@@ -215,6 +215,19 @@ def test_best_landing_recovers_turns_and_slides_that_icp_alone_keeps(yaw_deg, sh
         assert k >= 0 and _err(T, T_gt) < 0.01
 
 
+@pytest.mark.parametrize("shift_y_m", [0.08, 0.1, -0.1, -0.12])
+def test_slides_along_the_width_need_the_width_starts(shift_y_m):
+    # measured on this scene: ICP and the first 4 starts (turns, slides along the length) stay 7-15 cm off
+    T_gt, pts = _scene("virtual-clean", 1)
+    score = _depth_score("virtual-clean", 1)
+    T_icp = refine_pose(T_gt @ make_T(np.eye(3), np.array([0.0, shift_y_m, 0.0])), pts, EPAL.boxes_m).T_cam_pallet
+    assert _err(T_icp, T_gt) > 0.05
+    T4, _ = best_landing(T_icp, pts, EPAL.boxes_m, 4, 300, score, 0.004)
+    assert _err(T4, T_gt) > 0.05
+    T10, k = best_landing(T_icp, pts, EPAL.boxes_m, 10, 300, score, 0.004)
+    assert k >= 4 and _err(T10, T_gt) < 0.01
+
+
 def test_best_landing_keeps_a_right_pose_and_handles_no_starts():
     T_gt, pts = _scene("virtual-occluded", 2)
     score = _depth_score("virtual-occluded", 2)
