@@ -79,8 +79,8 @@ class EstimatorOptions:
     :ivar refine_points: at most this many depth points of the box go into the refinement.
     :ivar refine_iterations: refinement steps (0 disables it too).
     :ivar refine_starts: then also run ICP from this many poses around the pose so far, the first of
-        `refine.start_offsets` (yaw +-15 degrees, +-10 cm along the pallet's length, +-5 cm along it, +-5 and
-        +-10 cm along its width, then +-30 degrees, +-20 cm along the length); a landing that ICP trusts
+        `refine.start_offsets` (yaw +-15 degrees, +-10 cm along the pallet's length, +-10 cm along its width,
+        +-5 cm along the length and the width, then +-30 degrees, +-20 cm along the length); a landing that ICP trusts
         (`refine_start_max_rms_m`) and that explains the box's depth better (fit score at
         `refine_select_tol_m`) replaces it. It pulls the network's larger errors back into ICP's basin.
         0 turns it off. The default 10 (session 10) against the 4 before: validation virtual-occluded

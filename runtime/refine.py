@@ -119,8 +119,8 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
 # virtual-clean (cut by the border) and virtual-occluded (session 10).
 # (yaw degrees, shift along x metres, shift along y metres)
 _STARTS = ((15.0, 0.0, 0.0), (-15.0, 0.0, 0.0), (0.0, 0.1, 0.0), (0.0, -0.1, 0.0),
-           (0.0, 0.05, 0.0), (0.0, -0.05, 0.0), (0.0, 0.0, 0.05), (0.0, 0.0, -0.05),
            (0.0, 0.0, 0.1), (0.0, 0.0, -0.1),
+           (0.0, 0.05, 0.0), (0.0, -0.05, 0.0), (0.0, 0.0, 0.05), (0.0, 0.0, -0.05),
            (30.0, 0.0, 0.0), (-30.0, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, -0.2, 0.0))
 MAX_STARTS = len(_STARTS)
 
