@@ -83,9 +83,10 @@ class EstimatorOptions:
         +-5 cm along the length and the width, then +-30 degrees, +-20 cm along the length); a landing that ICP trusts
         (`refine_start_max_rms_m`) and that explains the box's depth better (fit score at
         `refine_select_tol_m`) replaces it. It pulls the network's larger errors back into ICP's basin.
-        0 turns it off. The default 10 (session 10) against the 4 before: validation virtual-occluded
-        79.6 -> 82.0 % within 5 cm, virtual-clean 96.8 -> 97.3 %, indoor-noisy unchanged
-        (`benchmarks/results/refine-starts.md`).
+        0 turns it off. The default 6 (session 10) against the 4 before: validation virtual-occluded
+        79.6 -> 82.0 % within 5 cm, virtual-clean 96.8 -> 97.3 %, indoor-noisy unchanged (measured with 10; the
+        last 4 of those 10 changed 1 pallet in 1815 with the session-10 networks, for half again the time of
+        a frame; `benchmarks/results/refine-starts.md`).
     :ivar refine_start_points: depth points each extra start uses (an even subset of `refine_points`).
     :ivar refine_select_tol_m: tolerance of the fit score that compares landings, metres (tighter than
         `fit_tol_m`: on depth clean enough to trust ICP, 1.5 cm separates the right landing).
@@ -109,7 +110,7 @@ class EstimatorOptions:
     refine_margin: float = 0.0
     refine_points: int = 600
     refine_iterations: int = 20
-    refine_starts: int = 10
+    refine_starts: int = 6
     refine_start_points: int = 300
     refine_select_tol_m: float = 0.015
     refine_start_max_rms_m: float = 0.003
