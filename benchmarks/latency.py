@@ -1,6 +1,7 @@
 """Latency of the runtime per stage and end to end, on this machine's cores (never run by the tests).
 
-For each bundle x precision (fp32, int8) x threads (1, 2) x pallets (1, 4): `--frames` frames of a
+For each bundle x precision (fp32, int8) x threads (1, 2) x pallets (1, 4) [x extra ICP starts,
+`--refine-starts 0 6 10`, default the estimator's]: `--frames` frames of a
 1224x370 synthetic warehouse scene; the detector runs on the whole frame, and the pose stage gets
 exactly P pallets (the scene's P most visible ground-truth boxes, so the count does not depend on a
 random-init detector). Reports p50/p95/p99 in milliseconds per stage and end to end, the same
@@ -14,6 +15,7 @@ Writes benchmarks/results/latency.json and latency.md.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import subprocess
@@ -43,11 +45,13 @@ def _scene():
     return frame, np.array(boxes, float)
 
 
-def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes) -> dict:
+def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes,
+                  refine_starts: int) -> dict:
     from pallet6d.runtime.detector import Detections
     from pallet6d.runtime.estimator import PalletEstimator
 
-    est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0)
+    est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
+                                      refine_starts=refine_starts)
     det = Detections(boxes[:pallets], np.linspace(0.9, 0.5, pallets), np.zeros(pallets, np.int64))
     samples: dict[str, list[float]] = {s: [] for s in STAGES}
     for i in range(frames + 5):
@@ -142,14 +146,14 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
              f"`{info['command']}` at {info['git_commit']} on {info['date_utc']}; {info['cpus']} CPUs, "
              f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}. Weights: {weights} "
              "(latency does not depend on the weights' values).", "",
-             "| bundle | precision | threads | pallets | " + " | ".join(f"{s} p50" for s in STAGES[:-1])
+             "| bundle | precision | threads | pallets | ICP starts | " + " | ".join(f"{s} p50" for s in STAGES[:-1])
              + " | total p50 | total p95 | total p99 | torch eager nets p50 | onnx nets p50 | torch/onnx |",
-             "|" + "---|" * (4 + len(STAGES) - 1 + 6)]
+             "|" + "---|" * (5 + len(STAGES) - 1 + 6)]
     for r in results:
         s = r["stages"]
         nets = s["detector"]["p50"] + s["fusion"]["p50"] + s["pose"]["p50"]
         t = r.get("torch_eager_nets")
-        lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r['pallets']} | "
+        lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r['pallets']} | {r['refine_starts']} | "
                      + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
                      + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
                      + (f"{t['p50']:.1f} | {nets:.1f} | {t['p50'] / nets:.2f} |" if t else f"- | {nets:.1f} | - |"))
@@ -167,12 +171,17 @@ def main() -> int:
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--pallets", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--precision", nargs="+", default=["fp32", "int8"])
+    ap.add_argument("--refine-starts", type=int, nargs="+", default=None,
+                    help="extra ICP starts to measure (default: EstimatorOptions.refine_starts)")
     ap.add_argument("--no-torch", action="store_true", help="skip the torch eager comparison")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = ap.parse_args()
 
     from pallet6d.runtime.bundle import load_bundle
 
+    from pallet6d.runtime.estimator import EstimatorOptions
+
+    starts_list = args.refine_starts or [EstimatorOptions.refine_starts]
     frame, boxes = _scene()
     results, footprints = [], {}
     for bundle in args.bundle:
@@ -183,10 +192,10 @@ def main() -> int:
                 continue
             footprints[f"{b.config}|{precision}"] = footprint(bundle, precision)
             for threads in args.threads:
-                for pallets in args.pallets:
-                    stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes)
+                for pallets, starts in itertools.product(args.pallets, starts_list):
+                    stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes, starts)
                     r = {"bundle": b.config, "precision": precision, "threads": threads, "pallets": pallets,
-                         "frames": args.frames, "stages": stages}
+                         "refine_starts": starts, "frames": args.frames, "stages": stages}
                     if not args.no_torch and precision == "fp32":
                         r["torch_eager_nets"] = bench_torch(b.config, threads, pallets, max(20, args.frames // 4))
                     results.append(r)

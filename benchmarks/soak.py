@@ -46,12 +46,14 @@ def default_source(root: Path) -> str:
     return f"bop:{root}"
 
 
-def soak(bundle: str, precision: str, threads: int, source: str, minutes: float, window: int) -> dict:
+def soak(bundle: str, precision: str, threads: int, source: str, minutes: float, window: int,
+         refine_starts: int | None = None) -> dict:
     from pallet6d.runtime.cameras import open_source
     from pallet6d.runtime.estimator import PalletEstimator
 
     rss_start = rss_mb()
-    est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision)
+    extra = {} if refine_starts is None else {"refine_starts": refine_starts}
+    est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, **extra)
     windows, ms, poses, frames = [], [], 0, 0
     t_start = time.perf_counter()
     with open_source(source, loop=True) as cam:
@@ -71,7 +73,8 @@ def soak(bundle: str, precision: str, threads: int, source: str, minutes: float,
                     break
     if len(windows) < 3:
         raise SystemExit("soak: fewer than three windows; run longer or use a smaller --window")
-    return {"bundle": bundle, "precision": precision, "threads": threads, "source": source, "frames": frames,
+    return {"bundle": bundle, "precision": precision, "threads": threads,
+            "refine_starts": est.options.refine_starts, "source": source, "frames": frames,
             "rss_before_mb": round(rss_start, 1), **rss_summary(windows), "windows": windows}
 
 
@@ -87,7 +90,8 @@ def rss_summary(windows: list[dict]) -> dict:
 def markdown(doc: dict, command: str) -> str:
     w = doc["windows"]
     lines = ["# Soak run", "", f"`{command}` on {doc['created']}, {doc['machine']}.", "",
-             f"{doc['frames']} frames of `{doc['source']}` in a loop, {doc['precision']}, onnxruntime threads={doc['threads']}. "
+             f"{doc['frames']} frames of `{doc['source']}` in a loop, {doc['precision']}, onnxruntime threads={doc['threads']}, "
+             f"{doc['refine_starts']} extra ICP starts. "
              f"RSS before loading the bundle {doc['rss_before_mb']} MB; after the first window it stays within "
              f"{doc['rss_min_mb']}-{doc['rss_max_mb']} MB, and the peak of the second half minus that of the first "
              f"is {doc['rss_peak_growth_mb']:+} MB.", "",
@@ -104,6 +108,8 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--source", help="bop:DIR or replay:DIR, played in a loop (default: a generated recording)")
     ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--refine-starts", type=int, default=None,
+                    help="extra ICP starts (default: EstimatorOptions.refine_starts)")
     ap.add_argument("--window", type=int, default=200, help="frames per reported window")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/soak"))
     args = ap.parse_args(argv)

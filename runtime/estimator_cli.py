@@ -23,7 +23,7 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str
     parser.add_argument("--no-refine", action="store_true",
                         help="report the network's poses without the ICP refinement on the depth")
     parser.add_argument("--refine-starts", type=int, default=None,
-                        help="extra ICP starts around each pose, 0-8; a landing counts on clean depth only "
+                        help="extra ICP starts around each pose, 0-14; a landing counts on clean depth only "
                              "(default: EstimatorOptions.refine_starts, 6; 0 is fastest)")
 
 
