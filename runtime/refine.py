@@ -69,13 +69,17 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
     lo, hi = boxes[:, 0], boxes[:, 1]                           # (k, 3)
-    # squared distance outside each box, one axis at a time: (n, k) temporaries only (ICP calls this
+    # squared distance outside each box, one axis at a time, in place on two (n, k) buffers (ICP calls this
     # every iteration; with (n, k, 3) temporaries it was most of the refinement's time)
-    d_out2 = np.zeros((n, len(boxes)))
+    d_out2, gap, tmp = np.zeros((n, len(boxes))), np.empty((n, len(boxes))), np.empty((n, len(boxes)))
     for a in range(3):
-        gap = np.maximum(lo[None, :, a] - p[:, a, None], p[:, a, None] - hi[None, :, a])
+        pa = p[:, a, None]
+        np.subtract(lo[None, :, a], pa, out=gap)
+        np.subtract(pa, hi[None, :, a], out=tmp)
+        np.maximum(gap, tmp, out=gap)
         np.maximum(gap, 0.0, out=gap)
-        d_out2 += gap * gap
+        np.multiply(gap, gap, out=gap)
+        d_out2 += gap
     j = d_out2.argmin(1)                                         # nearest box per point
     d = np.sqrt(d_out2[np.arange(n), j])
     q = np.clip(p, lo[j], hi[j])
@@ -88,7 +92,11 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
     # of at its outside distance (boxes may overlap); the nearest wins
     pi, o2 = p[ins], d_out2[ins]
-    d_in = np.minimum(pi[:, None] - lo[None], hi[None] - pi[:, None]).min(-1)   # (m, k)
+    d_in = np.full(o2.shape, np.inf)                              # (m, k) depth below each box's nearest face
+    for a in range(3):
+        pa = pi[:, a, None]
+        np.minimum(d_in, pa - lo[None, :, a], out=d_in)
+        np.minimum(d_in, hi[None, :, a] - pa, out=d_in)
     dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
     ji = dist.argmin(1)
     r = np.arange(len(ins))
@@ -254,7 +262,10 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
             break
         w = np.where(use, (1.0 - (np.minimum(d, thr) / thr) ** 2) ** 2, 0.0)           # Tukey biweight
         r = ((p - q) * nrm).sum(-1)                                                       # point-to-plane
-        J = np.concatenate([np.cross(p, nrm), nrm], axis=-1)  # d r / d (w, v) of a motion applied to p
+        J = np.empty(p.shape[:-1] + (6,))                    # d r / d (w, v) of a motion applied to p
+        for c, (c1, c2) in enumerate(((1, 2), (2, 0), (0, 1))):                         # p x nrm
+            np.subtract(p[..., c1] * nrm[..., c2], p[..., c2] * nrm[..., c1], out=J[..., c])
+        J[..., 3:] = nrm
         wsum = w.sum(1)
         var = np.maximum((w * r * r).sum(1) / wsum, 0.002 ** 2)                          # noise, metres^2
         Jw = J * w[..., None]
