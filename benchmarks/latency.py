@@ -178,7 +178,6 @@ def main() -> int:
     args = ap.parse_args()
 
     from pallet6d.runtime.bundle import load_bundle
-
     from pallet6d.runtime.estimator import EstimatorOptions
 
     starts_list = args.refine_starts or [EstimatorOptions.refine_starts]
