@@ -10,9 +10,11 @@ confident hypothesis; detector = validation loss), `train_log.jsonl` (one line p
 lr, seconds) and `cache/` (prepared samples, reused while the data and settings are unchanged). A run is
 stopped cleanly by `--max-minutes` and continued with `--resume` (same arguments). `--init CKPT` starts a new
 run from a checkpoint's weights (fine-tuning, e.g. on more data, with a fresh schedule); the checkpoint's path and
-sha256 go into the new run's provenance. `--detector-input HxW` trains the detector at another letterboxed size
-than the config's (it is fully convolutional); the size is recorded in the checkpoint, and `pallet6d export`
-exports the detector at the size it was trained at.
+sha256 go into the new run's provenance. `--init models/epal-default` starts from a shipped bundle instead: the
+weights are read back from its float graphs (`bundle_weights.py`; parity with the graphs is checked and recorded),
+so training can go on from what ships when the run that made it is gone. `--detector-input HxW` trains the
+detector at another letterboxed size than the config's (it is fully convolutional); the size is recorded in the
+checkpoint, and `pallet6d export` exports the detector at the size it was trained at.
 
 Default recipe for the shipped `edge` bundle (and, unchanged, the `densefusion` ablation)
 ------------------------------------------------------------------------------------------
@@ -89,8 +91,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
     parser.add_argument("--init", type=Path,
-                        help="start from this checkpoint's weights (a run's best.pt or a merged file): fine-tuning "
-                             "with a fresh schedule, e.g. on more data; ignored with --resume")
+                        help="start from these weights: a run's best.pt, a merged file, or a model bundle folder "
+                             "(e.g. models/epal-default: read back from its float graphs, checked against them); "
+                             "fine-tuning with a fresh schedule, e.g. on more data; ignored with --resume")
     parser.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="torch device (default cpu)")
     parser.add_argument("--amp", action="store_true",
                         help="bfloat16 autocast of the forward passes: about 1.8x faster on CPUs with AVX512-BF16 or "

@@ -104,10 +104,14 @@ def load_checkpoint(path: str | Path) -> dict:
 
 
 def load_init_weights(path: str | Path, nets: dict[str, torch.nn.Module]) -> dict:
-    """Load each net's weights from a checkpoint; return what to record of it (path, sha256, config, epoch).
+    """Load each net's weights from a checkpoint, or from a model bundle's float graphs (a folder:
+    `bundle_weights`); return what to record of it (path, sha256, config, epoch or parity).
 
-    :raises ValueError: not a checkpoint, a net missing from it, or weights that do not fit the net.
+    :raises ValueError: not a checkpoint or bundle, a net missing from it, or weights that do not fit the net.
     """
+    if Path(path).is_dir():
+        from .bundle_weights import load_bundle_weights
+        return load_bundle_weights(path, nets)
     ckpt = load_checkpoint(path)
     for k, net in nets.items():
         if k not in ckpt:
@@ -140,8 +144,9 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
     :param step: (index batch, rng) -> (loss to minimise, {name: float} to log).
     :param validate: () -> {"metric": float (lower is better), ...}; nets are in eval mode during it.
     :param provenance: stored in every checkpoint (seed, command, data fingerprints, ...).
-    :param init: a checkpoint (of this stage, or merged) whose weights start a new run: fine-tuning with a
-        fresh schedule and optimizer. Ignored when resuming (the run's own last.pt has the weights).
+    :param init: a checkpoint (of this stage, or merged) or a model bundle folder whose weights start a new
+        run: fine-tuning with a fresh schedule and optimizer. Ignored when resuming (the run's own last.pt has
+        the weights).
     """
     from tqdm import tqdm
 

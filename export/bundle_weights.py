@@ -1,0 +1,266 @@
+"""Torch weights back from a shipped bundle's float ONNX graphs: fine-tune the model that ships.
+
+Training checkpoints live in `runs/`, outside git; the bundle in `models/` is what a later session or an
+integrator retraining on real data actually has. `load_bundle_weights` rebuilds each network's state from
+the graph it was exported to and proves it with a parity check against onnxruntime:
+
+- initializers named after a parameter (`head.cls.0.2.weight`) are copied; float16-stored ones
+  (`weights_fp16`) come back through their Cast;
+- the exporter folded each BatchNorm into the convolution before it (anonymous `onnx::Conv_*`
+  initializers); the node's name is the module's scope (`/rgb/backbone/layer1/layer1.0/conv1/Conv` is
+  `rgb.backbone.layer1.0.conv1`), which takes the folded kernel, and its BatchNorm takes the folded bias;
+- Linear weights appear transposed in a MatMul, PReLU slopes reshaped to (C, 1, 1).
+
+A folded BatchNorm has lost its statistics, so they are measured again: the per-channel mean and variance
+of its input over calibration crops, with its scale and shift chosen so that the network computes exactly
+what the graph computes. In training mode the batch statistics then start close to those, as after the
+original training (an identity BatchNorm would normalise every channel to unit variance at the first step).
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from onnx import numpy_helper
+
+from pallet6d.runtime.bundle import MANIFEST, Bundle, load_bundle, sha256_file
+from pallet6d.runtime.pose_inputs import gather_features
+
+from .calib_data import CalibrationSet, make_calibration_set
+from .config import get_config
+from .onnx_io import check_parity, ort_session, run_session
+
+__all__ = ["BundleWeightsError", "load_bundle_weights"]
+
+log = logging.getLogger(__name__)
+
+_BN = torch.nn.modules.batchnorm._BatchNorm
+
+
+class BundleWeightsError(ValueError):
+    """A bundle's graph cannot be mapped back onto the network (another config, an external detector, ...)."""
+
+
+def _graph_values(model: onnx.ModelProto) -> dict[str, np.ndarray]:
+    """Initializers by the name their consumers use: a float16-stored weight under its Cast's output, a
+    parameter equal to another (the exporter keeps one copy) under its Identity's output."""
+    values = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    for node in model.graph.node:
+        if node.op_type in ("Cast", "Identity") and node.input and node.input[0] in values:
+            values[node.output[0]] = values[node.input[0]].astype(np.float32)
+    return values
+
+
+def _module_path(node_name: str) -> str:
+    """'/rgb/backbone/layer1/layer1.0/conv1/Conv' -> 'rgb.backbone.layer1.0.conv1' (the exporter names a
+    container's child 'parent.index')."""
+    parts: list[str] = []
+    prev = ""
+    for seg in node_name.strip("/").split("/")[:-1]:
+        parts.append(seg[len(prev) + 1:] if prev and seg.startswith(prev + ".") else seg)
+        prev = seg
+    return ".".join(parts)
+
+
+def _conv_batchnorm_pairs(net: torch.nn.Module, example: tuple[torch.Tensor, ...]) -> dict[str, str]:
+    """{conv module path: BatchNorm module path} for each BatchNorm fed directly by a convolution's output."""
+    names = {m: n for n, m in net.named_modules()}
+    last_out: dict[int, str] = {}
+    pairs: dict[str, str] = {}
+
+    def conv_hook(mod, inp, out):
+        last_out[id(out)] = names[mod]
+
+    def bn_hook(mod, inp):
+        src = last_out.get(id(inp[0]))
+        if src is not None:
+            pairs[src] = names[mod]
+
+    convs = (torch.nn.Conv1d, torch.nn.Conv2d)
+    hooks = [m.register_forward_hook(conv_hook) for m in net.modules() if isinstance(m, convs)]
+    hooks += [m.register_forward_pre_hook(bn_hook) for m in net.modules() if isinstance(m, _BN)]
+    try:
+        with torch.no_grad():
+            net.eval()
+            net(*example)
+    finally:
+        for h in hooks:
+            h.remove()
+    return pairs
+
+
+def _state_from_graph(net: torch.nn.Module, graph_path: Path,
+                      example: tuple[torch.Tensor, ...]) -> tuple[dict, list[str]]:
+    """The state dict the graph encodes, with folded BatchNorms as identities carrying the folded bias.
+
+    :return: (state dict, paths of the folded BatchNorms).
+    """
+    model = onnx.load(str(graph_path))
+    values = _graph_values(model)
+    state = {k: v.clone() for k, v in net.state_dict().items()}
+    done: set[str] = set()
+
+    def put(key: str, value: np.ndarray) -> None:
+        if key not in state:
+            raise BundleWeightsError(f"{graph_path.name}: the graph has {key!r}, which this network does not")
+        want = tuple(state[key].shape)
+        if value.size != int(np.prod(want)):
+            raise BundleWeightsError(f"{graph_path.name}: {key!r} is {value.shape} in the graph, {want} in the network "
+                                     "(another config?)")
+        state[key] = torch.from_numpy(np.array(value, dtype=np.float32).reshape(want))   # a writable copy
+        done.add(key)
+
+    for name, value in values.items():
+        if name in state:
+            put(name, value)
+    pairs = _conv_batchnorm_pairs(net, example)
+    folded: list[str] = []
+    modules = dict(net.named_modules())
+    # by node as well: the exporter shares one initializer among parameters of equal value (named after one
+    # of them), and folded convolutions have anonymous ones
+    for node in model.graph.node:
+        path = _module_path(node.name)
+        mod = modules.get(path)
+        consts = [values.get(i) for i in node.input]
+        if node.op_type == "Conv" and len(node.input) > 1 and consts[1] is not None:
+            if not isinstance(mod, (torch.nn.Conv1d, torch.nn.Conv2d)):
+                raise BundleWeightsError(f"{graph_path.name}: node {node.name!r} names module {path!r}, which is not "
+                                         "a convolution of this network (another config?)")
+            put(f"{path}.weight", consts[1])
+            bias = consts[2] if len(consts) > 2 else None
+            bn = pairs.get(path)
+            if bn is not None:                           # folded: the BatchNorm becomes x + bias
+                eps, c = modules[bn].eps, modules[bn].num_features
+                if f"{path}.bias" in state:
+                    put(f"{path}.bias", np.zeros(c))
+                put(f"{bn}.weight", np.ones(c))
+                put(f"{bn}.bias", bias if bias is not None else np.zeros(c))
+                put(f"{bn}.running_mean", np.zeros(c))
+                put(f"{bn}.running_var", np.full(c, 1.0 - eps))
+                folded.append(bn)
+            elif bias is not None:
+                put(f"{path}.bias", bias)
+        elif isinstance(mod, torch.nn.Linear) and node.op_type in ("MatMul", "Gemm", "Add"):
+            for i, v in enumerate(consts):
+                if v is None:
+                    continue
+                if node.op_type == "Add":
+                    put(f"{path}.bias", v)
+                elif i == 1:                              # x @ W.T (MatMul) or Gemm with transB
+                    put(f"{path}.weight", v if node.op_type == "Gemm" else v.T)
+                elif i == 2:
+                    put(f"{path}.bias", v)
+        elif isinstance(mod, torch.nn.PReLU) and node.op_type == "PRelu" and consts[1] is not None:
+            put(f"{path}.weight", consts[1])
+        elif isinstance(mod, torch.nn.LayerNorm) and node.op_type == "LayerNormalization":
+            if consts[1] is not None:
+                put(f"{path}.weight", consts[1])
+            if len(consts) > 2 and consts[2] is not None:
+                put(f"{path}.bias", consts[2])
+    left = [k for k in state if k not in done and not k.endswith("num_batches_tracked")]
+    if left:
+        raise BundleWeightsError(f"{graph_path.name}: no weights in the graph for {len(left)} tensors of the network, "
+                                 f"e.g. {left[:4]} (another config?)")
+    return state, folded
+
+
+@torch.no_grad()
+def _restore_batchnorm_statistics(net: torch.nn.Module, folded: list[str],
+                                  batches: list[tuple[torch.Tensor, ...]]) -> None:
+    """Give each folded (identity + bias b) BatchNorm the mean m and variance v of its input over `batches`,
+    with weight sqrt(v + eps) and bias b + m: the same function in eval mode, realistic statistics in training."""
+    modules = dict(net.named_modules())
+    sums: dict[str, list] = {p: [0.0, 0.0, 0] for p in folded}
+
+    def hook_for(path: str):
+        def hook(mod, inp):
+            x = inp[0].double()
+            dims = [0] + list(range(2, x.dim()))
+            acc = sums[path]
+            acc[0] = acc[0] + x.sum(dims)
+            acc[1] = acc[1] + (x * x).sum(dims)
+            acc[2] += x.numel() // x.shape[1]
+        return hook
+
+    hooks = [modules[p].register_forward_pre_hook(hook_for(p)) for p in folded]
+    try:
+        net.eval()
+        for args in batches:
+            net(*args)
+    finally:
+        for h in hooks:
+            h.remove()
+    for p in folded:
+        s, ss, n = sums[p]
+        bn = modules[p]
+        mean = s / n
+        var = torch.clamp(ss / n - mean * mean, min=0.0)
+        bn.running_mean.copy_(mean.float())
+        bn.running_var.copy_(var.float())
+        bn.weight.copy_(torch.sqrt(var + bn.eps).float())
+        bn.bias.add_(mean.float())
+
+
+def _stage_inputs(stage: str, calib: CalibrationSet, bundle: Bundle) -> tuple[tuple, list[tuple], list[str], list[str]]:
+    """(parity example, BatchNorm batches, graph input names, output names) of a stage, from `calib`."""
+    t = torch.from_numpy
+    d, f, q = bundle.detector, bundle.fusion, bundle.pose
+    if stage == "detector":
+        images = [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)]
+        return (t(calib.images[:1]),), images, [d.input_name], [d.output_name]
+    if stage == "fusion":
+        n = len(calib.rgb_crops)
+        crops = [(t(calib.rgb_crops[i:i + 8]), t(calib.depth_crops[i:i + 8])) for i in range(0, n, 8)]
+        return (t(calib.rgb_crops[:2]), t(calib.depth_crops[:2])), crops, [f.rgb_input, f.depth_input], [f.output_name]
+    feats = run_session(ort_session(bundle.graph("fusion", "fp32"), threads=2),
+                        {f.rgb_input: calib.rgb_crops[:2], f.depth_input: calib.depth_crops[:2]})
+    example = (t(calib.points[:2]), t(gather_features(feats[f.output_name], calib.choose[:2])))
+    return example, [example], [q.points_input, q.features_input], [q.quat_output, q.trans_output, q.conf_output]
+
+
+def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module], calib_frames: int = 8,
+                        seed: int = 0) -> dict:
+    """Load `nets` ({"detector" | "fusion" | "pose": network}) from the bundle's float graphs.
+
+    :return: what to record of it: the bundle's path, name, config, graph sha256s and the parity checks.
+    :raises BundleWeightsError: not a bundle, a graph the networks cannot take (another config, an
+        external detector), or weights that do not reproduce the graph.
+    """
+    root = Path(bundle_dir)
+    try:
+        bundle = load_bundle(root)
+    except ValueError as exc:
+        raise BundleWeightsError(f"--init {root}: {exc}") from None
+    manifest = json.loads((root / MANIFEST).read_text())
+    if manifest["detector"].get("source") not in (None, "pallet6d") and "detector" in nets:
+        raise BundleWeightsError(f"--init {root}: its detector is an external graph, not one of ours")
+    cfg = get_config(bundle.config)
+    cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw)))
+    calib = make_calibration_set(cfg, frames=calib_frames, seed=seed)
+    record: dict = {"bundle": str(root), "name": bundle.name, "config": bundle.config, "graphs": {}, "parity": {}}
+    for stage, net in nets.items():
+        graph = bundle.graph(stage, "fp32")
+        example, batches, in_names, out_names = _stage_inputs(stage, calib, bundle)
+        device = next(net.parameters()).device
+        net.cpu()                                        # in place: an optimizer's references stay valid
+        try:
+            state, folded = _state_from_graph(net, graph, example)
+            net.load_state_dict(state)
+            _restore_batchnorm_statistics(net, folded, batches)
+            record["parity"][stage] = check_parity(net, example, graph, in_names, out_names)
+        except RuntimeError as exc:
+            raise BundleWeightsError(f"--init {root}: the weights read back from {graph.name} do not reproduce it: "
+                                     f"{exc}") from None
+        finally:
+            net.to(device)
+        record["graphs"][stage] = {"file": graph.name, "sha256": sha256_file(graph),
+                                   "batchnorms_restored": len(folded)}
+        log.info("%s: weights from %s (%d BatchNorms given statistics again), parity ok", stage, graph, len(folded))
+    record["sha256"] = hashlib.sha256((root / MANIFEST).read_bytes()).hexdigest()
+    return record

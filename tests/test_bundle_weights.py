@@ -1,0 +1,110 @@
+"""Torch weights read back from a bundle's float graphs (`export/bundle_weights.py`): they reproduce the graphs,
+folded BatchNorms get realistic statistics again, and a fine-tuning run can start from a bundle folder."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from pallet6d.export.bundle_weights import BundleWeightsError, _module_path, load_bundle_weights  # noqa: E402
+from pallet6d.export.calib_data import make_calibration_set  # noqa: E402
+from pallet6d.export.config import get_config  # noqa: E402
+from pallet6d.export.detector import build_detector  # noqa: E402
+from pallet6d.export.fusion import build_fusion  # noqa: E402
+from pallet6d.export.pose import build_pose  # noqa: E402
+from pallet6d.export.train_loop import LoopSettings, load_checkpoint, load_init_weights  # noqa: E402
+from pallet6d.export.train_pose import train_pose  # noqa: E402
+
+CFG = get_config("tiny")
+_BN = torch.nn.modules.batchnorm._BatchNorm
+
+
+def _nets(cfg=CFG) -> dict:
+    torch.manual_seed(123)     # weights unlike the bundle's
+    return {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
+            "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
+
+
+@pytest.fixture(scope="module")
+def loaded(bundle_dir):
+    nets = _nets()
+    return nets, load_bundle_weights(bundle_dir, nets, calib_frames=2)
+
+
+@pytest.mark.parametrize("node, module", [
+    ("/rgb/backbone/layer1/layer1.0/conv1/Conv", "rgb.backbone.layer1.0.conv1"),
+    ("/rgb/stages.0/Conv", "rgb.stages.0"),
+    ("/rgb/up/up.2/PRelu", "rgb.up.2"),
+    ("/stem/conv/Conv", "stem.conv"),
+    ("/c2f2/m.0/cv1/conv/Conv", "c2f2.m.0.cv1.conv"),
+    ("/attention/qkv/MatMul", "attention.qkv"),
+])
+def test_module_path_from_the_exporters_node_names(node, module):
+    assert _module_path(node) == module
+
+
+def test_read_back_weights_reproduce_every_graph(loaded, bundle_dir):
+    nets, record = loaded
+    manifest = json.loads((bundle_dir / "manifest.json").read_text())
+    assert record["config"] == "tiny" and len(record["sha256"]) == 64
+    for stage in ("detector", "fusion", "pose"):
+        assert record["graphs"][stage]["sha256"] == manifest["files"][f"{stage}.onnx"]
+        outputs = {k: v for k, v in record["parity"][stage].items() if isinstance(v, dict)}
+        assert outputs, stage
+        for name, diff in outputs.items():
+            assert diff["max_abs"] <= 1e-4 * max(1.0, diff["ref_max_abs"]), (stage, name, diff)
+            assert diff["corr"] > 0.9999, (stage, name, diff)
+    # the convolutional stages had their BatchNorms folded into the convolutions by the exporter
+    n_bn = sum(isinstance(m, _BN) for m in nets["detector"].modules())
+    assert record["graphs"]["detector"]["batchnorms_restored"] == n_bn
+    assert record["graphs"]["fusion"]["batchnorms_restored"] > 0
+
+
+def test_restored_batchnorms_carry_their_inputs_statistics(loaded, bundle_dir):
+    """Training mode normalises by batch statistics: with the statistics restored, a batch like the calibration
+    data gives nearly what eval mode gives (an identity BatchNorm would rescale every channel to unit variance)."""
+    nets, _ = loaded
+    fusion = nets["fusion"]
+    for m in fusion.modules():
+        if isinstance(m, _BN):
+            np.testing.assert_allclose(m.weight.detach().numpy() ** 2, m.running_var.numpy() + m.eps, rtol=1e-4)
+    calib = make_calibration_set(CFG, frames=2, seed=5)          # other frames than the ones measured
+    rgb, depth = torch.from_numpy(calib.rgb_crops[:16]), torch.from_numpy(calib.depth_crops[:16])
+    with torch.no_grad():
+        fusion.eval()
+        ref = fusion(rgb, depth)
+        fusion.train()
+        train_mode = fusion(rgb, depth)
+        fusion.eval()
+    rel = float(torch.sqrt(((train_mode - ref) ** 2).mean()) / torch.sqrt((ref ** 2).mean()))
+    assert rel < 0.25, rel
+
+
+def test_a_bundle_of_another_config_or_no_bundle_is_a_clear_error(bundle_dir, tmp_path):
+    with pytest.raises(BundleWeightsError, match="another config"):
+        load_bundle_weights(bundle_dir, {"pose": build_pose(get_config("edge").pose, 64)}, calib_frames=1)
+    with pytest.raises(BundleWeightsError, match="--init"):
+        load_bundle_weights(tmp_path, {"pose": build_pose(CFG.pose, CFG.fusion.feature_dim)})
+    # a graph that is not the manifest's (edited after export) fails the bundle's checksum
+    broken = tmp_path / "broken"
+    shutil.copytree(bundle_dir, broken)
+    (broken / "pose.onnx").write_bytes((bundle_dir / "fusion.onnx").read_bytes())
+    with pytest.raises(BundleWeightsError, match="pose.onnx"):
+        load_bundle_weights(broken, {"pose": build_pose(CFG.pose, CFG.fusion.feature_dim)}, calib_frames=1)
+
+
+def test_fine_tuning_starts_from_a_bundle_folder(bundle_dir, sim_bop_dataset, tmp_path, loaded):
+    nets = {"fusion": build_fusion(CFG.fusion), "pose": build_pose(CFG.pose, CFG.fusion.feature_dim)}
+    info = load_init_weights(bundle_dir, nets)
+    assert info["bundle"] == str(bundle_dir)
+    ref = loaded[0]["pose"].state_dict()
+    assert all(torch.equal(v, ref[k]) for k, v in nets["pose"].state_dict().items())
+    train_pose(CFG, [sim_bop_dataset], tmp_path / "ft", LoopSettings(epochs=1, batch=4, lr=1e-4, seed=1), variants=1,
+               progress=False, init=bundle_dir)
+    ckpt = load_checkpoint(tmp_path / "ft" / "last.pt")
+    assert ckpt["provenance"]["init"]["graphs"]["pose"]["sha256"] == info["graphs"]["pose"]["sha256"]
+    assert all(torch.isfinite(v).all() for v in ckpt["pose"].values() if v.is_floating_point())
