@@ -36,7 +36,7 @@ from .calib_data import CalibrationSet, make_calibration_set
 from .config import get_config
 from .onnx_io import check_parity, ort_session, run_session
 
-__all__ = ["BundleWeightsError", "load_bundle_weights"]
+__all__ = ["BundleWeightsError", "bundle_checkpoint", "load_bundle_weights"]
 
 log = logging.getLogger(__name__)
 
@@ -264,3 +264,38 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
         log.info("%s: weights from %s (%d BatchNorms given statistics again), parity ok", stage, graph, len(folded))
     record["sha256"] = hashlib.sha256((root / MANIFEST).read_bytes()).hexdigest()
     return record
+
+
+def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
+    """A bundle's detector ("detector") or pose stage ("pose": fusion + pose networks) as a training checkpoint,
+    for `pallet6d train merge` beside a newly trained other stage. Its provenance is the bundle's record of how
+    that stage was trained, with the read-back check and the bundle's detector input size.
+
+    :raises BundleWeightsError: as `load_bundle_weights`, or an unknown stage.
+    """
+    from .detector import build_detector
+    from .fusion import build_fusion
+    from .pose import build_pose
+    from .train_loop import CKPT_FORMAT
+
+    root = Path(bundle_dir)
+    try:
+        bundle = load_bundle(root)
+    except ValueError as exc:
+        raise BundleWeightsError(f"{root}: {exc}") from None
+    cfg = get_config(bundle.config)
+    if stage == "detector":
+        nets = {"detector": build_detector(dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw)))}
+    elif stage == "pose":
+        nets = {"fusion": build_fusion(cfg.fusion), "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
+    else:
+        raise BundleWeightsError(f"stage must be 'detector' or 'pose', got {stage!r}")
+    record = load_bundle_weights(root, nets)
+    trained = json.loads((root / MANIFEST).read_text()).get("provenance", {}).get("training") or {}
+    before = dict(trained.get(stage) or {})
+    provenance = {**before, "stage": stage, "config": bundle.config, "read_back_from_bundle": record}
+    if stage == "detector":
+        provenance["input_hw"] = list(bundle.detector.input_hw)
+    return {"format": CKPT_FORMAT, "format_version": 1, "stage": stage, "config": bundle.config,
+            "epoch": before.get("epoch"), "val": before.get("val"), "provenance": provenance,
+            **{k: net.state_dict() for k, net in nets.items()}}

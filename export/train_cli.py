@@ -2,7 +2,7 @@
 
     pallet6d train detector|pose --config paper|edge|densefusion --data DIR [DIR ...] --out RUN_DIR
                    [--epochs E] [--batch B] [--lr LR] [--seed S] [--resume] [--device cpu|cuda] [--max-minutes M]
-    pallet6d train merge --detector RUN/best.pt --pose RUN/best.pt --out model.pt
+    pallet6d train merge --detector RUN/best.pt|BUNDLE_DIR --pose RUN/best.pt|BUNDLE_DIR --out model.pt
     pallet6d export --config edge --checkpoint model.pt --int8 --out models/edge
 
 RUN_DIR receives `last.pt`, `best.pt` (lowest validation metric: pose = mean symmetric ADD of the most
@@ -106,8 +106,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector-input", type=_hw, metavar="HxW",
                         help="detector: train at this letterboxed input size instead of the config's (multiples "
                              "of 32, e.g. 256x832 for small, far pallets); export uses the size it was trained at")
-    parser.add_argument("--detector", type=Path, help="merge: detector checkpoint")
-    parser.add_argument("--pose", type=Path, help="merge: pose checkpoint")
+    parser.add_argument("--detector", type=Path,
+                        help="merge: detector checkpoint, or a bundle folder to take its detector")
+    parser.add_argument("--pose", type=Path, help="merge: pose checkpoint, or a bundle folder to take its pose stage")
 
 
 def _hw(text: str) -> tuple[int, int]:
@@ -120,12 +121,17 @@ def _hw(text: str) -> tuple[int, int]:
 
 def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path) -> dict:
     """One checkpoint with detector + fusion + pose weights (the `export_bundle` format) and both provenances.
+    Either side may be a bundle folder: its stage is read back from its graphs (`bundle_weights.bundle_checkpoint`).
 
     :raises ValueError: wrong stages or configs that differ.
     """
+    from .bundle_weights import bundle_checkpoint
     from .train_loop import load_checkpoint, save_checkpoint
 
-    det, pose = load_checkpoint(detector_ckpt), load_checkpoint(pose_ckpt)
+    def read(path: Path, stage: str) -> dict:
+        return bundle_checkpoint(path, stage) if Path(path).is_dir() else load_checkpoint(path)
+
+    det, pose = read(detector_ckpt, "detector"), read(pose_ckpt, "pose")
     if det.get("stage") != "detector" or pose.get("stage") != "pose":
         raise ValueError(f"expected a detector and a pose checkpoint, got stages {det.get('stage')!r} and "
                          f"{pose.get('stage')!r}")
