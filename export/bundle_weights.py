@@ -19,8 +19,6 @@ original training (an identity BatchNorm would normalise every channel to unit v
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import logging
 from pathlib import Path
 
@@ -34,7 +32,11 @@ from pallet6d.runtime.pose_inputs import gather_features
 
 from .calib_data import CalibrationSet, make_calibration_set
 from .config import get_config
+from .detector import build_detector
+from .fusion import build_fusion
 from .onnx_io import check_parity, ort_session, run_session
+from .pose import build_pose
+from .train_loop import CKPT_FORMAT
 
 __all__ = ["BundleWeightsError", "bundle_checkpoint", "load_bundle_weights"]
 
@@ -224,21 +226,25 @@ def _stage_inputs(stage: str, calib: CalibrationSet, bundle: Bundle) -> tuple[tu
     return example, [example], [q.points_input, q.features_input], [q.quat_output, q.trans_output, q.conf_output]
 
 
+def _read_bundle(bundle_dir: str | Path) -> Bundle:
+    try:
+        return load_bundle(bundle_dir)
+    except ValueError as exc:
+        raise BundleWeightsError(f"--init {bundle_dir}: {exc}") from None
+
+
 def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module], calib_frames: int = 8,
-                        seed: int = 0) -> dict:
+                        seed: int = 0, bundle: Bundle | None = None) -> dict:
     """Load `nets` ({"detector" | "fusion" | "pose": network}) from the bundle's float graphs.
 
+    :param bundle: the bundle already loaded from `bundle_dir`, if it is (else it is loaded here).
     :return: what to record of it: the bundle's path, name, config, graph sha256s and the parity checks.
     :raises BundleWeightsError: not a bundle, a graph the networks cannot take (another config, an
         external detector), or weights that do not reproduce the graph.
     """
     root = Path(bundle_dir)
-    try:
-        bundle = load_bundle(root)
-    except ValueError as exc:
-        raise BundleWeightsError(f"--init {root}: {exc}") from None
-    manifest = json.loads((root / MANIFEST).read_text())
-    if manifest["detector"].get("source") not in (None, "pallet6d") and "detector" in nets:
+    bundle = bundle or _read_bundle(root)
+    if bundle.manifest["detector"].get("source") not in (None, "pallet6d") and "detector" in nets:
         raise BundleWeightsError(f"--init {root}: its detector is an external graph, not one of ours")
     cfg = get_config(bundle.config)
     cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw)))
@@ -262,7 +268,7 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
         record["graphs"][stage] = {"file": graph.name, "sha256": sha256_file(graph),
                                    "batchnorms_restored": len(folded)}
         log.info("%s: weights from %s (%d BatchNorms given statistics again), parity ok", stage, graph, len(folded))
-    record["sha256"] = hashlib.sha256((root / MANIFEST).read_bytes()).hexdigest()
+    record["sha256"] = sha256_file(bundle.root / MANIFEST)
     return record
 
 
@@ -273,16 +279,7 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
 
     :raises BundleWeightsError: as `load_bundle_weights`, or an unknown stage.
     """
-    from .detector import build_detector
-    from .fusion import build_fusion
-    from .pose import build_pose
-    from .train_loop import CKPT_FORMAT
-
-    root = Path(bundle_dir)
-    try:
-        bundle = load_bundle(root)
-    except ValueError as exc:
-        raise BundleWeightsError(f"{root}: {exc}") from None
+    bundle = _read_bundle(bundle_dir)
     cfg = get_config(bundle.config)
     if stage == "detector":
         nets = {"detector": build_detector(dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw)))}
@@ -290,8 +287,8 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
         nets = {"fusion": build_fusion(cfg.fusion), "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
     else:
         raise BundleWeightsError(f"stage must be 'detector' or 'pose', got {stage!r}")
-    record = load_bundle_weights(root, nets)
-    trained = json.loads((root / MANIFEST).read_text()).get("provenance", {}).get("training") or {}
+    record = load_bundle_weights(bundle_dir, nets, bundle=bundle)
+    trained = bundle.provenance.get("training") or {}
     before = dict(trained.get(stage) or {})
     provenance = {**before, "stage": stage, "config": bundle.config, "read_back_from_bundle": record}
     if stage == "detector":
