@@ -7,27 +7,29 @@ view); `generate_frame(config, seed, index)` draws the scene for frame `index` o
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from pallet6d.runtime.geometry import project_points, transform_points
-from pallet6d.sim.pallets import PALLET_MODELS, box_corners, get_pallet_model
+from pallet6d.sim.forklift_view import PalletFaceGT, face_gts
+from pallet6d.sim.pallets import box_corners, get_pallet_model
 from pallet6d.sim.presets import SimConfig
 from pallet6d.sim.raycast import pixel_rays, raycast_boxes
-from pallet6d.sim.scene import Scene, SceneError
+from pallet6d.sim.scene import ForkliftVehicle, Scene, SceneError
 from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel, apply_depth_model, apply_rgb_model
 from pallet6d.sim.shading import shade
 from pallet6d.sim.warehouse import build_scene
 
-__all__ = ["PalletGT", "SimFrame", "obj_id_of", "render_scene", "generate_frame", "mask_bbox_xywh"]
+__all__ = ["PalletGT", "SimFrame", "obj_id_of", "render_scene", "with_forklift_gt", "generate_frame",
+           "mask_bbox_xywh"]
 
 log = logging.getLogger(__name__)
 
 
 def obj_id_of(model_name: str) -> int:
-    """BOP object id of a pallet model: its 1-based position in PALLET_MODELS (epal = 1)."""
-    return PALLET_MODELS.index(model_name) + 1
+    """BOP object id of a pallet model: the catalogue's stable id (epal = 1)."""
+    return get_pallet_model(model_name).obj_id
 
 
 def mask_bbox_xywh(mask: np.ndarray) -> np.ndarray:
@@ -88,6 +90,8 @@ class SimFrame:
     T_world_cam: np.ndarray
     pallets: list[PalletGT]
     target_instance: int | None = None
+    vehicle: ForkliftVehicle | None = None            # the forklift carrying the camera, forklift views only
+    faces: list[PalletFaceGT] = field(default_factory=list)   # front face and pockets of pallets in view
 
     def __post_init__(self) -> None:
         h, w = self.depth_m.shape
@@ -95,6 +99,11 @@ class SimFrame:
             raise ValueError(f"rgb must be ({h}, {w}, 3) uint8, got {self.rgb.shape} {self.rgb.dtype}")
         if self.depth_ideal_m.shape != (h, w):
             raise ValueError(f"depth_ideal_m must be ({h}, {w}), got {self.depth_ideal_m.shape}")
+
+    @property
+    def T_vehicle_cam(self) -> np.ndarray | None:
+        """(4, 4) camera-to-vehicle transform (forklift views), else None."""
+        return None if self.vehicle is None else self.vehicle.T_vehicle_cam
 
     def pallet(self, instance_id: int) -> PalletGT:
         for p in self.pallets:
@@ -198,6 +207,13 @@ def render_scene(scene: Scene, depth_model: StereoDepthModel | None = None, rgb_
                     T_world_cam=scene.T_world_cam.copy(), pallets=gts, target_instance=scene.target_instance)
 
 
+def with_forklift_gt(scene: Scene, frame: SimFrame) -> SimFrame:
+    """`frame` with the vehicle's camera mounting and the front face and pockets of every pallet in view."""
+    frame.vehicle = scene.vehicle
+    frame.faces = face_gts(scene, [p.instance_id for p in frame.pallets])
+    return frame
+
+
 def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
     """Frame `index` of the dataset drawn from `config` with `seed`.
 
@@ -207,8 +223,8 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
     rng = np.random.default_rng((int(seed), int(index)))
     best = 0.0
     for attempt in range(config.max_attempts):
-        scene = build_scene(config, rng)
         try:
+            scene = build_scene(config, rng)
             scene.validate()
         except SceneError as exc:
             log.debug("frame %d attempt %d: %s", index, attempt, exc)
@@ -218,7 +234,11 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
         full = rc.full_masks.get(scene.target_instance)
         n_all = 0 if full is None else int(full.sum())
         # The whole target must be inside the image (its silhouette does not touch the border) ...
-        inside = n_all > 0 and not _touches_border(full)
+        inside = n_all > 0 and (not config.target_inside or not _touches_border(full))
+        if inside and _touches_border(full):   # ... or, where allowed, its visible fraction counts the part out of view
+            target = next(p for p in scene.pallets if p.instance_id == scene.target_instance)
+            n_all = max(n_all, _silhouette_px_count(get_pallet_model(target.model_name).boxes_m,
+                                                    scene.T_cam_world @ target.T_world_pallet, scene.K, scene.image_hw))
         visib = int((inst_img == scene.target_instance).sum()) / n_all if n_all else 0.0
         best = max(best, visib if inside else 0.0)
         if inside and visib >= config.min_target_visib:
@@ -228,7 +248,8 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
             rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*config.exposure),
                                        noise_sigma=sensor_rng.uniform(*config.rgb_noise_sigma),
                                        shot_noise=0.01 if config.sensor == "d435" else 0.004, blur_px=blur)
-            return render_scene(scene, depth_model, rgb_model, sensor_rng, _cast=cast)
+            frame = render_scene(scene, depth_model, rgb_model, sensor_rng, _cast=cast)
+            return with_forklift_gt(scene, frame)
         log.debug("frame %d attempt %d: target visible fraction %.2f, inside image %s", index, attempt, visib,
                   inside)
     raise SceneError(f"preset {config.name!r}: no scene with the target pallet fully in the image and at least "
