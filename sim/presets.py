@@ -13,7 +13,10 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from pallet6d.sim.appearance import AppearanceConfig
+from pallet6d.sim.depth_sensors import DepthModel, check_sensor_model
 from pallet6d.sim.pallets import get_pallet_model
+from pallet6d.sim.sensors import SENSORS
 from pallet6d.sim.scene import SceneError
 
 __all__ = ["SimConfig", "PRESETS", "get_preset"]
@@ -43,11 +46,14 @@ class SimConfig:
     rack_fill: float = 0.7                              # probability that a rack slot holds a pallet
     load_prob: float = 0.6                              # probability that a pallet carries a load
     min_target_visib: float = 0.95                      # the target pallet's required visible fraction
-    sensor: str = "ideal"                               # "ideal" or "d435"
+    sensor: str = "ideal"                               # depth sensor: "ideal", "d435", "oakd" or "tof"
     exposure: _Range = (0.85, 1.15)
     rgb_noise_sigma: _Range = (0.0, 0.01)               # gaussian noise on RGB in [0, 1] units
     blur_prob: float = 0.0                              # probability of a motion blur
     max_attempts: int = 20                              # scene draws before giving up on a visible target
+    sensor_model: DepthModel | None = None              # tuned model of `sensor`; None = its default model
+    appearance: AppearanceConfig | None = None          # randomised appearance; None = the plain look, and then
+    #                                                     exposure / rgb_noise_sigma / blur_prob drive the camera
 
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:
@@ -70,8 +76,12 @@ class SimConfig:
                              f"the pallet), got {self.target_distance_m}")
         if self.camera_above_pallet_m[0] < 0.0:
             raise SceneError(f"{self.name}: camera_above_pallet_m must be >= 0 (camera below the floor/beam)")
-        if self.sensor not in ("ideal", "d435"):
-            raise ValueError(f"{self.name}: sensor must be 'ideal' or 'd435', got {self.sensor!r}")
+        if self.sensor not in SENSORS:
+            raise ValueError(f"{self.name}: sensor must be one of {', '.join(SENSORS)}, got {self.sensor!r}")
+        check_sensor_model(self.sensor, self.sensor_model)
+        if self.appearance is not None and not isinstance(self.appearance, AppearanceConfig):
+            raise TypeError(f"{self.name}: appearance must be an AppearanceConfig or None, got "
+                            f"{type(self.appearance).__name__}")
         for name in ("rack_fill", "load_prob", "min_target_visib", "blur_prob"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{self.name}: {name} must be in [0, 1], got {getattr(self, name)}")
