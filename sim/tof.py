@@ -113,6 +113,8 @@ def multipath_bias_m(depth_m: np.ndarray, f_px: float, info: PixelInfo, radius_p
         for a in range(n_dir):
             ang = 2 * np.pi * (a + 0.5 * (k % 2)) / n_dir
             dy, dx = int(round(r * np.sin(ang))), int(round(r * np.cos(ang)))
+            if abs(dy) >= hs or abs(dx) >= ws:
+                continue
             ys, yd = (slice(dy, hs), slice(0, hs - dy)) if dy >= 0 else (slice(0, hs + dy), slice(-dy, hs))
             xs, xd = (slice(dx, ws), slice(0, ws - dx)) if dx >= 0 else (slice(0, ws + dx), slice(-dx, ws))
             q, nq, zq = p[ys, xs], n[ys, xs], z[ys, xs]
