@@ -17,8 +17,12 @@ from pallet6d.sim.pallets import box_corners, get_pallet_model
 from pallet6d.sim.presets import SimConfig
 from pallet6d.sim.raycast import pixel_rays, raycast_boxes
 from pallet6d.sim.scene import ForkliftVehicle, Scene, SceneError
-from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel, apply_depth_model, apply_rgb_model
-from pallet6d.sim.shading import shade
+from pallet6d.sim.appearance import Appearance, draw_appearance, shade_appearance, surface_albedo
+from pallet6d.sim.camera_effects import apply_camera_effects
+from pallet6d.sim.depth_sensors import DepthModel, apply_sensor, depth_model_for
+from pallet6d.sim.sensors import PixelInfo, RgbCameraModel, StereoDepthModel, apply_rgb_model
+from pallet6d.sim.shading import SurfaceHits, albedo, shade, surface_hits
+from pallet6d.sim.tof import ToFDepthModel, register_rgb_to_depth
 from pallet6d.sim.warehouse import build_scene
 
 __all__ = ["PalletGT", "SimFrame", "obj_id_of", "render_scene", "with_forklift_gt", "generate_frame",
@@ -185,23 +189,53 @@ def _raycast(scene: Scene):
     return rc, inst_img, (R, t, half, material, color, seed)
 
 
-def render_scene(scene: Scene, depth_model: StereoDepthModel | None = None, rgb_model: RgbCameraModel | None = None,
-                 rng: np.random.Generator | None = None, _cast=None) -> SimFrame:
+def _pixel_info(hits: SurfaceHits, surface_rgb: np.ndarray, rgb_lin: np.ndarray, box_index: np.ndarray) -> PixelInfo:
+    """Per-pixel normals, albedo (grey level of the surface colour) and lit intensity for the depth models."""
+    return PixelInfo(normal_cam=hits.to_image(hits.normal_cam), albedo=hits.to_image(surface_rgb.mean(1)),
+                     box_index=box_index, intensity=rgb_lin.mean(2).astype(np.float32))
+
+
+def render_scene(scene: Scene, depth_model: DepthModel | None = None, rgb_model: RgbCameraModel | None = None,
+                 rng: np.random.Generator | None = None, _cast=None, appearance: Appearance | None = None) -> SimFrame:
     """Render a scene with exact ground truth.
 
-    :param depth_model: None = ideal depth sensor. :param rgb_model: None = noise-free camera.
-    :param rng: noise source for the sensor models (required when one is given).
+    :param depth_model: None = ideal depth sensor; else a model from `depth_sensors` (D435, OAK-D, ToF).
+    :param rgb_model: None = noise-free camera. Not used with an appearance (its camera effects apply).
+    :param rng: noise source for the sensor models (required when one is given, or an appearance).
+    :param appearance: None = the plain look (`shading.shade`); else the drawn randomised appearance
+        (`appearance.draw_appearance`): styles, colours, lamps with shadows, camera effects.
     """
     scene.validate()
-    if (depth_model is not None or rgb_model is not None) and rng is None:
+    if (depth_model is not None or rgb_model is not None or appearance is not None) and rng is None:
         raise ValueError("render_scene: pass rng when a sensor model is given (noise must be seeded)")
+    if appearance is not None and len(appearance.style) != len(scene.boxes):
+        raise ValueError(f"render_scene: the appearance was drawn for {len(appearance.style)} boxes, the scene has "
+                         f"{len(scene.boxes)}")
     rc, inst_img, packed = _raycast(scene) if _cast is None else _cast
     R, t, half, material, color, seed = packed
-    light_cam = scene.T_cam_world[:3, :3] @ scene.light.direction_world
-    rgb_lin = shade(rc.depth_m, rc.box_index, pixel_rays(scene.K, scene.image_hw), R, t, half, material, color,
-                    seed, light_cam, scene.light.intensity, scene.light.ambient, scene.light.headlight)
-    depth = apply_depth_model(rc.depth_m, float(scene.K[0, 0]), depth_model, rng)
-    rgb = apply_rgb_model(rgb_lin, rgb_model or RgbCameraModel(shot_noise=0.0), rng)
+    rays = pixel_rays(scene.K, scene.image_hw)
+    hits = surface_rgb = None
+    if appearance is None:
+        light_cam = scene.T_cam_world[:3, :3] @ scene.light.direction_world
+        rgb_lin = shade(rc.depth_m, rc.box_index, rays, R, t, half, material, color, seed, light_cam,
+                        scene.light.intensity, scene.light.ambient, scene.light.headlight)
+    else:
+        hits = surface_hits(rc.depth_m, rc.box_index, rays, R, t, half)
+        surface_rgb = surface_albedo(hits, material, seed, appearance)
+        rgb_lin = shade_appearance(hits, surface_rgb, material, appearance, scene.T_cam_world, (R, t, half))
+    info = None
+    if depth_model is not None and not isinstance(depth_model, StereoDepthModel):
+        if hits is None:
+            hits = surface_hits(rc.depth_m, rc.box_index, rays, R, t, half)
+            surface_rgb = albedo(hits, material, color, seed)
+        info = _pixel_info(hits, surface_rgb, rgb_lin, rc.box_index)
+    depth = apply_sensor(rc.depth_m, float(scene.K[0, 0]), depth_model, info, rng)
+    if appearance is None:
+        rgb = apply_rgb_model(rgb_lin, rgb_model or RgbCameraModel(shot_noise=0.0), rng)
+    else:
+        rgb = apply_camera_effects(rgb_lin, appearance.camera, rng)
+    if isinstance(depth_model, ToFDepthModel) and depth_model.register_rgb:
+        rgb = register_rgb_to_depth(rgb, depth)
     gts = _pallet_gts(scene, depth, inst_img, rc.full_masks)
     return SimFrame(rgb=rgb, depth_m=depth, depth_ideal_m=rc.depth_m, K=scene.K.copy(),
                     T_world_cam=scene.T_world_cam.copy(), pallets=gts, target_instance=scene.target_instance)
@@ -243,11 +277,19 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
         best = max(best, visib if inside else 0.0)
         if inside and visib >= config.min_target_visib:
             sensor_rng = np.random.default_rng((int(seed), int(index), 1))
-            depth_model = StereoDepthModel() if config.sensor == "d435" else None
+            if config.sensor_mix:
+                pick = np.random.default_rng((int(seed), int(index), 3)).integers(len(config.sensor_mix))
+                depth_model = depth_model_for(config.sensor_mix[int(pick)])
+            else:
+                depth_model = config.sensor_model if config.sensor_model is not None else depth_model_for(config.sensor)
+            if config.appearance is not None:
+                appearance = draw_appearance(config.appearance, scene, np.random.default_rng((int(seed), int(index), 2)))
+                frame = render_scene(scene, depth_model, None, sensor_rng, _cast=cast, appearance=appearance)
+                return with_forklift_gt(scene, frame)
             blur = sensor_rng.uniform(2, 9) if sensor_rng.random() < config.blur_prob else 0.0
             rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*config.exposure),
                                        noise_sigma=sensor_rng.uniform(*config.rgb_noise_sigma),
-                                       shot_noise=0.01 if config.sensor == "d435" else 0.004, blur_px=blur)
+                                       shot_noise=0.004 if config.sensor == "ideal" else 0.01, blur_px=blur)
             frame = render_scene(scene, depth_model, rgb_model, sensor_rng, _cast=cast)
             return with_forklift_gt(scene, frame)
         log.debug("frame %d attempt %d: target visible fraction %.2f, inside image %s", index, attempt, visib,

@@ -1,0 +1,152 @@
+"""Several coloured lights with shadows for ray-cast box scenes.
+
+Shadows are exact shadow rays: for each light, every lit surface point's segment to the light is tested
+against the boxes that can block it. The boxes are culled as the ray caster culls them: seen from the light,
+a segment to a point projects to that point's image position, so only the boxes whose screen rectangle
+(in the light's view) holds the point can block it. Points are binned on a grid in the light's view and each
+box is tested against the points of the cells its rectangle covers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pallet6d.sim.raycast import box_screen_rects
+from pallet6d.sim.shading import SurfaceHits
+
+__all__ = ["PointLight", "shadow_visibility", "light_hits"]
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """A lamp: position (world, metres), RGB colour, intensity at `ref_m`, spot cone about `axis_world`.
+
+    Irradiance falls off as (ref_m / d)^2; outside the cone (half angle `cone_deg`) it fades to 0 over 10 deg.
+    A light with `distant` True is a sun-like directional light placed far along -axis_world: no fall-off.
+    """
+
+    position_world: np.ndarray
+    color: np.ndarray
+    intensity: float
+    axis_world: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
+    cone_deg: float = 70.0
+    ref_m: float = 4.0
+    distant: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("position_world", "color", "axis_world"):
+            v = np.asarray(getattr(self, name), dtype=np.float64)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"PointLight.{name} must be a finite (3,) vector, got {v}")
+            object.__setattr__(self, name, v)
+        if np.linalg.norm(self.axis_world) == 0 or self.intensity < 0 or not 0 < self.cone_deg <= 89:
+            raise ValueError(f"PointLight: axis must be non-zero, intensity >= 0, cone in (0, 89] deg: {self}")
+        object.__setattr__(self, "axis_world", self.axis_world / np.linalg.norm(self.axis_world))
+
+
+def _basis(z: np.ndarray) -> np.ndarray:
+    """(3, 3) rows x, y, z of a right-handed frame whose z is the unit vector `z`."""
+    helper = np.array([1.0, 0, 0]) if abs(z[0]) < 0.9 else np.array([0, 1.0, 0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def shadow_visibility(points_cam: np.ndarray, light_cam: np.ndarray, axis_cam: np.ndarray, R_cam_box: np.ndarray,
+                      t_cam_box: np.ndarray, half_m: np.ndarray, max_tan: float = 4.0, grid: int = 96,
+                      end_gap_m: float = 0.002) -> np.ndarray:
+    """Which points see the light (no box on the segment between them).
+
+    :param points_cam: (P, 3) surface points, camera frame. :param light_cam: (3,) light position.
+    :param axis_cam: (3,) unit direction the light faces; points behind it, or more than atan(max_tan) off it,
+        are reported unlit. :param R_cam_box, t_cam_box, half_m: (N, 3, 3), (N, 3), (N, 3) the boxes.
+    :param end_gap_m: the last bit of each segment (at the surface point) that is not tested.
+    :return: (P,) bool, True = lit.
+    """
+    B = _basis(np.asarray(axis_cam, np.float64))
+    light = np.asarray(light_cam, np.float64)
+    q = (np.asarray(points_cam, np.float64) - light) @ B.T                # points in the light frame
+    lit = np.zeros(len(q), dtype=bool)
+    front = q[:, 2] > 1e-6
+    u = np.where(front, q[:, 0] / np.where(front, q[:, 2], 1), np.inf)
+    v = np.where(front, q[:, 1] / np.where(front, q[:, 2], 1), np.inf)
+    cand = np.flatnonzero(front & (np.abs(u) < max_tan) & (np.abs(v) < max_tan))
+    if cand.size == 0:
+        return lit
+    u, v = u[cand], v[cand]
+    lo_u, lo_v = u.min(), v.min()
+    span = max(u.max() - lo_u, v.max() - lo_v, 1e-9)
+    scale = (grid - 1) / span
+    cu = np.clip(np.floor((u - lo_u) * scale + 0.5), 0, grid - 1).astype(np.int64)
+    cv = np.clip(np.floor((v - lo_v) * scale + 0.5), 0, grid - 1).astype(np.int64)
+    key = cv * grid + cu
+    order = np.argsort(key, kind="stable")
+    starts = np.searchsorted(key[order], np.arange(grid * grid + 1))
+    K_light = np.array([[scale, 0, -lo_u * scale], [0, scale, -lo_v * scale], [0, 0, 1.0]])
+    R_l = np.einsum("ij,njk->nik", B, np.asarray(R_cam_box, np.float64))
+    t_l = (np.asarray(t_cam_box, np.float64) - light) @ B.T
+    half = np.asarray(half_m, np.float64)
+    rects = box_screen_rects(R_l, t_l, half, K_light, (grid, grid), near_m=1e-4)
+    rects[:, :2] = np.maximum(rects[:, :2] - 1, 0)                          # cells a point may round into
+    rects[:, 2:] = np.minimum(rects[:, 2:] + 1, grid)
+    blocked = np.zeros(cand.size, dtype=bool)
+    q_c = q[cand]
+    seg_len = np.linalg.norm(q_c, axis=1)
+    t_end = 1.0 - end_gap_m / np.maximum(seg_len, 1e-9)
+    for i in np.flatnonzero((rects[:, 2] > rects[:, 0]) & (rects[:, 3] > rects[:, 1])):
+        u0, v0, u1, v1 = rects[i]
+        if (v1 - v0) * (u1 - u0) > grid * grid // 4:
+            idx = np.flatnonzero((cu >= u0) & (cu < u1) & (cv >= v0) & (cv < v1))
+        else:
+            parts = [order[starts[r * grid + u0]:starts[r * grid + u1]] for r in range(v0, v1)]
+            idx = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        idx = idx[~blocked[idx]]
+        if idx.size == 0:
+            continue
+        # Segment light -> point, parameter s in [0, 1], in the box's frame.
+        o = R_l[i].T @ (-t_l[i])
+        d = q_c[idx] @ R_l[i]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / d
+            s1 = (-half[i] - o) * inv
+            s2 = (half[i] - o) * inv
+        s_near = np.nanmax(np.minimum(s1, s2), axis=1)
+        s_far = np.nanmin(np.maximum(s1, s2), axis=1)
+        hit = (s_near <= s_far) & (s_far > 1e-9) & (s_near < t_end[idx])
+        blocked[idx[hit]] = True
+    lit[cand] = ~blocked
+    return lit
+
+
+def light_hits(hits: SurfaceHits, light: PointLight, T_cam_world: np.ndarray, boxes: tuple, shadows: bool
+               ) -> np.ndarray:
+    """(P,) float32 irradiance of each hit from one light: cos(incidence) x fall-off x cone x shadow.
+
+    :param boxes: (R_cam_box (N, 3, 3), t_cam_box (N, 3), half_m (N, 3)).
+    """
+    R_cw, t_cw = T_cam_world[:3, :3], T_cam_world[:3, 3]
+    axis = R_cw @ light.axis_world
+    if light.distant:
+        centre = hits.p_cam.mean(0) if hits.pix.size else np.zeros(3)
+        pos = centre - axis * 1000.0
+    else:
+        pos = R_cw @ light.position_world + t_cw
+    to_light = pos[None] - hits.p_cam.astype(np.float64)
+    dist = np.linalg.norm(to_light, axis=1)
+    l_dir = to_light / np.maximum(dist, 1e-9)[:, None]
+    cos_i = np.maximum((hits.normal_cam * l_dir).sum(1), 0)
+    if light.distant:
+        falloff, cone = 1.0, 1.0
+    else:
+        falloff = (light.ref_m / np.maximum(dist, 0.3)) ** 2
+        off = np.degrees(np.arccos(np.clip(-(l_dir @ axis), -1, 1)))
+        cone = np.clip((light.cone_deg + 10.0 - off) / 10.0, 0, 1)
+    e = light.intensity * cos_i * falloff * cone
+    if shadows:
+        need = np.flatnonzero(e > 1e-4)
+        if need.size:
+            max_tan = np.tan(np.radians(min(light.cone_deg + 10.0, 84.0))) * 1.05 if not light.distant else 1.0
+            vis = shadow_visibility(hits.p_cam[need], pos, axis, *boxes, max_tan=max_tan)
+            e[need[~vis]] = 0.0
+    return e.astype(np.float32)
