@@ -11,7 +11,7 @@ from pallet6d.sim.appearance import AppearanceConfig, draw_appearance
 from pallet6d.sim.generate import generate_frame, render_scene
 from pallet6d.sim.lighting import shadow_visibility
 from pallet6d.sim.pallets import get_pallet_model
-from pallet6d.sim.presets import PRESETS, SimConfig, get_preset
+from pallet6d.sim.presets import PAPER_PRESETS, PRESETS, SimConfig, get_preset
 from pallet6d.sim.scene import MATERIALS, Box, PalletPlacement, Scene, look_at_T_world_cam, pallet_boxes
 from pallet6d.sim.textures import PLASTIC_PALLET_COLORS, STYLES, apply_style, dirt_overlay, wear_overlay
 from pallet6d.sim.tof import ToFDepthModel
@@ -247,5 +247,5 @@ def test_sim_config_takes_the_sensor_names_and_checks_models():
         SimConfig(**base, sensor="d435", sensor_model=ToFDepthModel())
     with pytest.raises(TypeError, match="AppearanceConfig"):
         SimConfig(**base, appearance={"shadows": True})
-    assert all(p.appearance is None and p.sensor_model is None for p in PRESETS.values())
+    assert all(PRESETS[n].appearance is None and PRESETS[n].sensor_model is None for n in PAPER_PRESETS)
     assert math.isfinite(PRESETS["indoor-noisy"].K[0, 0])
