@@ -109,7 +109,7 @@ def place_forklift(rng: np.random.Generator, target: PalletPlacement, face: str,
     T_world_vehicle = make_T(_rz(heading), [origin_xy[0], origin_xy[1], 0.0])
     boxes = _fork_boxes(T_world_vehicle, fork_z, spread, length, width, thick, int(rng.integers(0, 2 ** 20)))
     return ForkliftVehicle(T_world_vehicle, T_vehicle_cam, boxes, float(fork_z), float(spread), float(length),
-                           float(width), float(thick))
+                           float(width), float(thick), target_face=face)
 
 
 def pocket_box_world(placement: PalletPlacement, face: str) -> tuple[np.ndarray, np.ndarray]:
@@ -138,8 +138,8 @@ def front_face(placement: PalletPlacement, eye_world: np.ndarray) -> str | None:
 class PalletFaceGT:
     """A pallet's front face and fork pockets in one frame, as a forklift needs them.
 
-    The front face is the face with pockets that looks most towards the camera; pockets are left then right
-    as seen from the camera side. Camera-frame quantities always; vehicle-frame ones when the frame has a
+    The front face is the face the forklift approaches (the target of a forklift view), else the face with
+    pockets that looks most towards the camera; pockets are left then right as seen from outside that face. Camera-frame quantities always; vehicle-frame ones when the frame has a
     vehicle (else None).
 
     :ivar face_centre_cam: (3,) metres. :ivar face_normal_cam: (3,) outward unit normal.
@@ -206,7 +206,8 @@ def face_gts(scene: Scene, instance_ids) -> list[PalletFaceGT]:
     by_id = {p.instance_id: p for p in scene.pallets}
     for iid in instance_ids:
         p = by_id[iid]
-        face = front_face(p, eye)
+        approached = scene.vehicle is not None and iid == scene.target_instance and scene.vehicle.target_face
+        face = scene.vehicle.target_face if approached else front_face(p, eye)
         if face is None:
             continue
         model = get_pallet_model(p.model_name)

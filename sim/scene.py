@@ -109,6 +109,7 @@ class ForkliftVehicle:
 
     :param T_world_vehicle: (4, 4) vehicle pose in the world. :param T_vehicle_cam: (4, 4) camera-to-vehicle.
     :param boxes: the vehicle's own boxes (fork tines and tips), also in `Scene.boxes`.
+    :param target_face: the face of the scene's target pallet ("+x", ...) the forks are to enter.
     :param fork_z_m: height of the forks' underside above the floor. :param fork_spread_m: tine centre to
         centre. :param fork_length_m, fork_width_m, fork_thickness_m: one tine.
     """
@@ -121,6 +122,7 @@ class ForkliftVehicle:
     fork_length_m: float
     fork_width_m: float
     fork_thickness_m: float
+    target_face: str | None = None      # the target pallet's face the forks are to enter
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "T_world_vehicle", _pose(self.T_world_vehicle, "ForkliftVehicle.T_world_vehicle"))
