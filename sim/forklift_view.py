@@ -163,6 +163,17 @@ class PalletFaceGT:
     pocket_centres_vehicle: np.ndarray | None = None
     face_yaw_deg: float | None = None
 
+    def __post_init__(self) -> None:
+        shapes = {"face_centre_cam": (3,), "face_normal_cam": (3,), "pocket_centres_cam": (2, 3),
+                  "pocket_size_m": (2, 2), "pocket_blocked": (2,), "face_centre_vehicle": (3,),
+                  "face_normal_vehicle": (3,), "pocket_centres_vehicle": (2, 3)}
+        for name, shape in shapes.items():
+            value = getattr(self, name)
+            if value is not None and np.shape(value) != shape:
+                raise ValueError(f"PalletFaceGT.{name} must be {shape}, got {np.shape(value)}")
+        if self.face not in ("+x", "-x", "+y", "-y"):
+            raise ValueError(f"PalletFaceGT.face must be a pallet face, got {self.face!r}")
+
     def to_json(self) -> dict:
         """BOP-style JSON entry: millimetres, plain lists."""
         mm = lambda v: None if v is None else [float(x) for x in np.asarray(v).ravel() * 1000.0]  # noqa: E731

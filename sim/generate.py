@@ -294,6 +294,7 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
             return with_forklift_gt(scene, frame)
         log.debug("frame %d attempt %d: target visible fraction %.2f, inside image %s", index, attempt, visib,
                   inside)
-    raise SceneError(f"preset {config.name!r}: no scene with the target pallet fully in the image and at least "
+    where = "fully in the image and " if config.target_inside else ""
+    raise SceneError(f"preset {config.name!r}: no scene with the target pallet {where}at least "
                      f"{config.min_target_visib:.0%} visible after {config.max_attempts} attempts (best "
                      f"{best:.0%}); widen the field of view, move the camera back or lower min_target_visib")

@@ -64,11 +64,16 @@ def pallet_look(rng: np.random.Generator, model_name: str, missing_board_prob: f
     return np.clip(base, 0, 1), np.clip(parts, 0, 1), missing
 
 
-def drum_boxes(centre_xy, z0: float, radius: float, height: float, color, seed: int, yaw: float = 0.0) -> list[Box]:
-    """A drum (upright cylinder) as three square boxes turned by 30 degrees: a 12-sided prism."""
-    side = 2 * radius * math.cos(math.pi / 12)          # across flats of the dodecagon
-    return [box_at([centre_xy[0], centre_xy[1], z0 + height / 2], [side, side, height], "metal", color, seed,
-                   _rz(yaw + k * math.pi / 6)) for k in range(3)]
+def drum_boxes(centre_xy, z0: float, radius: float, height: float, color, seed: int, yaw: float = 0.0,
+               sides: int = 8) -> list[Box]:
+    """A drum (upright cylinder) as a regular `sides`-gon prism: the union of sides / 2 boxes turned by
+    360 / sides degrees, each spanning two opposite flats with its corners on the drum's circle."""
+    if sides < 4 or sides % 2:
+        raise ValueError(f"sides must be an even number >= 4, got {sides}")
+    half = math.pi / sides
+    size = [2 * radius * math.cos(half), 2 * radius * math.sin(half), height]
+    centre = [centre_xy[0], centre_xy[1], z0 + height / 2]
+    return [box_at(centre, size, "metal", color, seed, _rz(yaw + 2 * half * k)) for k in range(sides // 2)]
 
 
 def load_boxes(rng: np.random.Generator, p: PalletPlacement, clearance_m: float) -> list[Box]:
@@ -94,7 +99,7 @@ def load_boxes(rng: np.random.Generator, p: PalletPlacement, clearance_m: float)
         for k in range(layers):
             for i in range(nx):
                 for j in range(ny):
-                    if rng.random() < (0.4 if k == layers - 1 else 0.05):
+                    if k > 0 and rng.random() < (0.4 if k == layers - 1 else 0.05):   # the first layer is whole
                         continue
                     c = np.array([(i + 0.5) * L / nx - L / 2, (j + 0.5) * W / ny - W / 2, (k + 0.5) * bz])
                     c[:2] += rng.uniform(-0.015, 0.015, 2)

@@ -1,5 +1,6 @@
 """Random warehouse scenes (paper Fig. 3): racks with pallets and loads, aisle pallets, occluders, walls,
-and a forklift camera placed in front of a pallet to pick up.
+and a forklift camera placed in front of a pallet to pick up; with `rich_content`, the real-warehouse
+content of `loads.py`; with the "forklift" layout, the forklift's own view (`forklift_view.py`).
 
 World frame: z up, floor z = 0. The rack row runs along x with its front at y = 0 and its depth along +y;
 the aisle is y < 0. Pallets in racks have their length (x) along the rack depth, so the forklift's forks
@@ -26,7 +27,6 @@ RACK_DEPTH_M = 1.1
 BAY_CLEAR_M = 2.7
 UPRIGHT_M = (0.1, 0.08)
 BEAM_H_M = 0.12
-
 
 
 def _rz(yaw_rad: float) -> np.ndarray:
@@ -260,11 +260,12 @@ def _add_extras(b: _Builder, half_x: float, y_range: tuple[float, float], n_pall
         xy = np.array([rng.uniform(-half_x, half_x), rng.uniform(*y_range)])
         if keep_out(xy) or not b.free(xy, 0.75):
             continue
-        yaw = rng.uniform(-math.pi, math.pi) if rng.random() < 0.5 else _yaw_facing(b, b.random_model(), [0, -1, 0], 10)
+        model_name = b.random_model()
+        yaw = rng.uniform(-math.pi, math.pi) if rng.random() < 0.5 else _yaw_facing(b, model_name, [0, -1, 0], 10)
         if rng.random() < 0.35:
-            b.add_stack(b.random_model(), xy, yaw, int(rng.integers(2, 8)))
+            b.add_stack(model_name, xy, yaw, int(rng.integers(2, 8)))
         else:
-            b.add_pallet(b.random_model(), tuple(xy), 0.0, yaw, 2.0)
+            b.add_pallet(model_name, tuple(xy), 0.0, yaw, 2.0)
     for _ in range(n_distractors):
         xy = np.array([rng.uniform(-half_x, half_x), rng.uniform(*y_range)])
         if keep_out(xy) or not b.free(xy, 0.6):
