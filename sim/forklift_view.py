@@ -104,7 +104,8 @@ def place_forklift(rng: np.random.Generator, target: PalletPlacement, face: str,
     lo = max(tip_below - 0.85 * vhalf, -face_above - 0.8 * vhalf, math.radians(-5))
     hi = min(tip_below - 0.3 * vhalf, 0.8 * vhalf - face_above, math.radians(30))
     pitch = rng.uniform(lo, hi) if lo < hi else min(max(0.8 * vhalf - face_above - 0.05, math.radians(-5)), hi)
-    R_vc = _rz(math.radians(rng.uniform(-2, 2))) @ _ry(pitch) @ R_VEHICLE_CAM0 @ _rz(math.radians(rng.uniform(-1.5, 1.5)))
+    mount_yaw, roll = math.radians(rng.uniform(-2, 2)), math.radians(rng.uniform(-1.5, 1.5))
+    R_vc = _rz(mount_yaw) @ _ry(pitch) @ R_VEHICLE_CAM0 @ _rz(roll)       # roll about the optical axis
     T_vehicle_cam = make_T(R_vc, [cam_x, cam_y, cam_z])
     T_world_vehicle = make_T(_rz(heading), [origin_xy[0], origin_xy[1], 0.0])
     boxes = _fork_boxes(T_world_vehicle, fork_z, spread, length, width, thick, int(rng.integers(0, 2 ** 20)))
@@ -139,8 +140,8 @@ class PalletFaceGT:
     """A pallet's front face and fork pockets in one frame, as a forklift needs them.
 
     The front face is the face the forklift approaches (the target of a forklift view), else the face with
-    pockets that looks most towards the camera; pockets are left then right as seen from outside that face. Camera-frame quantities always; vehicle-frame ones when the frame has a
-    vehicle (else None).
+    pockets that looks most towards the camera; pockets are left then right as seen from outside that face.
+    Camera-frame quantities always; vehicle-frame ones when the frame has a vehicle (else None).
 
     :ivar face_centre_cam: (3,) metres. :ivar face_normal_cam: (3,) outward unit normal.
     :ivar pocket_centres_cam: (2, 3) centres of the pocket openings in the face plane.
@@ -181,7 +182,8 @@ class PalletFaceGT:
         for k, side in enumerate(("left", "right")):
             pockets.append({
                 "side": side, "centre_cam_mm": mm(self.pocket_centres_cam[k]),
-                "centre_vehicle_mm": None if self.pocket_centres_vehicle is None else mm(self.pocket_centres_vehicle[k]),
+                "centre_vehicle_mm": None if self.pocket_centres_vehicle is None
+                else mm(self.pocket_centres_vehicle[k]),
                 "width_mm": float(self.pocket_size_m[k, 0] * 1000.0),
                 "height_mm": float(self.pocket_size_m[k, 1] * 1000.0), "blocked": bool(self.pocket_blocked[k])})
         return {"face": self.face, "face_centre_cam_mm": mm(self.face_centre_cam),
@@ -202,7 +204,8 @@ def _blocked(scene: Scene, placement: PalletPlacement, face: str) -> np.ndarray:
     T_pk, h_pk = pocket_box_world(placement, face)
     out = np.zeros(2, dtype=bool)
     for k in range(2):
-        near = np.linalg.norm(T_o[:, :3, 3] - T_pk[k, :3, 3], axis=1) < np.linalg.norm(h_o, axis=1) + np.linalg.norm(h_pk[k])
+        reach = np.linalg.norm(h_o, axis=1) + np.linalg.norm(h_pk[k])          # bounding spheres first
+        near = np.linalg.norm(T_o[:, :3, 3] - T_pk[k, :3, 3], axis=1) < reach
         if near.any():
             out[k] = bool(obb_overlap(T_pk[k], h_pk[k], T_o[near], h_o[near], margin_m=0.002).any())
     return out

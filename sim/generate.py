@@ -283,7 +283,8 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
             else:
                 depth_model = config.sensor_model if config.sensor_model is not None else depth_model_for(config.sensor)
             if config.appearance is not None:
-                appearance = draw_appearance(config.appearance, scene, np.random.default_rng((int(seed), int(index), 2)))
+                app_rng = np.random.default_rng((int(seed), int(index), 2))
+                appearance = draw_appearance(config.appearance, scene, app_rng)
                 frame = render_scene(scene, depth_model, None, sensor_rng, _cast=cast, appearance=appearance)
                 return with_forklift_gt(scene, frame)
             blur = sensor_rng.uniform(2, 9) if sensor_rng.random() < config.blur_prob else 0.0

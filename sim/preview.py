@@ -59,7 +59,8 @@ def _draw_face(img: np.ndarray, f, T_cam_pallet: np.ndarray, K: np.ndarray) -> N
     up = T_cam_pallet[:3, 2]
     lateral = np.cross(up, f.face_normal_cam)
     for k, (c, (pw, ph)) in enumerate(zip(f.pocket_centres_cam, f.pocket_size_m)):
-        corners = np.array([c + sx * pw / 2 * lateral + sy * ph / 2 * up for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+        corners = np.array([c + sx * pw / 2 * lateral + sy * ph / 2 * up
+                            for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
         uv = project_points(corners, K)
         if not np.all(np.isfinite(uv)):
             continue

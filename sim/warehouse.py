@@ -280,7 +280,8 @@ def _build_forklift(b: _Builder) -> Scene:
     kind = rng.choice(["floor", "rack", "truck", "stack"], p=[0.4, 0.3, 0.15, 0.15])
     y_front = -cfg.target_distance_m[1] - 3.5
     half_x = rng.uniform(5.0, 9.0)
-    back = {"rack": RACK_DEPTH_M + rng.uniform(0.2, 0.5), "truck": rng.uniform(3.0, 4.0)}.get(kind, rng.uniform(2.0, 6.0))
+    back = (RACK_DEPTH_M + rng.uniform(0.2, 0.5) if kind == "rack" else rng.uniform(3.0, 4.0) if kind == "truck"
+            else rng.uniform(2.0, 6.0))                    # the back wall
     if kind == "rack":
         rack_ids, half_len = b.add_racks()
         half_x = max(half_x, half_len + 1.0)
