@@ -10,13 +10,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from pallet6d.runtime.geometry import invert_T, make_T, transform_points
 from pallet6d.sim.pallets import face_normal, get_pallet_model
 from pallet6d.sim.scene import MATERIALS, Box, ForkliftVehicle, PalletPlacement, Scene, obb_overlap
 
-__all__ = ["R_VEHICLE_CAM0", "PalletFaceGT", "front_face", "face_gts", "place_forklift", "pocket_box_world"]
+__all__ = ["R_VEHICLE_CAM0", "PalletFaceGT", "front_face", "face_gts", "place_forklift", "pocket_box_world",
+           "pocket_visibility"]
 
 # Camera looking straight along the forks: OpenCV axes (x right, y down, z forward) in the vehicle frame.
 R_VEHICLE_CAM0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -150,6 +152,8 @@ class PalletFaceGT:
         the pocket, anywhere along its depth.
     :ivar face_yaw_deg: yaw of the face relative to the forks: 0 when the forks point straight into it,
         positive when the face is turned anticlockwise seen from above (vehicle frame).
+    :ivar pocket_visib_fract: (2,) the part of each opening the camera sees (nothing in front of it, inside
+        the image), 0 when the face looks away; None until measured on a rendered depth image.
     """
 
     instance_id: int
@@ -163,17 +167,26 @@ class PalletFaceGT:
     face_normal_vehicle: np.ndarray | None = None
     pocket_centres_vehicle: np.ndarray | None = None
     face_yaw_deg: float | None = None
+    pocket_visib_fract: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         shapes = {"face_centre_cam": (3,), "face_normal_cam": (3,), "pocket_centres_cam": (2, 3),
                   "pocket_size_m": (2, 2), "pocket_blocked": (2,), "face_centre_vehicle": (3,),
-                  "face_normal_vehicle": (3,), "pocket_centres_vehicle": (2, 3)}
+                  "face_normal_vehicle": (3,), "pocket_centres_vehicle": (2, 3), "pocket_visib_fract": (2,)}
         for name, shape in shapes.items():
             value = getattr(self, name)
             if value is not None and np.shape(value) != shape:
                 raise ValueError(f"PalletFaceGT.{name} must be {shape}, got {np.shape(value)}")
         if self.face not in ("+x", "-x", "+y", "-y"):
             raise ValueError(f"PalletFaceGT.face must be a pallet face, got {self.face!r}")
+
+    def pocket_corners_cam(self, T_cam_pallet: np.ndarray) -> np.ndarray:
+        """(2, 4, 3) corners of the two openings in the face plane (camera frame), around each opening."""
+        up = T_cam_pallet[:3, 2]
+        lateral = np.cross(up, self.face_normal_cam)
+        signs = np.array([(-1, -1), (1, -1), (1, 1), (-1, 1)], dtype=np.float64)
+        return np.stack([c + (signs[:, :1] * w / 2) * lateral + (signs[:, 1:] * h / 2) * up
+                         for c, (w, h) in zip(self.pocket_centres_cam, self.pocket_size_m)])
 
     def to_json(self) -> dict:
         """BOP-style JSON entry: millimetres, plain lists."""
@@ -185,7 +198,8 @@ class PalletFaceGT:
                 "centre_vehicle_mm": None if self.pocket_centres_vehicle is None
                 else mm(self.pocket_centres_vehicle[k]),
                 "width_mm": float(self.pocket_size_m[k, 0] * 1000.0),
-                "height_mm": float(self.pocket_size_m[k, 1] * 1000.0), "blocked": bool(self.pocket_blocked[k])})
+                "height_mm": float(self.pocket_size_m[k, 1] * 1000.0), "blocked": bool(self.pocket_blocked[k]),
+                "visib_fract": None if self.pocket_visib_fract is None else float(self.pocket_visib_fract[k])})
         return {"face": self.face, "face_centre_cam_mm": mm(self.face_centre_cam),
                 "face_normal_cam": [float(x) for x in self.face_normal_cam],
                 "face_centre_vehicle_mm": mm(self.face_centre_vehicle),
@@ -242,4 +256,35 @@ def face_gts(scene: Scene, instance_ids) -> list[PalletFaceGT]:
                       face_yaw_deg=float(math.degrees(math.atan2(-n_v[1], -n_v[0]))))
         out.append(PalletFaceGT(iid, face, cam[0], T_cam_world[:3, :3] @ n_w, cam[1:], size,
                                 _blocked(scene, p, face), **kw))
+    return out
+
+
+def pocket_visibility(face: PalletFaceGT, T_cam_pallet: np.ndarray, depth_ideal_m: np.ndarray,
+                      K: np.ndarray, tol_m: float = 0.01) -> np.ndarray:
+    """(2,) visible fraction of each pocket opening: pixels of the opening (its projection, the part
+    outside the image included) whose exact depth is not in front of the face plane, over all its pixels.
+
+    :param depth_ideal_m: (H, W) exact depth, 0 where nothing was hit (free view).
+    """
+    h, w = depth_ideal_m.shape
+    out = np.zeros(2)
+    if face.face_normal_cam @ face.face_centre_cam >= 0:      # the face looks away from the camera
+        return out
+    corners = face.pocket_corners_cam(T_cam_pallet)
+    for k in range(2):
+        if np.any(corners[k, :, 2] < 0.05):
+            continue
+        uv = (corners[k] @ K.T)[:, :2] / corners[k, :, 2:]
+        x, y = uv[:, 0], uv[:, 1]
+        area = 0.5 * abs(float(x @ np.roll(y, 1) - y @ np.roll(x, 1)))
+        if area < 1.0:
+            continue
+        mask = np.zeros((h, w), dtype=np.uint8)
+        cv2.fillConvexPoly(mask, np.round(uv * 16).astype(np.int32), 1, cv2.LINE_8, 4)
+        v, u = np.nonzero(mask)
+        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.size)], 1)
+        z_plane = (face.face_normal_cam @ face.face_centre_cam) / (rays @ face.face_normal_cam)
+        d = depth_ideal_m[v, u]
+        seen = (d == 0) | (d >= z_plane - tol_m)
+        out[k] = min(float(seen.sum()) / area, 1.0)
     return out

@@ -7,12 +7,12 @@ view); `generate_frame(config, seed, index)` draws the scene for frame `index` o
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from pallet6d.runtime.geometry import project_points, transform_points
-from pallet6d.sim.forklift_view import PalletFaceGT, face_gts
+from pallet6d.sim.forklift_view import PalletFaceGT, face_gts, pocket_visibility
 from pallet6d.sim.pallets import box_corners, get_pallet_model
 from pallet6d.sim.presets import SimConfig
 from pallet6d.sim.raycast import pixel_rays, raycast_boxes
@@ -242,9 +242,12 @@ def render_scene(scene: Scene, depth_model: DepthModel | None = None, rgb_model:
 
 
 def with_forklift_gt(scene: Scene, frame: SimFrame) -> SimFrame:
-    """`frame` with the vehicle's camera mounting and the front face and pockets of every pallet in view."""
+    """`frame` with the vehicle's camera mounting and the front face and pockets of every pallet in view
+    (with the visible part of each pocket, measured on the exact depth)."""
     frame.vehicle = scene.vehicle
-    frame.faces = face_gts(scene, [p.instance_id for p in frame.pallets])
+    faces = face_gts(scene, [p.instance_id for p in frame.pallets])
+    frame.faces = [replace(f, pocket_visib_fract=pocket_visibility(f, frame.pallet(f.instance_id).T_cam_pallet,
+                                                                   frame.depth_ideal_m, frame.K)) for f in faces]
     return frame
 
 

@@ -56,11 +56,7 @@ def draw_preview(frame: SimFrame, axis_m: float = 0.3) -> np.ndarray:
 
 def _draw_face(img: np.ndarray, f, T_cam_pallet: np.ndarray, K: np.ndarray) -> None:
     """A pallet's front-face centre (white dot) and its pocket openings (cyan; red where blocked; L/R)."""
-    up = T_cam_pallet[:3, 2]
-    lateral = np.cross(up, f.face_normal_cam)
-    for k, (c, (pw, ph)) in enumerate(zip(f.pocket_centres_cam, f.pocket_size_m)):
-        corners = np.array([c + sx * pw / 2 * lateral + sy * ph / 2 * up
-                            for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+    for k, corners in enumerate(f.pocket_corners_cam(T_cam_pallet)):
         uv = project_points(corners, K)
         if not np.all(np.isfinite(uv)):
             continue

@@ -16,7 +16,7 @@ from pallet6d.sim.generate import generate_frame, render_scene, with_forklift_gt
 from pallet6d.sim.loads import pocket_obstacle
 from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
 from pallet6d.sim.presets import PAPER_PRESETS, get_preset
-from pallet6d.sim.scene import MATERIALS, Box, PalletPlacement, Scene, obb_overlap, pallet_boxes
+from pallet6d.sim.scene import MATERIALS, Box, PalletPlacement, Scene, look_at_T_world_cam, obb_overlap, pallet_boxes
 
 K = np.array([[160.0, 0, 159.5], [0, 160.0, 89.5], [0, 0, 1]])
 HW = (180, 320)
@@ -151,6 +151,7 @@ def test_forklift_preset_frames(tmp_path):
         (tf,) = [f for f in frame.faces if f.instance_id == frame.target_instance]
         assert tf.face == frame.vehicle.target_face
         assert tf.pocket_blocked.any()            # the obstacle sits in one of the target's pockets
+        assert np.all((tf.pocket_visib_fract >= 0) & (tf.pocket_visib_fract <= 1))
         d = np.hypot(*(tf.face_centre_vehicle[:2] - frame.T_vehicle_cam[:2, 3]))
         assert 0.5 - 0.15 <= d <= 6.0 + 0.15
     assert len(types) >= 2
@@ -218,3 +219,24 @@ def test_paper_preset_ground_truth_is_unchanged(name, index):
     assert name in PAPER_PRESETS
     frame = generate_frame(get_preset(name).with_image_size(160, 120), 7, index)
     assert _gt_digest(frame) == PAPER_GT_HASHES[(name, index)]
+
+
+def test_pocket_visibility_sees_what_stands_in_front():
+    m = get_pallet_model("epal")
+    p = PalletPlacement(1, "epal", g.make_T(np.eye(3), [0, 0, m.size_m[2] / 2]))
+    base = [floor(), *pallet_boxes(p, np.array([0.8, 0.65, 0.45]), 1)]
+    T_world_cam = look_at_T_world_cam(np.array([2.6, 0.1, 0.35]), np.array([0.6, 0.0, 0.05]))
+    # +x face seen from outside (camera at +x): left pocket is at -y.
+    in_front = Box(g.make_T(np.eye(3), [1.2, -0.19, 0.15]), [0.05, 0.2, 0.15], MATERIALS.index("cardboard"),
+                   [0.6, 0.5, 0.3])
+    for extra, expect_left in (([], 1.0), ([in_front], 0.0)):
+        scene = Scene(base + extra, [p], T_world_cam, K, HW, target_instance=1)
+        frame = with_forklift_gt(scene, render_scene(scene))
+        (f,) = frame.faces
+        assert f.face == "+x" and not f.pocket_blocked.any()
+        assert abs(f.pocket_visib_fract[0] - expect_left) < 0.05
+        assert f.pocket_visib_fract[1] > 0.95
+    # The same face seen from behind the pallet: its pockets are not visible.
+    behind = Scene(base, [p], look_at_T_world_cam(np.array([-2.6, 0.1, 0.35]), np.zeros(3)), K, HW, target_instance=1)
+    (f,) = face_gts(behind, [1])
+    assert f.face == "-x"
