@@ -11,7 +11,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from pallet6d.sim.camera_effects import CameraEffects
-from pallet6d.sim.lighting import PointLight, light_hits
+from pallet6d.sim.lighting import PointLight, light_hits, shadow_visibility
 from pallet6d.sim.scene import MATERIALS, Scene
 from pallet6d.sim.shading import BACKGROUND_RGB, SurfaceHits, albedo
 from pallet6d.sim.textures import CHEP_BLUE, PLASTIC_PALLET_COLORS, STYLE_IDS, apply_style, dirt_overlay, wear_overlay
@@ -38,12 +38,12 @@ class AppearanceConfig:
     wear: _Range = (0.0, 0.8)             # worn edges and scratches per box
     specular: _Range = (0.0, 0.25)        # highlight strength on plastic, metal and film
     # Lights.
-    lamps: tuple[int, int] = (1, 4)       # ceiling lamps (point lights with a cone)
+    lamps: tuple[int, int] = (1, 3)       # ceiling lamps (point lights with a cone); each costs a shadow pass
     lamp_height_m: _Range = (2.5, 8.0)    # capped below the ceiling
     lamp_spread_m: _Range = (0.0, 6.0)    # horizontal distance of a lamp from the point the camera looks at
     lamp_intensity: _Range = (0.2, 1.0)
     light_tint: _Range = (0.0, 0.25)      # random colour of each light (0 = white)
-    sun_intensity: _Range = (0.0, 0.6)    # the scene's directional light, scaled
+    key_intensity: _Range = (0.0, 0.8)    # a wide lamp from the scene's light direction
     ambient: _Range = (0.05, 0.35)
     headlight: _Range = (0.0, 0.4)        # lamp at the camera (the forklift's light)
     shadows: bool = True
@@ -84,7 +84,7 @@ class Appearance:
 
     style: (N,) per box, 0 = the material's own texture, else a `textures.STYLES` id.
     color: (N, 3) per-box base colours. dirt / wear: (N,) strengths. specular: highlight strength.
-    lights: lamps and the sun. ambient: (3,) RGB. headlight: strength of the lamp at the camera.
+    lights: lamps and the key light. ambient: (3,) RGB. headlight: strength of the lamp at the camera.
     """
 
     style: np.ndarray
@@ -122,6 +122,12 @@ def _ceiling_z(scene: Scene, xy: np.ndarray, above_m: float) -> float:
     return z
 
 
+def _seen_from_camera(scene: Scene, boxes_world: tuple, position_world: np.ndarray) -> bool:
+    """True when nothing stands between the camera and `position_world` (a lamp in the camera's room)."""
+    cam = scene.T_world_cam[:3, 3]
+    return bool(shadow_visibility(cam[None], position_world, cam - position_world, *boxes_world, max_tan=1.0)[0])
+
+
 def draw_appearance(cfg: AppearanceConfig, scene: Scene, rng: np.random.Generator) -> Appearance:
     """Draw one frame's appearance for `scene` (box styles and colours, lights, camera effects)."""
     n = len(scene.boxes)
@@ -149,20 +155,32 @@ def draw_appearance(cfg: AppearanceConfig, scene: Scene, rng: np.random.Generato
     color[others[recolor]] = rng.uniform(0.05, 0.95, (int(recolor.sum()), 3))
     dirt = rng.uniform(*cfg.dirt, n)
     wear = rng.uniform(*cfg.wear, n)
-    # Lights: lamps under the ceiling around where the camera looks, the sun scaled, ambient, headlight.
+    # Lights: lamps under the ceiling around where the camera looks, in the camera's room; a key light
+    # from the scene's light direction; ambient; the headlight.
     cam = scene.T_world_cam[:3, 3]
     look = cam + scene.T_world_cam[:3, 2] * rng.uniform(1.0, 5.0)
+    boxes_world = (np.array([b.T_world_box[:3, :3] for b in scene.boxes]).reshape(n, 3, 3),
+                   np.array([b.T_world_box[:3, 3] for b in scene.boxes]).reshape(n, 3),
+                   np.array([b.half_size_m for b in scene.boxes]).reshape(n, 3))
     lights = []
     for _ in range(int(rng.integers(cfg.lamps[0], cfg.lamps[1] + 1))):
-        ang, r = rng.uniform(0, 2 * np.pi), _u(rng, cfg.lamp_spread_m)
-        xy = look[:2] + r * np.array([np.cos(ang), np.sin(ang)])
-        z = min(_u(rng, cfg.lamp_height_m), _ceiling_z(scene, xy, max(cam[2], 1.0) + 0.3) - 0.15)
+        for _try in range(8):
+            ang, r = rng.uniform(0, 2 * np.pi), _u(rng, cfg.lamp_spread_m) * (1 - _try / 8)
+            xy = look[:2] + r * np.array([np.cos(ang), np.sin(ang)])
+            z = min(_u(rng, cfg.lamp_height_m), _ceiling_z(scene, xy, max(cam[2], 1.0) + 0.3) - 0.15)
+            if _seen_from_camera(scene, boxes_world, np.append(xy, z)):
+                break
         lights.append(PointLight(np.append(xy, z), _tint(rng, _u(rng, cfg.light_tint)), _u(rng, cfg.lamp_intensity),
                                  cone_deg=float(rng.uniform(45, 75))))
-    sun = _u(rng, cfg.sun_intensity)
-    if sun > 0:
-        lights.append(PointLight(np.zeros(3), _tint(rng, _u(rng, cfg.light_tint)), sun,
-                                 axis_world=scene.light.direction_world, distant=True))
+    key = _u(rng, cfg.key_intensity)
+    if key > 0:
+        d = scene.light.direction_world
+        for dist in (8.0, 5.0, 3.0, 2.0):
+            pos = look - d * dist
+            if _seen_from_camera(scene, boxes_world, pos):
+                break
+        lights.append(PointLight(pos, _tint(rng, _u(rng, cfg.light_tint)), key, axis_world=d, cone_deg=80.0,
+                                 ref_m=dist))
     ambient = _u(rng, cfg.ambient) * _tint(rng, _u(rng, cfg.light_tint))
     motion = rng.random() < cfg.motion_blur_prob
     defocus = rng.random() < cfg.defocus_prob
@@ -213,11 +231,8 @@ def shade_appearance(hits: SurfaceHits, surface_rgb: np.ndarray, material: np.nd
         irradiance += e[:, None] * light.color[None].astype(np.float32)
         if app.specular > 0 and shiny.any():
             R_cw = T_cam_world[:3, :3]
-            if light.distant:
-                l_dir = np.broadcast_to(-(R_cw @ light.axis_world), hits.p_cam.shape)
-            else:
-                to = (R_cw @ light.position_world + T_cam_world[:3, 3])[None] - hits.p_cam
-                l_dir = to / np.maximum(np.linalg.norm(to, axis=1, keepdims=True), 1e-6)
+            to = (R_cw @ light.position_world + T_cam_world[:3, 3])[None] - hits.p_cam
+            l_dir = to / np.maximum(np.linalg.norm(to, axis=1, keepdims=True), 1e-6)
             half_v = l_dir + hits.view_cam
             half_v = half_v / np.maximum(np.linalg.norm(half_v, axis=1, keepdims=True), 1e-6)
             spec += np.where(shiny & (e > 0), e * np.maximum((hits.normal_cam * half_v).sum(1), 0) ** 40, 0)
