@@ -31,6 +31,7 @@ class AppearanceConfig:
     # Surfaces.
     chep_prob: float = 0.15               # a wooden pallet painted CHEP blue
     wood_tint: _Range = (0.75, 1.15)      # brightness of wooden pallets (fresh to weathered)
+    board_variation: _Range = (0.0, 0.6)  # per-pallet strength of board-to-board darkening and greying (stains)
     plastic_colors: tuple[str, ...] = tuple(PLASTIC_PALLET_COLORS)   # plastic pallets draw one of these
     pattern_prob: float = 0.25            # a non-pallet box gets a random pattern (noise, stripes, checker...)
     recolor_prob: float = 0.3             # a non-pallet box gets a random colour
@@ -138,15 +139,23 @@ def draw_appearance(cfg: AppearanceConfig, scene: Scene, rng: np.random.Generato
     # Pallets: one look per pallet instance.
     for i in np.unique(inst[inst > 0]):
         sel = inst == i
-        if np.any(material[sel] == _PLASTIC):
+        if np.any(material[sel] == _PLASTIC):                      # moulded in one piece: one colour
             name = cfg.plastic_colors[int(rng.integers(len(cfg.plastic_colors)))]
             style[sel] = _PLASTIC_STYLES[int(rng.integers(3))]
             color[sel] = np.array(PLASTIC_PALLET_COLORS[name]) * rng.uniform(0.9, 1.1)
-        elif rng.random() < cfg.chep_prob:
+            continue
+        if rng.random() < cfg.chep_prob:
             style[sel] = STYLE_IDS["painted-wood"]
             color[sel] = np.array(CHEP_BLUE) * rng.uniform(0.85, 1.1)
         else:
             color[sel] = np.clip(color[sel] * _u(rng, cfg.wood_tint), 0, 1)
+        # Weathered boards: some darker and greyer than their neighbours, as on real wooden pallets.
+        k = _u(rng, cfg.board_variation)
+        rows = np.flatnonzero(sel)
+        dark = 1 - k * rng.uniform(0, 1, rows.size) ** 2
+        grey = k * rng.uniform(0, 1, rows.size)
+        c = color[rows]
+        color[rows] = (c + (c.mean(1, keepdims=True) - c) * grey[:, None]) * dark[:, None]
     # Everything else: random patterns and colours (the floor keeps its concrete look more often).
     others = np.flatnonzero(inst == 0)
     pattern = rng.random(others.size) < cfg.pattern_prob * np.where(material[others] == _CONCRETE, 0.3, 1.0)

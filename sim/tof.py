@@ -38,7 +38,7 @@ class ToFDepthModel:
 
     min_m: float = 0.3
     max_m: float = 10.0
-    min_amplitude: float = 0.016     # confidence threshold: albedo 0.1 facing the camera is lost beyond 2.5 m
+    min_amplitude: float = 0.01      # confidence threshold: albedo 0.1 facing the camera is lost beyond 3.2 m
     sigma_ref_m: float = 0.004       # noise sigma of a surface of ref_albedo facing the camera at ref_m
     ref_m: float = 2.0
     ref_albedo: float = 0.5
