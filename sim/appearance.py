@@ -158,10 +158,13 @@ def draw_appearance(cfg: AppearanceConfig, scene: Scene, rng: np.random.Generato
         color[rows] = (c + (c.mean(1, keepdims=True) - c) * grey[:, None]) * dark[:, None]
     # Everything else: random patterns and colours (the floor keeps its concrete look more often).
     others = np.flatnonzero(inst == 0)
-    pattern = rng.random(others.size) < cfg.pattern_prob * np.where(material[others] == _CONCRETE, 0.3, 1.0)
+    floor_like = np.where(material[others] == _CONCRETE, 0.3, 1.0)
+    pattern = rng.random(others.size) < cfg.pattern_prob * floor_like
     style[others[pattern]] = np.array(_PATTERN_STYLES)[rng.integers(0, 3, int(pattern.sum()))]
-    recolor = rng.random(others.size) < cfg.recolor_prob
-    color[others[recolor]] = rng.uniform(0.05, 0.95, (int(recolor.sum()), 3))
+    recolor = rng.random(others.size) < cfg.recolor_prob * floor_like
+    new_color = rng.uniform(0.05, 0.95, (int(recolor.sum()), 3))
+    saturation = rng.uniform(0.2, 1.0, (int(recolor.sum()), 1))
+    color[others[recolor]] = new_color.mean(1, keepdims=True) + (new_color - new_color.mean(1, keepdims=True)) * saturation
     dirt = rng.uniform(*cfg.dirt, n)
     wear = rng.uniform(*cfg.wear, n)
     # Lights: lamps under the ceiling around where the camera looks, in the camera's room; a key light
