@@ -249,3 +249,27 @@ def test_sim_config_takes_the_sensor_names_and_checks_models():
         SimConfig(**base, appearance={"shadows": True})
     assert all(p.appearance is None and p.sensor_model is None for p in PRESETS.values())
     assert math.isfinite(PRESETS["indoor-noisy"].K[0, 0])
+
+
+def test_lamp_shadows_on_a_rendered_frame_match_exact_shadow_rays():
+    from pallet6d.sim.generate import _raycast
+    from pallet6d.sim.lighting import PointLight, light_hits
+    from pallet6d.sim.raycast import pixel_rays
+    from pallet6d.sim.shading import surface_hits
+
+    scene = plastic_pallet_scene()
+    rc, _, (R, t, half, *_) = _raycast(scene)
+    hits = surface_hits(rc.depth_m, rc.box_index, pixel_rays(scene.K, scene.image_hw), R, t, half)
+    lamp = PointLight(np.array([0.3, 0.4, 2.5]), np.ones(3), 1.0, cone_deg=75.0)
+    lit = light_hits(hits, lamp, scene.T_cam_world, (R, t, half), shadows=False)
+    shaded = light_hits(hits, lamp, scene.T_cam_world, (R, t, half), shadows=True)
+    need = lit > 1e-4
+    exact = np.zeros_like(need)
+    exact[need] = shadow_visibility(hits.p_cam[need], scene.T_cam_world[:3, :3] @ lamp.position_world
+                                    + scene.T_cam_world[:3, 3], scene.T_cam_world[:3, :3] @ lamp.axis_world,
+                                    R, t, half, max_tan=10.0)
+    on_floor = hits.box == 0
+    assert (~exact & need & on_floor).sum() > 200                  # the pallet shadows the floor
+    agree = (shaded[need] > 0) == exact[need]
+    assert agree.mean() > 0.98                                     # 2x2 sampling changes only shadow edges
+    assert np.all(shaded <= lit + 1e-6)
