@@ -273,3 +273,9 @@ def test_lamp_shadows_on_a_rendered_frame_match_exact_shadow_rays():
     agree = (shaded[need] > 0) == exact[need]
     assert agree.mean() > 0.98                                     # 2x2 sampling changes only shadow edges
     assert np.all(shaded <= lit + 1e-6)
+
+
+def test_camera_effects_on_a_black_frame_stay_finite_and_dark():
+    effects = fx.CameraEffects(shot_noise=0.02, read_noise=0.0, jpeg_quality=50)
+    out = fx.apply_camera_effects(np.zeros((16, 16, 3), np.float32), effects, np.random.default_rng(0))
+    assert out.dtype == np.uint8 and out.max() <= 2
