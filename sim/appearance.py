@@ -164,7 +164,8 @@ def draw_appearance(cfg: AppearanceConfig, scene: Scene, rng: np.random.Generato
     recolor = rng.random(others.size) < cfg.recolor_prob * floor_like
     new_color = rng.uniform(0.05, 0.95, (int(recolor.sum()), 3))
     saturation = rng.uniform(0.2, 1.0, (int(recolor.sum()), 1))
-    color[others[recolor]] = new_color.mean(1, keepdims=True) + (new_color - new_color.mean(1, keepdims=True)) * saturation
+    grey = new_color.mean(1, keepdims=True)
+    color[others[recolor]] = grey + (new_color - grey) * saturation
     dirt = rng.uniform(*cfg.dirt, n)
     wear = rng.uniform(*cfg.wear, n)
     # Lights: lamps under the ceiling around where the camera looks, in the camera's room; a key light

@@ -259,7 +259,8 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
             sensor_rng = np.random.default_rng((int(seed), int(index), 1))
             depth_model = config.sensor_model if config.sensor_model is not None else depth_model_for(config.sensor)
             if config.appearance is not None:
-                appearance = draw_appearance(config.appearance, scene, np.random.default_rng((int(seed), int(index), 2)))
+                app_rng = np.random.default_rng((int(seed), int(index), 2))
+                appearance = draw_appearance(config.appearance, scene, app_rng)
                 return render_scene(scene, depth_model, None, sensor_rng, _cast=cast, appearance=appearance)
             blur = sensor_rng.uniform(2, 9) if sensor_rng.random() < config.blur_prob else 0.0
             rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*config.exposure),

@@ -165,7 +165,7 @@ def light_hits(hits: SurfaceHits, light: PointLight, T_cam_world: np.ndarray, bo
     dist = np.linalg.norm(to_light, axis=1)
     l_dir = to_light / np.maximum(dist, 1e-9)[:, None]
     cos_i = np.maximum((hits.normal_cam * l_dir).sum(1), 0)
-    falloff = (light.ref_m / np.maximum(dist, 0.3)) ** 2
+    falloff = (light.ref_m / np.maximum(dist, 1.0)) ** 2          # no flare where a lamp nearly touches a wall
     off = np.degrees(np.arccos(np.clip(-(l_dir @ axis), -1, 1)))
     cone = np.clip((light.cone_deg + 10.0 - off) / 10.0, 0, 1)
     e = light.intensity * cos_i * falloff * cone

@@ -131,7 +131,8 @@ def wear_overlay(rgb: np.ndarray, p: np.ndarray, half: np.ndarray, axis: np.ndar
     a, b = _face_uv(p, axis)
     ragged = value_noise_2d(a * 30.0, b * 30.0, seed + 201)
     scuff = (edge_dist < 0.004 + 0.03 * strength * ragged) & (ragged > 0.35)
-    scratch = (np.abs(np.sin(a * 37.0 + b * 23.0 + seed)) < 0.02 * strength) & (value_noise_2d(a * 5, b * 5, seed) > 0.6)
+    scratch = (np.abs(np.sin(a * 37.0 + b * 23.0 + seed)) < 0.02 * strength) \
+        & (value_noise_2d(a * 5, b * 5, seed) > 0.6)
     worn = (scuff | scratch) & (strength > 0)
     grey = rgb.mean(1, keepdims=True)
     faded = 0.5 * (rgb + grey) * np.float32(1.15) + np.float32(0.04)
