@@ -11,7 +11,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from pallet6d.sim.camera_effects import CameraEffects
-from pallet6d.sim.lighting import PointLight, light_hits, shadow_visibility
+from pallet6d.sim.lighting import PointLight, ambient_occlusion, light_hits, shadow_visibility
 from pallet6d.sim.scene import MATERIALS, Scene
 from pallet6d.sim.shading import BACKGROUND_RGB, SurfaceHits, albedo
 from pallet6d.sim.textures import CHEP_BLUE, PLASTIC_PALLET_COLORS, STYLE_IDS, apply_style, dirt_overlay, wear_overlay
@@ -47,6 +47,7 @@ class AppearanceConfig:
     key_intensity: _Range = (0.0, 0.8)    # a wide lamp from the scene's light direction
     ambient: _Range = (0.05, 0.35)
     headlight: _Range = (0.0, 0.4)        # lamp at the camera (the forklift's light)
+    occlusion: _Range = (0.5, 1.0)        # strength of ambient occlusion (dark pockets and corners)
     shadows: bool = True
     # Camera.
     exposure: _Range = (0.55, 1.6)        # times the auto-exposure gain
@@ -86,6 +87,7 @@ class Appearance:
     style: (N,) per box, 0 = the material's own texture, else a `textures.STYLES` id.
     color: (N, 3) per-box base colours. dirt / wear: (N,) strengths. specular: highlight strength.
     lights: lamps and the key light. ambient: (3,) RGB. headlight: strength of the lamp at the camera.
+    occlusion: how much ambient occlusion darkens the ambient and headlight terms (0..1).
     """
 
     style: np.ndarray
@@ -98,6 +100,7 @@ class Appearance:
     headlight: float
     shadows: bool
     camera: CameraEffects
+    occlusion: float = 0.0
 
 
 def _u(rng: np.random.Generator, r) -> float:
@@ -209,7 +212,7 @@ def draw_appearance(cfg: AppearanceConfig, scene: Scene, rng: np.random.Generato
     return Appearance(style=style, color=np.clip(color, 0, 1).astype(np.float32), dirt=dirt.astype(np.float32),
                       wear=wear.astype(np.float32), specular=_u(rng, cfg.specular), lights=tuple(lights),
                       ambient=ambient.astype(np.float32), headlight=_u(rng, cfg.headlight), shadows=cfg.shadows,
-                      camera=camera)
+                      camera=camera, occlusion=_u(rng, cfg.occlusion))
 
 
 def surface_albedo(hits: SurfaceHits, material: np.ndarray, texture_seed: np.ndarray, app: Appearance) -> np.ndarray:
@@ -237,6 +240,8 @@ def shade_appearance(hits: SurfaceHits, surface_rgb: np.ndarray, material: np.nd
     irradiance = np.repeat(app.ambient[None], hits.pix.size, 0)
     lamp = np.maximum((hits.normal_cam * hits.view_cam).sum(1), 0)
     irradiance += (app.headlight * lamp)[:, None]
+    if app.occlusion > 0:
+        irradiance *= (1 - app.occlusion * ambient_occlusion(hits))[:, None]
     shiny = np.isin(material[hits.box], [MATERIALS.index(m) for m in ("plastic", "metal", "film")])
     spec = np.zeros(hits.pix.size, np.float32)
     for light in app.lights:

@@ -15,7 +15,7 @@ import numpy as np
 from pallet6d.sim.raycast import box_screen_rects
 from pallet6d.sim.shading import SurfaceHits
 
-__all__ = ["PointLight", "shadow_visibility", "light_hits"]
+__all__ = ["PointLight", "shadow_visibility", "light_hits", "ambient_occlusion"]
 
 
 @dataclass(frozen=True)
@@ -179,3 +179,37 @@ def light_hits(hits: SurfaceHits, light: PointLight, T_cam_world: np.ndarray, bo
             vis[copy_from[0]] = vis[copy_from[1]]
             e[need[~vis[need]]] = 0.0
     return e.astype(np.float32)
+
+
+def ambient_occlusion(hits: SurfaceHits, radius_m: float = 0.5, step: int = 2) -> np.ndarray:
+    """(P,) float32 in [0, 1]: how much of each hit's hemisphere nearby visible surfaces cover (screen space).
+
+    For each pixel (on a grid `step` pixels apart), neighbours on rings whose points stand in front of its
+    tangent plane within `radius_m` occlude it, weighted by how steeply they rise: pallet pockets, the foot
+    of a load and the floor under a rack come out dark, flat open surfaces stay at 0.
+    """
+    h, w = hits.image_hw
+    p = hits.to_image(hits.p_cam)[::step, ::step]
+    n = hits.to_image(hits.normal_cam)[::step, ::step]
+    valid = p[..., 2] > 0
+    hs, ws = valid.shape
+    occ = np.zeros((hs, ws), np.float32)
+    count = 0
+    for r in (2, 4, 8, 14):
+        for k in range(8):
+            ang = 2 * np.pi * (k + 0.5 * (r % 4 == 0)) / 8
+            dy, dx = int(round(r * np.sin(ang))), int(round(r * np.cos(ang)))
+            count += 1
+            if abs(dy) >= hs or abs(dx) >= ws:
+                continue
+            ys, yd = (slice(dy, hs), slice(0, hs - dy)) if dy >= 0 else (slice(0, hs + dy), slice(-dy, hs))
+            xs, xd = (slice(dx, ws), slice(0, ws - dx)) if dx >= 0 else (slice(0, ws + dx), slice(-dx, ws))
+            diff = p[ys, xs] - p[yd, xd]
+            dist = np.sqrt((diff * diff).sum(-1)) + 1e-6
+            rise = (n[yd, xd] * diff).sum(-1) / dist                     # sine of the elevation of the neighbour
+            near = np.clip(1 - dist / radius_m, 0, 1)
+            ok = valid[ys, xs] & valid[yd, xd]
+            occ[yd, xd] += np.where(ok, np.clip(rise - 0.1, 0, 1) * near, 0)
+    ao = np.clip(3.0 * occ / count, 0, 1)
+    full = np.repeat(np.repeat(ao, step, 0), step, 1)[:h, :w]
+    return full.reshape(-1)[hits.pix]
