@@ -96,8 +96,8 @@ def shadow_visibility(points_cam: np.ndarray, light_cam: np.ndarray, axis_cam: n
     u0s, v0s, u1s, v1s = rects.T
     n_cand = sat[v1s, u1s] - sat[v0s, u1s] - sat[v1s, u0s] + sat[v0s, u0s]
     blocked = np.zeros(cand.size, dtype=bool)
-    q_c = q[cand]
-    seg_len = np.linalg.norm(q_c, axis=1)
+    q_c = q[cand].astype(np.float32)
+    seg_len = np.linalg.norm(q[cand], axis=1)
     t_end = 1.0 - end_gap_m / np.maximum(seg_len, 1e-9)
     for i in np.flatnonzero((rects[:, 2] > rects[:, 0]) & (rects[:, 3] > rects[:, 1]) & (n_cand > 0)):
         u0, v0, u1, v1 = rects[i]
@@ -107,17 +107,20 @@ def shadow_visibility(points_cam: np.ndarray, light_cam: np.ndarray, axis_cam: n
             parts = [order[starts[r * grid + u0]:starts[r * grid + u1]] for r in range(v0, v1)]
             idx = np.concatenate(parts) if parts else np.zeros(0, np.int64)
         idx = idx[~blocked[idx]]
-        # Segment light -> point, parameter s in [0, 1], in the box's frame: x(s) = o + s * d.
-        o = R_l[i].T @ (-t_l[i])
-        # Where the light is outside the box beyond a face, only points behind that face's plane can be
-        # blocked (a floor under every point blocks nothing): one coordinate per point culls most big boxes.
-        for a in np.flatnonzero(np.abs(o) > half[i]):
-            if idx.size == 0:
-                break
-            idx = idx[np.sign(o[a]) * (o[a] + q_c[idx] @ R_l[i][:, a]) < half[i, a]]
         if idx.size == 0:
             continue
-        d = (q_c[idx] @ R_l[i]).astype(np.float32)
+        # Segment light -> point, parameter s in [0, 1], in the box's frame: x(s) = o + s * d.
+        o = R_l[i].T @ (-t_l[i])
+        d = q_c[idx] @ R_l[i].astype(np.float32)                       # segment directions, box frame
+        # Where the light is outside the box beyond a face, only points behind that face's plane can be
+        # blocked (a floor under every point blocks nothing): this culls most pairs before the slab test.
+        outside = np.abs(o) > half[i]
+        if outside.any():
+            sgn = np.sign(o[outside]).astype(np.float32)
+            keep = np.all(sgn * (o[outside].astype(np.float32) + d[:, outside]) < half[i, outside], axis=1)
+            idx, d = idx[keep], d[keep]
+            if idx.size == 0:
+                continue
         s_near = np.full(idx.size, -np.inf, np.float32)
         s_far = np.full(idx.size, np.inf, np.float32)
         with np.errstate(divide="ignore", invalid="ignore"):
