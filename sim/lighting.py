@@ -194,7 +194,9 @@ def ambient_occlusion(hits: SurfaceHits, radius_m: float = 0.5, step: int = 2) -
     h, w = hits.image_hw
     p = hits.to_image(hits.p_cam)[::step, ::step]
     n = hits.to_image(hits.normal_cam)[::step, ::step]
-    valid = p[..., 2] > 0
+    px, py, pz = (np.ascontiguousarray(p[..., k]) for k in range(3))
+    nx, ny, nz = (np.ascontiguousarray(n[..., k]) for k in range(3))
+    valid = pz > 0
     hs, ws = valid.shape
     occ = np.zeros((hs, ws), np.float32)
     count = 0
@@ -207,12 +209,11 @@ def ambient_occlusion(hits: SurfaceHits, radius_m: float = 0.5, step: int = 2) -
                 continue
             ys, yd = (slice(dy, hs), slice(0, hs - dy)) if dy >= 0 else (slice(0, hs + dy), slice(-dy, hs))
             xs, xd = (slice(dx, ws), slice(0, ws - dx)) if dx >= 0 else (slice(0, ws + dx), slice(-dx, ws))
-            diff = p[ys, xs] - p[yd, xd]
-            dist = np.sqrt((diff * diff).sum(-1)) + 1e-6
-            rise = (n[yd, xd] * diff).sum(-1) / dist                     # sine of the elevation of the neighbour
-            near = np.clip(1 - dist / radius_m, 0, 1)
-            ok = valid[ys, xs] & valid[yd, xd]
-            occ[yd, xd] += np.where(ok, np.clip(rise - 0.1, 0, 1) * near, 0)
+            ex, ey, ez = px[ys, xs] - px[yd, xd], py[ys, xs] - py[yd, xd], pz[ys, xs] - pz[yd, xd]
+            dist = np.sqrt(ex * ex + ey * ey + ez * ez) + np.float32(1e-6)
+            rise = (nx[yd, xd] * ex + ny[yd, xd] * ey + nz[yd, xd] * ez) / dist   # sine of the neighbour's elevation
+            near = np.clip(1 - dist / np.float32(radius_m), 0, 1)
+            occ[yd, xd] += np.clip(rise - np.float32(0.1), 0, 1) * near * (valid[ys, xs] & valid[yd, xd])
     ao = np.clip(3.0 * occ / count, 0, 1)
     full = np.repeat(np.repeat(ao, step, 0), step, 1)[:h, :w]
     return full.reshape(-1)[hits.pix]
