@@ -12,14 +12,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pallet6d.runtime.geometry import project_points, transform_points
+from pallet6d.sim.appearance import Appearance, draw_appearance, shade_appearance, surface_albedo
+from pallet6d.sim.camera_effects import apply_camera_effects
+from pallet6d.sim.depth_sensors import DepthModel, apply_sensor, depth_model_for
 from pallet6d.sim.forklift_view import PalletFaceGT, face_gts, pocket_visibility
 from pallet6d.sim.pallets import box_corners, get_pallet_model
 from pallet6d.sim.presets import SimConfig
 from pallet6d.sim.raycast import pixel_rays, raycast_boxes
 from pallet6d.sim.scene import ForkliftVehicle, Scene, SceneError
-from pallet6d.sim.appearance import Appearance, draw_appearance, shade_appearance, surface_albedo
-from pallet6d.sim.camera_effects import apply_camera_effects
-from pallet6d.sim.depth_sensors import DepthModel, apply_sensor, depth_model_for
 from pallet6d.sim.sensors import PixelInfo, RgbCameraModel, StereoDepthModel, apply_rgb_model
 from pallet6d.sim.shading import SurfaceHits, albedo, shade, surface_hits
 from pallet6d.sim.tof import ToFDepthModel, register_rgb_to_depth

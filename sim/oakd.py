@@ -35,7 +35,7 @@ class OakdStereoModel:
     sigma_disparity_px: float = 0.12  # disparity noise on well-textured surfaces
     max_disparity_px: float = 95.0    # search range; 190 with extended disparity
     max_m: float = 15.0
-    contrast_threshold: float = 0.015  # local contrast (std / mean of intensity) below which matching fails
+    contrast_threshold: float = 0.005  # local contrast (std / mean of intensity) below which matching fails
     lr_edge_px: int = 1               # band beside depth edges removed by the left-right check
     fatten_px: int = 2                # foreground spreads this far into the background at depth edges
     fatten_prob: float = 0.5

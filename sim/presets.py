@@ -23,8 +23,8 @@ import numpy as np
 from pallet6d.sim.appearance import AppearanceConfig
 from pallet6d.sim.depth_sensors import DepthModel, check_sensor_model
 from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
-from pallet6d.sim.sensors import SENSORS
 from pallet6d.sim.scene import SceneError
+from pallet6d.sim.sensors import SENSORS
 
 __all__ = ["SimConfig", "LAYOUTS", "PRESETS", "PAPER_PRESETS", "get_preset"]
 

@@ -18,7 +18,7 @@ import numpy as np
 __all__ = ["SENSORS", "StereoDepthModel", "RgbCameraModel", "PixelInfo", "stereo_shadow_mask", "apply_depth_model",
            "apply_rgb_model", "correlated_noise"]
 
-# Depth sensors selectable by name (`SimConfig.sensor`); each name's model is `pallet6d.sim.depth_sensors`'s.
+# Depth sensors selectable by name (`SimConfig.sensor`); their models: `pallet6d.sim.depth_sensors.SENSOR_MODELS`.
 SENSORS: tuple[str, ...] = ("ideal", "d435", "oakd", "tof")
 
 
@@ -129,9 +129,7 @@ def apply_depth_model(depth_m: np.ndarray, f_px: float, model: StereoDepthModel 
     # Noise: half white, half correlated over ~8 px windows.
     sigma = model.sigma_m(out, f_px).astype(np.float32)
     white = rng.standard_normal((h, w)).astype(np.float32)
-    coarse = rng.standard_normal(((h + 7) // 8, (w + 7) // 8)).astype(np.float32)
-    smooth = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
-    smooth /= max(float(smooth.std()), 1e-6)
+    smooth = correlated_noise((h, w), 8, rng)
     out = out + sigma * (np.float32(np.sqrt(0.5)) * white + np.float32(np.sqrt(0.5)) * smooth)
     # Invalid pixels: stereo shadow, speckle holes, out of range, no surface.
     invalid = ~valid | stereo_shadow_mask(depth, f_px, model.baseline_m)

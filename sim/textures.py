@@ -114,10 +114,17 @@ def dirt_overlay(rgb: np.ndarray, p: np.ndarray, axis: np.ndarray, seed: np.ndar
                  strength: np.ndarray) -> np.ndarray:
     """Darken blotches towards a dirt brown. strength: (P,) in [0, 1]; 0 leaves the colour unchanged."""
     a, b = _face_uv(p, axis)
-    n = 0.7 * value_noise_2d(a * 6.0, b * 6.0, seed + 101) + 0.3 * value_noise_2d(a * 40.0, b * 40.0, seed + 102)
-    amount = np.clip((n - (1.0 - 0.6 * strength)) * 3.0, 0, 1) * strength
-    dirt = np.array([0.22, 0.18, 0.13], np.float32)
-    return rgb + (dirt - rgb) * amount[:, None].astype(np.float32)
+    coarse = value_noise_2d(a * 6.0, b * 6.0, seed + 101)
+    # amount > 0 needs 0.7 coarse + 0.3 fine > 1 - 0.6 strength: the fine noise only where that can hold.
+    sel = np.flatnonzero(0.7 * coarse + 0.3 > 1.0 - 0.6 * strength)
+    out = rgb.copy()
+    if sel.size:
+        n = 0.7 * coarse[sel] + 0.3 * value_noise_2d(a[sel] * 40.0, b[sel] * 40.0, seed[sel] + 102)
+        s = strength[sel]
+        amount = (np.clip((n - (1.0 - 0.6 * s)) * 3.0, 0, 1) * s).astype(np.float32)
+        dirt = np.array([0.22, 0.18, 0.13], np.float32)
+        out[sel] = rgb[sel] + (dirt - rgb[sel]) * amount[:, None]
+    return out
 
 
 def wear_overlay(rgb: np.ndarray, p: np.ndarray, half: np.ndarray, axis: np.ndarray, seed: np.ndarray,
@@ -125,14 +132,19 @@ def wear_overlay(rgb: np.ndarray, p: np.ndarray, half: np.ndarray, axis: np.ndar
     """Scuffed edges and scratches: paint and surface wear off near box edges, lighter and greyer there."""
     a_idx, b_idx = (axis + 1) % 3, (axis + 2) % 3
     rows = np.arange(len(p))
-    edge_a = half[rows, a_idx] - np.abs(p[rows, a_idx])
-    edge_b = half[rows, b_idx] - np.abs(p[rows, b_idx])
-    edge_dist = np.minimum(edge_a, edge_b)
+    edge_dist = np.minimum(half[rows, a_idx] - np.abs(p[rows, a_idx]), half[rows, b_idx] - np.abs(p[rows, b_idx]))
     a, b = _face_uv(p, axis)
-    ragged = value_noise_2d(a * 30.0, b * 30.0, seed + 201)
-    scuff = (edge_dist < 0.004 + 0.03 * strength * ragged) & (ragged > 0.35)
-    scratch = (np.abs(np.sin(a * 37.0 + b * 23.0 + seed)) < 0.02 * strength) & (value_noise_2d(a * 5, b * 5, seed) > 0.6)
-    worn = (scuff | scratch) & (strength > 0)
-    grey = rgb.mean(1, keepdims=True)
-    faded = 0.5 * (rgb + grey) * np.float32(1.15) + np.float32(0.04)
-    return np.where(worn[:, None], np.clip(faded, 0, 1), rgb).astype(np.float32)
+    worn = np.zeros(len(p), dtype=bool)
+    near = np.flatnonzero((edge_dist < 0.004 + 0.03 * strength) & (strength > 0))
+    if near.size:
+        ragged = value_noise_2d(a[near] * 30.0, b[near] * 30.0, seed[near] + 201)
+        worn[near] = (edge_dist[near] < 0.004 + 0.03 * strength[near] * ragged) & (ragged > 0.35)
+    line = np.flatnonzero((np.abs(np.sin(a * 37.0 + b * 23.0 + seed)) < 0.02 * strength) & (strength > 0))
+    if line.size:
+        worn[line] |= value_noise_2d(a[line] * 5, b[line] * 5, seed[line]) > 0.6
+    out = rgb.copy()
+    if worn.any():
+        c = rgb[worn]
+        faded = 0.5 * (c + c.mean(1, keepdims=True)) * np.float32(1.15) + np.float32(0.04)
+        out[worn] = np.clip(faded, 0, 1)
+    return out.astype(np.float32)

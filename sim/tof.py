@@ -38,7 +38,7 @@ class ToFDepthModel:
 
     min_m: float = 0.3
     max_m: float = 10.0
-    min_amplitude: float = 0.016     # confidence threshold: albedo 0.1 facing the camera is lost beyond 2.5 m
+    min_amplitude: float = 0.01      # confidence threshold: albedo 0.1 facing the camera is lost beyond 3.2 m
     sigma_ref_m: float = 0.004       # noise sigma of a surface of ref_albedo facing the camera at ref_m
     ref_m: float = 2.0
     ref_albedo: float = 0.5
@@ -93,15 +93,19 @@ def multipath_bias_m(depth_m: np.ndarray, f_px: float, info: PixelInfo, radius_p
     """
     z_full = np.asarray(depth_m, np.float32)
     h, w = z_full.shape
-    hs, ws = (h + step - 1) // step, (w + step - 1) // step
-    z = z_full[::step, ::step]
-    p = _points_cam(z_full, f_px)[::step, ::step]
-    n = info.normal_cam[::step, ::step]
-    alb = info.albedo[::step, ::step]
+    z = np.ascontiguousarray(z_full[::step, ::step])
+    hs, ws = z.shape
+    P = _points_cam(z_full, f_px)[::step, ::step]
+    N = info.normal_cam[::step, ::step]
+    px, py, pz = (np.ascontiguousarray(P[..., k]) for k in range(3))
+    nx, ny, nz = (np.ascontiguousarray(N[..., k]) for k in range(3))
+    alb = np.ascontiguousarray(info.albedo[::step, ::step])
     valid = z > 0
-    d = np.linalg.norm(p, axis=-1)
-    view = -p / np.maximum(d[..., None], 1e-6)
-    cos_cam = np.clip((n * view).sum(-1), 0, 1)
+    d = np.sqrt(px * px + py * py + pz * pz)
+    cos_cam = np.clip(-(nx * px + ny * py + nz * pz) / np.maximum(d, 1e-6), 0, 1)
+    # What a patch q sends towards p, less the geometry at p: albedo_q * cos_q,cam / d_q^2 * area_q / pi.
+    area_px = (z / np.float32(f_px)) ** 2 / np.maximum(cos_cam, 0.2)
+    send = np.where(valid, alb * cos_cam / np.maximum(d, 1e-3) ** 2 * area_px / np.float32(np.pi), 0).astype(np.float32)
     rho = np.zeros((hs, ws), np.float32)
     extra = np.zeros((hs, ws), np.float32)
     rings = [r for r in (1, 2, 3, 4, 6, 8, 12, 16) if r * step <= radius_px] or [1]
@@ -109,7 +113,7 @@ def multipath_bias_m(depth_m: np.ndarray, f_px: float, info: PixelInfo, radius_p
     for k, r in enumerate(rings):
         r_in = 0.5 * (r + (rings[k - 1] if k else 0))
         r_out = 0.5 * (r + rings[k + 1]) if k + 1 < len(rings) else r + 0.5 * (r - (rings[k - 1] if k else 0))
-        ring_px = np.pi * (r_out ** 2 - r_in ** 2) * step * step / n_dir      # full-res pixels per sample
+        ring_px = np.float32(np.pi * (r_out ** 2 - r_in ** 2) * step * step / n_dir)   # full-res pixels per sample
         for a in range(n_dir):
             ang = 2 * np.pi * (a + 0.5 * (k % 2)) / n_dir
             dy, dx = int(round(r * np.sin(ang))), int(round(r * np.cos(ang)))
@@ -117,19 +121,15 @@ def multipath_bias_m(depth_m: np.ndarray, f_px: float, info: PixelInfo, radius_p
                 continue
             ys, yd = (slice(dy, hs), slice(0, hs - dy)) if dy >= 0 else (slice(0, hs + dy), slice(-dy, hs))
             xs, xd = (slice(dx, ws), slice(0, ws - dx)) if dx >= 0 else (slice(0, ws + dx), slice(-dx, ws))
-            q, nq, zq = p[ys, xs], n[ys, xs], z[ys, xs]
-            pp, npp = p[yd, xd], n[yd, xd]
-            diff = q - pp
-            r2 = np.maximum((diff * diff).sum(-1), 1e-6)
+            ex, ey, ez = px[ys, xs] - px[yd, xd], py[ys, xs] - py[yd, xd], pz[ys, xs] - pz[yd, xd]
+            r2 = np.maximum(ex * ex + ey * ey + ez * ez, np.float32(1e-6))
             rr = np.sqrt(r2)
-            cos_p = np.clip((npp * diff).sum(-1) / rr, 0, 1)
-            cos_q = np.clip(-(nq * diff).sum(-1) / rr, 0, 1)
-            dq = d[ys, xs]
-            area_q = ring_px * (zq / np.float32(f_px)) ** 2 / np.maximum(cos_cam[ys, xs], 0.2)
-            contrib = alb[ys, xs] * cos_cam[ys, xs] / np.maximum(dq, 1e-3) ** 2 * cos_p * cos_q * area_q / (np.pi * r2)
-            contrib = np.where((zq > 0) & valid[yd, xd], contrib, 0.0)
+            cos_p = np.clip((nx[yd, xd] * ex + ny[yd, xd] * ey + nz[yd, xd] * ez) / rr, 0, 1)
+            cos_q = np.clip(-(nx[ys, xs] * ex + ny[ys, xs] * ey + nz[ys, xs] * ez) / rr, 0, 1)
+            contrib = send[ys, xs] * ring_px * cos_p * cos_q / r2
+            contrib *= valid[yd, xd]
             rho[yd, xd] += contrib
-            extra[yd, xd] += contrib * (dq + rr - d[yd, xd])
+            extra[yd, xd] += contrib * (d[ys, xs] + rr - d[yd, xd])
     direct = np.maximum(cos_cam / np.maximum(d, 1e-3) ** 2, 1e-6)
     rho_rel, extra_rel = rho / direct, extra / direct
     bias = np.where(valid, extra_rel / (2 * (1 + rho_rel)), 0.0).astype(np.float32)

@@ -249,3 +249,51 @@ def test_sim_config_takes_the_sensor_names_and_checks_models():
         SimConfig(**base, appearance={"shadows": True})
     assert all(PRESETS[n].appearance is None and PRESETS[n].sensor_model is None for n in PAPER_PRESETS)
     assert math.isfinite(PRESETS["indoor-noisy"].K[0, 0])
+
+
+def test_lamp_shadows_on_a_rendered_frame_match_exact_shadow_rays():
+    from pallet6d.sim.generate import _raycast
+    from pallet6d.sim.lighting import PointLight, light_hits
+    from pallet6d.sim.raycast import pixel_rays
+    from pallet6d.sim.shading import surface_hits
+
+    scene = plastic_pallet_scene()
+    rc, _, (R, t, half, *_) = _raycast(scene)
+    hits = surface_hits(rc.depth_m, rc.box_index, pixel_rays(scene.K, scene.image_hw), R, t, half)
+    lamp = PointLight(np.array([0.3, 0.4, 2.5]), np.ones(3), 1.0, cone_deg=75.0)
+    lit = light_hits(hits, lamp, scene.T_cam_world, (R, t, half), shadows=False)
+    shaded = light_hits(hits, lamp, scene.T_cam_world, (R, t, half), shadows=True)
+    need = lit > 1e-4
+    exact = np.zeros_like(need)
+    exact[need] = shadow_visibility(hits.p_cam[need], scene.T_cam_world[:3, :3] @ lamp.position_world
+                                    + scene.T_cam_world[:3, 3], scene.T_cam_world[:3, :3] @ lamp.axis_world,
+                                    R, t, half, max_tan=10.0)
+    on_floor = hits.box == 0
+    assert (~exact & need & on_floor).sum() > 200                  # the pallet shadows the floor
+    agree = (shaded[need] > 0) == exact[need]
+    assert agree.mean() > 0.98                                     # 2x2 sampling changes only shadow edges
+    assert np.all(shaded <= lit + 1e-6)
+
+
+def test_camera_effects_on_a_black_frame_stay_finite_and_dark():
+    effects = fx.CameraEffects(shot_noise=0.02, read_noise=0.0, jpeg_quality=50)
+    out = fx.apply_camera_effects(np.zeros((16, 16, 3), np.float32), effects, np.random.default_rng(0))
+    assert out.dtype == np.uint8 and out.max() <= 2
+
+
+def test_ambient_occlusion_darkens_a_concave_corner_not_an_open_floor():
+    from pallet6d.sim.lighting import ambient_occlusion
+    from pallet6d.sim.raycast import pixel_rays, raycast_boxes
+    from pallet6d.sim.shading import surface_hits
+
+    # Floor slab (top at y = 0.5 m below the camera) meeting a wall at z = 3 m.
+    R = np.stack([np.eye(3)] * 2)
+    t, half = np.array([[0.0, 0.55, 2.0], [0.0, -0.5, 3.05]]), np.array([[5.0, 0.05, 1.0], [5.0, 1.0, 0.05]])
+    K = np.array([[200.0, 0, 159.5], [0, 200.0, 119.5], [0, 0, 1]])
+    rc = raycast_boxes(R, t, half, K, (240, 320))
+    hits = surface_hits(rc.depth_m, rc.box_index, pixel_rays(K, (240, 320)), R, t, half)
+    ao = hits.to_image(ambient_occlusion(hits))
+    corner = int(np.nonzero(rc.box_index[:, 160] == 0)[0].min())       # first floor row under the wall
+    assert ao[corner - 3:corner + 1, 80:240].mean() > 0.15
+    assert ao[-20:, 80:240].max() < 0.02 and ao[:40, 80:240].max() < 0.02
+    assert ao.min() >= 0 and ao.max() <= 1

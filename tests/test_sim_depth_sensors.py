@@ -214,3 +214,17 @@ def test_oakd_noise_grows_with_range():
                          wall_info(100, 120, intensity=textured(100, 120)), np.random.default_rng(1))
         stds.append(out[out > 0].std())
     assert stds[0] < stds[1] < stds[2] and stds[2] / stds[0] > 8      # ~z^2
+
+
+@pytest.mark.parametrize("model", [OakdStereoModel(), ToFDepthModel(), StereoDepthModel()])
+def test_no_surface_gives_no_depth(model):
+    d = np.zeros((24, 32), np.float32)
+    info = wall_info(24, 32)
+    info.normal_cam[:] = 0
+    out = apply_sensor(d, F_PX, model, info, np.random.default_rng(0))
+    assert out.dtype == np.float32 and out.shape == d.shape and (out == 0).all()
+
+
+def test_pixel_info_checks_shapes():
+    with pytest.raises(ValueError, match="PixelInfo"):
+        PixelInfo(np.zeros((4, 5, 3)), np.zeros((4, 4)), np.zeros((4, 5), np.int64), np.zeros((4, 5)))
