@@ -57,7 +57,7 @@ def place_forklift(rng: np.random.Generator, target: PalletPlacement, face: str,
     Far away the vehicle approaches at up to +-`approach_yaw_deg` with the forks at a random height; closer
     than the forks are long it is lined up with the pockets (forks at pocket height, tines in the pockets),
     as a forklift must be there. The camera is pitched so that the fork tips show at the bottom of the
-    image while the face stays in view.
+    image while the face stays in view (where both cannot be had, the face).
     """
     model = get_pallet_model(target.model_name)
     if face not in model.pockets_m:
@@ -105,7 +105,8 @@ def place_forklift(rng: np.random.Generator, target: PalletPlacement, face: str,
     face_above = math.atan2(centre_w[2] - cam_z, max(d, 0.3))
     lo = max(tip_below - 0.85 * vhalf, -face_above - 0.8 * vhalf, math.radians(-5))
     hi = min(tip_below - 0.3 * vhalf, 0.8 * vhalf - face_above, math.radians(30))
-    pitch = rng.uniform(lo, hi) if lo < hi else min(max(0.8 * vhalf - face_above - 0.05, math.radians(-5)), hi)
+    # Where both cannot be had (a camera high above a close face), the face wins: it is looked at straight.
+    pitch = rng.uniform(lo, hi) if lo < hi else float(np.clip(-face_above, math.radians(-5), math.radians(40)))
     mount_yaw, roll = math.radians(rng.uniform(-2, 2)), math.radians(rng.uniform(-1.5, 1.5))
     R_vc = _rz(mount_yaw) @ _ry(pitch) @ R_VEHICLE_CAM0 @ _rz(roll)       # roll about the optical axis
     T_vehicle_cam = make_T(R_vc, [cam_x, cam_y, cam_z])
