@@ -27,13 +27,14 @@ GT_INFO_VERSION = 2
 FORKLIFT_GT_FILE = "scene_forklift.json"   # per scene folder, beside scene_gt.json (docs/sim-scenes.md)
 
 
-def write_models(root, names: tuple[str, ...] = PALLET_MODELS) -> None:
-    """ROOT/models/obj_{id:06d}.ply (mm) and models_info.json for the given pallet types (default: the whole
-    catalogue), each under its stable obj_id. Beside the BOP fields each entry carries the type's `name`,
+def write_models(root) -> None:
+    """ROOT/models/obj_{id:06d}.ply (mm) and models_info.json for every type of the catalogue, each under its
+    stable obj_id (so a dataset extended later with other types stays whole). Beside the BOP fields each
+    entry carries the type's `name`,
     its fork openings `pockets` ({face: [[min_mm, max_mm], [min_mm, max_mm]]}, left then right) and its
     `refine_starts` (yaw_deg, dx_m, dy_m rows); bop_toolkit ignores them."""
     infos = {}
-    for name in names:
+    for name in PALLET_MODELS:
         model = get_pallet_model(name)
         obj_id = obj_id_of(name)
         model.write_ply(Path(root) / "models" / f"obj_{obj_id:06d}.ply")
