@@ -86,3 +86,31 @@ def test_mixed_scenes_mix_types_and_views():
         types |= {p.model_name for p in scene.pallets}
         vehicles += scene.vehicle is not None
     assert len(types) >= 5 and 0 < vehicles < 8
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(layout="drone"), "layout"),
+    (dict(view_probs=(0.5, 0.5, 0.5)), "view_probs"),
+    (dict(approach_yaw_deg=90.0), "approach_yaw_deg"),
+    (dict(missing_board_prob=1.5), "missing_board_prob"),
+    (dict(pocket_obstacle_prob=-0.1), "pocket_obstacle_prob"),
+    (dict(cam_height_m=(2.5, 0.1)), "cam_height_m"),
+    (dict(sensor_mix=("d435", "kinect")), "sensor_mix"),
+])
+def test_bad_scene_configs_raise(kwargs, match):
+    from pallet6d.sim.presets import SimConfig
+
+    with pytest.raises(ValueError, match=match):
+        SimConfig(name="t", width=160, height=80, hfov_deg=80.0, **kwargs)
+
+
+def test_new_presets_cover_the_catalogue_and_the_paper_presets_do_not_change_shape():
+    from pallet6d.sim.presets import PAPER_PRESETS, PRESETS
+
+    for name in ("forklift-approach", "mixed"):
+        cfg = PRESETS[name]
+        assert set(cfg.pallet_models) == set(PALLET_MODELS) and cfg.rich_content and cfg.appearance is not None
+    assert PRESETS["forklift-approach"].layout == "forklift" and PRESETS["forklift-approach"].sensor == "d435"
+    for name in PAPER_PRESETS:
+        cfg = PRESETS[name]
+        assert cfg.pallet_models == ("epal",) and not cfg.rich_content and cfg.layout in ("warehouse", "indoor")
