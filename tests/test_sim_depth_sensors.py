@@ -53,7 +53,7 @@ def test_a_model_of_another_sensor_is_refused(name, model):
         check_sensor_model(name, model)
 
 
-def test_d435_through_the_dispatch_is_the_d435_model_unchanged():
+def test_d435_through_the_dispatch_is_the_d435_model_itself():
     d = step_depth()
     a = apply_sensor(d, F_PX, StereoDepthModel(), None, np.random.default_rng(3))
     b = apply_depth_model(d, F_PX, StereoDepthModel(), np.random.default_rng(3))
