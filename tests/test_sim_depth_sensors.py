@@ -228,3 +228,10 @@ def test_no_surface_gives_no_depth(model):
 def test_pixel_info_checks_shapes():
     with pytest.raises(ValueError, match="PixelInfo"):
         PixelInfo(np.zeros((4, 5, 3)), np.zeros((4, 4)), np.zeros((4, 5), np.int64), np.zeros((4, 5)))
+
+
+def test_tof_saturates_on_bright_surfaces_very_near():
+    info = wall_info(10, 10, 0.9)
+    near = apply_tof(np.full((10, 10), 0.35, np.float32), F_PX, QUIET_TOF, info, np.random.default_rng(0))
+    ok = apply_tof(np.full((10, 10), 0.5, np.float32), F_PX, QUIET_TOF, info, np.random.default_rng(0))
+    assert (near == 0).all() and (ok > 0).all()
