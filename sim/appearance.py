@@ -234,7 +234,7 @@ def shade_appearance(hits: SurfaceHits, surface_rgb: np.ndarray, material: np.nd
     """
     h, w = hits.image_hw
     out = np.empty((h, w, 3), dtype=np.float32)
-    out[:] = BACKGROUND_RGB * app.ambient / max(float(app.ambient.mean()), 1e-3) * 0.3
+    out[:] = BACKGROUND_RGB * (app.ambient / max(float(app.ambient.mean()), 1e-3))    # tinted like the ambient
     if hits.pix.size == 0:
         return out
     irradiance = np.repeat(app.ambient[None], hits.pix.size, 0)

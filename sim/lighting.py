@@ -96,7 +96,7 @@ def shadow_visibility(points_cam: np.ndarray, light_cam: np.ndarray, axis_cam: n
     u0s, v0s, u1s, v1s = rects.T
     n_cand = sat[v1s, u1s] - sat[v0s, u1s] - sat[v1s, u0s] + sat[v0s, u0s]
     blocked = np.zeros(cand.size, dtype=bool)
-    q_c = q[cand].astype(np.float32)
+    qx, qy, qz = (np.ascontiguousarray(q[cand, k], dtype=np.float32) for k in range(3))
     seg_len = np.linalg.norm(q[cand], axis=1)
     t_end = 1.0 - end_gap_m / np.maximum(seg_len, 1e-9)
     for i in np.flatnonzero((rects[:, 2] > rects[:, 0]) & (rects[:, 3] > rects[:, 1]) & (n_cand > 0)):
@@ -111,21 +111,28 @@ def shadow_visibility(points_cam: np.ndarray, light_cam: np.ndarray, axis_cam: n
             continue
         # Segment light -> point, parameter s in [0, 1], in the box's frame: x(s) = o + s * d.
         o = R_l[i].T @ (-t_l[i])
-        d = q_c[idx] @ R_l[i].astype(np.float32)                       # segment directions, box frame
+        Ri = R_l[i].astype(np.float32)
+        g = (qx[idx], qy[idx], qz[idx])
+
+        def direction(a: int, g=g, Ri=Ri) -> np.ndarray:
+            return g[0] * Ri[0, a] + g[1] * Ri[1, a] + g[2] * Ri[2, a]
+
         # Where the light is outside the box beyond a face, only points behind that face's plane can be
         # blocked (a floor under every point blocks nothing): this culls most pairs before the slab test.
-        outside = np.abs(o) > half[i]
-        if outside.any():
-            sgn = np.sign(o[outside]).astype(np.float32)
-            keep = np.all(sgn * (o[outside].astype(np.float32) + d[:, outside]) < half[i, outside], axis=1)
-            idx, d = idx[keep], d[keep]
+        keep = None
+        for a in np.flatnonzero(np.abs(o) > half[i]):
+            k = np.sign(o[a]) * (np.float32(o[a]) + direction(a)) < half[i, a]
+            keep = k if keep is None else keep & k
+        if keep is not None:
+            idx = idx[keep]
             if idx.size == 0:
                 continue
+            g = (g[0][keep], g[1][keep], g[2][keep])
         s_near = np.full(idx.size, -np.inf, np.float32)
         s_far = np.full(idx.size, np.inf, np.float32)
         with np.errstate(divide="ignore", invalid="ignore"):
             for a in range(3):
-                inv = np.float32(1.0) / d[:, a]
+                inv = np.float32(1.0) / direction(a, g)
                 s1 = np.float32(-half[i, a] - o[a]) * inv
                 s2 = np.float32(half[i, a] - o[a]) * inv
                 np.maximum(s_near, np.minimum(s1, s2), out=s_near)

@@ -4,7 +4,8 @@ An indirect (phase) ToF camera lights the scene with modulated near-infrared lig
 the phase of the returning light. What that does to the depth:
 - amplitude: the returned signal is A ~ albedo * cos(incidence) / z^2. Pixels whose amplitude falls below
   the camera's confidence threshold are invalid: dark (low-albedo) surfaces, far surfaces and grazing
-  surfaces drop out first (black plastic pallets are the classic case).
+  surfaces drop out first (black plastic pallets are the classic case); bright surfaces very near the
+  camera saturate the pixel and drop out too.
 - noise: depth noise is inversely proportional to the signal-to-noise ratio of the phase measurement
   (sigma_d = c / (4 pi f) * sigma_phi, sigma_phi ~ 1 / SNR); in the shot-noise-limited regime SNR ~ sqrt(A),
   so sigma grows about linearly with range on a given surface and with 1 / sqrt(albedo). Basler's blaze-101
@@ -39,6 +40,7 @@ class ToFDepthModel:
     min_m: float = 0.3
     max_m: float = 10.0
     min_amplitude: float = 0.01      # confidence threshold: albedo 0.1 facing the camera is lost beyond 3.2 m
+    max_amplitude: float = 6.0       # saturation: white (0.9) surfaces facing the camera nearer than 0.39 m
     sigma_ref_m: float = 0.004       # noise sigma of a surface of ref_albedo facing the camera at ref_m
     ref_m: float = 2.0
     ref_albedo: float = 0.5
@@ -50,7 +52,7 @@ class ToFDepthModel:
     register_rgb: bool = True        # the colour image is black where depth is invalid
 
     def __post_init__(self) -> None:
-        if not (0 <= self.min_m < self.max_m and self.min_amplitude >= 0 and self.sigma_ref_m >= 0
+        if not (0 <= self.min_m < self.max_m and 0 <= self.min_amplitude < self.max_amplitude and self.sigma_ref_m >= 0
                 and self.ref_m > 0 and 0 < self.ref_albedo <= 1 and 0 <= self.flying_prob <= 1
                 and self.edge_jump_m > 0 and self.multipath_gain >= 0 and self.multipath_radius_px >= 2
                 and self.quantum_m >= 0):
@@ -164,7 +166,8 @@ def apply_tof(depth_m: np.ndarray, f_px: float, model: ToFDepthModel, info: Pixe
     noise = np.float32(np.sqrt(0.8)) * rng.standard_normal((h, w)).astype(np.float32) \
         + np.float32(np.sqrt(0.2)) * correlated_noise((h, w), 4, rng)
     out = out + sigma * noise
-    invalid = ~valid | (amp < model.min_amplitude) | (out < model.min_m) | (out > model.max_m)
+    invalid = ~valid | (amp < model.min_amplitude) | (amp > model.max_amplitude) | (out < model.min_m) \
+        | (out > model.max_m)
     out[invalid] = 0.0
     if model.quantum_m > 0:
         out = np.round(out / model.quantum_m) * np.float32(model.quantum_m)

@@ -212,8 +212,9 @@ def test_every_sensor_renders_a_preset_frame(sensor):
     frame = generate_frame(cfg, 0, 1)
     assert frame.depth_m.dtype == np.float32 and frame.depth_m.shape == (96, 160)
     assert (frame.depth_m > 0).mean() > 0.2
-    if sensor == "tof":
+    if sensor == "tof":                                       # colour registered onto depth, black = no depth
         assert (frame.rgb[frame.depth_m == 0] == 0).all()
+        assert ((frame.rgb.max(2) == 0) & (frame.depth_m > 0)).mean() < 0.01
     if sensor == "ideal":
         np.testing.assert_array_equal(frame.depth_m, frame.depth_ideal_m)
 

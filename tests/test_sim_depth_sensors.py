@@ -53,7 +53,7 @@ def test_a_model_of_another_sensor_is_refused(name, model):
         check_sensor_model(name, model)
 
 
-def test_d435_through_the_dispatch_is_the_d435_model_unchanged():
+def test_d435_through_the_dispatch_is_the_d435_model_itself():
     d = step_depth()
     a = apply_sensor(d, F_PX, StereoDepthModel(), None, np.random.default_rng(3))
     b = apply_depth_model(d, F_PX, StereoDepthModel(), np.random.default_rng(3))
@@ -228,3 +228,23 @@ def test_no_surface_gives_no_depth(model):
 def test_pixel_info_checks_shapes():
     with pytest.raises(ValueError, match="PixelInfo"):
         PixelInfo(np.zeros((4, 5, 3)), np.zeros((4, 4)), np.zeros((4, 5), np.int64), np.zeros((4, 5)))
+
+
+def test_tof_saturates_on_bright_surfaces_very_near():
+    info = wall_info(10, 10, 0.9)
+    near = apply_tof(np.full((10, 10), 0.35, np.float32), F_PX, QUIET_TOF, info, np.random.default_rng(0))
+    ok = apply_tof(np.full((10, 10), 0.5, np.float32), F_PX, QUIET_TOF, info, np.random.default_rng(0))
+    assert (near == 0).all() and (ok > 0).all()
+
+
+def test_oakd_median_fills_scattered_holes_and_smooths():
+    d = np.full((60, 80), 2.0, np.float32)
+    rng_img = np.random.default_rng(3)
+    weak = (0.5 + 0.0033 * rng_img.standard_normal((60, 80))).astype(np.float32)  # barely textured wall
+    info = wall_info(60, 80, intensity=weak)
+    raw = apply_oakd(d, F_PX, OakdStereoModel(median_px=0, dropout_prob=0.0), info, np.random.default_rng(1))
+    med = apply_oakd(d, F_PX, OakdStereoModel(median_px=5, dropout_prob=0.0), info, np.random.default_rng(1))
+    assert 0.6 < (raw > 0).mean() < 0.9 and (med > 0).mean() > (raw > 0).mean() + 0.1
+    assert med[med > 0].std() < raw[raw > 0].std()
+    with pytest.raises(ValueError):
+        OakdStereoModel(median_px=4)
