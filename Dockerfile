@@ -28,10 +28,13 @@ RUN apt-get update \
     && rm -rf /var/lib/apt/lists/* \
     && useradd --system --create-home --uid 10001 --groups plugdev pallet6d
 
-# The wheels as `make wheel-check` installs them, plus the camera extras (the export extra never).
+# The wheels as `make wheel-check` installs them, plus the camera SDKs as extras (the export extra never).
+# depthai is about 350 MB installed: `--build-arg CAMERAS=realsense` for a RealSense-only forklift, or
+# `--build-arg CAMERAS=` for an image that only replays recordings.
+ARG CAMERAS=realsense,oakd
 COPY --from=wheels /wheels /tmp/wheels
 RUN pip install --no-cache-dir --disable-pip-version-check \
-        "$(ls /tmp/wheels/pallet6d-*.whl)[realsense,oakd]" /tmp/wheels/pallet6d_models-*.whl \
+        "$(ls /tmp/wheels/pallet6d-*.whl)${CAMERAS:+[$CAMERAS]}" /tmp/wheels/pallet6d_models-*.whl \
     && rm -rf /tmp/wheels
 
 # onnxruntime sessions are built for 2 intra-op threads by default (the forklift computer's budget).
