@@ -46,9 +46,10 @@ test: $(STAMP)
 	$(PY) -m pytest -q
 
 # The runtime wheel and the models wheel, checked against the source tree (every module and data file in,
-# nothing else). build/ is removed first: setuptools would put files left there by an earlier build in the wheel.
+# nothing else). Leftovers of earlier builds are removed first: setuptools would put files from build/ and from
+# an old *.egg-info/SOURCES.txt in the wheel.
 wheels: | $(STAMP)
-	rm -rf $(DIST) build models/build
+	rm -rf $(DIST) build models/build *.egg-info models/*.egg-info
 	$(PY) -m pip wheel -q --no-deps -w $(DIST) . ./models
 	$(PY) .ci/wheel_contents.py $(DIST)
 
