@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import fnmatch
 import importlib.util
+import re
 import sys
 import zipfile
 from pathlib import Path
@@ -29,6 +30,7 @@ def _load(name: str, path: Path):
     return module
 
 
+pytest.importorskip("setuptools")
 setup_py = _load("pallet6d_setup_py", REPO / "setup.py")          # its setup() runs only as __main__
 wheel_contents = _load("pallet6d_wheel_contents", REPO / ".ci" / "wheel_contents.py")
 
@@ -134,3 +136,15 @@ def test_models_package_data_covers_every_shipped_bundle_file():
     bundle_files = [p.removeprefix("pallet6d_models/") for p in expected if p.count("/") == 2]
     assert bundle_files, "no bundle under models/"
     assert [f for f in bundle_files if not any(fnmatch.fnmatch(f, pat) for pat in patterns)] == []
+
+
+def test_dockerfile_runs_the_checks_that_make_wheel_check_runs():
+    """CI cannot run Docker: the image's recipe is checked by keeping its steps those of `make wheel-check`."""
+    docker = (REPO / "Dockerfile").read_text()
+    make = (REPO / "Makefile").read_text()
+    for step in ("pip wheel", "--no-deps", " . ./models", ".ci/wheel_contents.py", "smoke-installed"):
+        assert step in docker and step in make, step
+    assert re.search(r"^USER (?!root\b)\w+", docker, re.M), "the image must not run as root"
+    assert re.search(r"^HEALTHCHECK ", docker, re.M)
+    assert not re.search(r"^COPY .*\b(tests|benchmarks|docs)\b", docker, re.M)
+    assert "export" not in re.search(r"ARG CAMERAS=(\S*)", docker).group(1)
