@@ -62,4 +62,4 @@ wheel-check: wheels
 	env -u PALLET6D_BUNDLE PATH="$(CURDIR)/$(CHECK_DIR)/venv/bin:$$PATH" .ci/smoke-installed $(CHECK_DIR)/work
 
 clean:
-	rm -rf .venv out .pytest_cache build dist models/build
+	rm -rf .venv out .pytest_cache build dist models/build models/*.egg-info

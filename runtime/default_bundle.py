@@ -59,6 +59,6 @@ def default_bundle(environ: dict[str, str] | None = None) -> Path:
     if (CHECKOUT_BUNDLE / MANIFEST).is_file():
         return CHECKOUT_BUNDLE
     raise BundleNotFoundError(
-        f"no model bundle given and no default one found: name a bundle folder (--bundle DIR), set ${BUNDLE_ENV}=DIR, or install "
-        f"the default model: pip install pallet6d_models-*.whl (built from the repository's models/ folder with "
-        f"`make wheels`; see docs/packaging.md)")
+        f"no model bundle given and no default one found: name a bundle folder (--bundle DIR), set "
+        f"${BUNDLE_ENV}=DIR, or install the default model: pip install pallet6d_models-*.whl (built from the "
+        f"repository's models/ folder with `make wheels`; see docs/packaging.md)")
