@@ -2,16 +2,15 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 
-def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str | None = None) -> None:
+def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """--bundle, --int8, --threads, --score-threshold, --max-pallets, --min-fit, --seed, --no-refine,
     --refine-starts."""
-    if bundle_default is None:
-        parser.add_argument("--bundle", required=True, help="model bundle folder")
-    else:
-        parser.add_argument("--bundle", default=bundle_default, help=f"model bundle folder (default: {bundle_default})")
+    parser.add_argument("--bundle", help="model bundle folder (default: $PALLET6D_BUNDLE, else the installed "
+                                         "pallet6d-models package's epal-default, else ./models/epal-default)")
     parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
@@ -28,10 +27,19 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str
 
 
 def load_estimator(args: argparse.Namespace, command: str):
-    """The `PalletEstimator` the arguments describe, or None after printing why it cannot be loaded."""
+    """The `PalletEstimator` the arguments describe, or None after printing why it cannot be loaded.
+    Without `--bundle`, `args.bundle` becomes the default bundle's folder (`default_bundle`)."""
     from .bundle import BundleError
+    from .default_bundle import BundleNotFoundError, default_bundle
     from .estimator import PalletEstimator
 
+    if args.bundle is None:
+        try:
+            args.bundle = default_bundle()
+        except BundleNotFoundError as exc:
+            print(f"pallet6d {command}: {exc}", file=sys.stderr)
+            return None
+        logging.getLogger(__name__).info("bundle: %s", args.bundle)
     try:
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
         extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets))
