@@ -25,13 +25,18 @@ MIN_VISIB = 0.1
 
 
 def _record(est, frame, n_pallets: int) -> list[tuple] | None:
-    """The refinement inputs of the frame's n most visible pallets: [(T_net, obs, box_obs, T_ref, fit_ref)]."""
+    """The refinement inputs of the frame's n most visible pallets: [(T_net, obs, box_obs, T_ref, fit_ref)].
+
+    Beyond 8 pallets, a frame with at least 8 visible ones repeats them up to n (the validation frames hold
+    at most 14): the work per detection is the same.
+    """
     from pallet6d.runtime.fit import fit_score
 
     gts = sorted((g for g in frame.gts if g.bbox_visib_xywh is not None and g.visib_fract >= MIN_VISIB),
                  key=lambda g: -g.visib_fract)[:n_pallets]
-    if len(gts) < n_pallets:
+    if len(gts) < min(n_pallets, 8):
         return None
+    gts = [gts[i % len(gts)] for i in range(n_pallets)]
     boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (g.bbox_visib_xywh for g in gts)], float)
     rows: list[tuple] = []
     original = est._refine

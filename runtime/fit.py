@@ -108,7 +108,8 @@ def _check_poses(T: np.ndarray, name: str) -> np.ndarray:
 
 def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarray | None, model_pts: np.ndarray,
                depth_m: np.ndarray, K: np.ndarray, tol_m: float = 0.04,
-               model_boxes_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               model_boxes_m: np.ndarray | None = None,
+               points_in_boxes_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`fit_score` of P poses at once, each against its own observed points (one numpy pass).
 
     :param T_cam_model: (P, 4, 4) poses to check.
@@ -116,6 +117,9 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
         `n_obs[i]` rows (the rest is padding).
     :param n_obs: (P,) valid rows per pose; None = all N.
     :param model_pts, depth_m, K, tol_m, model_boxes_m: as in `fit_score`.
+    :param points_in_boxes_m: optional (k, 2, 3) boxes that hold every model point (the pallet's own boxes,
+        when `model_pts` are sampled on them): with distances to points, an observed point farther than
+        `tol_m` from these boxes is farther from every model point too and skips the nearest-point search.
     :return: (inlier_fraction, free_space_violation, score), each (P,).
     """
     if not tol_m > 0:
@@ -142,6 +146,8 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
         lo, hi = model.min(0), model.max(0)
     gap = np.maximum(np.maximum(lo - obs_model, obs_model - hi), 0.0)
     cand = valid & ((gap * gap).sum(-1) <= (tol_m + 1e-6) ** 2)
+    if model_boxes_m is None and points_in_boxes_m is not None and cand.any():
+        cand[cand] = distance_to_boxes(obs_model[cand], points_in_boxes_m) <= tol_m + 1e-6
     inlier_pts = np.zeros((P, N), dtype=bool)
     if cand.any():
         d = distance_to_boxes(obs_model[cand], model_boxes_m) if model_boxes_m is not None \

@@ -24,11 +24,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fit import fit_scores
+from .fit import distance_to_boxes, fit_scores
 from .geometry import backproject_pixels, check_K, clamp_box, select_pixels, transform_points
 from .results import FitScore
 
-__all__ = ["best_landing", "box_points", "closest_on_boxes", "default_starts", "FrameRefinement", "offsets_from_starts",
+__all__ = ["best_landing", "BoxIndex", "box_points", "closest_on_boxes", "default_starts", "FrameRefinement", "offsets_from_starts",
            "refine_batch", "RefineGeometry", "RefineOptions", "RefineResult", "refine_pose", "refine_poses",
            "start_offsets"]
 
@@ -57,7 +57,8 @@ def _check_boxes(boxes_m: np.ndarray) -> np.ndarray:
     return boxes
 
 
-def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray,
+                     index: "BoxIndex | None" = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest point on the surface of a union of axis-aligned boxes, with its outward normal.
 
     Inside a box the nearest face of that box counts (faces shared by touching boxes are rare targets:
@@ -65,28 +66,48 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
 
     :param pts: (n, 3) points in the boxes' frame, metres.
     :param boxes_m: (k, 2, 3) min and max corners.
+    :param index: optional `BoxIndex` of these boxes: points inside its grid test only their cell's
+        candidate boxes (same result, fewer boxes per point).
     :return: (closest (n, 3), unit normal (n, 3), distance (n,)) in metres.
     """
     p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
     boxes = _check_boxes(boxes_m)
-    n = len(p)
+    if index is None or len(p) == 0:
+        return _closest(p, boxes[None, :, 0], boxes[None, :, 1])
+    cell = index.cells(p)
+    few = cell >= 0                                  # in the grid, in a cell with few candidates
+    q, normal, d = np.empty_like(p), np.empty_like(p), np.empty(len(p))
+    lists = index.lists[cell[few]]
+    q[few], normal[few], d[few] = _closest(p[few], index.lo[lists], index.hi[lists])
+    rest = ~few
+    if rest.any():
+        q[rest], normal[rest], d[rest] = _closest(p[rest], boxes[None, :, 0], boxes[None, :, 1])
+    return q, normal, d
+
+
+def _closest(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`closest_on_boxes` of (n, 3) points among boxes with corners lo, hi: (1, k, 3) shared by all points,
+    or (n, c, 3), each point's own candidates."""
+    n, k = len(p), lo.shape[1]
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    lo, hi = boxes[:, 0], boxes[:, 1]                           # (k, 3)
+    per_point = lo.shape[0] == n and n > 1
     # squared distance outside each box, one axis at a time, in place on two (n, k) buffers (ICP calls this
     # every iteration; with (n, k, 3) temporaries it was most of the refinement's time)
-    d_out2, gap, tmp = np.zeros((n, len(boxes))), np.empty((n, len(boxes))), np.empty((n, len(boxes)))
+    d_out2, gap, tmp = np.zeros((n, k)), np.empty((n, k)), np.empty((n, k))
     for a in range(3):
         pa = p[:, a, None]
-        np.subtract(lo[None, :, a], pa, out=gap)
-        np.subtract(pa, hi[None, :, a], out=tmp)
+        np.subtract(lo[:, :, a], pa, out=gap)
+        np.subtract(pa, hi[:, :, a], out=tmp)
         np.maximum(gap, tmp, out=gap)
         np.maximum(gap, 0.0, out=gap)
         np.multiply(gap, gap, out=gap)
         d_out2 += gap
     j = d_out2.argmin(1)                                         # nearest box per point
-    d = np.sqrt(d_out2[np.arange(n), j])
-    q = np.clip(p, lo[j], hi[j])
+    rows = np.arange(n)
+    d = np.sqrt(d_out2[rows, j])
+    lo_j, hi_j = (lo[rows, j], hi[rows, j]) if per_point else (lo[0, j], hi[0, j])
+    q = np.clip(p, lo_j, hi_j)
     normal = np.zeros((n, 3))
     out = d > 0.0
     normal[out] = (p[out] - q[out]) / d[out, None]
@@ -96,16 +117,17 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
     # of at its outside distance (boxes may overlap); the nearest wins
     pi, o2 = p[ins], d_out2[ins]
+    lo_i, hi_i = (lo[ins], hi[ins]) if per_point else (lo, hi)
     d_in = np.full(o2.shape, np.inf)                              # (m, k) depth below each box's nearest face
     for a in range(3):
         pa = pi[:, a, None]
-        np.minimum(d_in, pa - lo[None, :, a], out=d_in)
-        np.minimum(d_in, hi[None, :, a] - pa, out=d_in)
+        np.minimum(d_in, pa - lo_i[:, :, a], out=d_in)
+        np.minimum(d_in, hi_i[:, :, a] - pa, out=d_in)
     dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
     ji = dist.argmin(1)
     r = np.arange(len(ins))
     di = dist[r, ji]
-    blo, bhi = lo[ji], hi[ji]
+    blo, bhi = (lo_i[r, ji], hi_i[r, ji]) if per_point else (lo[0, ji], hi[0, ji])
     qi = np.clip(pi, blo, bhi)
     ni = np.zeros((len(ins), 3))
     via_out = o2[r, ji] > 0.0
@@ -118,6 +140,55 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     ni[face, axis] = np.where(positive, 1.0, -1.0)
     q[ins], normal[ins], d[ins] = qi, ni, di
     return q, normal, d
+
+
+def _surface_distance(pts: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(n, k) distance from each point to each box's surface (outside distance, or depth below the nearest
+    face inside); 1-Lipschitz in the point."""
+    lo, hi = boxes[None, :, 0], boxes[None, :, 1]
+    below = np.maximum(lo - pts[:, None], pts[:, None] - hi)                     # (n, k, 3), < 0 inside
+    outside = np.sqrt((np.maximum(below, 0.0) ** 2).sum(-1))
+    return np.where(outside > 0.0, outside, -below.max(-1))
+
+
+class BoxIndex:
+    """A grid over a union of boxes that lists, per cell, the only boxes that can be nearest to a point in it.
+
+    A box is a candidate for a cell when its surface distance from the cell centre, less the cell's
+    half-diagonal, is at most the smallest surface distance plus the half-diagonal (surface distance is
+    1-Lipschitz): `closest_on_boxes` gives the same answer on the candidates as on all boxes. Most cells of
+    a pallet have 1-3 candidates; a cell with more than `width` tests all boxes. Build once per geometry.
+
+    :param boxes_m: (k, 2, 3) min and max corners. :param margin_m: the grid reaches this far beyond the
+        boxes (points farther away test all boxes). :param cell_m: cell edge, metres.
+    """
+
+    def __init__(self, boxes_m: np.ndarray, margin_m: float = 0.1, cell_m: float = 0.03, width: int = 4) -> None:
+        boxes = _check_boxes(boxes_m)
+        self.origin = boxes[:, 0].min(0) - margin_m
+        self.cell_m = float(cell_m)
+        self.shape = np.ceil((boxes[:, 1].max(0) + margin_m - self.origin) / cell_m).astype(np.int64)
+        axes = [self.origin[a] + (np.arange(self.shape[a]) + 0.5) * cell_m for a in range(3)]
+        centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        sd = _surface_distance(centres, boxes)                                          # (cells, k)
+        r = cell_m * np.sqrt(3.0) / 2.0 + 1e-9
+        cand = sd - r <= (sd.min(1) + r)[:, None]
+        k = len(boxes)
+        w = min(int(width), k)
+        order = np.argsort(~cand, axis=1, kind="stable")[:, :w]              # candidates first, in box order
+        self.lists = np.where(np.take_along_axis(cand, order, 1), order, k)      # k: a box far from everything
+        self.few = cand.sum(1) <= w
+        far = np.full((1, 3), 1e9)
+        self.lo = np.concatenate([boxes[:, 0], far])
+        self.hi = np.concatenate([boxes[:, 1], far])
+
+    def cells(self, pts: np.ndarray) -> np.ndarray:
+        """(n,) flat cell index of each point, -1 outside the grid or in a cell with too many candidates."""
+        ijk = np.floor((pts - self.origin) / self.cell_m).astype(np.int64)
+        inside = np.all((ijk >= 0) & (ijk < self.shape), axis=1)
+        ijk = np.where(inside[:, None], ijk, 0)
+        cell = (ijk[:, 0] * self.shape[1] + ijk[:, 1]) * self.shape[2] + ijk[:, 2]
+        return np.where(inside & self.few[cell], cell, -1)
 
 
 # Extra ICP starts around a pose, in the pallet frame (applied on the right: T_cam_pallet @ offset), most
@@ -273,7 +344,7 @@ class _IcpRun:
 
 def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, iterations: int,
          corr_start_m: float, corr_end_m: float, prior_rot_rad: float, prior_trans_m: float, min_inliers: int,
-         tol: float, stop_near: np.ndarray | None, stop_near_m: float) -> _IcpRun:
+         tol: float, stop_near: np.ndarray | None, stop_near_m: float, index: BoxIndex | None = None) -> _IcpRun:
     """`refine_pose` for P poses at once, each on its own points; one numpy pass per step for all.
 
     :param T0: (P, 4, 4) starting poses. :param pts: (P, N, 3) camera frame, metres; pose i uses its first
@@ -309,7 +380,7 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         near = np.all((p > model_lo - thr) & (p < model_hi + thr), axis=-1) & valid[a]     # (a, n)
         q, nrm, d = np.zeros_like(p), np.zeros_like(p), np.full((len(a), n), np.inf)
         if near.any():
-            q[near], nrm[near], d[near] = closest_on_boxes(p[near], boxes)
+            q[near], nrm[near], d[near] = closest_on_boxes(p[near], boxes, index)
         use = d < thr                                                                     # (a, n)
         n_use = use.sum(1)
         starved = n_use < min_inliers                 # this start stops here, keeping its pose so far
@@ -391,6 +462,8 @@ class RefineGeometry:
     model_points_m: np.ndarray
     boxes_m: np.ndarray
     starts: np.ndarray = dataclasses.field(default_factory=default_starts)
+    index: BoxIndex = dataclasses.field(init=False, repr=False, compare=False)
+    points_on_boxes: bool = dataclasses.field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         pts = np.asarray(self.model_points_m, dtype=np.float64)
@@ -400,6 +473,14 @@ class RefineGeometry:
         object.__setattr__(self, "boxes_m", _check_boxes(self.boxes_m))
         object.__setattr__(self, "starts", np.asarray(self.starts, dtype=np.float64).reshape(-1, 3))
         offsets_from_starts(self.starts)                       # validates the rows
+        object.__setattr__(self, "index", BoxIndex(self.boxes_m))
+        # surface points sampled on the boxes let the fit score skip points far from the boxes
+        object.__setattr__(self, "points_on_boxes", bool(distance_to_boxes(pts, self.boxes_m).max() <= 1e-6))
+
+    @property
+    def in_boxes(self) -> np.ndarray | None:
+        """The boxes when they hold every model point (see `fit_scores`), else None."""
+        return self.boxes_m if self.points_on_boxes else None
 
 
 @dataclass(frozen=True)
@@ -528,7 +609,8 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, 0.08, 0.015, 0.1, 0.1, 30, 1e-4, None, 0.0)
+    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, 0.08, 0.015, 0.1, 0.1, 30, 1e-4, None, 0.0,
+                geom.index)
     T = T_net.copy()
     src = np.full(g, FROM_NETWORK)
     fit = np.full((g, 3), np.nan)
@@ -537,7 +619,8 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     gate = np.flatnonzero(np.isfinite(base.rms_m) & (base.rms_m < o.max_rms_m))
     if len(gate):
         both = fit_scores(np.concatenate([base.T_cam_pallet[gate], T_net[gate]]),
-                          np.concatenate([obs[gate], obs[gate]]), None, geom.model_points_m, depth_m, K, o.fit_tol_m)
+                          np.concatenate([obs[gate], obs[gate]]), None, geom.model_points_m, depth_m, K, o.fit_tol_m,
+                          points_in_boxes_m=geom.in_boxes)
         f_icp, f_net = (np.stack(both, 1)[:len(gate)], np.stack(both, 1)[len(gate):])
         keep = f_icp[:, 2] >= f_net[:, 2] + o.margin
         T[gate[keep]], src[gate[keep]] = base.T_cam_pallet[gate[keep]], FROM_ICP
@@ -557,7 +640,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
         T_start = (T[run][:, None] @ offsets[None]).reshape(-1, 4, 4)                      # detection-major
         near = np.repeat(T[run], S, axis=0) if o.stop_near_m > 0 else None
         land = _icp(T_start, np.repeat(sub, S, axis=0), np.repeat(n_sub, S), geom.boxes_m, o.iterations,
-                    0.08, 0.015, 0.1, 0.1, 30, 1e-4, near, o.stop_near_m)
+                    0.08, 0.015, 0.1, 0.1, 30, 1e-4, near, o.stop_near_m, geom.index)
         trusted = ~land.stopped_near & np.isfinite(land.rms_m) & (land.rms_m < o.start_max_rms_m)
         cand = np.flatnonzero(trusted)                                                    # landing rows
         owner = np.concatenate([np.arange(len(run)), cand // S])                         # row in `run`
@@ -574,5 +657,6 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
 
     todo = np.flatnonzero(np.isnan(fit[:, 0]))
     if len(todo):
-        fit[todo] = np.stack(fit_scores(T[todo], obs[todo], None, geom.model_points_m, depth_m, K, o.fit_tol_m), 1)
+        fit[todo] = np.stack(fit_scores(T[todo], obs[todo], None, geom.model_points_m, depth_m, K, o.fit_tol_m,
+                                        points_in_boxes_m=geom.in_boxes), 1)
     T_out[sel], source[sel], rms_out[sel], fit_out[sel] = T, src, base.rms_m, fit
