@@ -471,7 +471,8 @@ class RefineGeometry:
             raise ValueError(f"model_points_m must be (m, 3) with m >= 1, got shape {pts.shape}")
         object.__setattr__(self, "model_points_m", pts)
         object.__setattr__(self, "boxes_m", _check_boxes(self.boxes_m))
-        object.__setattr__(self, "starts", np.asarray(self.starts, dtype=np.float64).reshape(-1, 3))
+        starts = np.asarray(self.starts, dtype=np.float64)
+        object.__setattr__(self, "starts", np.zeros((0, 3)) if starts.size == 0 else starts)
         offsets_from_starts(self.starts)                       # validates the rows
         object.__setattr__(self, "index", BoxIndex(self.boxes_m))
         # surface points sampled on the boxes let the fit score skip points far from the boxes
@@ -553,7 +554,7 @@ def _padded(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def refine_batch(T_net_cam_pallet: np.ndarray, obs_cam: np.ndarray, box_obs_cam: list[np.ndarray],
-                 geometry: RefineGeometry | list[RefineGeometry], depth_m: np.ndarray, K: np.ndarray,
+                 geometry: RefineGeometry | list[RefineGeometry] | tuple[RefineGeometry, ...], depth_m: np.ndarray, K: np.ndarray,
                  options: RefineOptions | None = None) -> FrameRefinement:
     """Refine all detections of a frame at once: ICP from the network's pose, the RMS and fit-score gate,
     ICP from the geometry's starts around the pose so far, and the best-fitting trusted landing.
@@ -585,8 +586,9 @@ def refine_batch(T_net_cam_pallet: np.ndarray, obs_cam: np.ndarray, box_obs_cam:
         if b.ndim != 2 or b.shape[1] != 3:
             raise ValueError(f"box_obs_cam[{i}] must be (m, 3), got shape {b.shape}")
         box_obs.append(b[np.all(np.isfinite(b), axis=1)])
-    geoms = [geometry] * n if isinstance(geometry, RefineGeometry) else list(geometry)
-    if len(geoms) != n or not all(isinstance(g, RefineGeometry) for g in geoms):
+    geoms = [geometry] * n if isinstance(geometry, RefineGeometry) else \
+        list(geometry) if isinstance(geometry, (list, tuple)) else None
+    if geoms is None or len(geoms) != n or not all(isinstance(g, RefineGeometry) for g in geoms):
         raise TypeError(f"geometry must be a RefineGeometry or {n} of them")
     K = check_K(K)
 
