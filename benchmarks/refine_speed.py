@@ -1,20 +1,25 @@
 """Refinement for all pallets of a frame at once (`refine_batch`) against the detection-by-detection path.
 
-    .venv/bin/python benchmarks/refine_speed.py --bundle models/epal-default \
-        --data /work/data/val-virtual-clean /work/data/val-virtual-occluded /work/data/val-indoor-noisy
+    # the reference: any installed version of pallet6d (e.g. main's) records its per-detection refinement
+    /work/main/.venv/bin/python benchmarks/refine_speed.py record --data /work/data/val-virtual-clean \
+        /work/data/val-virtual-occluded /work/data/val-indoor-noisy --out /work/runs/refine-ref.pkl
+    # this checkout: refine_batch on the same inputs, compared and timed against the recording
+    .venv/bin/python benchmarks/refine_speed.py compare --ref /work/runs/refine-ref.pkl
 
 For each frame and each count P in --pallets, the estimator poses the frame's P most visible ground-truth
 boxes (`estimate_boxes`, so P does not depend on the detector); the inputs of its refinement stage are
-recorded per detection (the network's pose, the sampled points, the box's depth points), and both paths run
-on exactly those inputs: the estimator's own (`PalletEstimator._refine`, detection by detection) and
-`refine_batch`. Reports the largest pose difference between the two (translation mm, rotation degrees, fit
-score) and the refinement time per frame (p50, p90; one process, the paths alternating, so both see the same
-load). Writes benchmarks/results/refine-speed.md (and .json).
+recorded per detection (the network's pose, the sampled points, the box's depth points) with its result
+(`PalletEstimator._refine`, detection by detection) and the time it took (CPU time of the process). `compare`
+runs `refine_batch` on exactly those inputs and reports the largest pose difference (translation mm,
+rotation degrees, fit score) and the refinement time per frame, both paths' CPU times (one thread's work,
+less sensitive to other jobs than wall time on a shared machine; numpy's BLAS should be held to one thread,
+OPENBLAS_NUM_THREADS=1). Writes benchmarks/results/refine-speed.md (and .json).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import sys
 import time
 from pathlib import Path
@@ -63,59 +68,74 @@ def _pose_diff(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, float]:
     return dt, float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def run(bundle: Path, data: list[Path], pallets: list[int], precision: str, max_frames: int) -> dict:
+def record(bundle: Path, data: list[Path], pallets: list[int], precision: str, max_frames: int) -> dict:
+    """Per set and count P: frames of [(T_net, obs, box_obs, T_ref, fit_ref)] with depth, K and CPU ms."""
     from pallet6d.runtime.bop import BopDataset
     from pallet6d.runtime.estimator import PalletEstimator
-    from pallet6d.runtime.refine import RefineGeometry, RefineOptions, default_starts, refine_batch
 
     est = PalletEstimator.from_bundle(bundle, threads=2, precision=precision)
     o = est.options
-    geom = RefineGeometry(est.model_points_m, est.model_boxes_m, default_starts(o.refine_starts))
-    opts = RefineOptions(o.refine_iterations, o.refine_max_rms_m, o.refine_margin, o.fit_tol_m,
-                         o.refine_start_points, o.refine_select_tol_m, o.refine_start_max_rms_m)
-    out: dict = {"bundle": str(bundle), "precision": precision, "sets": {}}
+    out: dict = {"bundle": str(bundle), "precision": precision, "refine_starts": o.refine_starts, "sets": {}}
     for path in data:
         ds = BopDataset(path)
-        per_p = {}
+        out["sets"][path.name] = per_p = {}
         for P in pallets:
-            worst_t = worst_r = worst_fit = 0.0
-            t_loop, t_batch, n_det, n_frames = [], [], 0, 0
+            frames = []
             for i in range(min(len(ds), max_frames)):
                 frame = ds[i]
                 rows = _record(est, frame, P)
                 if not rows:
                     continue
-                T_net = np.stack([r[0] for r in rows])
-                obs = np.stack([r[1] for r in rows])
-                box_obs = [r[2] for r in rows]
-                t = time.perf_counter()
+                t = time.process_time()
                 for r in rows:
                     est._refine(r[0], r[1], r[2], frame.depth_m, frame.K)
-                t_loop.append((time.perf_counter() - t) * 1000.0)
-                t = time.perf_counter()
-                res = refine_batch(T_net, obs, box_obs, geom, frame.depth_m, frame.K, opts)
-                t_batch.append((time.perf_counter() - t) * 1000.0)
+                ms = (time.process_time() - t) * 1000.0
+                frames.append({"rows": [(r[0], r[1], r[2], r[3], (r[4].inlier_fraction, r[4].free_space_violation,
+                                                                 r[4].score)) for r in rows],
+                               "depth_m": frame.depth_m, "K": frame.K, "cpu_ms": ms})
+            per_p[P] = frames
+            print(f"{path.name} P={P}: {len(frames)} frames", flush=True)
+    return out
+
+
+def compare(ref: dict, bundle: Path) -> dict:
+    from pallet6d.runtime.bundle import load_bundle
+    from pallet6d.runtime.refine import RefineGeometry, default_starts, refine_batch
+
+    b = load_bundle(bundle)
+    geom = RefineGeometry(b.pallet.points().astype(np.float64), b.pallet.boxes_m, default_starts(ref["refine_starts"]))
+    out: dict = {"bundle": ref["bundle"], "precision": ref["precision"], "sets": {}}
+    for name, per_p in ref["sets"].items():
+        out["sets"][name] = res_p = {}
+        for P, frames in per_p.items():
+            if not frames:
+                continue
+            worst_t = worst_r = worst_fit = 0.0
+            t_batch = []
+            for f in frames:
+                rows = f["rows"]
+                args = (np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows]), [r[2] for r in rows], geom,
+                        f["depth_m"], f["K"])
+                t = time.process_time()
+                res = refine_batch(*args)
+                t_batch.append((time.process_time() - t) * 1000.0)
                 for k, r in enumerate(rows):
                     dt, dr = _pose_diff(res.T_cam_pallet[k], r[3])
                     worst_t, worst_r = max(worst_t, dt), max(worst_r, dr)
-                    worst_fit = max(worst_fit, abs(res.fits[k].score - r[4].score))
-                n_det += len(rows)
-                n_frames += 1
-            if not n_frames:
-                continue
-            per_p[P] = {"frames": n_frames, "detections": n_det, "max_dt_mm": worst_t, "max_drot_deg": worst_r,
-                        "max_dfit": worst_fit,
+                    worst_fit = max(worst_fit, abs(res.fits[k].score - r[4][2]))
+            t_loop = [f["cpu_ms"] for f in frames]
+            res_p[P] = {"frames": len(frames), "detections": sum(len(f["rows"]) for f in frames),
+                        "max_dt_mm": worst_t, "max_drot_deg": worst_r, "max_dfit": worst_fit,
                         "loop_ms": {"p50": float(np.median(t_loop)), "p90": float(np.percentile(t_loop, 90))},
                         "batch_ms": {"p50": float(np.median(t_batch)), "p90": float(np.percentile(t_batch, 90))}}
-            print(f"{path.name} P={P}: {per_p[P]}", flush=True)
-        out["sets"][path.name] = per_p
+            print(f"{name} P={P}: {res_p[P]}", flush=True)
     return out
 
 
 def to_markdown(res: dict) -> str:
-    lines = [f"# Batched refinement vs detection by detection ({res['bundle']}, {res['precision']}, 2 threads)", "",
-             "Both paths on the same recorded network poses and points; time per frame of the refinement stage "
-             "alone (ICP, starts, fit scores), milliseconds, measured on a shared 2-core machine (noisy).", "",
+    lines = [f"# Batched refinement vs detection by detection ({res['bundle']}, {res['precision']})", "",
+             "Both paths on the same recorded network poses and points; CPU time per frame of the refinement stage "
+             "alone (ICP, starts, fit scores), milliseconds, one thread, on a shared 2-core machine.", "",
              "| set | pallets | frames | max dt mm | max drot deg | max dfit | per-detection p50 | batch p50 | "
              "batch p90 |", "|---|---|---|---|---|---|---|---|---|"]
     for name, per_p in res["sets"].items():
@@ -128,14 +148,26 @@ def to_markdown(res: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--bundle", type=Path, default=Path("models/epal-default"))
-    ap.add_argument("--data", type=Path, nargs="+", required=True)
-    ap.add_argument("--pallets", type=int, nargs="+", default=[1, 4, 16])
-    ap.add_argument("--precision", default="int8", choices=("fp32", "int8"))
-    ap.add_argument("--frames", type=int, default=30, help="at most this many frames per set")
-    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/refine-speed"))
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record", help="record the per-detection path's inputs, results and times")
+    r.add_argument("--bundle", type=Path, default=Path("models/epal-default"))
+    r.add_argument("--data", type=Path, nargs="+", required=True)
+    r.add_argument("--pallets", type=int, nargs="+", default=[1, 4, 16])
+    r.add_argument("--precision", default="int8", choices=("fp32", "int8"))
+    r.add_argument("--frames", type=int, default=30, help="at most this many frames per set")
+    r.add_argument("--out", type=Path, required=True)
+    c = sub.add_parser("compare", help="refine_batch on a recording: differences and times")
+    c.add_argument("--ref", type=Path, required=True)
+    c.add_argument("--bundle", type=Path, default=Path("models/epal-default"))
+    c.add_argument("--out", type=Path, default=Path("benchmarks/results/refine-speed"))
     a = ap.parse_args(argv)
-    res = run(a.bundle, a.data, a.pallets, a.precision, a.frames)
+    if a.cmd == "record":
+        a.out.parent.mkdir(parents=True, exist_ok=True)
+        with open(a.out, "wb") as fh:
+            pickle.dump(record(a.bundle, a.data, a.pallets, a.precision, a.frames), fh)
+        return 0
+    with open(a.ref, "rb") as fh:
+        res = compare(pickle.load(fh), a.bundle)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(res, indent=1))
     md = to_markdown(res)

@@ -72,33 +72,36 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray,
     """
     p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
     boxes = _check_boxes(boxes_m)
+    lo_all, hi_all = boxes[:, 0].T[:, None], boxes[:, 1].T[:, None]                  # (3, 1, k)
     if index is None or len(p) == 0:
-        return _closest(p, boxes[None, :, 0], boxes[None, :, 1])
+        return _closest(p, lo_all, hi_all)
     cell = index.cells(p)
     few = cell >= 0                                  # in the grid, in a cell with few candidates
+    if few.all():
+        lists = index.lists[cell]
+        return _closest(p, index.lo[:, lists], index.hi[:, lists])
     q, normal, d = np.empty_like(p), np.empty_like(p), np.empty(len(p))
     lists = index.lists[cell[few]]
-    q[few], normal[few], d[few] = _closest(p[few], index.lo[lists], index.hi[lists])
+    q[few], normal[few], d[few] = _closest(p[few], index.lo[:, lists], index.hi[:, lists])
     rest = ~few
-    if rest.any():
-        q[rest], normal[rest], d[rest] = _closest(p[rest], boxes[None, :, 0], boxes[None, :, 1])
+    q[rest], normal[rest], d[rest] = _closest(p[rest], lo_all, hi_all)
     return q, normal, d
 
 
 def _closest(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`closest_on_boxes` of (n, 3) points among boxes with corners lo, hi: (1, k, 3) shared by all points,
-    or (n, c, 3), each point's own candidates."""
-    n, k = len(p), lo.shape[1]
+    """`closest_on_boxes` of (n, 3) points among boxes with corners lo, hi given per axis: (3, 1, k) shared
+    by all points, or (3, n, c), each point's own candidates."""
+    n, k = len(p), lo.shape[2]
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    per_point = lo.shape[0] == n and n > 1
+    per_point = lo.shape[1] == n and n > 1
     # squared distance outside each box, one axis at a time, in place on two (n, k) buffers (ICP calls this
     # every iteration; with (n, k, 3) temporaries it was most of the refinement's time)
     d_out2, gap, tmp = np.zeros((n, k)), np.empty((n, k)), np.empty((n, k))
     for a in range(3):
         pa = p[:, a, None]
-        np.subtract(lo[:, :, a], pa, out=gap)
-        np.subtract(pa, hi[:, :, a], out=tmp)
+        np.subtract(lo[a], pa, out=gap)
+        np.subtract(pa, hi[a], out=tmp)
         np.maximum(gap, tmp, out=gap)
         np.maximum(gap, 0.0, out=gap)
         np.multiply(gap, gap, out=gap)
@@ -106,7 +109,7 @@ def _closest(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray,
     j = d_out2.argmin(1)                                         # nearest box per point
     rows = np.arange(n)
     d = np.sqrt(d_out2[rows, j])
-    lo_j, hi_j = (lo[rows, j], hi[rows, j]) if per_point else (lo[0, j], hi[0, j])
+    lo_j, hi_j = (lo[:, rows, j].T, hi[:, rows, j].T) if per_point else (lo[:, 0, j].T, hi[:, 0, j].T)
     q = np.clip(p, lo_j, hi_j)
     normal = np.zeros((n, 3))
     out = d > 0.0
@@ -117,17 +120,17 @@ def _closest(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray,
     # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
     # of at its outside distance (boxes may overlap); the nearest wins
     pi, o2 = p[ins], d_out2[ins]
-    lo_i, hi_i = (lo[ins], hi[ins]) if per_point else (lo, hi)
+    lo_i, hi_i = (lo[:, ins], hi[:, ins]) if per_point else (lo, hi)
     d_in = np.full(o2.shape, np.inf)                              # (m, k) depth below each box's nearest face
     for a in range(3):
         pa = pi[:, a, None]
-        np.minimum(d_in, pa - lo_i[:, :, a], out=d_in)
-        np.minimum(d_in, hi_i[:, :, a] - pa, out=d_in)
+        np.minimum(d_in, pa - lo_i[a], out=d_in)
+        np.minimum(d_in, hi_i[a] - pa, out=d_in)
     dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
     ji = dist.argmin(1)
     r = np.arange(len(ins))
     di = dist[r, ji]
-    blo, bhi = (lo_i[r, ji], hi_i[r, ji]) if per_point else (lo[0, ji], hi[0, ji])
+    blo, bhi = (lo_i[:, r, ji].T, hi_i[:, r, ji].T) if per_point else (lo[:, 0, ji].T, hi[:, 0, ji].T)
     qi = np.clip(pi, blo, bhi)
     ni = np.zeros((len(ins), 3))
     via_out = o2[r, ji] > 0.0
@@ -179,8 +182,8 @@ class BoxIndex:
         self.lists = np.where(np.take_along_axis(cand, order, 1), order, k)      # k: a box far from everything
         self.few = cand.sum(1) <= w
         far = np.full((1, 3), 1e9)
-        self.lo = np.concatenate([boxes[:, 0], far])
-        self.hi = np.concatenate([boxes[:, 1], far])
+        self.lo = np.concatenate([boxes[:, 0], far]).T.copy()                          # (3, k + 1) per axis
+        self.hi = np.concatenate([boxes[:, 1], far]).T.copy()
 
     def cells(self, pts: np.ndarray) -> np.ndarray:
         """(n,) flat cell index of each point, -1 outside the grid or in a cell with too many candidates."""
@@ -390,7 +393,8 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         if len(a) == 0:
             break
         w = np.where(use, (1.0 - (np.minimum(d, thr) / thr) ** 2) ** 2, 0.0)           # Tukey biweight
-        r = ((p - q) * nrm).sum(-1)                                                       # point-to-plane
+        r = (p[..., 0] - q[..., 0]) * nrm[..., 0] + (p[..., 1] - q[..., 1]) * nrm[..., 1] \
+            + (p[..., 2] - q[..., 2]) * nrm[..., 2]                                        # point-to-plane
         J = np.empty(p.shape[:-1] + (6,))                    # d r / d (w, v) of a motion applied to p
         for c, (c1, c2) in enumerate(((1, 2), (2, 0), (0, 1))):                         # p x nrm
             np.subtract(p[..., c1] * nrm[..., c2], p[..., c2] * nrm[..., c1], out=J[..., c])
@@ -398,8 +402,8 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         wsum = w.sum(1)
         var = np.maximum((w * r * r).sum(1) / wsum, 0.002 ** 2)                          # noise, metres^2
         Jw = J * w[..., None]
-        H = np.einsum("ani,anj->aij", Jw, J) / var[:, None, None] + prior
-        g = np.einsum("ani,an->ai", Jw, r) / var[:, None] + xi[a] @ prior
+        H = np.matmul(np.swapaxes(Jw, 1, 2), J) / var[:, None, None] + prior
+        g = np.matmul(np.swapaxes(Jw, 1, 2), r[..., None])[..., 0] / var[:, None] + xi[a] @ prior
         delta = -np.linalg.solve(H, g[..., None])[..., 0]
         xi[a] += delta                                                                    # small-motion sum
         T_pal_cam[a] = _exp_se3_batch(delta) @ T_pal_cam[a]
