@@ -5,7 +5,7 @@ import pytest
 from pallet6d.runtime.geometry import make_T, quat_to_rot
 from pallet6d.runtime.metrics import add_sym
 from pallet6d.runtime.fit import fit_score
-from pallet6d.runtime.refine import (FROM_ICP, FROM_NETWORK, MAX_STARTS, BoxIndex, RefineGeometry, RefineOptions,
+from pallet6d.runtime.refine import (FROM_ICP, FROM_NETWORK, MAX_STARTS, RefineGeometry, RefineOptions,
                                      best_landing, box_points, closest_on_boxes, default_starts,
                                      offsets_from_starts, refine_batch, refine_pose, refine_poses, start_offsets)
 
@@ -271,16 +271,6 @@ def test_box_points_thin_evenly_and_handle_empty_boxes():
     assert box_points(depth, K, np.array([0.0, 0.0, 10.0, 10.0]), 100, (0.1, 10.0)).shape == (0, 3)
     assert box_points(depth, K, np.array([100.0, 100.0, 120.0, 120.0]), 100, (0.1, 10.0)).shape == (0, 3)
     assert len(box_points(depth, K, np.array([20.0, 10.0, 30.0, 20.0]), 1000, (0.1, 10.0))) == 100
-
-
-def test_box_index_gives_the_same_closest_points():
-    rng = np.random.default_rng(5)
-    pts = rng.uniform([-0.8, -0.6, -0.2], [0.8, 0.6, 0.2], (3000, 3))
-    pts[::3] = np.round(pts[::3], 2)             # on faces and edges exactly
-    for boxes in (np.asarray(EPAL.boxes_m), np.asarray(get_pallet_model("gma").boxes_m),
-                  np.array([[[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]], [[0.5, 0.0, 0.0], [2.0, 1.0, 1.0]]])):
-        for a, b in zip(closest_on_boxes(pts, boxes), closest_on_boxes(pts, boxes, BoxIndex(boxes))):
-            np.testing.assert_array_equal(a, b)
 
 
 def test_offsets_from_starts_rows():
