@@ -80,6 +80,16 @@ def _extents(boxes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def _argmin_rows(v: np.ndarray) -> np.ndarray:
+    """(n,) index of the smallest of each column of a (k, n) array, the first on ties (as `argmin`)."""
+    best, arg = v[0].copy(), np.zeros(v.shape[1], dtype=np.int64)
+    for i in range(1, len(v)):
+        better = v[i] < best
+        np.copyto(best, v[i], where=better)
+        arg[better] = i
+    return arg
+
+
 def _closest(p: np.ndarray, boxes: np.ndarray,
              extents: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`closest_on_boxes` of (n, 3) float64 points, with the boxes' `_extents`."""
@@ -89,18 +99,19 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
     lo, hi = boxes[:, 0], boxes[:, 1]                           # (k, 3)
     # squared distance outside each box, one axis at a time: a pallet's boards and blocks share few distinct
     # extents per axis (EPAL: 16 over the three axes for 20 boxes), so each axis' squared gap is computed once
-    # per distinct extent and gathered per box (ICP calls this every iteration for every point)
+    # per distinct extent and gathered per box (ICP calls this every iteration for every point). Arrays are
+    # (boxes, points): numpy's inner loops then run along the points.
     p_axes = np.ascontiguousarray(p.T)                           # (3, n)
-    d_out2 = np.zeros((n, len(boxes)))
+    d_out2 = np.zeros((len(boxes), n))
     for a, (extent, box_col) in enumerate(extents):
-        pa = p_axes[a][:, None]
-        gap = np.subtract(extent[:, 0], pa)
-        np.maximum(gap, pa - extent[:, 1], out=gap)
+        pa = p_axes[a]
+        gap = np.subtract(extent[:, 0, None], pa)
+        np.maximum(gap, pa - extent[:, 1, None], out=gap)
         np.maximum(gap, 0.0, out=gap)
         np.multiply(gap, gap, out=gap)
-        d_out2 += gap[:, box_col]
-    j = d_out2.argmin(1)                                         # nearest box per point
-    d = np.sqrt(d_out2[np.arange(n), j])
+        d_out2 += gap[box_col]
+    j = _argmin_rows(d_out2)                                     # nearest box per point
+    d = np.sqrt(d_out2[j, np.arange(n)])
     q = np.clip(p, lo[j], hi[j])
     normal = np.zeros((n, 3))
     out = d > 0.0
@@ -110,20 +121,20 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
         return q, normal, d
     # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
     # of at its outside distance (boxes may overlap); the nearest wins
-    pi, o2 = p[ins], d_out2[ins]
-    d_in = np.full(o2.shape, np.inf)                              # (m, k) depth below each box's nearest face
+    pi, o2 = p[ins], d_out2[:, ins]
+    d_in = np.full(o2.shape, np.inf)                              # (k, m) depth below each box's nearest face
     for a, (extent, box_col) in enumerate(extents):
-        pa = pi[:, a, None]
-        below = np.minimum(pa - extent[None, :, 0], extent[None, :, 1] - pa)
-        np.minimum(d_in, below[:, box_col], out=d_in)
+        pa = p_axes[a, ins]
+        below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
+        np.minimum(d_in, below[box_col], out=d_in)
     dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
-    ji = dist.argmin(1)
+    ji = _argmin_rows(dist)
     r = np.arange(len(ins))
-    di = dist[r, ji]
+    di = dist[ji, r]
     blo, bhi = lo[ji], hi[ji]
     qi = np.clip(pi, blo, bhi)
     ni = np.zeros((len(ins), 3))
-    via_out = o2[r, ji] > 0.0
+    via_out = o2[ji, r] > 0.0
     ni[via_out] = (pi[via_out] - qi[via_out]) / di[via_out, None]
     face = np.flatnonzero(~via_out)                               # move to the nearest face
     to_face = np.concatenate([pi[face] - blo[face], bhi[face] - pi[face]], axis=1)   # -x -y -z +x +y +z
