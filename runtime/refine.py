@@ -14,6 +14,10 @@ few stop in a local minimum about 2 cm off, where boards repeat); D435-like dept
 several cm, half of it correlated over patches) leaves several cm, which is the data's own limit.
 From 15-30 degrees or 10-20 cm off, ICP stops in a wrong minimum: `best_landing` runs it again from
 starts around the pose (`start_offsets`, batched by `refine_poses`) and a fit score picks the landing.
+
+`refine_batch` does all of it for every detection of a frame at once: ICP from the network's poses, the
+gate, the starts and the landings' choice, each one numpy pass over padded arrays (docs/refinement.md).
+The work is then arithmetic on the points, not Python calls: per ICP step, every point's closest box.
 """
 from __future__ import annotations
 
@@ -115,7 +119,7 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
     q = np.clip(p, lo[j], hi[j])
     normal = np.zeros((n, 3))
     out = d > 0.0
-    normal[out] = (p[out] - q[out]) / d[out, None]
+    np.divide(p - q, d[:, None], out=normal, where=out[:, None])
     ins = np.flatnonzero(~out)
     if len(ins) == 0:
         return q, normal, d
