@@ -22,7 +22,7 @@ import numpy as np
 from .geometry import check_K
 from .results import FitScore
 
-__all__ = ["distance_to_boxes", "distance_to_points", "fit_score", "fit_scores"]
+__all__ = ["check_poses", "distance_to_boxes", "distance_to_points", "fit_score", "fit_scores"]
 
 
 def distance_to_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> np.ndarray:
@@ -99,7 +99,8 @@ def _free_space_violations(model_cam: np.ndarray, depth_m: np.ndarray, K: np.nda
     return np.where(n_use > 0, n_bad / np.maximum(n_use, 1), 0.0)
 
 
-def _check_poses(T: np.ndarray, name: str) -> np.ndarray:
+def check_poses(T: np.ndarray, name: str) -> np.ndarray:
+    """(P, 4, 4) float64 finite transforms, or ValueError naming `name`."""
     T = np.asarray(T, dtype=np.float64)
     if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"{name} must be finite (4, 4) transforms, got shape {T.shape}")
@@ -125,7 +126,7 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
     if not tol_m > 0:
         raise ValueError(f"tol_m must be positive, got {tol_m}")
     K = check_K(K)
-    T = _check_poses(T_cam_model, "T_cam_model")
+    T = check_poses(T_cam_model, "T_cam_model")
     P = len(T)
     obs = np.asarray(pts_obs_cam, dtype=np.float64)
     if obs.ndim != 3 or obs.shape[0] != P or obs.shape[2] != 3:

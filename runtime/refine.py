@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fit import distance_to_boxes, fit_scores
+from .fit import check_poses, distance_to_boxes, fit_scores
 from .geometry import backproject_pixels, check_K, clamp_box, select_pixels, transform_points
 from .results import FitScore
 
@@ -253,7 +253,7 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
         `stopped_near`, since it would only land on that pose again. Saves the rest of its iterations.
     :return: m RefineResults, in the order of the starts.
     """
-    T0 = _check_poses(T_cam_pallet)
+    T0 = check_poses(T_cam_pallet, "T_cam_pallet")
     pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
     m = len(T0)
@@ -263,13 +263,6 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     return [RefineResult(run.T_cam_pallet[i], int(run.iterations[i]), int(run.n_inliers[i]), float(run.rms_m[i]),
                          float(np.linalg.norm(run.T_cam_pallet[i, :3, 3] - T0[i, :3, 3])), bool(run.converged[i]),
                          bool(run.stopped_near[i])) for i in range(m)]
-
-
-def _check_poses(T_cam_pallet: np.ndarray) -> np.ndarray:
-    T0 = np.asarray(T_cam_pallet, dtype=np.float64)
-    if T0.ndim != 3 or T0.shape[1:] != (4, 4) or not np.all(np.isfinite(T0)):
-        raise ValueError(f"T_cam_pallet must be finite (4, 4) transforms, got shape {T0.shape}")
-    return T0
 
 
 def _exp_se3_batch(delta: np.ndarray) -> np.ndarray:
@@ -411,7 +404,7 @@ def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     return best_T, best_k
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class RefineGeometry:
     """One pallet type as refinement needs it (the pallet frame, metres).
 
@@ -481,7 +474,7 @@ class RefineOptions:
 FROM_NETWORK, FROM_ICP = -2, -1
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class FrameRefinement:
     """`refine_batch`'s result for n detections.
 
@@ -530,9 +523,7 @@ def refine_batch(T_net_cam_pallet: np.ndarray, obs_cam: np.ndarray, box_obs_cam:
     :return: `FrameRefinement`.
     """
     o = options or RefineOptions()
-    T_net = np.asarray(T_net_cam_pallet, dtype=np.float64)
-    if T_net.ndim != 3 or T_net.shape[1:] != (4, 4) or not np.all(np.isfinite(T_net)):
-        raise ValueError(f"T_net_cam_pallet must be finite (n, 4, 4) transforms, got shape {T_net.shape}")
+    T_net = check_poses(T_net_cam_pallet, "T_net_cam_pallet")
     n = len(T_net)
     obs = np.asarray(obs_cam, dtype=np.float64)
     if obs.ndim != 3 or obs.shape[0] != n or obs.shape[2] != 3:
