@@ -113,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     res = time_graphs(graphs, a.threads, a.runs)
     lines = [f"| detector graph | wall p50 ms ({a.threads} threads) | wall p10 ms | CPU ms, 1 thread (p50) |",
              "|---|---|---|---|"]
-    lines += [f"| {k} | {v['p50_ms']:.1f} | {v['p10_ms']:.1f} | {v['cpu_1thread_p50_ms']:.1f} |" for k, v in res.items()]
+    lines += [f"| {k} | {v['p50_ms']:.1f} | {v['p10_ms']:.1f} | {v['cpu_1thread_p50_ms']:.1f} |"
+              for k, v in res.items()]
     print("\n".join(lines))
     (a.out / "timings.json").write_text(json.dumps(res, indent=1))
     return 0

@@ -129,7 +129,8 @@ def compare(ref: dict, bundle: Path) -> dict:
                     worst_t, worst_r = max(worst_t, dt), max(worst_r, dr)
                     worst_fit = max(worst_fit, abs(res.fits[k].score - r[4][2]))
             t_rec = [f["cpu_ms"] for f in frames]
-            res_p[P] = {"recorded_ms": {"p50": float(np.median(t_rec))},"frames": len(frames), "detections": sum(len(f["rows"]) for f in frames),
+            res_p[P] = {"recorded_ms": {"p50": float(np.median(t_rec))}, "frames": len(frames),
+                        "detections": sum(len(f["rows"]) for f in frames),
                         "max_dt_mm": worst_t, "max_drot_deg": worst_r, "max_dfit": worst_fit,
                         "loop_ms": {"p50": float(np.median(t_loop)), "p90": float(np.percentile(t_loop, 90))},
                         "batch_ms": {"p50": float(np.median(t_batch)), "p90": float(np.percentile(t_batch, 90))}}

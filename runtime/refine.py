@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -506,7 +506,7 @@ def _padded(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def refine_batch(T_net_cam_pallet: np.ndarray, obs_cam: np.ndarray, box_obs_cam: list[np.ndarray],
-                 geometry: RefineGeometry | list[RefineGeometry] | tuple[RefineGeometry, ...], depth_m: np.ndarray, K: np.ndarray,
+                 geometry: RefineGeometry | Sequence[RefineGeometry], depth_m: np.ndarray, K: np.ndarray,
                  options: RefineOptions | None = None) -> FrameRefinement:
     """Refine all detections of a frame at once: ICP from the network's pose, the RMS and fit-score gate,
     ICP from the geometry's starts around the pose so far, and the best-fitting trusted landing.
@@ -517,8 +517,8 @@ def refine_batch(T_net_cam_pallet: np.ndarray, obs_cam: np.ndarray, box_obs_cam:
     :param T_net_cam_pallet: (n, 4, 4) the network's poses, pallet -> camera.
     :param obs_cam: (n, N, 3) each detection's sampled points (the fit score's), camera frame, metres.
     :param box_obs_cam: n arrays (m_i, 3): each box's depth points for ICP (`box_points`), camera frame.
-    :param geometry: one `RefineGeometry` for all detections, or one per detection (detections that
-        share the same object refine together).
+    :param geometry: one `RefineGeometry` for all detections, or a list/tuple of one per detection
+        (detections that share the same object refine together).
     :param depth_m: (H, W) float metres, 0 = no data. :param K: 3x3 intrinsics.
     :return: `FrameRefinement`.
     """
@@ -555,13 +555,17 @@ def refine_batch(T_net_cam_pallet: np.ndarray, obs_cam: np.ndarray, box_obs_cam:
     return FrameRefinement(T_out, fits, source, rms)
 
 
+# refine_pose's defaults: corr_start_m, corr_end_m, prior_rot_rad, prior_trans_m, min_inliers, tol
+_ICP_DEFAULTS = (0.08, 0.015, 0.1, 0.1, 30, 1e-4)
+
+
 def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray], geom: RefineGeometry,
                   depth_m: np.ndarray, K: np.ndarray, o: RefineOptions, T_out: np.ndarray, source: np.ndarray,
                   rms_out: np.ndarray, fit_out: np.ndarray, sel: np.ndarray) -> None:
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, 0.08, 0.015, 0.1, 0.1, 30, 1e-4, None, 0.0)
+    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0)
     T = T_net.copy()
     src = np.full(g, FROM_NETWORK)
     fit = np.full((g, 3), np.nan)
@@ -572,7 +576,8 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
         both = fit_scores(np.concatenate([base.T_cam_pallet[gate], T_net[gate]]),
                           np.concatenate([obs[gate], obs[gate]]), None, geom.model_points_m, depth_m, K, o.fit_tol_m,
                           points_in_boxes_m=geom.in_boxes)
-        f_icp, f_net = (np.stack(both, 1)[:len(gate)], np.stack(both, 1)[len(gate):])
+        both = np.stack(both, 1)
+        f_icp, f_net = both[:len(gate)], both[len(gate):]
         keep = f_icp[:, 2] >= f_net[:, 2] + o.margin
         T[gate[keep]], src[gate[keep]] = base.T_cam_pallet[gate[keep]], FROM_ICP
         fit[gate] = np.where(keep[:, None], f_icp, f_net)
@@ -591,7 +596,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
         T_start = (T[run][:, None] @ offsets[None]).reshape(-1, 4, 4)                      # detection-major
         near = np.repeat(T[run], S, axis=0) if o.stop_near_m > 0 else None
         land = _icp(T_start, np.repeat(sub, S, axis=0), np.repeat(n_sub, S), geom.boxes_m, o.iterations,
-                    0.08, 0.015, 0.1, 0.1, 30, 1e-4, near, o.stop_near_m)
+                    *_ICP_DEFAULTS, near, o.stop_near_m)
         trusted = ~land.stopped_near & np.isfinite(land.rms_m) & (land.rms_m < o.start_max_rms_m)
         cand = np.flatnonzero(trusted)                                                    # landing rows
         owner = np.concatenate([np.arange(len(run)), cand // S])                         # row in `run`

@@ -103,7 +103,8 @@ def test_fit_scores_equal_fit_score_pose_by_pose(scene, boxes):
         assert (inlier[i], violation[i], score[i]) == (ref.inlier_fraction, ref.free_space_violation, ref.score)
         assert (in_boxes[0][i], in_boxes[2][i]) == (ref.inlier_fraction, ref.score)
     assert inlier[2] == 0.0
-    assert fit_scores(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), None, MODEL_PTS, frame.depth_m, frame.K)[2].shape == (0,)
+    none = fit_scores(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), None, MODEL_PTS, frame.depth_m, frame.K)
+    assert none[2].shape == (0,)
     with pytest.raises(ValueError, match="pts_obs_cam"):
         fit_scores(Ts, obs[None], None, MODEL_PTS, frame.depth_m, frame.K)
     with pytest.raises(ValueError, match="T_cam_model"):
