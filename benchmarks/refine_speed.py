@@ -3,21 +3,25 @@
     # the reference: any installed version of pallet6d (e.g. main's) records its per-detection refinement
     /work/main/.venv/bin/python benchmarks/refine_speed.py record --data /work/data/val-virtual-clean \
         /work/data/val-virtual-occluded /work/data/val-indoor-noisy --out /work/runs/refine-ref.pkl
-    # this checkout: refine_batch on the same inputs, compared and timed against the recording
-    .venv/bin/python benchmarks/refine_speed.py compare --ref /work/runs/refine-ref.pkl
+    # this checkout: refine_batch on the same inputs, compared with the recording, timed against main's path
+    OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/refine_speed.py compare --ref /work/runs/refine-ref.pkl \
+        --ref-src /work/main
 
 For each frame and each count P in --pallets, the estimator poses the frame's P most visible ground-truth
 boxes (`estimate_boxes`, so P does not depend on the detector); the inputs of its refinement stage are
 recorded per detection (the network's pose, the sampled points, the box's depth points) with its result
 (`PalletEstimator._refine`, detection by detection) and the time it took. `compare` runs `refine_batch` on
 exactly those inputs and reports the largest pose difference (translation mm, rotation degrees, fit score),
-and per frame the CPU time of `refine_batch` and of this checkout's per-detection path, alternating in one
-run (CPU time: one thread's work, less sensitive to other jobs than wall time on a shared machine; hold
-numpy's BLAS to one thread, OPENBLAS_NUM_THREADS=1). Writes benchmarks/results/refine-speed.md (and .json).
+and per frame the CPU time of `refine_batch` and of the per-detection path (this checkout's, or with
+--ref-src another checkout's runtime imported beside it), alternating in one run (CPU time: one thread's
+work, less sensitive to other jobs than wall time on a shared machine; hold numpy's BLAS to one thread,
+OPENBLAS_NUM_THREADS=1). Writes benchmarks/results/refine-speed.md (and .json).
 """
 from __future__ import annotations
 
 import argparse
+import importlib
+import importlib.util
 import json
 import pickle
 import sys
@@ -98,14 +102,27 @@ def record(bundle: Path, data: list[Path], pallets: list[int], precision: str, m
     return out
 
 
-def compare(ref: dict, bundle: Path) -> dict:
-    from pallet6d.runtime.estimator import PalletEstimator
+def _runtime_from(src: Path):
+    """The `runtime` package of another checkout (its folder `src/runtime`), imported under another name."""
+    name = "pallet6d_reference_runtime"
+    spec = importlib.util.spec_from_file_location(name, src / "runtime" / "__init__.py",
+                                                  submodule_search_locations=[str(src / "runtime")])
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return importlib.import_module(f"{name}.estimator")
+
+
+def compare(ref: dict, bundle: Path, ref_src: Path | None) -> dict:
+    from pallet6d.runtime import estimator
     from pallet6d.runtime.refine import RefineGeometry, default_starts, refine_batch
 
-    est = PalletEstimator.from_bundle(bundle, threads=2, precision=ref["precision"],
-                                      refine_starts=ref["refine_starts"])
+    module = estimator if ref_src is None else _runtime_from(ref_src)
+    est = module.PalletEstimator.from_bundle(bundle, threads=2, precision=ref["precision"],
+                                             refine_starts=ref["refine_starts"])
     geom = RefineGeometry(est.model_points_m, est.model_boxes_m, default_starts(ref["refine_starts"]))
-    out: dict = {"bundle": ref["bundle"], "precision": ref["precision"], "sets": {}}
+    out: dict = {"bundle": ref["bundle"], "precision": ref["precision"], "sets": {},
+                 "per_detection_code": str(ref_src or "this checkout")}
     for name, per_p in ref["sets"].items():
         out["sets"][name] = res_p = {}
         for P, frames in per_p.items():
@@ -117,7 +134,7 @@ def compare(ref: dict, bundle: Path) -> dict:
                 rows = f["rows"]
                 args = (np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows]), [r[2] for r in rows], geom,
                         f["depth_m"], f["K"])
-                t = time.process_time()            # this checkout's per-detection path, in the same run
+                t = time.process_time()            # the per-detection path, in the same run
                 for r in rows:
                     est._refine(r[0], r[1], r[2], f["depth_m"], f["K"])
                 t_loop.append((time.process_time() - t) * 1000.0)
@@ -142,8 +159,9 @@ def to_markdown(res: dict) -> str:
     lines = [f"# Batched refinement vs detection by detection ({res['bundle']}, {res['precision']})", "",
              "Both paths on the same recorded network poses and points; CPU time per frame of the refinement stage "
              "alone (ICP, starts, fit scores), milliseconds, one thread, on a shared 2-core machine.", "",
-             "per-detection: this checkout's `PalletEstimator._refine` detection by detection, timed in the same "
-             "run as the batch; recorded: the recording's own per-detection time (another run, other load).", "",
+             f"per-detection: `PalletEstimator._refine` of {res['per_detection_code']}, detection by detection, "
+             "timed in the same run as the batch (alternating per frame); recorded: the recording's own "
+             "per-detection time (another run, other load).", "",
              "| set | pallets | frames | max dt mm | max drot deg | max dfit | per-detection p50 | batch p50 | "
              "batch p90 | recorded p50 |", "|---|---|---|---|---|---|---|---|---|---|"]
     for name, per_p in res["sets"].items():
@@ -168,6 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--ref", type=Path, required=True)
     c.add_argument("--bundle", type=Path, default=Path("models/epal-default"))
     c.add_argument("--out", type=Path, default=Path("benchmarks/results/refine-speed"))
+    c.add_argument("--ref-src", type=Path, help="time the per-detection path of this checkout's runtime instead "
+                                                "(e.g. /work/main); default: this checkout's")
     a = ap.parse_args(argv)
     if a.cmd == "record":
         a.out.parent.mkdir(parents=True, exist_ok=True)
@@ -175,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             pickle.dump(record(a.bundle, a.data, a.pallets, a.precision, a.frames), fh)
         return 0
     with open(a.ref, "rb") as fh:
-        res = compare(pickle.load(fh), a.bundle)
+        res = compare(pickle.load(fh), a.bundle, a.ref_src)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(res, indent=1))
     md = to_markdown(res)
