@@ -39,7 +39,7 @@ from .flops import count_gflops
 from .fusion import build_fusion
 from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
 from .pose import build_pose
-from .quantize import quantize_graph
+from .quantize import INT8_RECIPES, quantize_graph
 from .weights_fp16 import store_weights_fp16
 
 __all__ = ["export_bundle", "ExportError", "INT8_STAGES"]
@@ -273,13 +273,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     feeds = {"detector": det_feeds, "fusion": fus_feeds, "pose": pose_feeds}
     int8_files: dict[str, Path | None] = {"detector": None, "fusion": None, "pose": None}
     if int8:
-        # float, cheap and precise: the detector's last box/class convs (their logits feed the DFL softmax /
-        # sigmoid directly); the fusion branches' output convs (1 % of the FLOPs; the fused features' error
-        # vs fp32 drops from 3.7 to 2.5 % RMS on the edge config); the pose net's first layer (metric points
-        # in: 5 mm steps if quantized) and its heads' output convs (a uint8 translation offset has ~1 cm
-        # steps; a uint8 confidence ties the argmax)
-        exclude = {"detector": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv"), "fusion": ("/*/final/Conv",),
-                   "pose": ("/conv1/Conv", "/head_[rtc]/head_[rtc].6/Conv")}
+        # what each stage quantizes and keeps float: quantize.INT8_RECIPES
         checks["int8"] = {}
         for stage in STAGES:
             if stage not in int8_stages:
@@ -287,7 +281,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                 checks["int8"][stage] = "float graph (not quantized)"
                 continue
             cal, held = feeds[stage][:split[stage]], feeds[stage][split[stage]:] or feeds[stage][-1:]
-            int8_files[stage] = quantize_graph(files[stage], out / f"{stage}.int8.onnx", cal, exclude[stage])
+            int8_files[stage] = quantize_graph(files[stage], out / f"{stage}.int8.onnx", cal, **INT8_RECIPES[stage])
             checks["int8"][stage] = _graph_diff(files[stage], int8_files[stage], held)
         checks["int8"]["note"] = "int8 vs fp32 on calibration inputs held out from calibration"
     if fp16_weights:
