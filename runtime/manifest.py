@@ -219,6 +219,8 @@ def _as_tuple(types) -> tuple:
 
 
 def _type_names(types) -> str:
+    if set(_as_tuple(types)) == {int, float}:
+        return "a number"
     names = {"str": "a string", "int": "an integer", "float": "a number", "list": "a list", "dict": "an object",
              "bool": "true or false"}
     return " or ".join(dict.fromkeys(names.get(t.__name__, t.__name__) for t in _as_tuple(types)))

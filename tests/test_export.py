@@ -14,7 +14,7 @@ from pallet6d.export.fusion import build_fusion
 from pallet6d.export.losses import DetectorLoss, pose_loss
 from pallet6d.export.onnx_io import export_graph
 from pallet6d.export.pose import build_pose
-from pallet6d.runtime.bundle import check_bundle, load_bundle
+from pallet6d.runtime.bundle import BundleError, check_bundle, load_bundle
 from pallet6d.sim.pallets import get_pallet_model
 
 
@@ -151,8 +151,8 @@ def tiny_bundle(tmp_path_factory):
     cfg = get_config("tiny")
     out = tmp_path_factory.mktemp("b") / "tiny"
     calib = make_calibration_set(cfg, frames=4, max_crops=16, seed=0, synthetic=True)
-    manifest = export_bundle(cfg, out, seed=0, random_init=True, int8=True, calib=calib, command="test")
-    return out, manifest, calib
+    exported = export_bundle(cfg, out, seed=0, random_init=True, int8=True, calib=calib, command="test")
+    return out, exported.report, calib
 
 
 def test_export_parity_and_manifest(tiny_bundle):
@@ -194,7 +194,7 @@ def test_int8_graphs_run_and_correlate(tiny_bundle):
 def test_int8_stages_choose_what_is_quantized(tmp_path, tiny_bundle):
     calib = tiny_bundle[2]
     manifest = export_bundle(get_config("tiny"), tmp_path / "all", random_init=True, int8=True, calib=calib,
-                             int8_stages=("detector", "fusion", "pose"))
+                             int8_stages=("detector", "fusion", "pose")).report
     b = load_bundle(tmp_path / "all")
     assert b.graph("pose", "int8").name == "pose.int8.onnx"
     for o in ("quat", "trans"):
@@ -230,9 +230,15 @@ def test_checkpoint_round_trip_and_external_detector(tmp_path, tiny_bundle):
                              input_hw=(64, 96), classes=("pallet", "box"))
     ext = export_graph(build_detector(ext_cfg).eval(), (torch.rand(1, 3, 64, 96),), tmp_path / "yolo.onnx",
                        ["images"], ["output0"])
-    m = export_bundle(cfg, tmp_path / "ext", random_init=True, detector_onnx=ext, classes=("pallet", "box"), calib=calib)
-    assert m["detector"]["source"] == "external" and m["detector"]["input_hw"] == [64, 96]
-    assert m["classes"] == ["pallet", "box"] and check_bundle(tmp_path / "ext") == []
+    m = export_bundle(cfg, tmp_path / "ext", random_init=True, detector_onnx=ext, classes=("pallet", "box"),
+                      calib=calib).manifest
+    assert m.detector.source == "external" and m.detector.input_hw == (64, 96)
+    assert m.classes == ("pallet", "box") and check_bundle(tmp_path / "ext") == []
+    # the one pallet type is the "pallet" class; "box" reports no type
+    b = load_bundle(tmp_path / "ext")
+    assert b.pallet_class_ids == (0,) and b.pallet.name == "epal"
+    with pytest.raises(BundleError, match="class 1 \\('box'\\) is no pallet type"):
+        b.pallet_type_for_class(1)
     with pytest.raises(ExportError, match="2 classes but 1 names"):
         export_bundle(cfg, tmp_path / "ext2", random_init=True, detector_onnx=ext, classes=("pallet",), calib=calib)
     with pytest.raises(ExportError, match="expected one input"):
