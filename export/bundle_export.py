@@ -124,9 +124,10 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
             log.info("detector input %s, as trained (config %s: %s)", hw, cfg.name, cfg.detector.input_hw)
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=hw))
     torch.manual_seed(seed)
-    nets = {"fusion": build_fusion(cfg.fusion), "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
-    if detector_onnx is None:
-        nets = {"detector": build_detector(cfg.detector), **nets}
+    nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
+            "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
+    if detector_onnx is not None:
+        del nets["detector"]
     for net in nets.values():
         net.eval()
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed)

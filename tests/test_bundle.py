@@ -397,3 +397,44 @@ def test_boxes_are_optional_and_refinement_follows_them(good, bundle, caplog):
         est = PalletEstimator.from_bundle(bundle, threads=1)
     assert not est.refines and "no pallet boxes_m" in caplog.text
     assert not PalletEstimator.from_bundle(good, threads=1, refine=False).refines
+
+
+def _leaves(node, path=()):
+    """Every path to a value in a JSON tree."""
+    yield path
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _leaves(v, (*path, k))
+    elif isinstance(node, list):
+        for i, v in enumerate(node[:3]):
+            yield from _leaves(v, (*path, i))
+
+
+JUNK = (None, -1, 0, 0.5, 1e12, float("nan"), float("inf"), True, "", "x", "../x.onnx", [], [1, 2], {}, {"a": 1})
+
+
+def test_random_manifest_damage_gives_bundle_errors_only(good, bundle):
+    """Seeded random edits of the manifest: load_bundle either loads or raises BundleError (never another
+    exception), and check_bundle reports exactly load_bundle's error."""
+    rng = np.random.default_rng(0)
+    original = json.loads((good / "manifest.json").read_text())
+    paths = [p for p in _leaves(original) if p and p[0] != "files"]
+    outcomes = {"loaded": 0, "refused": 0}
+    for _ in range(150):
+        m = json.loads(json.dumps(original))
+        path = paths[rng.integers(len(paths))]
+        parent = m
+        for k in path[:-1]:
+            parent = parent[k]
+        if rng.random() < 0.15 and isinstance(parent, dict):
+            del parent[path[-1]]
+        else:
+            parent[path[-1]] = JUNK[rng.integers(len(JUNK))]
+        (bundle / "manifest.json").write_text(json.dumps(m))
+        try:
+            load_bundle(bundle)
+            outcomes["loaded"] += 1
+        except BundleError as exc:
+            outcomes["refused"] += 1
+            assert check_bundle(bundle, run=False) == [str(exc)], path
+    assert outcomes["refused"] > 100, outcomes
