@@ -53,7 +53,6 @@ reads as one pallet type (`upgrade_v1`). Every key is checked: unknown keys are 
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -61,7 +60,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .pallet_geometry import FACES, check_rigid, default_refine_starts, derive_pockets_m
+from .pallet_geometry import FACES, check_rigid, default_refine_starts, derive_pockets_m, start_offsets_from_rows
 
 __all__ = ["BundleError", "FieldError", "DetectorSpec", "FusionSpec", "PoseSpec", "PalletType", "Manifest",
            "FORMAT", "FORMAT_VERSION", "read_manifest", "relative_name", "upgrade_v1"]
@@ -507,8 +506,6 @@ class PalletType:
     def start_offsets(self, n: int | None = None) -> np.ndarray:
         """The first `n` (default all) of `refine_starts` as (n, 4, 4) pallet-frame offsets (a yaw about z, then
         a slide along x and y), to right-multiply a pose."""
-        from .pallet_geometry import start_offsets_from_rows
-
         rows = self.refine_starts if n is None else self.refine_starts[:int(n)]
         return start_offsets_from_rows(rows)
 
@@ -627,9 +624,6 @@ class Manifest:
                 "precision": list(self.precision), "detector": self.detector.to_dict(),
                 "fusion": self.fusion.to_dict(), "pose": self.pose.to_dict(),
                 "pallet_types": [t.to_dict() for t in self.pallet_types], "files": dict(self.files)}
-
-    def replace(self, **changes: Any) -> "Manifest":
-        return dataclasses.replace(self, **changes)
 
 
 def upgrade_v1(data: dict, source: str = "manifest.json") -> tuple[dict, dict]:

@@ -21,11 +21,13 @@ _MIN_POCKET_HEIGHT_M = 0.03
 def check_rigid(T: np.ndarray, atol: float = 1e-6) -> list[int]:
     """Indexes of the transforms in `T` (S, 4, 4) that are not rigid (rotation with det +1, last row 0 0 0 1)."""
     T = np.asarray(T, dtype=np.float64)
+    finite = np.isfinite(T).all(axis=(1, 2))
+    T = np.where(finite[:, None, None], T, 0.0)
     R = T[:, :3, :3]
     ortho = np.abs(np.einsum("sji,sjk->sik", R, R) - np.eye(3)).max(axis=(1, 2)) <= atol
     det = np.abs(np.linalg.det(R) - 1.0) <= atol
     last = np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) <= atol
-    return [int(i) for i in np.flatnonzero(~(ortho & det & last))]
+    return [int(i) for i in np.flatnonzero(~(finite & ortho & det & last))]
 
 
 def start_offsets_from_rows(rows: np.ndarray) -> np.ndarray:

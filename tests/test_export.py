@@ -156,9 +156,9 @@ def tiny_bundle(tmp_path_factory):
 
 
 def test_export_parity_and_manifest(tiny_bundle):
-    out, manifest, _ = tiny_bundle
+    out, report, _ = tiny_bundle
     assert check_bundle(out) == []
-    par = manifest["checks"]["parity"]
+    par = report["checks"]["parity"]
     for stage, outputs in (("detector", ["output0"]), ("fusion", ["features"]), ("pose", ["quat", "trans", "conf"])):
         for o in outputs:
             assert par[stage][o]["max_abs"] <= 1e-4 * max(1.0, par[stage][o]["ref_max_abs"])
@@ -166,9 +166,9 @@ def test_export_parity_and_manifest(tiny_bundle):
     assert b.precision == ("fp32", "int8") and b.provenance["random_init"] is True
     assert "synthetic" in b.provenance["calibration"]
     assert b.pose_input_spec().num_points == 32 and b.fusion.crop_hw == (32, 32)
-    assert all(v > 0 for v in manifest["checks"]["gflops"].values())
+    assert all(v > 0 for v in report["checks"]["gflops"].values())
     # the float graphs keep float16 weights on disk (converted after int8 quantization, checked against float32)
-    half = manifest["checks"]["weights_fp16"]
+    half = report["checks"]["weights_fp16"]
     for stage in ("detector", "fusion", "pose"):
         assert half[stage]["converted"] > 0 and half[stage]["bytes_after"] < half[stage]["bytes_before"]
         assert all(d["rel_rms"] < 5e-3 for d in half[stage]["vs_fp32_weights"].values())
@@ -177,7 +177,7 @@ def test_export_parity_and_manifest(tiny_bundle):
 
 
 def test_int8_graphs_run_and_correlate(tiny_bundle):
-    out, manifest, calib = tiny_bundle
+    out, report, calib = tiny_bundle
     from pallet6d.export.onnx_io import ort_session, run_session
     b = load_bundle(out)
     feeds = {"rgb": calib.rgb_crops[:4], "depth": calib.depth_crops[:4]}
@@ -185,20 +185,20 @@ def test_int8_graphs_run_and_correlate(tiny_bundle):
     f8 = run_session(ort_session(b.graph("fusion", "int8")), feeds)["features"]
     assert f8.shape == f32.shape and np.corrcoef(f32.ravel(), f8.ravel())[0, 1] > 0.9
     for stage, o in (("detector", "output0"), ("fusion", "features")):
-        assert manifest["checks"]["int8"][stage][o]["corr"] > 0.9, (stage, manifest["checks"]["int8"][stage])
+        assert report["checks"]["int8"][stage][o]["corr"] > 0.9, (stage, report["checks"]["int8"][stage])
     # by default the pose net is not quantized: precision int8 runs its float graph
     assert b.graph("pose", "int8") == b.graph("pose") and not (out / "pose.int8.onnx").exists()
-    assert manifest["checks"]["int8"]["pose"] == "float graph (not quantized)"
+    assert report["checks"]["int8"]["pose"] == "float graph (not quantized)"
 
 
 def test_int8_stages_choose_what_is_quantized(tmp_path, tiny_bundle):
     calib = tiny_bundle[2]
-    manifest = export_bundle(get_config("tiny"), tmp_path / "all", random_init=True, int8=True, calib=calib,
-                             int8_stages=("detector", "fusion", "pose")).report
+    report = export_bundle(get_config("tiny"), tmp_path / "all", random_init=True, int8=True, calib=calib,
+                           int8_stages=("detector", "fusion", "pose")).report
     b = load_bundle(tmp_path / "all")
     assert b.graph("pose", "int8").name == "pose.int8.onnx"
     for o in ("quat", "trans"):
-        assert manifest["checks"]["int8"]["pose"][o]["corr"] > 0.9, manifest["checks"]["int8"]["pose"]
+        assert report["checks"]["int8"]["pose"][o]["corr"] > 0.9, report["checks"]["int8"]["pose"]
     with pytest.raises(ExportError, match="int8 stages"):
         export_bundle(get_config("tiny"), tmp_path / "bad", random_init=True, int8=True, calib=calib,
                       int8_stages=("pose", "refine"))
@@ -214,6 +214,17 @@ def test_export_refuses_bad_arguments(tmp_path, tiny_bundle):
     torch.save({"config": "tiny", "fusion": {}}, bad)
     with pytest.raises(ExportError, match="no 'detector' weights"):
         export_bundle(cfg, tmp_path / "y", checkpoint=bad, calib=tiny_bundle[2])
+
+
+def test_export_cli_refuses_unknown_pallet_types(tmp_path, capsys):
+    from pallet6d.runtime import cli
+
+    assert cli.main(["export", "--config", "tiny", "--random-init", "--pallet-types", "epal,chep",
+                     "--out", str(tmp_path / "x")]) == 1
+    assert "unknown pallet type(s) ['chep']" in capsys.readouterr().err and not (tmp_path / "x").exists()
+    assert cli.main(["export", "--config", "tiny", "--random-init", "--pallet-types", "epal,epal",
+                     "--out", str(tmp_path / "x")]) == 1
+    assert "named twice" in capsys.readouterr().err
 
 
 def test_checkpoint_round_trip_and_external_detector(tmp_path, tiny_bundle):
