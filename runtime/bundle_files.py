@@ -10,7 +10,7 @@ import stat
 from pathlib import Path
 from typing import Any
 
-from .manifest import BundleError, FieldError, relative_name
+from .manifest_fields import BundleError, FieldError, relative_name
 
 __all__ = ["MAX_FILE_BYTES", "MAX_JSON_BYTES", "confined_file", "sha256_file", "check_onnx_file", "read_json"]
 
