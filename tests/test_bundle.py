@@ -317,8 +317,9 @@ def test_sha256_check_can_be_skipped(bundle):
     load_bundle(bundle, verify_sha256=False)
 
 
-def test_graph_onnxruntime_cannot_load_is_a_bundle_error(bundle):
-    """Well-formed protobuf that is no runnable model: the session wrapper names the graph."""
+def test_graph_onnxruntime_cannot_load_is_a_bundle_error(bundle, capsys):
+    """Well-formed protobuf that is no runnable model: the session wrapper names the graph, and `pallet6d run`
+    says so in one line."""
     from pallet6d.runtime.sessions import OnnxModel
 
     (bundle / "fusion.onnx").write_bytes(b"\x08\x07\x3a\x02\x0a\x00")   # ir_version 7, a graph with an empty node
@@ -328,6 +329,9 @@ def test_graph_onnxruntime_cannot_load_is_a_bundle_error(bundle):
         OnnxModel(bundle / "fusion.onnx", threads=1)
     problems = check_bundle(bundle)
     assert len(problems) == 1 and "fusion (fusion.onnx): ONNX graph" in problems[0], problems
+    assert cli.main(["run", "--source", f"replay:{bundle / 'none'}", "--bundle", str(bundle), "--threads", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cannot load bundle" in err[0] and "fusion.onnx: onnxruntime cannot load it" in err[0]
 
 
 # -- graphs against the manifest (check_bundle only: it opens them) -------------------------------------
