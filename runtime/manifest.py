@@ -70,7 +70,7 @@ __all__ = ["BundleError", "FieldError", "DetectorSpec", "FusionSpec", "PoseSpec"
 FORMAT = "pallet6d-bundle"
 FORMAT_VERSION = 2
 # keys of format_version 1 that carry nothing the runtime uses (model config, the runtime's own choices)
-_V1_IGNORED = {"detector": ("scale",), "fusion": ("attention", "attention_stride"), "pose": ("selection", "attention")}
+_V1_IGNORED = {"detector": ("scale",), "fusion": ("attention", "attention_stride"), "pose": ("attention",)}
 _V1_REPORT = ("provenance", "checks", "scores")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
@@ -312,8 +312,9 @@ class Manifest:
         if version not in (1, FORMAT_VERSION):
             raise BundleError(f"{source}: format_version {version!r} is not supported "
                               f"(this pallet6d reads versions 1 and {FORMAT_VERSION})")
+        m.version = version
         types_raw = m.get("pallet_types", list)
-        types = tuple(PalletType.from_fields(Fields(t, f"pallet_types[{i}]", source))
+        types = tuple(PalletType.from_fields(Fields(t, f"pallet_types[{i}]", source, version))
                       for i, t in enumerate(types_raw))
         files = m.get("files", dict)
         return m.build(cls, name=m.str("name"), config=m.str("config"), precision=tuple(m.names("precision")),
@@ -357,7 +358,8 @@ def upgrade_v1(data: dict, source: str = "manifest.json") -> tuple[dict, dict]:
         raise m.fail("detector.num_classes", f"is {nc} but 'classes' names {len(classes)}")
     det["classes"] = list(classes)
     det.setdefault("source", "pallet6d")
-    if sections["pose"].get("selection", "max_confidence") != "max_confidence":
+    # the runtime picks the most confident point's pose: the only selection a version 1 bundle could name
+    if sections["pose"].pop("selection", "max_confidence") != "max_confidence":
         raise m.fail("pose.selection", "must be 'max_confidence'")
     pm = dict(m.get("pallet_model", dict))
     lowered = [c.lower() for c in classes]

@@ -154,7 +154,11 @@ def test_v1_manifest_of_an_export_still_loads(good, bundle):
     assert b.provenance == {"command": "x"} and b.pallet_class_ids == (0,)
     v1["pose"]["wobble"] = 1
     (bundle / "manifest.json").write_text(json.dumps(v1))
-    same_error_from_both(bundle, r"field 'pose.wobble' is not a field")
+    same_error_from_both(bundle, r"field 'pose.wobble' is not a field of format version 1")
+    v1["pose"].pop("wobble")
+    v1["pose"]["selection"] = "mean"
+    (bundle / "manifest.json").write_text(json.dumps(v1))
+    same_error_from_both(bundle, r"field 'pose.selection' must be 'max_confidence'")
 
 
 def test_report_updates_leave_the_contract_alone(bundle, caplog):
