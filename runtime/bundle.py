@@ -11,6 +11,7 @@ numpy + json + onnxruntime only.
 """
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import json
 import logging
@@ -154,7 +155,7 @@ def _load_points(path: Path, source: str, i: int, t: PalletType) -> PalletType:
     if pts.dtype.kind != "f":
         raise BundleError(f"{where}: model points must be floats, got {pts.dtype}")
     try:
-        return PalletType(**{**{k: getattr(t, k) for k in t.__dataclass_fields__}, "points_m": pts})
+        return dataclasses.replace(t, points_m=pts)
     except FieldError as exc:
         raise BundleError(f"{where} {exc.msg}") from None
 
