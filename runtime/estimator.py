@@ -177,7 +177,6 @@ class PalletEstimator:
         self.model_size_m = np.asarray(bundle.pallet.size_m, dtype=np.float64)
         self.symmetries = np.asarray(bundle.pallet.symmetries, dtype=np.float64)
         self.model_boxes_m = bundle.pallet.boxes_m
-        self.start_offsets = bundle.pallet.start_offsets()   # the pallet type's extra ICP starts
         self.refines = bool(self.options.refine and self.options.refine_iterations > 0 and self.model_boxes_m is not None)
         if self.options.refine and self.model_boxes_m is None:
             log.warning("bundle %s has no pallet boxes_m: poses are not refined", bundle.name)
@@ -413,7 +412,7 @@ class PalletEstimator:
             T_best, j = best_landing(T, box_obs_cam, self.model_boxes_m, o.refine_starts, o.refine_start_points,
                                      lambda T_: fit_score(T_, box_obs_cam, self.model_points_m, depth_m, K,
                                                           o.refine_select_tol_m, self.model_boxes_m).score,
-                                     o.refine_start_max_rms_m, o.refine_iterations, offsets=self.start_offsets)
+                                     o.refine_start_max_rms_m, o.refine_iterations)
             if j >= 0:
                 T, fit = T_best, None
         return T, fit

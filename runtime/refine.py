@@ -295,10 +295,8 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
 
 def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, n_starts: int,
                  start_points: int, score: Callable[[np.ndarray], float], max_rms_m: float,
-                 iterations: int = 20, stop_near_m: float = 0.005,
-                 offsets: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """ICP from the first `n_starts` of `offsets` (default `start_offsets`) around a refined pose; the
-    best-scoring landing wins.
+                 iterations: int = 20, stop_near_m: float = 0.005) -> tuple[np.ndarray, int]:
+    """ICP from the first `n_starts` of `start_offsets` around a refined pose; the best-scoring landing wins.
 
     A landing counts only when ICP trusts it (final RMS below `max_rms_m`), as for the pose itself.
 
@@ -307,18 +305,16 @@ def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
         subset of `start_points` of them.
     :param score: pose -> how well it explains the depth (higher is better), e.g. a `fit_score`.
     :param stop_near_m: a start that comes this close to `T_cam_pallet` stops (0: every start runs to the end).
-    :param offsets: (S, 4, 4) the pallet type's start offsets (`PalletType.start_offsets()`); at most S run.
     :return: (the winning (4, 4) pose, the index of its start, or -1 for `T_cam_pallet` itself).
     """
     T = np.asarray(T_cam_pallet, dtype=np.float64)
     pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
     best_T, best_k, best = T, -1, score(T)
-    starts = start_offsets(n_starts) if offsets is None else np.asarray(offsets, dtype=np.float64)[:max(n_starts, 0)]
-    if len(starts) == 0 or len(pts) == 0:
+    if n_starts <= 0 or len(pts) == 0:
         return best_T, best_k
     pick = np.linspace(0, len(pts) - 1, min(int(start_points), len(pts))).round().astype(np.int64)
     # a start that comes back to within stop_near_m of T stops there: it would only land on T again
-    landings = refine_poses(T @ starts, pts[pick], boxes_m, iterations=iterations,
+    landings = refine_poses(T @ start_offsets(n_starts), pts[pick], boxes_m, iterations=iterations,
                             stop_near=T if stop_near_m > 0 else None, stop_near_m=stop_near_m)
     for k, r in enumerate(landings):
         if not r.stopped_near and np.isfinite(r.rms_m) and r.rms_m < max_rms_m:
