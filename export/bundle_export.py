@@ -37,7 +37,7 @@ from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git
 from .flops import count_gflops
 from .fusion import build_fusion
 from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
-from .pallet_types import class_ids_for_types, write_pallet_types
+from .pallet_types import class_ids_for_types, trained_pallet_types, write_pallet_types
 from .pose import build_pose
 from .quantize import quantize_graph
 from .weights_fp16 import store_weights_fp16
@@ -88,7 +88,9 @@ class Networks:
 
     :ivar cfg: the config, with the detector's input size and classes as exported.
     :ivar nets: "detector" (absent with an external detector graph), "fusion", "pose".
-    :ivar point_feats: (B, N, C) fusion features of the calibration crops gathered at their points.
+    :ivar point_feats: (B, N, C) fusion features of the calibration crops at their points.
+    :ivar fusion_inputs: the fusion graph's input names: rgb, depth, and choose for a fusion network that
+        samples its features at the chosen pixels itself (`cfg.fusion.sampled`).
     :ivar training: the checkpoint's training provenance, if any.
     """
 
@@ -98,6 +100,12 @@ class Networks:
     point_feats: np.ndarray
     detector_onnx: Path | None
     training: dict | None
+    fusion_inputs: tuple[str, ...] = ("rgb", "depth")
+
+    def fusion_arrays(self) -> list[np.ndarray]:
+        """The calibration arrays fed to the fusion graph's inputs, in order."""
+        c = self.calib
+        return [c.rgb_crops, c.depth_crops, c.choose][:len(self.fusion_inputs)]
 
 
 def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | None = None,
@@ -131,19 +139,22 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
     for net in nets.values():
         net.eval()
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed)
+    sampled = bool(getattr(cfg.fusion, "sampled", False))   # the fusion graph takes `choose`, gives (B, N, C)
+    fusion_in = [calib.rgb_crops, calib.depth_crops, calib.choose][:3 if sampled else 2]
     training = None
+    t = torch.from_numpy
     if ckpt is not None:
         training = load_checkpoint(Path(checkpoint), ckpt, nets, cfg, tuple(nets))
     else:
-        t = torch.from_numpy
         if "detector" in nets:
             warm_up_batchnorm(nets["detector"], [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)])
-        warm_up_batchnorm(nets["fusion"], [(t(calib.rgb_crops[i:i + 8]), t(calib.depth_crops[i:i + 8]))
+        warm_up_batchnorm(nets["fusion"], [tuple(t(a[i:i + 8]) for a in fusion_in)
                                            for i in range(0, len(calib.rgb_crops), 8)])
     with torch.no_grad():
-        feats = nets["fusion"](torch.from_numpy(calib.rgb_crops), torch.from_numpy(calib.depth_crops)).numpy()
-    return Networks(cfg, nets, calib, gather_features(feats, calib.choose),
-                    None if detector_onnx is None else Path(detector_onnx), training)
+        feats = nets["fusion"](*(t(a) for a in fusion_in)).numpy()
+    return Networks(cfg, nets, calib, feats if sampled else gather_features(feats, calib.choose),
+                    None if detector_onnx is None else Path(detector_onnx), training,
+                    ("rgb", "depth", "choose") if sampled else ("rgb", "depth"))
 
 
 @dataclass(frozen=True)
@@ -183,10 +194,11 @@ def export_graphs(n: Networks, out: Path) -> Graphs:
         checks["parity"]["detector"] = "external graph, copied unchanged"
     det_sess = ort_session(files["detector"], threads=1)
     det_in, det_out = det_sess.get_inputs()[0].name, det_sess.get_outputs()[0].name
-    fusion_args = (t(calib.rgb_crops[:2]), t(calib.depth_crops[:2]))
-    files["fusion"] = export_graph(nets["fusion"], fusion_args, out / "fusion.onnx", ["rgb", "depth"], ["features"],
-                                   {"rgb": {0: "batch"}, "depth": {0: "batch"}, "features": {0: "batch"}})
-    checks["parity"]["fusion"] = check_parity(nets["fusion"], fusion_args, files["fusion"], ["rgb", "depth"],
+    fusion_names = list(n.fusion_inputs)
+    fusion_args = tuple(t(a[:2]) for a in n.fusion_arrays())
+    files["fusion"] = export_graph(nets["fusion"], fusion_args, out / "fusion.onnx", fusion_names, ["features"],
+                                   {k: {0: "batch"} for k in [*fusion_names, "features"]})
+    checks["parity"]["fusion"] = check_parity(nets["fusion"], fusion_args, files["fusion"], fusion_names,
                                               ["features"])
     pose_args = (t(calib.points[:2]), t(n.point_feats[:2]))
     files["pose"] = export_graph(nets["pose"], pose_args, out / "pose.onnx", ["points", "features"], list(POSE_OUTPUTS),
@@ -199,7 +211,7 @@ def export_graphs(n: Networks, out: Path) -> Graphs:
                         "pose_per_pallet": round(count_gflops(files["pose"]), 3)}
     n_cal = max(1, (3 * len(calib.rgb_crops)) // 4)   # calibrate on 3/4, report the difference on the rest
     feeds = {"detector": [{det_in: calib.images[i:i + 1]} for i in range(len(calib.images))],
-             "fusion": [{"rgb": r, "depth": d} for r, d in _batches([calib.rgb_crops, calib.depth_crops], 4)],
+             "fusion": [dict(zip(fusion_names, b)) for b in _batches(n.fusion_arrays(), 4)],
              "pose": [{"points": p, "features": f} for p, f in _batches([calib.points, n.point_feats], 4)]}
     split = {"detector": max(1, (3 * len(calib.images)) // 4), "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
     return Graphs(files, det_in, det_out, checks, feeds, split)
@@ -278,7 +290,7 @@ def write_bundle(out: Path, n: Networks, g: Graphs, int8: Int8Graphs | None, pal
             source="external" if external else "pallet6d")
         fusion = FusionSpec(
             file=rel(g.files["fusion"]), file_int8=rel(i8["fusion"]), rgb_input="rgb", depth_input="depth",
-            output_name="features", crop_hw=tuple(cfg.fusion.crop_hw), pixel_scale=1.0 / 255.0,
+            choose_input=n.fusion_inputs[2] if len(n.fusion_inputs) > 2 else None, output_name="features", crop_hw=tuple(cfg.fusion.crop_hw), pixel_scale=1.0 / 255.0,
             rgb_mean=tuple(cfg.rgb_mean), rgb_std=tuple(cfg.rgb_std), depth_clip_m=cfg.depth_clip_m,
             feature_dim=cfg.fusion.feature_dim)
         pose = PoseSpec(
@@ -298,6 +310,22 @@ def write_bundle(out: Path, n: Networks, g: Graphs, int8: Int8Graphs | None, pal
     return ExportedBundle(out, manifest, report, bundle)
 
 
+def _default_types(n: Networks) -> tuple[str, ...]:
+    """The types the pose stage was trained on (the config's one without a record) when the detector reports
+    each; else the first, as the detector cannot tell the types apart."""
+    try:
+        trained = trained_pallet_types(n.training, n.cfg.pallet)
+    except ValueError as exc:
+        raise ExportError(f"the checkpoint's pose stage was trained on a pallet type without a model: {exc}") from None
+    try:
+        class_ids_for_types(trained, n.cfg.detector.classes, n.detector_onnx is not None)
+        return trained
+    except ExportError as exc:
+        log.warning("the bundle carries pallet type %s only: %s (export with --pallet-types to choose)",
+                    trained[0], exc)
+        return trained[:1]
+
+
 def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoint: str | Path | None = None,
                   random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
@@ -307,9 +335,10 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     """Export `cfg`'s networks to a new bundle folder `out` (the steps of the module docstring).
 
     :param classes: the external detector's class names (default: its metadata), or our detector's.
-    :param pallet_types: sim pallet model names (default: the config's one pallet). With more than one, our
-        own detector gets one class per type, named after it; an external detector's classes are matched
-        to the types by name.
+    :param pallet_types: sim pallet model names (default: the types the checkpoint's pose stage was trained
+        on, where the detector has a class for each; else the first of them, or the config's pallet). With
+        more than one, our own detector gets one class per type, named after it; an external detector's
+        classes are matched to the types by name.
     :param int8: also write int8 graphs: the stages in `int8_stages` quantized, the others' float graph.
     :param fp16_weights: the float graphs keep their weights as float16 on disk (half the size, float32
         arithmetic); int8 graphs are quantized from the full float32 weights before that.
@@ -318,14 +347,14 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     """
     if not set(int8_stages) <= set(STAGES):
         raise ExportError(f"int8 stages must be among {STAGES}, got {tuple(int8_stages)}")
-    types = tuple(pallet_types) if pallet_types else (cfg.pallet,)
     if pallet_types and detector_onnx is None and classes is None:
-        classes = types if len(types) > 1 or checkpoint is None else None
+        classes = tuple(pallet_types) if len(pallet_types) > 1 or checkpoint is None else None
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ExportError(f"output folder {out} is not empty; choose a new folder")
     n = build_networks(cfg, seed=seed, checkpoint=checkpoint, random_init=random_init, detector_onnx=detector_onnx,
                        classes=classes, calib=calib, calib_frames=calib_frames, calib_crops=calib_crops)
+    types = tuple(pallet_types) if pallet_types else _default_types(n)
     class_ids_for_types(types, n.cfg.detector.classes, detector_onnx is not None)   # fail before the work
     out.mkdir(parents=True, exist_ok=True)
     g = export_graphs(n, out)

@@ -1,4 +1,9 @@
-"""The pallet types a bundle carries, built from the simulator's pallet catalogue (`pallet6d.sim.pallets`)."""
+"""The pallet types a bundle carries, built from the simulator's pallet catalogue (`pallet6d.sim.pallets`).
+
+Pose training records ``{"obj_id": name}`` of every type in its data (provenance ``pallet_types``; a merged
+checkpoint keeps it under ``provenance["pose"]``): by default a bundle carries the types its pose stage was
+trained on, in obj_id order (the first is the bundle's default `pallet`).
+"""
 from __future__ import annotations
 
 import logging
@@ -8,11 +13,12 @@ import numpy as np
 
 from pallet6d.runtime.manifest import PalletType
 from pallet6d.runtime.pallet_geometry import default_refine_starts, derive_pockets_m
-from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
+from pallet6d.sim.pallets import PALLET_MODELS, PalletModel, get_pallet_model
 
 from .export_inputs import ExportError
 
-__all__ = ["MODEL_POINTS", "parse_pallet_types", "class_ids_for_types", "write_pallet_types"]
+__all__ = ["MODEL_POINTS", "parse_pallet_types", "trained_pallet_types", "trained_pallet_models", "class_ids_for_types",
+           "write_pallet_types"]
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +34,30 @@ def parse_pallet_types(text: str) -> tuple[str, ...]:
     if len(set(names)) != len(names):
         raise ExportError(f"--pallet-types: a type is named twice in {text!r}")
     return names
+
+
+def trained_pallet_types(training: dict | None, default: str) -> tuple[str, ...]:
+    """Type names in obj_id order from a checkpoint's training provenance; ``(default,)`` when it records none
+    (checkpoints of single-type training, random-init exports).
+
+    :raises ValueError: a recorded type that `sim.pallets` does not know.
+    """
+    record = None
+    if isinstance(training, dict):
+        record = training.get("pallet_types")
+        if record is None and isinstance(training.get("pose"), dict):
+            record = training["pose"].get("pallet_types")
+    if not record:
+        return (default,)
+    names = tuple(name for _, name in sorted(((int(k), str(v)) for k, v in record.items())))
+    for name in names:
+        get_pallet_model(name)   # raises for a type with no model
+    return names
+
+
+def trained_pallet_models(training: dict | None, default: str) -> list[PalletModel]:
+    """`trained_pallet_types` as the models (geometry, symmetries) the bundle's pallet types are written from."""
+    return [get_pallet_model(n) for n in trained_pallet_types(training, default)]
 
 
 def class_ids_for_types(names: tuple[str, ...], classes: tuple[str, ...], external: bool) -> tuple[int, ...]:

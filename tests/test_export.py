@@ -216,6 +216,29 @@ def test_export_refuses_bad_arguments(tmp_path, tiny_bundle):
         export_bundle(cfg, tmp_path / "y", checkpoint=bad, calib=tiny_bundle[2])
 
 
+def test_pallet_types_follow_the_pose_training(tmp_path, tiny_bundle, caplog):
+    """Without --pallet-types a bundle carries the types its pose stage was trained on, where the detector has a
+    class for each; a one-class detector reports only the first."""
+    cfg = get_config("tiny")
+    torch.manual_seed(2)
+    nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
+            "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
+    prov = {"pose": {"stage": "pose", "pallet_types": {"2": "gma", "1": "epal"}}}
+    torch.save({"config": "tiny", "provenance": prov, **{k: v.state_dict() for k, v in nets.items()}},
+               tmp_path / "ckpt.pt")
+    with caplog.at_level("WARNING"):
+        b = export_bundle(cfg, tmp_path / "one", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2]).bundle
+    assert [(t.name, t.class_id) for t in b.pallet_types] == [("epal", 0)] and "pallet type epal only" in caplog.text
+    with pytest.raises(ExportError, match="detector has 1 classes, not 2"):
+        export_bundle(cfg, tmp_path / "two", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2],
+                      pallet_types=("epal", "gma"))
+    prov["pose"]["pallet_types"]["3"] = "crate"
+    torch.save({"config": "tiny", "provenance": prov, **{k: v.state_dict() for k, v in nets.items()}},
+               tmp_path / "ckpt.pt")
+    with pytest.raises(ExportError, match="trained on a pallet type without a model.*crate"):
+        export_bundle(cfg, tmp_path / "three", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2])
+
+
 def test_export_cli_refuses_unknown_pallet_types(tmp_path, capsys):
     from pallet6d.runtime import cli
 
