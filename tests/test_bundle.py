@@ -399,7 +399,7 @@ def test_boxes_are_optional_and_refinement_follows_them(good, bundle, caplog):
 
     assert load_bundle(good).pallet.boxes_m.shape[1:] == (2, 3)
     assert PalletEstimator.from_bundle(good, threads=1).refines
-    edit_manifest(bundle, lambda m: m["pallet_types"][0].__setitem__("boxes_m", None))
+    edit_manifest(bundle, lambda m: [t.__setitem__("boxes_m", None) for t in m["pallet_types"]])
     assert load_bundle(bundle).pallet.boxes_m is None
     with caplog.at_level("WARNING"):
         est = PalletEstimator.from_bundle(bundle, threads=1)
