@@ -72,38 +72,39 @@ def _free_runs(occupied: np.ndarray) -> list[tuple[int, int]]:
 
 
 def _openings(boxes_m: np.ndarray, axis: int) -> list[tuple[float, float, float, float]]:
-    """Openings that run through the whole pallet along `axis` (0 = x, 1 = y), under material above them and
-    between material on both sides: (u_min, u_max, z_min, z_max), u the other horizontal axis."""
+    """Openings that run through the whole pallet along `axis` (0 = x, 1 = y), between material on both sides
+    and under material above: (u_min, u_max, z_min, z_max), u the other horizontal axis.
+
+    The face is cut into cells at every box edge; a cell is free when no box covers it (a fork passes
+    through the whole depth there). Candidates are the free rectangles of cells that cannot grow in any
+    direction, are not open to either side of the face and have material above; of overlapping candidates
+    the widest is the opening (a notch over a bottom board, not the deeper part beside the board).
+    """
     u_ax = 1 - axis
     lo, hi = boxes_m[:, 0], boxes_m[:, 1]
-    ue = np.unique(np.concatenate([lo[:, u_ax], hi[:, u_ax]]))
-    ze = np.unique(np.concatenate([lo[:, 2], hi[:, 2]]))
+    ue = np.unique(np.round(np.concatenate([lo[:, u_ax], hi[:, u_ax]]), 9))
+    ze = np.unique(np.round(np.concatenate([lo[:, 2], hi[:, 2]]), 9))
     uc, zc = (ue[:-1] + ue[1:]) / 2, (ze[:-1] + ze[1:]) / 2
-    # a (u, z) cell is blocked when any part covers it: then no fork passes through the whole depth there
     covers = ((lo[:, None, None, u_ax] < uc[None, :, None]) & (uc[None, :, None] < hi[:, None, None, u_ax])
               & (lo[:, None, None, 2] < zc[None, None, :]) & (zc[None, None, :] < hi[:, None, None, 2]))
     blocked = covers.any(0)                                               # (nu, nz)
-    # per column: the lowest free run with material right above it (what a fork slides under)
-    cols: list[tuple[int, int] | None] = []
-    for i in range(len(uc)):
-        runs = [r for r in _free_runs(blocked[i]) if r[1] < len(zc)]
-        cols.append(runs[0] if runs else None)
-    out = []
-    i = 0
-    while i < len(cols):
-        if cols[i] is None:
-            i += 1
-            continue
-        j, top, bottom = i, cols[i][1], cols[i][0]
-        while j + 1 < len(cols) and cols[j + 1] is not None and cols[j + 1][1] == top:
-            j += 1
-            bottom = max(bottom, cols[j][0])
-        if i > 0 and j < len(cols) - 1:     # material on both sides
-            rect = (ue[i], ue[j + 1], ze[bottom], ze[top])
-            if rect[1] - rect[0] >= _MIN_POCKET_WIDTH_M and rect[3] - rect[2] >= _MIN_POCKET_HEIGHT_M:
-                out.append(rect)
-        i = j + 1
-    return out
+    nu, nz = blocked.shape
+    candidates = []
+    for zb in range(nz):
+        for zt in range(zb + 1, nz):                                      # rows [zb, zt), material row zt
+            for i, j in _free_runs(blocked[:, zb:zt].any(1)):             # columns [i, j) free over the rows
+                grows_down = zb > 0 and not blocked[i:j, zb - 1].any()
+                if grows_down or not blocked[i:j, zt].any() or i == 0 or j == nu:
+                    continue
+                rect = (ue[i], ue[j], ze[zb], ze[zt])
+                if rect[1] - rect[0] >= _MIN_POCKET_WIDTH_M and rect[3] - rect[2] >= _MIN_POCKET_HEIGHT_M:
+                    candidates.append(rect)
+    candidates.sort(key=lambda r: (r[1] - r[0], r[3] - r[2]), reverse=True)
+    out: list[tuple[float, float, float, float]] = []
+    for r in candidates:
+        if all(r[1] <= o[0] or o[1] <= r[0] or r[3] <= o[2] or o[3] <= r[2] for o in out):
+            out.append(r)
+    return sorted(out)
 
 
 def derive_pockets_m(boxes_m: np.ndarray) -> dict[str, np.ndarray]:

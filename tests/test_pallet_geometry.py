@@ -83,3 +83,16 @@ def test_default_starts_scale_with_length_and_width(name):
 ])
 def test_check_rigid(T, bad):
     assert check_rigid(T) == bad
+
+
+@pytest.mark.parametrize("name", PALLET_MODELS)
+def test_derived_pockets_agree_with_the_sim_catalogue(name):
+    """Where a sim model lists its fork pockets, deriving them from its boxes gives the same openings."""
+    model = get_pallet_model(name)
+    listed = getattr(model, "pockets_m", None)
+    if listed is None:
+        pytest.skip(f"the sim model {name} lists no pockets")
+    derived = derive_pockets_m(model.boxes_m)
+    assert set(derived) == set(listed)
+    for face in derived:
+        np.testing.assert_allclose(derived[face], listed[face], atol=1e-6)
