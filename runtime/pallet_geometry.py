@@ -111,7 +111,8 @@ def derive_pockets_m(boxes_m: np.ndarray) -> dict[str, np.ndarray]:
     """The fork pockets a pallet's boards and blocks leave open, for faces with exactly two openings.
 
     An opening is a rectangle of the face, free of material through the whole depth of the pallet, with
-    material above it and on both sides (where a notch or a bottom board narrows it, its smallest extent).
+    material above it and on both sides; where openings overlap (a notch over a gap between bottom boards), the
+    widest one.
 
     :param boxes_m: (k, 2, 3) min/max corners of the parts, pallet frame, metres.
     :return: face -> (2, 2, 3) min/max corners of its two openings, left then right seen from outside the
