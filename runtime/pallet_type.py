@@ -3,6 +3,7 @@ blocks, symmetries, fork pockets and ICP starts (schema of `manifest.json`'s `pa
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import Mapping
 
 import numpy as np
@@ -103,7 +104,8 @@ class PalletType:
                 raise FieldError("points_file", f"holds model points outside size_m {list(size)} around the origin")
             object.__setattr__(self, "points_m", pts)
         for key, value in (("class_id", int(self.class_id)), ("size_m", size), ("diameter_m", float(self.diameter_m)),
-                           ("symmetries", sym), ("boxes_m", boxes), ("pockets_m", pockets), ("refine_starts", starts)):
+                           ("symmetries", sym), ("boxes_m", boxes), ("pockets_m", MappingProxyType(pockets)),
+                           ("refine_starts", starts)):
             object.__setattr__(self, key, value)
 
     def points(self) -> np.ndarray:
