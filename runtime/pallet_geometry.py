@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FACES", "check_rigid", "default_refine_starts", "derive_pockets_m", "start_offsets_from_rows"]
+__all__ = ["FACES", "check_rigid", "asymmetric", "default_refine_starts", "derive_pockets_m", "start_offsets_from_rows"]
 
 # the faces forks can enter through: the face whose outward normal is that axis
 FACES = ("+x", "-x", "+y", "-y")
@@ -28,6 +28,29 @@ def check_rigid(T: np.ndarray, atol: float = 1e-6) -> list[int]:
     det = np.abs(np.linalg.det(R) - 1.0) <= atol
     last = np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) <= atol
     return [int(i) for i in np.flatnonzero(~(finite & ortho & det & last))]
+
+
+def asymmetric(T: np.ndarray, boxes_m: np.ndarray, atol: float = 1e-5) -> list[int]:
+    """Indexes of the rigid transforms in `T` (S, 4, 4) that do not map the pallet's boxes onto themselves.
+
+    Only transforms whose rotation permutes the axes (with signs: turns by multiples of 90 degrees) map boxes
+    to boxes; others are not judged here.
+
+    :param boxes_m: (k, 2, 3) min/max corners, pallet frame, metres.
+    """
+    boxes_m = np.asarray(boxes_m, dtype=np.float64)
+    key = lambda b: np.round(b.reshape(len(b), 6) / atol).astype(np.int64)  # noqa: E731
+    want = {tuple(r) for r in key(boxes_m)}
+    bad = []
+    for i, t in enumerate(np.asarray(T, dtype=np.float64)):
+        R = t[:3, :3]
+        if not np.allclose(np.abs(R).sum(0), 1.0) or not np.allclose(np.abs(R).max(0), 1.0):
+            continue
+        corners = boxes_m @ R.T + t[:3, 3]                                # (k, 2, 3)
+        moved = np.stack([corners.min(1), corners.max(1)], axis=1)
+        if {tuple(r) for r in key(moved)} != want:
+            bad.append(i)
+    return bad
 
 
 def start_offsets_from_rows(rows: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from typing import Mapping
 import numpy as np
 
 from .manifest_fields import BundleError, FieldError, Fields, frozen_array, nonempty_name, positive, relative_name
-from .pallet_geometry import FACES, check_rigid, start_offsets_from_rows
+from .pallet_geometry import FACES, asymmetric, check_rigid, start_offsets_from_rows
 
 __all__ = ["PalletType"]
 
@@ -75,6 +75,9 @@ class PalletType:
                 raise FieldError("boxes_m", "must be finite min/max corners with max > min")
             if np.any(np.abs(boxes) > half):
                 raise FieldError("boxes_m", f"reach outside size_m {list(size)} around the origin")
+            wrong = asymmetric(sym, boxes)
+            if wrong:
+                raise FieldError("symmetries", f"[{wrong[0]}] does not map the pallet's boxes_m onto themselves")
         pockets = {}
         for face, corners in dict(self.pockets_m).items():
             arr = frozen_array(corners)

@@ -206,6 +206,8 @@ def _file_field(value, section=("pallet_types", 0), key="points_file"):
 
 SYM_SCALED = [np.eye(4).tolist(), np.diag([2.0, 2.0, 1.0, 1.0]).tolist()]
 SYM_MIRROR = [np.eye(4).tolist(), np.diag([-1.0, 1.0, 1.0, 1.0]).tolist()]
+SYM_TURN_90 = [np.eye(4).tolist(), [[0.0, -1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0, 0, 0, 1.0]]]
+SYM_FLIP = [np.eye(4).tolist(), np.diag([1.0, -1.0, -1.0, 1.0]).tolist()]   # upside down: the decks differ
 POCKET = [[[-0.6, -0.3, -0.07], [0.6, -0.1, 0.02]], [[-0.6, 0.1, -0.07], [0.6, 0.3, 0.02]]]
 
 
@@ -239,6 +241,8 @@ POCKET = [[[-0.6, -0.3, -0.07], [0.6, -0.1, 0.02]], [[-0.6, 0.1, -0.07], [0.6, 0
     (_set(("pallet_types", 0), "symmetries", SYM_SCALED[::-1]), r"'pallet_types\[0\].symmetries' must start with"),
     (_set(("pallet_types", 0), "symmetries", SYM_SCALED), r"'pallet_types\[0\].symmetries' \[1\] is not a rigid"),
     (_set(("pallet_types", 0), "symmetries", SYM_MIRROR), r"'pallet_types\[0\].symmetries' \[1\] is not a rigid"),
+    (_set(("pallet_types", 0), "symmetries", SYM_TURN_90), r"symmetries' \[1\] does not map the pallet's boxes_m"),
+    (_set(("pallet_types", 1), "symmetries", SYM_FLIP), r"'pallet_types\[1\].symmetries' \[1\] does not map"),
     (_set(("pallet_types", 0), "boxes_m", [[0, 0, 0]]), r"'pallet_types\[0\].boxes_m' must be \(k, 2, 3\)"),
     (_set(("pallet_types", 0), "boxes_m", [[[0, 0, 0], [1, -1, 1]]]), r"max > min"),
     (_set(("pallet_types", 0), "boxes_m", [[[0, 0, 0], [2, 0.1, 0.01]]]), r"boxes_m' reach outside size_m"),

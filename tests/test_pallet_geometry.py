@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from pallet6d.runtime.pallet_geometry import (FACES, check_rigid, default_refine_starts, derive_pockets_m,
+from pallet6d.runtime.pallet_geometry import (FACES, asymmetric, check_rigid, default_refine_starts, derive_pockets_m,
                                               start_offsets_from_rows)
 from pallet6d.runtime.refine import MAX_STARTS, start_offsets
 from pallet6d.sim.pallets import PALLET_MODELS, ROT_Z_180, get_pallet_model
@@ -96,3 +96,15 @@ def test_derived_pockets_agree_with_the_sim_catalogue(name):
     assert set(derived) == set(listed)
     for face in derived:
         np.testing.assert_allclose(derived[face], listed[face], atol=1e-6)
+
+
+@pytest.mark.parametrize("name", PALLET_MODELS)
+def test_sim_pallets_are_symmetric_as_they_say(name):
+    model = get_pallet_model(name)
+    assert asymmetric(model.symmetries, model.boxes_m) == []
+    turn_90 = np.eye(4)
+    turn_90[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+    mirror_z = np.diag([1.0, 1.0, -1.0, 1.0])
+    slide = np.eye(4)
+    slide[0, 3] = 0.01
+    assert asymmetric(np.stack([turn_90, mirror_z, slide]), model.boxes_m) == [0, 1, 2]
