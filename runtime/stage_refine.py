@@ -46,7 +46,7 @@ class RefinerStage:
         self.refines_type = tuple(on and g.boxes_m is not None for g in self.geometries)
         for g in self.geometries:
             if o.refine and g.boxes_m is None:
-                log.warning("pallet type %s has no boxes_m in the bundle: its poses are not refined", g.name)
+                log.warning("pallet type %s has no pallet boxes_m in the bundle: its poses are not refined", g.name)
 
     @property
     def enabled(self) -> bool:
