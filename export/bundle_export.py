@@ -313,7 +313,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     rel = lambda p: None if p is None else p.relative_to(out).as_posix()  # noqa: E731
     d, f, ps = cfg.detector, cfg.fusion, cfg.pose
     manifest = {
-        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "format": FORMAT, "format_version": 1,
         "name": name or out.name, "config": cfg.name, "classes": list(d.classes), "depth_units": "metres",
         "precision": ["fp32", "int8"] if int8 else ["fp32"],
         "detector": {"file": rel(files["detector"]), "file_int8": rel(int8_files["detector"]),

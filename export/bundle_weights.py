@@ -244,7 +244,7 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
     """
     root = Path(bundle_dir)
     bundle = bundle or _read_bundle(root)
-    if bundle.manifest["detector"].get("source") not in (None, "pallet6d") and "detector" in nets:
+    if bundle.detector.source != "pallet6d" and "detector" in nets:
         raise BundleWeightsError(f"--init {root}: its detector is an external graph, not one of ours")
     cfg = get_config(bundle.config)
     cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw)))

@@ -11,7 +11,7 @@ one record of candidates (`candidates.Candidates`, a row per detection) from one
     FitCheckStage       geometric fit check against the depth image, acceptance       stage_fit.py
 
 Each candidate's pallet type comes from its detector class; the refiner and the fit check use that type's
-own geometry (`pallet_geometry.py`).
+own geometry (`stage_geometry.py`).
 
 `predict(...)` returns the accepted `PalletPose`s; `estimate(...)` returns the whole `FrameResult`:
 accepted poses, rejected detections with their reasons, per-stage milliseconds. `estimate_boxes(...)`
@@ -33,7 +33,7 @@ from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .detector import Detections
 from .inputs import check_rgb, check_rgbd
-from .pallet_geometry import bundle_geometries
+from .stage_geometry import bundle_geometries
 from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel

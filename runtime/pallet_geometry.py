@@ -1,56 +1,136 @@
-"""The pallet geometry the refiner and the fit check need, per pallet type of a bundle (numpy only).
+"""Pallet-type geometry a bundle carries besides its model points: fork pockets, ICP starts, symmetry checks.
 
-A bundle's detector reports one class per pallet type; each candidate is posed, refined, symmetry-checked
-and fit-checked with its own type's model. `PalletGeometry` holds one type's arrays, ready for the stages
-(float64, loaded once); `bundle_geometries` reads them from a bundle together with the detector classes
-that report each type.
+Pallet frame: origin at the centre of the pallet's bounding box, x along its length, y along its width,
+z up, metres. Pure numpy functions.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-__all__ = ["PalletGeometry", "bundle_geometries"]
+__all__ = ["FACES", "check_rigid", "default_refine_starts", "derive_pockets_m", "start_offsets_from_rows"]
+
+# the faces forks can enter through: the face whose outward normal is that axis
+FACES = ("+x", "-x", "+y", "-y")
+# the pallet the default ICP starts are tuned for (EUR/EPAL 1, length x width, metres)
+_STARTS_TUNED_FOR_M = (1.2, 0.8)
+# an opening narrower or lower than this is a gap between boards, not a fork pocket
+_MIN_POCKET_WIDTH_M = 0.05
+_MIN_POCKET_HEIGHT_M = 0.03
 
 
-@dataclass(frozen=True)
-class PalletGeometry:
-    """One pallet type's model, pallet frame, metres.
+def check_rigid(T: np.ndarray, atol: float = 1e-6) -> list[int]:
+    """Indexes of the transforms in `T` (S, 4, 4) that are not rigid (rotation with det +1, last row 0 0 0 1)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[:, :3, :3]
+    ortho = np.abs(np.einsum("sji,sjk->sik", R, R) - np.eye(3)).max(axis=(1, 2)) <= atol
+    det = np.abs(np.linalg.det(R) - 1.0) <= atol
+    last = np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) <= atol
+    return [int(i) for i in np.flatnonzero(~(ortho & det & last))]
 
-    :ivar name: the type's name (e.g. "epal").
-    :ivar points_m: (n, 3) float64 model surface points (fit check, metrics).
-    :ivar boxes_m: (k, 2, 3) float64 min/max corners of its boards/blocks, or None (then no refinement).
-    :ivar symmetries: (S, 4, 4) float64, identity first.
-    :ivar size_m: (3,) float64 length, width, height.
+
+def start_offsets_from_rows(rows: np.ndarray) -> np.ndarray:
+    """ICP start offsets from rows of (yaw_deg, dx_m, dy_m).
+
+    :param rows: (S, 3) yaw about z in degrees, slide along x and along y in metres.
+    :return: (S, 4, 4) pallet-frame transforms (right-multiply a pose to start from it).
     """
-
-    name: str
-    points_m: np.ndarray
-    boxes_m: np.ndarray | None
-    symmetries: np.ndarray
-    size_m: np.ndarray
-
-    @classmethod
-    def from_spec(cls, spec) -> "PalletGeometry":
-        """From a bundle's pallet type (anything with `name`, `points()`, `boxes_m`, `symmetries`, `size_m`)."""
-        boxes = None if spec.boxes_m is None else np.asarray(spec.boxes_m, dtype=np.float64)
-        return cls(name=str(spec.name), points_m=np.asarray(spec.points(), dtype=np.float64), boxes_m=boxes,
-                   symmetries=np.asarray(spec.symmetries, dtype=np.float64),
-                   size_m=np.asarray(spec.size_m, dtype=np.float64))
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+    a = np.deg2rad(rows[:, 0])
+    out = np.tile(np.eye(4), (len(rows), 1, 1))
+    out[:, 0, 0], out[:, 0, 1] = np.cos(a), -np.sin(a)
+    out[:, 1, 0], out[:, 1, 1] = np.sin(a), np.cos(a)
+    out[:, :2, 3] = rows[:, 1:]
+    return out
 
 
-def bundle_geometries(bundle) -> tuple[tuple[PalletGeometry, ...], dict[int, int]]:
-    """Every pallet type of a bundle and which detector class reports which type.
+def default_refine_starts(size_m) -> np.ndarray:
+    """The runtime's default ICP starts (`refine.start_offsets`, tuned on EUR/EPAL 1200 x 800) with the
+    slides scaled to a pallet of `size_m` (length, width, height).
 
-    :return: (geometries, {detector class id: index into geometries}) for the detector's pallet classes.
-        A bundle with one pallet model maps its pallet classes (names containing "pallet", or every class
-        when none does: a detector from another toolchain may know more classes than pallets) to it.
+    :return: (S, 3) rows of (yaw_deg, dx_m, dy_m).
     """
-    types = getattr(bundle, "pallet_types", None)
-    if types:
-        geometries = tuple(PalletGeometry.from_spec(t) for t in types)
-        return geometries, {int(t.class_id): i for i, t in enumerate(types)}
-    names = [c.lower() for c in bundle.classes]
-    pallet_ids = tuple(i for i, c in enumerate(names) if "pallet" in c) or tuple(range(len(names)))
-    return (PalletGeometry.from_spec(bundle.pallet),), {i: 0 for i in pallet_ids}
+    from .refine import MAX_STARTS, start_offsets
+
+    T = start_offsets(MAX_STARTS)
+    yaw = np.round(np.rad2deg(np.arctan2(T[:, 1, 0], T[:, 0, 0])), 9)
+    scale = np.asarray(size_m, dtype=np.float64)[:2] / np.asarray(_STARTS_TUNED_FOR_M)
+    return np.column_stack([yaw, np.round(T[:, :2, 3] * scale, 9)])
+
+
+def _free_runs(occupied: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs [i, j) of False in a 1-D bool array."""
+    runs, start = [], None
+    for i, occ in enumerate(list(occupied) + [True]):
+        if not occ and start is None:
+            start = i
+        elif occ and start is not None:
+            runs.append((start, i))
+            start = None
+    return runs
+
+
+def _openings(boxes_m: np.ndarray, axis: int) -> list[tuple[float, float, float, float]]:
+    """Openings that run through the whole pallet along `axis` (0 = x, 1 = y), under material above them and
+    between material on both sides: (u_min, u_max, z_min, z_max), u the other horizontal axis."""
+    u_ax = 1 - axis
+    lo, hi = boxes_m[:, 0], boxes_m[:, 1]
+    ue = np.unique(np.concatenate([lo[:, u_ax], hi[:, u_ax]]))
+    ze = np.unique(np.concatenate([lo[:, 2], hi[:, 2]]))
+    uc, zc = (ue[:-1] + ue[1:]) / 2, (ze[:-1] + ze[1:]) / 2
+    # a (u, z) cell is blocked when any part covers it: then no fork passes through the whole depth there
+    covers = ((lo[:, None, None, u_ax] < uc[None, :, None]) & (uc[None, :, None] < hi[:, None, None, u_ax])
+              & (lo[:, None, None, 2] < zc[None, None, :]) & (zc[None, None, :] < hi[:, None, None, 2]))
+    blocked = covers.any(0)                                               # (nu, nz)
+    # per column: the lowest free run with material right above it (what a fork slides under)
+    cols: list[tuple[int, int] | None] = []
+    for i in range(len(uc)):
+        runs = [r for r in _free_runs(blocked[i]) if r[1] < len(zc)]
+        cols.append(runs[0] if runs else None)
+    out = []
+    i = 0
+    while i < len(cols):
+        if cols[i] is None:
+            i += 1
+            continue
+        j, top, bottom = i, cols[i][1], cols[i][0]
+        while j + 1 < len(cols) and cols[j + 1] is not None and cols[j + 1][1] == top:
+            j += 1
+            bottom = max(bottom, cols[j][0])
+        if i > 0 and j < len(cols) - 1:     # material on both sides
+            rect = (ue[i], ue[j + 1], ze[bottom], ze[top])
+            if rect[1] - rect[0] >= _MIN_POCKET_WIDTH_M and rect[3] - rect[2] >= _MIN_POCKET_HEIGHT_M:
+                out.append(rect)
+        i = j + 1
+    return out
+
+
+def derive_pockets_m(boxes_m: np.ndarray) -> dict[str, np.ndarray]:
+    """The fork pockets a pallet's boards and blocks leave open, for faces with exactly two openings.
+
+    An opening is a rectangle of the face, free of material through the whole depth of the pallet, with
+    material above it and on both sides (where a notch or a bottom board narrows it, its smallest extent).
+
+    :param boxes_m: (k, 2, 3) min/max corners of the parts, pallet frame, metres.
+    :return: face -> (2, 2, 3) min/max corners of its two openings, left then right seen from outside the
+        face (on +x: -y first; on -x: +y first; on +y: +x first; on -y: -x first).
+    """
+    boxes_m = np.asarray(boxes_m, dtype=np.float64)
+    if boxes_m.ndim != 3 or boxes_m.shape[1:] != (2, 3) or len(boxes_m) == 0:
+        raise ValueError(f"boxes_m must be (k, 2, 3), got shape {boxes_m.shape}")
+    lo, hi = boxes_m[:, 0].min(0), boxes_m[:, 1].max(0)
+    pockets: dict[str, np.ndarray] = {}
+    for axis, (plus, minus) in enumerate((("+x", "-x"), ("+y", "-y"))):
+        rects = _openings(boxes_m, axis)
+        if len(rects) != 2:
+            continue
+        corners = []
+        for u0, u1, z0, z1 in rects:
+            box = np.array([lo, hi])
+            box[:, 1 - axis] = u0, u1
+            box[:, 2] = z0, z1
+            corners.append(box)
+        ascending = np.stack(corners)                    # ordered by u
+        # seen from outside +x, left is -y; from outside +y, left is +x
+        pockets[plus] = ascending if axis == 0 else ascending[::-1]
+        pockets[minus] = ascending[::-1] if axis == 0 else ascending
+    return {face: pockets[face] for face in FACES if face in pockets}

@@ -8,7 +8,7 @@ import numpy as np
 from .candidates import Candidates
 from .deadline import elapsed_ms
 from .fit import fit_score
-from .pallet_geometry import PalletGeometry
+from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
 
 __all__ = ["FitCheckStage"]

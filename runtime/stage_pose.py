@@ -43,7 +43,7 @@ class PoseNetworkStage:
         f, q = bundle.fusion, bundle.pose
         self.fusion_spec, self.pose_spec, self.spec = f, q, spec
         # a fusion graph that samples its features itself takes the chosen pixels as a third input
-        self.choose_input = getattr(f, "choose_input", None)
+        self.choose_input = f.choose_input
         fusion_inputs = (f.rgb_input, f.depth_input) + ((self.choose_input,) if self.choose_input else ())
         self.fusion = OnnxModel(bundle.graph("fusion", precision), threads, fusion_inputs, (f.output_name,))
         self.pose = OnnxModel(bundle.graph("pose", precision), threads, (q.points_input, q.features_input),

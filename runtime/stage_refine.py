@@ -16,7 +16,7 @@ from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .fit import fit_score
 from .geometry import backproject_pixels
-from .pallet_geometry import PalletGeometry
+from .stage_geometry import PalletGeometry
 from .refine import best_landing, refine_pose
 
 __all__ = ["RefinerStage", "fit_array"]
