@@ -4,12 +4,12 @@
         --data /work/data/val-virtual-clean /work/data/val-virtual-occluded /work/data/val-indoor-noisy
 
 For each frame and each count P in --pallets, the estimator poses the frame's P most visible ground-truth
-boxes (`estimate_boxes`, so P does not depend on the detector); the inputs of its refinement stage are
-recorded per detection (the network's pose, the sampled points, the box's depth points), and both paths run
-on exactly those inputs: the estimator's own (`PalletEstimator._refine`, detection by detection) and
-`refine_batch`. Reports the largest pose difference between the two (translation mm, rotation degrees, fit
-score) and the refinement time per frame (p50, p90; one process, the paths alternating, so both see the same
-load). Writes benchmarks/results/refine-speed.md (and .json).
+boxes (`PalletEstimator.candidates` on those boxes, so P does not depend on the detector); the inputs of its
+refinement stage are taken per detection from the candidates (the network's pose, the sampled points, the box's
+depth points), and both paths run on exactly those inputs: detection by detection (`refine_pose`, `fit_score`,
+`best_landing`, as `per_detection` below) and the refiner stage's `refine` (`refine_batch`). Reports the
+largest pose difference between the two (translation mm, rotation degrees, fit score) and the refinement
+time per frame (p50, p90; one process, the paths alternating, so both see the same load). Writes benchmarks/results/refine-speed.md (and .json).
 """
 from __future__ import annotations
 
@@ -24,13 +24,14 @@ import numpy as np
 MIN_VISIB = 0.1
 
 
-def _record(est, frame, n_pallets: int) -> list[tuple] | None:
-    """The refinement inputs of the frame's n most visible pallets: [(T_net, obs, box_obs, T_ref, fit_ref)].
+def _record(est, frame, n_pallets: int):
+    """The refinement inputs of the frame's n most visible pallets: (T_net (n, 4, 4), obs (n, N, 3), box_obs
+    [n (m, 3)], type_index (n,), depth_m, K), or None when the frame has too few.
 
     Beyond 8 pallets, a frame with at least 8 visible ones repeats them up to n (the validation frames hold
     at most 14): the work per detection is the same.
     """
-    from pallet6d.runtime.fit import fit_score
+    from pallet6d.runtime.detector import Detections
 
     gts = sorted((g for g in frame.gts if g.bbox_visib_xywh is not None and g.visib_fract >= MIN_VISIB),
                  key=lambda g: -g.visib_fract)[:n_pallets]
@@ -38,22 +39,37 @@ def _record(est, frame, n_pallets: int) -> list[tuple] | None:
         return None
     gts = [gts[i % len(gts)] for i in range(n_pallets)]
     boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (g.bbox_visib_xywh for g in gts)], float)
-    rows: list[tuple] = []
-    original = est._refine
+    rgb, depth_m, K = est.check_inputs(frame.rgb, frame.depth_m, frame.K)
+    det = Detections(boxes, np.ones(len(boxes)), np.full(len(boxes), est.bundle.pallet_class_ids[0]))
+    cands = est.candidates(rgb, depth_m, K, detections=det)
+    cands = cands[~np.isnan(cands.fit[:, 2])]                # the rows the refiner ran on
+    if not len(cands):
+        return None
+    box_obs = [est.refiner.box_points(cands.pixels[i], depth_m, K) for i in range(len(cands))]
+    return cands.T_net, cands.points_cam, box_obs, cands.type_index, depth_m, K
 
-    def recorder(T_net, obs, box_obs, depth_m, K):
-        T, fit = original(T_net, obs, box_obs, depth_m, K)
-        if fit is None:
-            fit = fit_score(T, obs, est.model_points_m, depth_m, K, est.options.fit_tol_m)
-        rows.append((T_net.copy(), obs.copy(), box_obs.copy(), T.copy(), fit))
-        return T, fit
 
-    est._refine = recorder
-    try:
-        est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
-    finally:
-        del est._refine
-    return rows
+def per_detection(est, T_net, obs, box_obs, g, depth_m, K):
+    """One detection refined step by step (the reference path): ICP, the RMS and fit gate, the starts.
+
+    :return: (T_cam_pallet (4, 4), fit score at `fit_tol_m`).
+    """
+    from pallet6d.runtime.fit import fit_score
+    from pallet6d.runtime.refine import best_landing, refine_pose
+
+    o = est.options
+    T = T_net
+    res = refine_pose(T_net, box_obs, g.boxes_m, iterations=o.refine_iterations)
+    if np.isfinite(res.rms_m) and res.rms_m < o.refine_max_rms_m:
+        fit_icp = fit_score(res.T_cam_pallet, obs, g.points_m, depth_m, K, o.fit_tol_m)
+        fit_net = fit_score(T_net, obs, g.points_m, depth_m, K, o.fit_tol_m)
+        if fit_icp.score >= fit_net.score + o.refine_margin:
+            T = res.T_cam_pallet
+    if o.refine_starts > 0:
+        T, _ = best_landing(T, box_obs, g.boxes_m, o.refine_starts, o.refine_start_points,
+                            lambda T_: fit_score(T_, box_obs, g.points_m, depth_m, K, o.refine_select_tol_m,
+                                                 g.boxes_m).score, o.refine_start_max_rms_m, o.refine_iterations)
+    return T, fit_score(T, obs, g.points_m, depth_m, K, o.fit_tol_m).score
 
 
 def _pose_diff(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, float]:
@@ -66,13 +82,8 @@ def _pose_diff(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, float]:
 def run(bundle: Path, data: list[Path], pallets: list[int], precision: str, max_frames: int) -> dict:
     from pallet6d.runtime.bop import BopDataset
     from pallet6d.runtime.estimator import PalletEstimator
-    from pallet6d.runtime.refine import RefineGeometry, RefineOptions, default_starts, refine_batch
 
     est = PalletEstimator.from_bundle(bundle, threads=2, precision=precision)
-    o = est.options
-    geom = RefineGeometry(est.model_points_m, est.model_boxes_m, default_starts(o.refine_starts))
-    opts = RefineOptions(o.refine_iterations, o.refine_max_rms_m, o.refine_margin, o.fit_tol_m,
-                         o.refine_start_points, o.refine_select_tol_m, o.refine_start_max_rms_m)
     out: dict = {"bundle": str(bundle), "precision": precision, "sets": {}}
     for path in data:
         ds = BopDataset(path)
@@ -82,24 +93,22 @@ def run(bundle: Path, data: list[Path], pallets: list[int], precision: str, max_
             t_loop, t_batch, n_det, n_frames = [], [], 0, 0
             for i in range(min(len(ds), max_frames)):
                 frame = ds[i]
-                rows = _record(est, frame, P)
-                if not rows:
+                rec = _record(est, frame, P)
+                if rec is None:
                     continue
-                T_net = np.stack([r[0] for r in rows])
-                obs = np.stack([r[1] for r in rows])
-                box_obs = [r[2] for r in rows]
+                T_net, obs, box_obs, types, depth_m, K = rec
                 t = time.perf_counter()
-                for r in rows:
-                    est._refine(r[0], r[1], r[2], frame.depth_m, frame.K)
+                loop = [per_detection(est, T_net[k], obs[k], box_obs[k], est.pallet_types[int(types[k])], depth_m, K)
+                        for k in range(len(T_net))]
                 t_loop.append((time.perf_counter() - t) * 1000.0)
                 t = time.perf_counter()
-                res = refine_batch(T_net, obs, box_obs, geom, frame.depth_m, frame.K, opts)
+                T_batch, fit_batch = est.refiner.refine(T_net, obs, box_obs, types, depth_m, K)
                 t_batch.append((time.perf_counter() - t) * 1000.0)
-                for k, r in enumerate(rows):
-                    dt, dr = _pose_diff(res.T_cam_pallet[k], r[3])
+                for k, (T_ref, fit_ref) in enumerate(loop):
+                    dt, dr = _pose_diff(T_batch[k], T_ref)
                     worst_t, worst_r = max(worst_t, dt), max(worst_r, dr)
-                    worst_fit = max(worst_fit, abs(res.fits[k].score - r[4].score))
-                n_det += len(rows)
+                    worst_fit = max(worst_fit, abs(fit_batch[k, 2] - fit_ref))
+                n_det += len(loop)
                 n_frames += 1
             if not n_frames:
                 continue

@@ -185,7 +185,7 @@ class PalletEstimator:
                                       o.iou_threshold, o.max_pallets)
         self.pose_network = PoseNetworkStage(bundle, precision, self.threads, spec, o.seed, o.min_valid_points)
         self._check_graphs_match_manifest()
-        self.refiner = RefinerStage(self.pallet_types, o, spec.depth_range_m)
+        self.refiner = RefinerStage(self.pallet_types, o)
         self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence)
 
     @classmethod

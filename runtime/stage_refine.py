@@ -1,9 +1,10 @@
-"""Refiner stage: each candidate's pose refined on its box's depth, with its own pallet type's boards and blocks.
+"""Refiner stage: the candidates' poses refined on their boxes' depth, each with its own pallet type's boards
+and blocks, all candidates of a frame at once (`refine.refine_batch`).
 
-Per candidate (`refine.py`): robust point-to-plane ICP from the network's pose; its pose replaces the
-network's only when the depth is clean enough for ICP to be trusted (`refine_max_rms_m`) and it fits the
-depth at least as well (`refine_margin`). Then ICP from starts around the pose so far; a trusted landing that
-explains the box's depth better at a tight tolerance replaces it (`best_landing`).
+Per candidate: robust point-to-plane ICP from the network's pose; its pose replaces the network's only when
+the depth is clean enough for ICP to be trusted (`refine_max_rms_m`) and it fits the depth at least as well
+(`refine_margin`). Then ICP from the type's starts around the pose so far; a trusted landing that explains
+the box's depth better at a tight tolerance replaces it.
 """
 from __future__ import annotations
 
@@ -14,10 +15,9 @@ import numpy as np
 
 from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
-from .fit import fit_score
 from .geometry import backproject_pixels
+from .refine import RefineGeometry, RefineOptions, refine_batch
 from .stage_geometry import PalletGeometry
-from .refine import best_landing, refine_pose
 
 __all__ = ["RefinerStage", "fit_array"]
 
@@ -35,18 +35,32 @@ class RefinerStage:
     :param geometries: the pallet types (a candidate's `type_index` points into them); a type without
         `boxes_m` is not refined.
     :param options: `EstimatorOptions` (the `refine*` and `fit_tol_m` fields).
-    :param depth_range_m: (min, max) depth of a pixel used for refinement, metres (the pose inputs' range).
+
+    :ivar budget_chunk: under a time budget, candidates are refined this many at a time, highest score first,
+        and the budget is checked before each group (1: the tightest bound, at the cost of batching).
     """
 
-    def __init__(self, geometries: tuple[PalletGeometry, ...], options, depth_range_m: tuple[float, float]) -> None:
+    def __init__(self, geometries: tuple[PalletGeometry, ...], options) -> None:
         self.geometries = tuple(geometries)
         self.options = o = options
-        self.depth_range_m = tuple(depth_range_m)
         on = bool(o.refine and o.refine_iterations > 0)
-        self.refines_type = tuple(on and g.boxes_m is not None for g in self.geometries)
         for g in self.geometries:
             if o.refine and g.boxes_m is None:
                 log.warning("pallet type %s has no pallet boxes_m in the bundle: its poses are not refined", g.name)
+        # one RefineGeometry per type, built once: refine_batch refines the candidates of one object together
+        self._refine_geometry = tuple(
+            RefineGeometry(g.points_m, g.boxes_m, g.refine_starts[:o.refine_starts]) if on and g.boxes_m is not None
+            else None for g in self.geometries)
+        self.refine_options = RefineOptions(
+            iterations=o.refine_iterations, max_rms_m=o.refine_max_rms_m, margin=o.refine_margin,
+            fit_tol_m=o.fit_tol_m, start_points=o.refine_start_points, select_tol_m=o.refine_select_tol_m,
+            start_max_rms_m=o.refine_start_max_rms_m)
+        self.budget_chunk = 2
+
+    @property
+    def refines_type(self) -> tuple[bool, ...]:
+        """Per pallet type: whether its candidates are refined."""
+        return tuple(g is not None for g in self._refine_geometry)
 
     @property
     def enabled(self) -> bool:
@@ -64,58 +78,32 @@ class RefinerStage:
 
     def refine(self, T_net: np.ndarray, obs_cam: np.ndarray, box_obs_cam: list[np.ndarray], type_index: np.ndarray,
                depth_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Refined poses of n candidates.
+        """Refined poses of n candidates of refined types, all at once (`refine_batch`).
 
         :param T_net: (n, 4, 4) the network's poses. :param obs_cam: (n, N, 3) each candidate's sampled points
             (the fit score's), camera frame, metres. :param box_obs_cam: n (m_i, 3) depth points for ICP.
         :param type_index: (n,) pallet type of each candidate. :param depth_m: (H, W) metres. :param K: (3, 3).
         :return: T_cam_pallet (n, 4, 4), and the fit (inlier fraction, free-space violation, score) of each
-            returned pose where it was computed on the way, NaN where not.
+            returned pose, (n, 3).
         """
-        T = np.array(T_net, dtype=np.float64, copy=True)
-        fit = np.full((len(T), 3), np.nan)
-        for k in range(len(T)):
-            if self.refines_type[int(type_index[k])]:
-                T[k], fit[k] = self._refine_one(T[k], obs_cam[k], box_obs_cam[k], self.geometries[int(type_index[k])],
-                                                depth_m, K)
-        return T, fit
-
-    def _refine_one(self, T_net: np.ndarray, obs_cam: np.ndarray, box_obs_cam: np.ndarray, g: PalletGeometry,
-                    depth_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        o = self.options
-        T, fit = T_net, np.full(3, np.nan)
-        res = refine_pose(T_net, box_obs_cam, g.boxes_m, iterations=o.refine_iterations)
-        # noisy depth pulls ICP off: its residual tells whether the depth is clean enough to trust it, and
-        # then it must explain the depth at least as well as the network's pose
-        if np.isfinite(res.rms_m) and res.rms_m < o.refine_max_rms_m:
-            fit_icp = fit_score(res.T_cam_pallet, obs_cam, g.points_m, depth_m, K, o.fit_tol_m)
-            fit_net = fit_score(T_net, obs_cam, g.points_m, depth_m, K, o.fit_tol_m)
-            keep_icp = fit_icp.score >= fit_net.score + o.refine_margin
-            T, fit = (res.T_cam_pallet, fit_array(fit_icp)) if keep_icp else (T_net, fit_array(fit_net))
-        if o.refine_starts > 0:
-            # the network's larger errors lie outside ICP's basin: ICP from starts around the pose, and a
-            # trusted landing that explains the depth better at a tight tolerance replaces it
-            T_best, j = best_landing(T, box_obs_cam, g.boxes_m, o.refine_starts, o.refine_start_points,
-                                     lambda T_: fit_score(T_, box_obs_cam, g.points_m, depth_m, K,
-                                                          o.refine_select_tol_m, g.boxes_m).score,
-                                     o.refine_start_max_rms_m, o.refine_iterations)
-            if j >= 0:
-                T, fit = T_best, np.full(3, np.nan)
-        return T, fit
+        geometries = [self._refine_geometry[int(j)] for j in type_index]
+        if any(g is None for g in geometries):
+            raise ValueError("refine: a candidate's pallet type is not refined (no boxes_m, or refinement is off)")
+        if len(geometries) == 0:
+            return np.zeros((0, 4, 4)), np.zeros((0, 3))
+        res = refine_batch(T_net, obs_cam, box_obs_cam, geometries, depth_m, K, self.refine_options)
+        return res.T_cam_pallet, np.array([fit_array(f) for f in res.fits]).reshape(-1, 3)
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
                  deadline: Deadline | None = None) -> None:
         """The stage on the alive rows of `cands` of refined types: sets `T_cam_pallet` and `fit` where computed.
-        With a deadline the rows go one at a time, highest score first; those left when it expires are
-        rejected ("time_budget")."""
+        Under a time budget the rows go `budget_chunk` at a time, highest score first; those left when it
+        expires are rejected ("time_budget")."""
         t = time.perf_counter()
-        rows = np.flatnonzero(cands.alive & np.asarray(self.refines_type, bool)[cands.type_index]) \
-            if len(cands) else np.zeros(0, np.int64)
-        chunks = [rows[k:k + 1] for k in range(len(rows))] if deadline is not None and deadline.budget_ms is not None \
-            else [rows]
+        rows = np.flatnonzero(cands.alive & np.asarray(self.refines_type, bool)[cands.type_index])
+        step = self.budget_chunk if deadline is not None and deadline.budget_ms is not None else max(len(rows), 1)
+        chunks = [rows[k:k + step] for k in range(0, len(rows), step)]
         for c, idx in enumerate(chunks):
-            if len(idx) == 0:
-                continue
             if deadline is not None and deadline.expired():
                 cands.reject(np.concatenate(chunks[c:]), "time_budget",
                              "the frame's time budget was spent before this pallet was refined")
