@@ -9,7 +9,8 @@ refinement stage are taken per detection from the candidates (the network's pose
 depth points), and both paths run on exactly those inputs: detection by detection (`refine_pose`, `fit_score`,
 `best_landing`, as `per_detection` below) and the refiner stage's `refine` (`refine_batch`). Reports the
 largest pose difference between the two (translation mm, rotation degrees, fit score) and the refinement
-time per frame (p50, p90; one process, the paths alternating, so both see the same load). Writes benchmarks/results/refine-speed.md (and .json).
+time per frame (p50, p90; one process, the paths alternating, so both see the same load). Writes
+benchmarks/results/refine-speed.md (and .json).
 """
 from __future__ import annotations
 

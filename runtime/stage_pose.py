@@ -84,7 +84,10 @@ class PoseNetworkStage:
             feat = self.fusion.run(feeds, [f.output_name])[f.output_name]
             timings["fusion"] = timings.get("fusion", 0.0) + elapsed_ms(t)
             t = time.perf_counter()
-            emb = np.ascontiguousarray(feat, np.float32) if self.choose_input else gather_features(feat, batch.choose[part])
+            if self.choose_input:   # the graph's output is already per point (B, N, C)
+                emb = np.ascontiguousarray(feat, np.float32)
+            else:
+                emb = gather_features(feat, batch.choose[part])
             outs.append(self.pose.run({q.points_input: batch.points[part], q.features_input: emb}))
             timings["pose"] = timings.get("pose", 0.0) + elapsed_ms(t)
         if not outs:

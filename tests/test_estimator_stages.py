@@ -71,7 +71,8 @@ def test_stages_on_no_candidates(est, frame):
     assert len(c) == 0
     T, fit = est.refiner.refine(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), [], np.zeros(0, np.int64), depth_m, K)
     assert T.shape == (0, 4, 4) and fit.shape == (0, 3)
-    assert est.fit_check.score(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), np.zeros(0, np.int64), depth_m, K).shape == (0, 3)
+    fit = est.fit_check.score(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), np.zeros(0, np.int64), depth_m, K)
+    assert fit.shape == (0, 3)
 
 
 def test_one_candidate_through_the_stages_equals_estimate_boxes(est, frame, boxes):
