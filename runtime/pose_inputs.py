@@ -166,12 +166,13 @@ def prepare_pose_inputs(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, box
         generators, one per box (a box's points then do not depend on the other boxes).
     :param masks: optional (B, H, W) bool object masks; points are then taken inside the mask only.
     :param return_pixels: also return, per box, the (v, u) int64 rows and columns of every candidate pixel
-        (step 4, row-major; empty for an unusable box), so a caller needs not select them again.
+        (step 4, row-major; empty for an unusable box), so a caller need not select them again.
     :return: `PoseBatch`, or (`PoseBatch`, list of B (v, u) pairs) with `return_pixels`.
     """
     K = geometry.check_K(K)
     boxes, masks = _check_frame(rgb, depth_m, boxes_xyxy, masks)
-    rngs = [rng] * len(boxes) if isinstance(rng, np.random.Generator) else list(rng)
+    rngs = [rng] * len(boxes) if isinstance(rng, np.random.Generator) else \
+        list(rng) if isinstance(rng, (list, tuple)) else []
     if len(rngs) != len(boxes) or not all(isinstance(r, np.random.Generator) for r in rngs):
         raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)) or one per box "
                         f"({len(boxes)}), got {type(rng)}")

@@ -12,23 +12,19 @@ from pallet6d.runtime.cameras import RGBDFrame
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
 from pallet6d.runtime.metrics import add_sym
 from pallet6d.runtime.results import FrameResult, PalletPose
-from pallet6d.sim.generate import generate_frame
-from pallet6d.sim.presets import get_preset
+
+from estimator_fixtures import scene, visible_boxes
 
 
 @pytest.fixture(scope="module")
 def frame():
-    return generate_frame(get_preset("virtual-clean"), seed=0)
+    return scene()
 
 
 @pytest.fixture(scope="module")
 def boxes(frame):
     """The visible boxes of four pallets, as a detector would give them."""
-    out = []
-    for p in sorted(frame.pallets, key=lambda p: -p.visib_fract)[:4]:
-        x, y, w, h = p.bbox_visib_xywh
-        out.append([x, y, x + w, y + h])
-    return np.array(out, float)
+    return visible_boxes(frame, 4)
 
 
 @pytest.fixture(scope="module")

@@ -12,26 +12,22 @@ from pallet6d.runtime.detector import Detections
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
 from pallet6d.runtime.fit import fit_score
 from pallet6d.runtime.pallet_geometry import default_refine_starts
-from pallet6d.sim.generate import generate_frame
 from pallet6d.sim.pallets import get_pallet_model
-from pallet6d.sim.presets import get_preset
+
+from estimator_fixtures import scene, visible_boxes
 
 KW = dict(threads=1, score_threshold=0.0, min_fit=0.0)
 
 
 @pytest.fixture(scope="module")
 def frame():
-    return generate_frame(get_preset("virtual-clean"), seed=0)
+    return scene()
 
 
 @pytest.fixture(scope="module")
 def boxes(frame):
     """The visible boxes of three pallets, most visible first."""
-    out = []
-    for p in sorted(frame.pallets, key=lambda p: -p.visib_fract)[:3]:
-        x, y, w, h = p.bbox_visib_xywh
-        out.append([x, y, x + w, y + h])
-    return np.array(out, float)
+    return visible_boxes(frame, 3)
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +46,24 @@ def _inputs(est, frame):
 
 
 # -- the stages on their own ------------------------------------------------------------------------------
+def test_pose_inputs_with_one_generator_per_box_and_the_selected_pixels(est, frame, boxes):
+    from pallet6d.runtime.geometry import clamp_box, select_pixels
+    from pallet6d.runtime.pose_inputs import prepare_pose_inputs
+
+    rgb, depth_m, K = _inputs(est, frame)
+    lo, hi = est.spec.depth_range_m
+    batch, pixels = prepare_pose_inputs(rgb, depth_m, K, boxes, est.spec,
+                                        [np.random.default_rng(i) for i in range(len(boxes))], return_pixels=True)
+    for i, box in enumerate(boxes):                   # each box as if alone, with its own generator
+        alone = prepare_pose_inputs(rgb, depth_m, K, box[None], est.spec, np.random.default_rng(i))
+        np.testing.assert_array_equal(alone.points[0], batch.points[i])
+        v, u = select_pixels(depth_m, clamp_box(box, depth_m.shape), None, lo, hi)
+        np.testing.assert_array_equal(pixels[i][0], v)
+        np.testing.assert_array_equal(pixels[i][1], u)
+    with pytest.raises(TypeError, match="one per box"):
+        prepare_pose_inputs(rgb, depth_m, K, boxes, est.spec, [np.random.default_rng(0)])
+
+
 def test_detector_stage_steps_make_detect(est, frame):
     x, lb = est.detector.preprocess(frame.rgb)
     assert x.shape == (1, 3, *est.bundle.detector.input_hw) and x.dtype == np.float32
