@@ -211,6 +211,11 @@ class PalletEstimator:
         return self.pallet_types[0].size_m
 
     @property
+    def model_boxes_m(self) -> np.ndarray | None:
+        """(k, 2, 3) boards and blocks of the bundle's first pallet type, metres, or None."""
+        return self.pallet_types[0].boxes_m
+
+    @property
     def refines(self) -> bool:
         """Whether poses are refined (for at least one pallet type)."""
         return self.refiner.enabled
