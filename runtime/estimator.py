@@ -20,7 +20,6 @@ returns the stages' record itself (every row's network and refined pose, fit and
 """
 from __future__ import annotations
 
-import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -33,18 +32,16 @@ from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .detector import Detections
 from .inputs import check_rgb, check_rgbd
-from .stage_geometry import bundle_geometries
 from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel
 from .stage_detector import DetectorStage
 from .stage_fit import FitCheckStage
+from .stage_geometry import bundle_geometries
 from .stage_pose import PoseNetworkStage
 from .stage_refine import RefinerStage
 
 __all__ = ["EstimatorOptions", "PalletEstimator"]
-
-log = logging.getLogger(__name__)
 
 STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
 
