@@ -131,7 +131,8 @@ class PalletPose:
         return rot_to_quat(self.R)
 
     def to_dict(self) -> dict:
-        return {"class": self.class_name, "pallet_type": self.pallet_type, "t_m": [round(float(x), 4) for x in self.t_m],
+        return {"class": self.class_name, "pallet_type": self.pallet_type,
+                "t_m": [round(float(x), 4) for x in self.t_m],
                 "quat_wxyz": [round(float(x), 5) for x in self.quat_wxyz],
                 "confidence": round(self.confidence, 4), "detector_score": round(self.detector_score, 4),
                 "box_xyxy": [round(float(x), 1) for x in self.box_xyxy], "n_valid_points": self.n_valid_points,
