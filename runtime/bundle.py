@@ -11,6 +11,7 @@ numpy + json + onnxruntime only.
 """
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import json
 import logging
@@ -154,7 +155,7 @@ def _load_points(path: Path, source: str, i: int, t: PalletType) -> PalletType:
     if pts.dtype.kind != "f":
         raise BundleError(f"{where}: model points must be floats, got {pts.dtype}")
     try:
-        return PalletType(**{**{k: getattr(t, k) for k in t.__dataclass_fields__}, "points_m": pts})
+        return dataclasses.replace(t, points_m=pts)
     except FieldError as exc:
         raise BundleError(f"{where} {exc.msg}") from None
 
@@ -188,9 +189,8 @@ def load_bundle(path: str | Path, verify_sha256: bool = True) -> Bundle:
     if not man.is_file():
         raise BundleError(f"model bundle {root} has no {MANIFEST}")
     manifest, legacy_report = read_manifest(read_json(man, "manifest"), str(man))
+    # the fields name exactly the files of the `files` map (Manifest checks it)
     resolved = {rel: confined_file(root, rel, f"{man}: field '{key}'") for key, rel in _file_fields(manifest)}
-    for rel in manifest.files:   # the same names as the fields (Manifest checks it), confined the same way
-        resolved.setdefault(rel, confined_file(root, rel, f"{man}: field 'files'"))
     if verify_sha256:
         for rel, digest in manifest.files.items():
             actual = sha256_file(resolved[rel])
@@ -208,16 +208,25 @@ def load_bundle(path: str | Path, verify_sha256: bool = True) -> Bundle:
     return bundle
 
 
-def update_report(path: str | Path, key: str, value: Any) -> dict:
-    """Set `report[key] = value` in the bundle's report.json (created from the bundle's report when absent),
-    atomically and under a lock on the folder (runs that finish together do not lose each other's writes).
-    The manifest is never touched. :return: the new report."""
+def update_report(path: str | Path, key: str | tuple[str, ...], value: Any) -> dict:
+    """Set `report[key] = value` in the bundle's report.json (created from the bundle's report when absent);
+    a tuple key sets a nested entry (("scores", "int8") -> report["scores"]["int8"]). Atomic, and under a
+    lock on the folder, so runs that finish together keep each other's entries. The manifest is never
+    touched. :return: the new report."""
     root = Path(path).resolve()
+    keys = (key,) if isinstance(key, str) else tuple(key)
+    if not keys:
+        raise ValueError("update_report needs a key")
     fd = os.open(root, os.O_RDONLY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
-        report = dict(load_bundle(root, verify_sha256=False).report)
-        report[key] = value
+        report = json.loads(json.dumps(load_bundle(root, verify_sha256=False).report))   # a deep copy
+        node = report
+        for k in keys[:-1]:
+            if not isinstance(node.get(k), dict):
+                node[k] = {}
+            node = node[k]
+        node[keys[-1]] = value
         with tempfile.NamedTemporaryFile("w", encoding="utf-8", dir=root, prefix=".report.", delete=False) as tmp:
             tmp.write(json.dumps(report, indent=2) + "\n")
         os.replace(tmp.name, root / REPORT)

@@ -10,7 +10,7 @@ import stat
 from pathlib import Path
 from typing import Any
 
-from .manifest import BundleError, FieldError, relative_name
+from .manifest_fields import BundleError, FieldError, relative_name
 
 __all__ = ["MAX_FILE_BYTES", "MAX_JSON_BYTES", "confined_file", "sha256_file", "check_onnx_file", "read_json"]
 
@@ -27,12 +27,12 @@ def sha256_file(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def confined_file(root: Path, rel: str, where: str, max_bytes: int = MAX_FILE_BYTES) -> Path:
+def confined_file(root: Path, rel: str, where: str, max_bytes: int | None = None) -> Path:
     """The regular file `rel` names inside the bundle folder `root` (resolved).
 
     :param where: the manifest and field that name it, for the message (e.g. "m.json: field 'pose.file'").
     :raises BundleError: an absolute name, a `..` part, a link that leads out of the folder, a missing file,
-        something that is not a regular file, or a file larger than `max_bytes`.
+        something that is not a regular file, or a file larger than `max_bytes` (default MAX_FILE_BYTES).
     """
     try:
         relative_name("", rel)
@@ -48,6 +48,7 @@ def confined_file(root: Path, rel: str, where: str, max_bytes: int = MAX_FILE_BY
         raise BundleError(f"{where} names {rel!r}, which is not in the bundle ({path} does not exist)") from None
     if not stat.S_ISREG(st.st_mode):
         raise BundleError(f"{where} names {rel!r}, which is not a regular file")
+    max_bytes = MAX_FILE_BYTES if max_bytes is None else max_bytes
     if st.st_size > max_bytes:
         raise BundleError(f"{where} names {rel!r}, {st.st_size} bytes: more than the limit of {max_bytes}")
     return path

@@ -53,15 +53,16 @@ reads as one pallet type (`upgrade_v1`). Every key is checked: unknown keys are 
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
 
-from .pallet_geometry import FACES, check_rigid, default_refine_starts, derive_pockets_m
+from .manifest_fields import (BundleError, FieldError, Fields, constant, graph_file, nonempty_name, positive,
+                              relative_name, rgb_norm)
+from .pallet_geometry import default_refine_starts, derive_pockets_m
+from .pallet_type import PalletType
 
 __all__ = ["BundleError", "FieldError", "DetectorSpec", "FusionSpec", "PoseSpec", "PalletType", "Manifest",
            "FORMAT", "FORMAT_VERSION", "read_manifest", "relative_name", "upgrade_v1"]
@@ -69,159 +70,9 @@ __all__ = ["BundleError", "FieldError", "DetectorSpec", "FusionSpec", "PoseSpec"
 FORMAT = "pallet6d-bundle"
 FORMAT_VERSION = 2
 # keys of format_version 1 that carry nothing the runtime uses (model config, the runtime's own choices)
-_V1_IGNORED = {"detector": ("scale",), "fusion": ("attention", "attention_stride"), "pose": ("selection", "attention")}
+_V1_IGNORED = {"detector": ("scale",), "fusion": ("attention", "attention_stride"), "pose": ("attention",)}
 _V1_REPORT = ("provenance", "checks", "scores")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
-
-
-class BundleError(ValueError):
-    """A bundle that cannot be used: the message names the bundle file and the field or graph at fault."""
-
-
-class FieldError(BundleError):
-    """A field with a value that means nothing usable; `Fields.build` adds the file and section to it."""
-
-    def __init__(self, key: str, msg: str) -> None:
-        super().__init__(f"field '{key}' {msg}")
-        self.key, self.msg = key, msg
-
-
-# -- value checks (raise FieldError naming the key) ------------------------------------------------------
-
-def _positive(key: str, value: float) -> None:
-    if not (math.isfinite(value) and value > 0):
-        raise FieldError(key, f"must be a finite number > 0, got {value!r}")
-
-
-def _name(key: str, value: str) -> None:
-    if not value.strip():
-        raise FieldError(key, "must be a non-empty name")
-
-
-def relative_name(key: str, rel: str) -> None:
-    """`rel` must name a file inside the bundle folder: relative, '/'-separated, without '.', '..' or '//'."""
-    parts = rel.split("/")
-    if not rel or "\\" in rel or rel.startswith(("/", "~")) or (len(rel) > 1 and rel[1] == ":") \
-            or any(part in ("", ".", "..") for part in parts):
-        raise FieldError(key, f"must be a relative file name inside the bundle folder (no absolute path, '..', "
-                              f"'.' or '//'), got {rel!r}")
-
-
-def _graph_file(key: str, value: str | None) -> None:
-    if value is None:
-        return
-    relative_name(key, value)
-    if not value.endswith(".onnx"):
-        raise FieldError(key, f"must name an .onnx file, got {value!r}")
-
-
-def _constant(key: str, value: str, expected: str) -> None:
-    if value != expected:
-        raise FieldError(key, f"must be {expected!r} (the only convention this runtime knows), got {value!r}")
-
-
-def _rgb_norm(pixel_scale: float, rgb_std: tuple[float, ...]) -> None:
-    _positive("pixel_scale", pixel_scale)
-    for v in rgb_std:
-        _positive("rgb_std", v)
-
-
-def _frozen_array(a: Any, dtype=np.float64) -> np.ndarray:
-    arr = np.array(a, dtype=dtype)
-    arr.setflags(write=False)
-    return arr
-
-
-# -- JSON reading with the file and field named ---------------------------------------------------------
-
-class Fields:
-    """Typed access to one JSON object; errors name `source: field 'where.key'`; `build` refuses unknown keys."""
-
-    def __init__(self, data: Any, where: str, source: str) -> None:
-        if not isinstance(data, dict):
-            raise BundleError(f"{source}: field '{where}' must be an object, got {type(data).__name__}")
-        self.data, self.where, self.source = data, where, source
-        self.used: set[str] = set()
-
-    def path(self, key: str) -> str:
-        return f"{self.where}.{key}" if self.where else key
-
-    def fail(self, key: str, msg: str) -> BundleError:
-        return BundleError(f"{self.source}: field '{self.path(key)}' {msg}")
-
-    def get(self, key: str, types: type | tuple, default: Any = ...) -> Any:
-        self.used.add(key)
-        if key not in self.data:
-            if default is ...:
-                raise self.fail(key, "is missing")
-            return default
-        value = self.data[key]
-        if value is None and default is None:
-            return None
-        if not isinstance(value, types) or (isinstance(value, bool) and bool not in _as_tuple(types)):
-            raise self.fail(key, f"must be {_type_names(types)}, got {value!r}")
-        return value
-
-    def str(self, key: str, default: Any = ...) -> str:
-        return self.get(key, str, default)
-
-    def num(self, key: str) -> float:
-        value = self.get(key, (int, float))
-        if not math.isfinite(value):
-            raise self.fail(key, f"must be a finite number, got {value!r}")
-        return float(value)
-
-    def int(self, key: str) -> int:
-        return self.get(key, int)
-
-    def nums(self, key: str, n: int) -> tuple[float, ...]:
-        value = self.get(key, list)
-        if len(value) != n or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                      and math.isfinite(v) for v in value):
-            raise self.fail(key, f"must be a list of {n} finite numbers, got {value!r}")
-        return tuple(float(v) for v in value)
-
-    def ints(self, key: str, n: int) -> tuple[int, ...]:
-        value = self.get(key, list)
-        if len(value) != n or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
-            raise self.fail(key, f"must be a list of {n} integers, got {value!r}")
-        return tuple(value)
-
-    def array(self, key: str, default: Any = ...) -> np.ndarray | None:
-        value = self.get(key, list, default)
-        if value is None:
-            return None
-        try:
-            arr = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise self.fail(key, "must be a nested list of numbers of one shape") from None
-        if not np.all(np.isfinite(arr)):
-            raise self.fail(key, "must hold finite numbers only")
-        return arr
-
-    def section(self, key: str) -> "Fields":
-        return Fields(self.get(key, dict), self.path(key), self.source)
-
-    def build(self, cls: type, **kwargs: Any) -> Any:
-        """`cls(**kwargs)`, after refusing keys this object holds but nobody read; FieldErrors get the path."""
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            raise self.fail(unknown[0], f"is not a field of format version {FORMAT_VERSION} "
-                                        f"(known here: {', '.join(sorted(self.used))})")
-        try:
-            return cls(**kwargs)
-        except FieldError as exc:
-            raise self.fail(exc.key, exc.msg) from None
-
-
-def _as_tuple(types) -> tuple:
-    return types if isinstance(types, tuple) else (types,)
-
-
-def _type_names(types) -> str:
-    names = {"str": "a string", "int": "an integer", "float": "a number", "list": "a list", "dict": "an object",
-             "bool": "true or false"}
-    return " or ".join(dict.fromkeys(names.get(t.__name__, t.__name__) for t in _as_tuple(types)))
 
 
 # -- the schema -------------------------------------------------------------------------------------------
@@ -245,23 +96,23 @@ class DetectorSpec:
     layout: str = "yolov8"
 
     def __post_init__(self) -> None:
-        _graph_file("file", self.file)
-        _graph_file("file_int8", self.file_int8)
+        graph_file("file", self.file)
+        graph_file("file_int8", self.file_int8)
         if min(self.input_hw) <= 0 or any(v % 32 for v in self.input_hw):
             raise FieldError("input_hw", f"must be positive multiples of 32 (YOLOv8 stride), got {list(self.input_hw)}")
         if not 0 <= self.letterbox_pad_value <= 255:
             raise FieldError("letterbox_pad_value", f"must be in [0, 255], got {self.letterbox_pad_value}")
-        _rgb_norm(self.pixel_scale, self.rgb_std)
+        rgb_norm(self.pixel_scale, self.rgb_std)
         if self.channel_order not in ("RGB", "BGR"):
             raise FieldError("channel_order", f"must be 'RGB' or 'BGR', got {self.channel_order!r}")
-        _constant("layout", self.layout, "yolov8")
+        constant("layout", self.layout, "yolov8")
         if not self.classes or not all(isinstance(c, str) and c.strip() for c in self.classes) \
                 or len(set(self.classes)) != len(self.classes):
             raise FieldError("classes", f"must be a non-empty list of distinct names, got {list(self.classes)}")
         if self.source not in ("pallet6d", "external"):
             raise FieldError("source", f"must be 'pallet6d' or 'external', got {self.source!r}")
         for key in ("input_name", "output_name"):
-            _name(key, getattr(self, key))
+            nonempty_name(key, getattr(self, key))
 
     @property
     def num_classes(self) -> int:
@@ -273,7 +124,7 @@ class DetectorSpec:
                        output_name=d.str("output_name"), input_hw=d.ints("input_hw", 2),
                        letterbox_pad_value=d.int("letterbox_pad_value"), pixel_scale=d.num("pixel_scale"),
                        rgb_mean=d.nums("rgb_mean", 3), rgb_std=d.nums("rgb_std", 3),
-                       channel_order=d.str("channel_order"), classes=_names(d, "classes"), source=d.str("source"),
+                       channel_order=d.str("channel_order"), classes=d.names("classes"), source=d.str("source"),
                        layout=d.str("layout"))
 
     def to_dict(self) -> dict:
@@ -282,13 +133,6 @@ class DetectorSpec:
                 "letterbox_pad_value": self.letterbox_pad_value, "pixel_scale": self.pixel_scale,
                 "rgb_mean": list(self.rgb_mean), "rgb_std": list(self.rgb_std), "channel_order": self.channel_order,
                 "layout": self.layout, "classes": list(self.classes), "source": self.source}
-
-
-def _names(d: Fields, key: str) -> tuple[str, ...]:
-    value = d.get(key, list)
-    if not all(isinstance(v, str) for v in value):
-        raise d.fail(key, f"must be a list of names, got {value!r}")
-    return tuple(value)
 
 
 @dataclass(frozen=True)
@@ -310,26 +154,26 @@ class FusionSpec:
     choose_input: str | None = None
 
     def __post_init__(self) -> None:
-        _graph_file("file", self.file)
-        _graph_file("file_int8", self.file_int8)
+        graph_file("file", self.file)
+        graph_file("file_int8", self.file_int8)
         if min(self.crop_hw) <= 0:
             raise FieldError("crop_hw", f"must be positive, got {list(self.crop_hw)}")
-        _rgb_norm(self.pixel_scale, self.rgb_std)
-        _positive("depth_encoding.clip_m", self.depth_clip_m)
+        rgb_norm(self.pixel_scale, self.rgb_std)
+        positive("depth_encoding.clip_m", self.depth_clip_m)
         if self.feature_dim <= 0:
             raise FieldError("feature_dim", f"must be a positive integer, got {self.feature_dim}")
         names = [self.rgb_input, self.depth_input] + ([self.choose_input] if self.choose_input is not None else [])
         for key, value in zip(("rgb_input", "depth_input", "choose_input"), names):
-            _name(key, value)
+            nonempty_name(key, value)
         if len(set(names)) != len(names):
             raise FieldError("rgb_input", f"the graph's inputs need distinct names, got {names}")
 
     @classmethod
     def from_fields(cls, f: Fields) -> "FusionSpec":
-        _constant_field(f, "crop_resize", "stretch")
+        f.constant("crop_resize", "stretch")
         enc = f.section("depth_encoding")
-        _constant_field(enc, "type", "metres_minus_median")
-        _constant_field(enc, "interpolation", "nearest")
+        enc.constant("type", "metres_minus_median")
+        enc.constant("interpolation", "nearest")
         if enc.num("invalid_value") != 0.0:
             raise enc.fail("invalid_value", f"must be 0.0 (pixels without depth), got {enc.data['invalid_value']!r}")
         clip_m = enc.num("clip_m")
@@ -348,12 +192,6 @@ class FusionSpec:
                 "depth_encoding": {"type": "metres_minus_median", "clip_m": self.depth_clip_m, "invalid_value": 0.0,
                                    "interpolation": "nearest"},
                 "feature_dim": self.feature_dim}
-
-
-def _constant_field(f: Fields, key: str, expected: str) -> None:
-    value = f.str(key)
-    if value != expected:
-        raise f.fail(key, f"must be {expected!r} (the only convention this runtime knows), got {value!r}")
 
 
 _POSE_CONVENTIONS = (("points_centring", "mean"), ("translation", "point_offset"), ("quaternion_order", "wxyz"))
@@ -375,20 +213,20 @@ class PoseSpec:
     depth_range_m: tuple[float, float]
 
     def __post_init__(self) -> None:
-        _graph_file("file", self.file)
-        _graph_file("file_int8", self.file_int8)
+        graph_file("file", self.file)
+        graph_file("file_int8", self.file_int8)
         if self.num_points <= 0:
             raise FieldError("num_points", f"must be a positive integer, got {self.num_points}")
         lo, hi = self.depth_range_m
         if not 0 <= lo < hi:
             raise FieldError("depth_range_m", f"must be [min, max] with 0 <= min < max, got {list(self.depth_range_m)}")
         for key in ("points_input", "features_input", "quat_output", "trans_output", "conf_output"):
-            _name(key, getattr(self, key))
+            nonempty_name(key, getattr(self, key))
 
     @classmethod
     def from_fields(cls, p: Fields) -> "PoseSpec":
         for key, expected in _POSE_CONVENTIONS:
-            _constant_field(p, key, expected)
+            p.constant(key, expected)
         return p.build(cls, file=p.str("file"), file_int8=p.str("file_int8", None),
                        points_input=p.str("points_input"), features_input=p.str("features_input"),
                        quat_output=p.str("quat_output"), trans_output=p.str("trans_output"),
@@ -400,141 +238,6 @@ class PoseSpec:
                 "features_input": self.features_input, "quat_output": self.quat_output,
                 "trans_output": self.trans_output, "conf_output": self.conf_output, "num_points": self.num_points,
                 "depth_range_m": list(self.depth_range_m), **dict(_POSE_CONVENTIONS)}
-
-
-# geometry may stick out of the size's box by this much (rounding of the written numbers)
-_GEOMETRY_TOL_M = 1e-4
-
-
-@dataclass(frozen=True, eq=False)
-class PalletType:
-    """One pallet geometry of a bundle, in the pallet frame (origin at the bounding box's centre, x along the
-    length, y along the width, z up; metres).
-
-    :ivar class_id: the detector class that reports this type.
-    :ivar size_m: (3,) length, width, height. :ivar diameter_m: largest distance between two model points.
-    :ivar points_file: bundle file of the (n, 3) float32 model points (`points()` once loaded by `load_bundle`).
-    :ivar boxes_m: (k, 2, 3) min/max corners of the boards/blocks/runners, or None (no ICP refinement).
-    :ivar symmetries: (S, 4, 4) rigid transforms that leave the pallet unchanged, identity first.
-    :ivar pockets_m: face ("+x", "-x", "+y", "-y") -> (2, 2, 3) min/max corners of its two fork openings,
-        left then right seen from outside; faces without openings are absent.
-    :ivar refine_starts: (S, 3) extra ICP starts, rows of (yaw degrees, dx metres along x, dy metres along y).
-    """
-
-    name: str
-    class_id: int
-    size_m: tuple[float, float, float]
-    diameter_m: float
-    points_file: str
-    symmetries: np.ndarray
-    boxes_m: np.ndarray | None = None
-    pockets_m: Mapping[str, np.ndarray] = field(default_factory=dict)
-    refine_starts: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    points_m: np.ndarray | None = field(default=None, repr=False)
-
-    def __post_init__(self) -> None:
-        _name("name", self.name)
-        relative_name("points_file", self.points_file)
-        if isinstance(self.class_id, bool) or not isinstance(self.class_id, (int, np.integer)) or self.class_id < 0:
-            raise FieldError("class_id", f"must be an integer >= 0, got {self.class_id!r}")
-        size = tuple(float(v) for v in self.size_m)
-        if len(size) != 3:
-            raise FieldError("size_m", f"must be 3 numbers, got {self.size_m!r}")
-        for v in size:
-            _positive("size_m", v)
-        half = np.asarray(size) / 2 + _GEOMETRY_TOL_M
-        _positive("diameter_m", self.diameter_m)
-        if not max(size) - _GEOMETRY_TOL_M <= self.diameter_m <= float(np.linalg.norm(size)) + _GEOMETRY_TOL_M:
-            raise FieldError("diameter_m", f"{self.diameter_m} does not fit size_m {list(size)} (between the longest "
-                                           f"side and the diagonal)")
-        sym = _frozen_array(self.symmetries)
-        if sym.ndim != 3 or sym.shape[1:] != (4, 4) or len(sym) == 0:
-            raise FieldError("symmetries", f"must be (S, 4, 4) with S >= 1, got shape {sym.shape}")
-        if not np.allclose(sym[0], np.eye(4)):
-            raise FieldError("symmetries", "must start with the identity")
-        bad = check_rigid(sym)
-        if bad:
-            raise FieldError("symmetries", f"[{bad[0]}] is not a rigid transform (rotation with det +1, last row "
-                                           "0 0 0 1)")
-        boxes = None if self.boxes_m is None else _frozen_array(self.boxes_m)
-        if boxes is not None:
-            if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0:
-                raise FieldError("boxes_m", f"must be (k, 2, 3) min/max corners, got shape {boxes.shape}")
-            if not np.all(np.isfinite(boxes)) or np.any(boxes[:, 1] <= boxes[:, 0]):
-                raise FieldError("boxes_m", "must be finite min/max corners with max > min")
-            if np.any(np.abs(boxes) > half):
-                raise FieldError("boxes_m", f"reach outside size_m {list(size)} around the origin")
-        pockets = {}
-        for face, corners in dict(self.pockets_m).items():
-            arr = _frozen_array(corners)
-            key = f"pockets_m.{face}"
-            if face not in FACES:
-                raise FieldError("pockets_m", f"has face {face!r}; faces are {', '.join(FACES)}")
-            if arr.shape != (2, 2, 3) or not np.all(np.isfinite(arr)) or np.any(arr[:, 1] <= arr[:, 0]):
-                raise FieldError(key, f"must be (2, 2, 3) finite min/max corners with max > min, got shape {arr.shape}")
-            if np.any(np.abs(arr) > half):
-                raise FieldError(key, f"reaches outside size_m {list(size)} around the origin")
-            pockets[face] = arr
-        starts = _frozen_array(self.refine_starts).reshape(-1, 3) if np.size(self.refine_starts) == 0 \
-            else _frozen_array(self.refine_starts)
-        if starts.ndim != 2 or starts.shape[1] != 3 or not np.all(np.isfinite(starts)):
-            raise FieldError("refine_starts", f"must be (S, 3) rows of (yaw_deg, dx_m, dy_m), got shape {starts.shape}")
-        if np.any(np.abs(starts[:, 0]) > 180) or np.any(np.abs(starts[:, 1]) > size[0]) \
-                or np.any(np.abs(starts[:, 2]) > size[1]):
-            raise FieldError("refine_starts", f"must turn by at most 180 degrees and slide by at most the pallet's "
-                                              f"length / width {size[:2]}")
-        if self.points_m is not None:
-            pts = _frozen_array(self.points_m, np.float32)
-            if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
-                raise FieldError("points_file", f"must hold (n, 3) model points, got shape {pts.shape}")
-            if not np.all(np.isfinite(pts)):
-                raise FieldError("points_file", "holds model points that are not finite")
-            if np.any(np.abs(pts) > half):
-                raise FieldError("points_file", f"holds model points outside size_m {list(size)} around the origin")
-            object.__setattr__(self, "points_m", pts)
-        for key, value in (("class_id", int(self.class_id)), ("size_m", size), ("diameter_m", float(self.diameter_m)),
-                           ("symmetries", sym), ("boxes_m", boxes), ("pockets_m", pockets), ("refine_starts", starts)):
-            object.__setattr__(self, key, value)
-
-    def points(self) -> np.ndarray:
-        """(n, 3) float32 model points in the pallet frame, metres (read-only)."""
-        if self.points_m is None:
-            raise BundleError(f"pallet type {self.name!r}: its model points are not loaded (use load_bundle)")
-        return self.points_m
-
-    def start_offsets(self, n: int | None = None) -> np.ndarray:
-        """The first `n` (default all) of `refine_starts` as (n, 4, 4) pallet-frame offsets (a yaw about z, then
-        a slide along x and y), to right-multiply a pose."""
-        from .pallet_geometry import start_offsets_from_rows
-
-        rows = self.refine_starts if n is None else self.refine_starts[:int(n)]
-        return start_offsets_from_rows(rows)
-
-    @classmethod
-    def from_fields(cls, t: Fields) -> "PalletType":
-        pockets_raw = t.get("pockets_m", dict)
-        pockets = {}
-        for face, value in pockets_raw.items():
-            pockets[face] = Fields({face: value}, t.path("pockets_m"), t.source).array(face)
-        return t.build(cls, name=t.str("name"), class_id=t.int("class_id"), size_m=t.nums("size_m", 3),
-                       diameter_m=t.num("diameter_m"), points_file=t.str("points_file"),
-                       boxes_m=t.array("boxes_m", None), symmetries=t.array("symmetries"), pockets_m=pockets,
-                       refine_starts=t.array("refine_starts"))
-
-    def to_dict(self) -> dict:
-        return {"name": self.name, "class_id": self.class_id, "size_m": list(self.size_m),
-                "diameter_m": self.diameter_m, "points_file": self.points_file,
-                "boxes_m": None if self.boxes_m is None else self.boxes_m.tolist(),
-                "symmetries": self.symmetries.tolist(),
-                "pockets_m": {face: v.tolist() for face, v in self.pockets_m.items()},
-                "refine_starts": self.refine_starts.tolist()}
-
-    def __eq__(self, other: object) -> bool:
-        if not isinstance(other, PalletType):
-            return NotImplemented
-        return self.to_dict() == other.to_dict()
-
-    __hash__ = None  # type: ignore[assignment]
 
 
 @dataclass(frozen=True)
@@ -552,7 +255,7 @@ class Manifest:
     format_version: int = FORMAT_VERSION
 
     def __post_init__(self) -> None:
-        _name("name", self.name)
+        nonempty_name("name", self.name)
         if "fp32" not in self.precision or not set(self.precision) <= {"fp32", "int8"} \
                 or len(set(self.precision)) != len(self.precision):
             raise FieldError("precision", f"must list 'fp32' and optionally 'int8', got {list(self.precision)}")
@@ -602,18 +305,19 @@ class Manifest:
     @classmethod
     def from_dict(cls, data: dict, source: str = "manifest.json") -> "Manifest":
         """Parse a format_version 2 manifest. :raises BundleError: naming `source` and the field."""
-        m = Fields(data, "", source)
+        m = Fields(data, "", source, FORMAT_VERSION)
         if m.get("format", str) != FORMAT:
             raise m.fail("format", f"must be {FORMAT!r}, got {data.get('format')!r}")
         version = m.get("format_version", int)
         if version not in (1, FORMAT_VERSION):
             raise BundleError(f"{source}: format_version {version!r} is not supported "
                               f"(this pallet6d reads versions 1 and {FORMAT_VERSION})")
+        m.version = version
         types_raw = m.get("pallet_types", list)
-        types = tuple(PalletType.from_fields(Fields(t, f"pallet_types[{i}]", source))
+        types = tuple(PalletType.from_fields(Fields(t, f"pallet_types[{i}]", source, version))
                       for i, t in enumerate(types_raw))
         files = m.get("files", dict)
-        return m.build(cls, name=m.str("name"), config=m.str("config"), precision=tuple(_names(m, "precision")),
+        return m.build(cls, name=m.str("name"), config=m.str("config"), precision=tuple(m.names("precision")),
                        detector=DetectorSpec.from_fields(m.section("detector")),
                        fusion=FusionSpec.from_fields(m.section("fusion")),
                        pose=PoseSpec.from_fields(m.section("pose")), pallet_types=types, files=dict(files),
@@ -625,9 +329,6 @@ class Manifest:
                 "precision": list(self.precision), "detector": self.detector.to_dict(),
                 "fusion": self.fusion.to_dict(), "pose": self.pose.to_dict(),
                 "pallet_types": [t.to_dict() for t in self.pallet_types], "files": dict(self.files)}
-
-    def replace(self, **changes: Any) -> "Manifest":
-        return dataclasses.replace(self, **changes)
 
 
 def upgrade_v1(data: dict, source: str = "manifest.json") -> tuple[dict, dict]:
@@ -641,7 +342,7 @@ def upgrade_v1(data: dict, source: str = "manifest.json") -> tuple[dict, dict]:
     v1 = {k: v for k, v in data.items() if k not in _V1_REPORT}
     report = {k: data[k] for k in _V1_REPORT if isinstance(data.get(k), dict)}
     m = Fields(v1, "", source)
-    classes = _names(m, "classes")
+    classes = m.names("classes")
     units = m.str("depth_units")
     if units != "metres":
         raise m.fail("depth_units", f"must be 'metres', got {units!r}")
@@ -657,7 +358,8 @@ def upgrade_v1(data: dict, source: str = "manifest.json") -> tuple[dict, dict]:
         raise m.fail("detector.num_classes", f"is {nc} but 'classes' names {len(classes)}")
     det["classes"] = list(classes)
     det.setdefault("source", "pallet6d")
-    if sections["pose"].get("selection", "max_confidence") != "max_confidence":
+    # the runtime picks the most confident point's pose: the only selection a version 1 bundle could name
+    if sections["pose"].pop("selection", "max_confidence") != "max_confidence":
         raise m.fail("pose.selection", "must be 'max_confidence'")
     pm = dict(m.get("pallet_model", dict))
     lowered = [c.lower() for c in classes]

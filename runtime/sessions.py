@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from .manifest import BundleError
+from .manifest_fields import BundleError
 
 __all__ = ["OnnxModel", "session_options"]
 
