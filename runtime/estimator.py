@@ -44,7 +44,7 @@ __all__ = ["EstimatorOptions", "PalletEstimator"]
 log = logging.getLogger(__name__)
 
 # The fusion and pose graphs run on at most this many pallets at once. onnxruntime's memory arena keeps the
-# largest batch it has seen: 16 pallets in one batch held about 95 MB more for good than 8 (soak, session 7),
+# largest batch it has seen: 16 pallets in one batch held about 95 MB more for good than 8 (soak),
 # while batches larger than 8 save little time per pallet.
 GRAPH_BATCH = 8
 STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
@@ -56,9 +56,9 @@ class EstimatorOptions:
 
     :ivar score_threshold: detector class score a box must exceed.
     :ivar iou_threshold: NMS IoU above which the weaker box of the same class goes.
-    :ivar max_pallets: at most this many detections (highest scores) go to the pose stage. Each costs about
-        40 ms on 2 cores; 16 covers the fullest racks of the validation sets (18 pallets at least 10 % visible,
-        35 of 200 occluded frames had more than 8, the limit before session 7).
+    :ivar max_pallets: at most this many detections (highest scores) go to the pose stage; each adds its fusion,
+        pose and refinement time. 16 covers the fullest racks of the validation sets (18 pallets at least 10 %
+        visible; 35 of 200 occluded frames had more than 8, and a limit of 8 cost 2.1 points at 5 cm there).
     :ivar depth_range_m: (min, max) depth of a pixel to become a point; None = the bundle's.
     :ivar min_valid_points: fewer valid depth pixels in a box -> rejected ("too_few_points").
     :ivar min_confidence: best per-point confidence below this -> rejected ("low_confidence").
@@ -83,9 +83,9 @@ class EstimatorOptions:
         +-5 cm along the length and the width, then +-30 degrees, +-20 cm along the length); a landing that ICP trusts
         (`refine_start_max_rms_m`) and that explains the box's depth better (fit score at
         `refine_select_tol_m`) replaces it. It pulls the network's larger errors back into ICP's basin.
-        0 turns it off. The default 6 (session 10) against the 4 before: validation virtual-occluded
+        0 turns it off. 6 by default: against 4, validation virtual-occluded
         79.6 -> 82.0 % within 5 cm, virtual-clean 96.8 -> 97.3 %, indoor-noisy unchanged (measured with 10; the
-        last 4 of those 10 changed 1 pallet in 1815 with the session-10 networks, for half again the time of
+        last 4 of those 10 changed 1 pallet in 1815 with the shipped networks, for half again the time of
         a frame; `benchmarks/results/refine-starts.md`).
     :ivar refine_start_points: depth points each extra start uses (an even subset of `refine_points`).
     :ivar refine_select_tol_m: tolerance of the fit score that compares landings, metres (tighter than

@@ -16,7 +16,7 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
     parser.add_argument("--max-pallets", type=int, default=None,
                         help="pose at most this many detections per frame, the highest-scoring ones (default: "
-                             "EstimatorOptions.max_pallets); each costs about 40 ms on 2 cores")
+                             "EstimatorOptions.max_pallets); each adds to the frame's time")
     parser.add_argument("--min-fit", type=float, default=0.2, help="reject poses whose fit score is below this")
     parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
     parser.add_argument("--no-refine", action="store_true",
