@@ -1,6 +1,6 @@
 """Torch weights back from a shipped bundle's float ONNX graphs: fine-tune the model that ships.
 
-Training checkpoints live in `runs/`, outside git; the bundle in `models/` is what a later session or an
+Training checkpoints live in `runs/`, outside git; the bundle in `models/` is what a later training run or an
 integrator retraining on real data actually has. `load_bundle_weights` rebuilds each network's state from
 the graph it was exported to and proves it with a parity check against onnxruntime:
 

@@ -158,7 +158,7 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
 # `benchmarks/results/refine-starts.md`). Pallets cut by the image border or half hidden keep 5-10 cm
 # slides along the length or the width, where the few visible boards and blocks let ICP stop early: slides
 # of 5 and 10 cm along both axes found the right pose for 11 more of 475 detected pallets of validation
-# virtual-clean (cut by the border) and virtual-occluded (session 10).
+# virtual-clean (cut by the border) and virtual-occluded.
 # (yaw degrees, shift along x metres, shift along y metres)
 _STARTS = ((15.0, 0.0, 0.0), (-15.0, 0.0, 0.0), (0.0, 0.1, 0.0), (0.0, -0.1, 0.0),
            (0.0, 0.0, 0.1), (0.0, 0.0, -0.1),

@@ -1,10 +1,10 @@
-"""Shared fixtures. `sim_bop_dataset` is a tiny synthetic BOP dataset rendered once per test session."""
+"""Shared fixtures. `sim_bop_dataset` is a tiny synthetic BOP dataset rendered once per test run."""
 from __future__ import annotations
 
 import pytest
 
 SIM_BOP_PRESET = "virtual-occluded"
-SIM_BOP_SIZE = (320, 120)      # width, height: small renders keep the session cheap (~1 s)
+SIM_BOP_SIZE = (320, 120)      # width, height: small renders keep the fixture cheap (~1 s)
 SIM_BOP_FRAMES = 3
 SIM_BOP_SEED = 7
 
@@ -24,7 +24,7 @@ def sim_bop_dataset(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def bundle_dir(tmp_path_factory):
-    """A random-init `tiny` bundle from `pallet6d export`, built once per session (about 3 s).
+    """A random-init `tiny` bundle from `pallet6d export`, built once per test run (about 3 s).
 
     `PALLET6D_TEST_BUNDLE=/path/to/bundle` uses an existing bundle instead."""
     import os
