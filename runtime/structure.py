@@ -47,6 +47,9 @@ class StructureParams:
     :ivar min_open_fraction: open / (open + closed) below this -> "openings_closed".
     :ivar min_box_cover: fraction of the detector's box inside the posed model's projected box; below ->
         "box_mismatch".
+    :ivar min_box_solid: of the rays inside the detector's box that hit the posed model and have depth, the
+        fraction that find its surface there; below -> "box_mismatch" (the box shows something else: a surface in
+        front of or behind the pose).
     :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
     """
 
@@ -58,6 +61,7 @@ class StructureParams:
     min_opening_evidence: int = 12
     min_open_fraction: float = 0.35
     min_box_cover: float = 0.6
+    min_box_solid: float = 0.3
     max_tilt_deg: float = 25.0
 
     def __post_init__(self) -> None:
@@ -68,7 +72,7 @@ class StructureParams:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.tol_m > 0:
             raise ValueError(f"tol_m must be positive, got {self.tol_m}")
-        for name in ("min_agreement", "min_open_fraction", "min_box_cover"):
+        for name in ("min_agreement", "min_open_fraction", "min_box_cover", "min_box_solid"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if int(self.min_evidence) < 1 or int(self.min_opening_evidence) < 1:
@@ -88,6 +92,8 @@ class StructureScore:
     :ivar agreement: (solid + open) / (solid + see_through + open + closed), 0 without evidence.
     :ivar open_fraction: open / (open + closed), 1 without openings in view.
     :ivar box_cover: fraction of the detector's box inside the posed model's projected box.
+    :ivar box_solid: of the rays inside the detector's box that hit the model and have depth, the fraction that
+        find its surface (NaN when there are none: no evidence either way).
     :ivar tilt_deg: angle between the pallet's z axis and the up vector (NaN without one).
     :ivar reason: "" when accepted, else one of "structure_unseen", "structure_mismatch", "openings_closed",
         "box_mismatch", "tilted".
@@ -100,6 +106,7 @@ class StructureScore:
     agreement: float
     open_fraction: float
     box_cover: float
+    box_solid: float
     tilt_deg: float
     reason: str
 
@@ -217,6 +224,10 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     opened = gap & (z_obs > t_bbox + tol)
     closed = gap & (np.abs(z_obs - t_bbox) <= tol)
 
+    in_box = (u >= det[:, 0:1]) & (u <= det[:, 2:3]) & (v >= det[:, 1:2]) & (v <= det[:, 3:4])
+    box_hits = (hit & in_box).sum(1)
+    box_solid = np.where(box_hits > 0, (solid & in_box).sum(1) / np.maximum(box_hits, 1), np.nan)
+
     inter_w = np.maximum(0.0, np.minimum(det[:, 2], proj[:, 2]) - np.maximum(det[:, 0], proj[:, 0]))
     inter_h = np.maximum(0.0, np.minimum(det[:, 3], proj[:, 3]) - np.maximum(det[:, 1], proj[:, 1]))
     det_area = np.maximum((det[:, 2] - det[:, 0]) * (det[:, 3] - det[:, 1]), 1e-9)
@@ -238,7 +249,8 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         evidence = s + st + op + cl
         agreement = (s + op) / evidence if evidence else 0.0
         open_fraction = op / (op + cl) if op + cl else 1.0
-        if not valid_proj[i] or cover[i] < params.min_box_cover:
+        if not valid_proj[i] or cover[i] < params.min_box_cover or box_solid[i] < params.min_box_solid:
+            # NaN box_solid (no depth on the pallet inside the box) compares False: judged by the evidence below
             reason = "box_mismatch"
         elif np.isfinite(tilt[i]) and tilt[i] > params.max_tilt_deg:
             reason = "tilted"
@@ -251,5 +263,5 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         else:
             reason = ""
         out.append(StructureScore(s, st, op, cl, float(agreement), float(open_fraction), float(cover[i]),
-                                  float(tilt[i]), reason))
+                                  float(box_solid[i]), float(tilt[i]), reason))
     return out

@@ -65,12 +65,12 @@ def test_cast_rays_boxes_hits_the_face_at_its_depth():
 
 @pytest.mark.parametrize("name, make_input, reasons", [
     ("flat wall at the face", lambda: (np.full((H, W), 3.0, np.float32) - 0.4, K),
-     {"openings_closed", "structure_mismatch"}),
-    ("depth 10x too near", lambda: (DEPTH * np.float32(0.1), K), {"structure_unseen", "structure_mismatch"}),
+     {"openings_closed", "structure_mismatch", "box_mismatch"}),
+    ("depth 10x too near", lambda: (DEPTH * np.float32(0.1), K), {"box_mismatch"}),
     ("focal length 2x too long", lambda: (DEPTH, K * np.array([[2.0], [2.0], [1.0]])),
      {"box_mismatch", "structure_mismatch"}),
     ("another frame's depth", lambda: (_render(make_T(R_CAM_PALLET, np.array([-1.2, 0.6, 4.5]))), K),
-     {"structure_mismatch", "structure_unseen", "openings_closed"}),
+     {"structure_mismatch", "openings_closed", "box_mismatch"}),
     ("no depth at all", lambda: (np.zeros((H, W), np.float32), K), {"structure_unseen"}),
 ])
 def test_mismatched_inputs_fail(name, make_input, reasons):
@@ -94,10 +94,19 @@ def test_symmetric_pose_passes():
     assert _check(T=T_sym).ok
 
 
-def test_occluder_in_front_is_no_evidence():
+def test_occluder_in_front_is_no_evidence_for_the_structure_but_fails_the_box():
     depth = np.minimum(DEPTH, np.float32(1.0))     # a sheet 1 m from the camera hides everything
     s = _check(depth=depth)
-    assert s.solid + s.see_through + s.open + s.closed == 0 and s.reason == "structure_unseen"
+    assert s.solid + s.see_through + s.open + s.closed == 0
+    assert s.box_solid == 0.0 and s.reason == "box_mismatch"     # the box shows the sheet, not the pallet
+
+
+def test_partly_hidden_pallet_passes():
+    depth = DEPTH.copy()
+    depth[:, : int(BOX[0, 0] + 0.4 * (BOX[0, 2] - BOX[0, 0]))] = 1.0   # a post hides the left 40 % of the pallet
+    v, u = np.nonzero((depth < BACK_WALL_M) & (depth > 1.0))
+    s = _check(depth=depth, box=np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float))
+    assert s.ok, s
 
 
 def test_box_far_from_the_pose_is_a_mismatch():
