@@ -50,6 +50,8 @@ class StructureParams:
     :ivar min_box_solid: of the rays inside the detector's box that hit the posed model and have depth, the
         fraction that find its surface there; below -> "box_mismatch" (the box shows something else: a surface in
         front of or behind the pose).
+    :ivar min_seen_iou: IoU of the detector's box with the box around the rays that found the pallet's surface;
+        below -> "box_mismatch" (the pose explains depth elsewhere than where the detector saw the pallet).
     :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
     """
 
@@ -62,6 +64,7 @@ class StructureParams:
     min_open_fraction: float = 0.35
     min_box_cover: float = 0.6
     min_box_solid: float = 0.3
+    min_seen_iou: float = 0.1
     max_tilt_deg: float = 25.0
 
     def __post_init__(self) -> None:
@@ -72,7 +75,8 @@ class StructureParams:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.tol_m > 0:
             raise ValueError(f"tol_m must be positive, got {self.tol_m}")
-        for name in ("min_agreement", "min_open_fraction", "min_box_cover", "min_box_solid"):
+        for name in ("min_agreement", "min_open_fraction", "min_box_cover", "min_box_solid",
+                     "min_seen_iou"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if int(self.min_evidence) < 1 or int(self.min_opening_evidence) < 1:
@@ -94,6 +98,8 @@ class StructureScore:
     :ivar box_cover: fraction of the detector's box inside the posed model's projected box.
     :ivar box_solid: of the rays inside the detector's box that hit the model and have depth, the fraction that
         find its surface (NaN when there are none: no evidence either way).
+    :ivar seen_iou: IoU of the detector's box with the box around the rays that found the pallet's surface (NaN
+        when none did).
     :ivar tilt_deg: angle between the pallet's z axis and the up vector (NaN without one).
     :ivar reason: "" when accepted, else one of "structure_unseen", "structure_mismatch", "openings_closed",
         "box_mismatch", "tilted".
@@ -107,6 +113,7 @@ class StructureScore:
     open_fraction: float
     box_cover: float
     box_solid: float
+    seen_iou: float
     tilt_deg: float
     reason: str
 
@@ -228,6 +235,18 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     box_hits = (hit & in_box).sum(1)
     box_solid = np.where(box_hits > 0, (solid & in_box).sum(1) / np.maximum(box_hits, 1), np.nan)
 
+    # the box around the rays that found the pallet's surface, against the detector's box
+    su0 = np.where(solid, u, np.inf).min(1)
+    sv0 = np.where(solid, v, np.inf).min(1)
+    su1 = np.where(solid, u, -np.inf).max(1)
+    sv1 = np.where(solid, v, -np.inf).max(1)
+    iw = np.maximum(0.0, np.minimum(det[:, 2], su1) - np.maximum(det[:, 0], su0))
+    ih = np.maximum(0.0, np.minimum(det[:, 3], sv1) - np.maximum(det[:, 1], sv0))
+    with np.errstate(invalid="ignore"):
+        s_area = np.where(np.isfinite(su0), (su1 - su0) * (sv1 - sv0), 0.0)
+        seen_iou = np.where(np.isfinite(su0), iw * ih / (s_area + (det[:, 2] - det[:, 0]) * (det[:, 3] - det[:, 1])
+                                                         - iw * ih), np.nan)
+
     inter_w = np.maximum(0.0, np.minimum(det[:, 2], proj[:, 2]) - np.maximum(det[:, 0], proj[:, 0]))
     inter_h = np.maximum(0.0, np.minimum(det[:, 3], proj[:, 3]) - np.maximum(det[:, 1], proj[:, 1]))
     det_area = np.maximum((det[:, 2] - det[:, 0]) * (det[:, 3] - det[:, 1]), 1e-9)
@@ -249,8 +268,9 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         evidence = s + st + op + cl
         agreement = (s + op) / evidence if evidence else 0.0
         open_fraction = op / (op + cl) if op + cl else 1.0
-        if not valid_proj[i] or cover[i] < params.min_box_cover or box_solid[i] < params.min_box_solid:
-            # NaN box_solid (no depth on the pallet inside the box) compares False: judged by the evidence below
+        if not valid_proj[i] or cover[i] < params.min_box_cover or box_solid[i] < params.min_box_solid \
+                or seen_iou[i] < params.min_seen_iou:
+            # NaN (no depth on the pallet at all) compares False: then the evidence count below decides
             reason = "box_mismatch"
         elif np.isfinite(tilt[i]) and tilt[i] > params.max_tilt_deg:
             reason = "tilted"
@@ -263,5 +283,6 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         else:
             reason = ""
         out.append(StructureScore(s, st, op, cl, float(agreement), float(open_fraction), float(cover[i]),
-                                  float(box_solid[i]), float(tilt[i]), reason))
+                                  float(box_solid[i]), float(seen_iou[i]),
+                                  float(tilt[i]), reason))
     return out
