@@ -1,6 +1,7 @@
 # Two commands on a fresh machine:
 #   make run   - set up, then run the main job (see README)
 #   make test  - set up, then run the test suite
+# Packaging (docs/packaging.md): make wheels (dist/), make wheel-check (the wheels in a clean environment).
 # Each creates .venv when missing and installs what it needs; a second call skips the install.
 PY        := .venv/bin/python
 STAMP     := .venv/.installed
@@ -9,10 +10,13 @@ SUDO      := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 DEB_PKGS  := libusb-1.0-0
 RUN_OUT   ?= out/demo
 BUNDLE    ?= models/epal-default
+DIST      ?= dist
+# the clean virtual environment and scratch folder of `make wheel-check` (rebuilt on every call)
+CHECK_DIR := build/wheel-check
 # the built-in recording: 8 frames of the generator's occluded warehouse, deterministic (seed 7)
 DEMO_REC  := $(RUN_OUT)/recording
 
-.PHONY: run test setup sys-deps clean
+.PHONY: run test setup sys-deps clean wheels wheel-check
 
 setup: $(STAMP)
 
@@ -41,5 +45,21 @@ $(DEMO_REC)/.done: | $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
+# The runtime wheel and the models wheel, checked against the source tree (every module and data file in,
+# nothing else). Leftovers of earlier builds are removed first: setuptools would put files from build/ and from
+# an old *.egg-info/SOURCES.txt in the wheel.
+wheels: | $(STAMP)
+	rm -rf $(DIST) build models/build *.egg-info models/*.egg-info
+	$(PY) -m pip wheel -q --no-deps -w $(DIST) . ./models
+	$(PY) .ci/wheel_contents.py $(DIST)
+
+# The wheels installed as a user installs them (no editable install, no export extra, no torch, outside the
+# checkout), then the same check as the Dockerfile's build: .ci/smoke-installed. The environment has no pip of
+# its own (.venv's pip installs into it): only the wheels and their dependencies are in it.
+wheel-check: wheels
+	rm -rf $(CHECK_DIR) && python3 -m venv --without-pip $(CHECK_DIR)/venv
+	$(PY) -m pip --python $(CHECK_DIR)/venv/bin/python install -q $(DIST)/pallet6d-*.whl $(DIST)/pallet6d_models-*.whl
+	env -u PALLET6D_BUNDLE PATH="$(CURDIR)/$(CHECK_DIR)/venv/bin:$$PATH" .ci/smoke-installed $(CHECK_DIR)/work
+
 clean:
-	rm -rf .venv out .pytest_cache
+	rm -rf .venv out .pytest_cache build dist models/build models/*.egg-info

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-import pallet6d.runtime.estimator as estimator_module
 from pallet6d.runtime import metrics
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.estimator import PalletEstimator
 from pallet6d.runtime.evaluation import box_iou, ground_truths_from_bop
+from pallet6d.runtime.refine import refine_pose
 
 THRESHOLDS_M = (0.02, 0.05, 0.1)
 GATES = [("network alone", None, None), ("ICP always", 1.0, -1.0)] + \
@@ -28,50 +28,50 @@ GATES = [("network alone", None, None), ("ICP always", 1.0, -1.0)] + \
     [(f"fit score only, margin {m:g}", 1.0, m) for m in (0.0, 0.02)]
 
 
-class _RmsLog:
-    """Wraps the estimator's `refine_pose` to keep each call's final RMS (the estimator does not return it)."""
+def icp_rows(est: PalletEstimator, f):
+    """A frame's posed candidates (network poses: `est` without refinement) and ICP from each network pose,
+    through the stages' public API.
 
-    def __init__(self) -> None:
-        self.rms_m: list[float] = []
-        self._inner = estimator_module.refine_pose
-
-    def __call__(self, *args, **kwargs):
-        res = self._inner(*args, **kwargs)
-        self.rms_m.append(res.rms_m)
-        return res
+    :return: the posed `Candidates` (n rows), ICP's poses (n, 4, 4), and per candidate (n, 3): fit score of the
+        network's pose, of ICP's pose, ICP's final RMS (m; nan: ICP gave no result, its pose is the network's).
+    """
+    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
+    cands = est.candidates(rgb, depth_m, K)
+    cands = cands[cands.alive]
+    T_icp, rows = cands.T_net.copy(), np.zeros((len(cands), 3))
+    for i in range(len(cands)):
+        g = est.pallet_types[int(cands.type_index[i])]
+        box_obs = est.refiner.box_points(cands.pixels[i], depth_m, K)
+        res = refine_pose(cands.T_net[i], box_obs, g.boxes_m, iterations=est.options.refine_iterations)
+        if np.isfinite(res.rms_m):
+            T_icp[i] = res.T_cam_pallet
+        fit_icp = est.fit_check.score(T_icp[i:i + 1], cands.points_cam[i:i + 1], cands.type_index[i:i + 1],
+                                      depth_m, K)[0, 2]
+        rows[i] = cands.fit[i, 2], fit_icp, res.rms_m
+    return cands, T_icp, rows
 
 
 def pallet_rows(bundle: str, data: Path, precision: str, threads: int) -> np.ndarray:
     """(n, 5): ADD-sym of the network's pose, of ICP's pose (m), their fit scores, ICP's RMS (m; nan: no result)."""
     plain = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, refine=False, min_fit=0.0)
-    icp = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
-                                      refine_max_rms_m=1e9, refine_margin=-1.0,
-                                      refine_starts=0)  # always ICP's pose
-    pts, sym = plain.model_points_m, plain.symmetries
-    rms_log = _RmsLog()
-    estimator_module.refine_pose = rms_log
     rows = []
-    try:
-        ds = BopDataset(data)
-        for i in range(len(ds)):
-            f = ds[i]
-            gts, _ = ground_truths_from_bop(f.gts)
-            net = plain.predict(f.rgb, f.depth_m, f.K)
-            rms_log.rms_m.clear()
-            ref = icp.predict(f.rgb, f.depth_m, f.K)
-            if not gts or not net:
+    ds = BopDataset(data)
+    for i in range(len(ds)):
+        f = ds[i]
+        gts, _ = ground_truths_from_bop(f.gts)
+        cands, T_icp, fit_rms = icp_rows(plain, f)
+        if not gts or not len(cands):
+            continue
+        iou = box_iou(cands.boxes_xyxy, np.array([g.box_visib_xyxy for g in gts]))
+        for k in range(len(cands)):
+            j = int(iou[k].argmax())
+            if iou[k, j] < 0.5 or gts[j].visib_fract < 0.1:
                 continue
-            assert len(net) == len(ref) == len(rms_log.rms_m), "both estimators must see the same detections"
-            iou = box_iou(np.array([p.box_xyxy for p in net]), np.array([g.box_visib_xyxy for g in gts]))
-            for k, (a, b) in enumerate(zip(net, ref)):
-                j = int(iou[k].argmax())
-                if iou[k, j] < 0.5 or gts[j].visib_fract < 0.1:
-                    continue
-                R_gt, t_gt = gts[j].T_cam_model[:3, :3], gts[j].T_cam_model[:3, 3]
-                err = [metrics.add_sym(p.T_cam_pallet[:3, :3], p.T_cam_pallet[:3, 3], R_gt, t_gt, pts, sym) for p in (a, b)]
-                rows.append([*err, a.fit.score, b.fit.score, rms_log.rms_m[k]])
-    finally:
-        estimator_module.refine_pose = rms_log._inner
+            g = plain.pallet_types[int(cands.type_index[k])]
+            R_gt, t_gt = gts[j].T_cam_model[:3, :3], gts[j].T_cam_model[:3, 3]
+            err = [metrics.add_sym(T[:3, :3], T[:3, 3], R_gt, t_gt, g.points_m, g.symmetries)
+                   for T in (cands.T_net[k], T_icp[k])]
+            rows.append([*err, *fit_rms[k]])
     return np.array(rows).reshape(-1, 5)
 
 

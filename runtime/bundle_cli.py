@@ -11,15 +11,23 @@ HELP = "validate a model bundle: manifest fields, files, sha256, graph input/out
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="bundle_command", metavar="ACTION", required=True)
     check = sub.add_parser("check", help="check a bundle folder; exit 0 when usable, 1 otherwise")
-    check.add_argument("path", help="bundle folder (holds manifest.json)")
+    check.add_argument("path", nargs="?", help="bundle folder (holds manifest.json; default: the default bundle, "
+                                               "as `pallet6d run` finds it)")
     check.add_argument("--no-run", action="store_true", help="do not run the graphs once on zero inputs")
     info = sub.add_parser("info", help="print a bundle's manifest summary")
-    info.add_argument("path")
+    info.add_argument("path", nargs="?", help="bundle folder (default: the default bundle)")
 
 
 def main(args: argparse.Namespace) -> int:
     from .bundle import BundleError, check_bundle, load_bundle
+    from .default_bundle import default_bundle
 
+    if args.path is None:
+        try:
+            args.path = str(default_bundle())
+        except BundleError as exc:
+            print(f"pallet6d bundle: {exc}", file=sys.stderr)
+            return 1
     if args.bundle_command == "info":
         try:
             b = load_bundle(args.path)
@@ -29,7 +37,11 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps({"name": b.name, "config": b.config, "classes": list(b.classes),
                           "precision": list(b.precision), "detector_input_hw": list(b.detector.input_hw),
                           "crop_hw": list(b.fusion.crop_hw), "num_points": b.pose.num_points,
-                          "pallet": b.pallet.name, "checks": b.checks.get("gflops", {}),
+                          "format_version": b.manifest.format_version,
+                          "pallet_types": [{"name": t.name, "class_id": t.class_id, "size_m": list(t.size_m),
+                                            "pocket_faces": list(t.pockets_m), "refine_starts": len(t.refine_starts)}
+                                           for t in b.pallet_types],
+                          "checks": b.checks.get("gflops", {}),
                           "provenance": {k: b.provenance.get(k) for k in ("command", "created", "random_init")}},
                          indent=1))
         return 0

@@ -1,52 +1,48 @@
 """`PalletEstimator`: RGB-D frame -> pallet 6D poses, on a model bundle's ONNX graphs (never torch).
 
-Pipeline (paper section 3, batched over the pallets of a frame):
+The estimator is a pipeline of four stages (paper section 3), batched over the pallets of a frame, that pass
+one record of candidates (`candidates.Candidates`, a row per detection) from one to the next:
 
-    letterbox -> detector.onnx -> YOLOv8 decode + NMS (numpy)            detector.py
-    -> crop / encode / select + sample N points / back-project / centre   pose_inputs.py (shared with training)
-    -> fusion.onnx (B crops at once) -> gather features at the sampled pixels
-    -> pose.onnx (B pallets at once) -> most confident per-point hypothesis   selection.py
-    -> robust point-to-plane ICP on the box's depth, pallet as boards/blocks  refine.py
-       (+ ICP from starts around the pose; the landing that fits best wins)
-    -> geometric fit check against the depth image                           fit.py
+    DetectorStage       letterbox -> detector.onnx -> YOLOv8 decode + NMS             stage_detector.py
+    PoseNetworkStage    crop / encode / sample N points -> fusion.onnx -> pose.onnx    stage_pose.py
+                        -> most confident per-point hypothesis
+    RefinerStage        robust point-to-plane ICP on the box's depth against the      stage_refine.py
+                        candidate's pallet type (+ ICP from starts around the pose)
+    FitCheckStage       geometric fit check against the depth image, acceptance       stage_fit.py
+
+Each candidate's pallet type comes from its detector class; the refiner and the fit check use that type's
+own geometry (`stage_geometry.py`).
 
 `predict(...)` returns the accepted `PalletPose`s; `estimate(...)` returns the whole `FrameResult`:
 accepted poses, rejected detections with their reasons, per-stage milliseconds. `estimate_boxes(...)`
-starts after the detector, for a forklift that already runs a shared object detector.
-
-Point sampling is seeded per detection from `options.seed` and the detection's clamped box, so a
-result depends only on the frame and the box: the same frame gives the same poses, and a pallet gets
-the same pose whether it is estimated alone or with others.
+starts after the detector, for a forklift that already runs a shared object detector. `candidates(...)`
+returns the stages' record itself (every row's network and refined pose, fit and rejection reason).
 """
 from __future__ import annotations
 
-import dataclasses
-import logging
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from .bundle import Bundle, BundleError, load_bundle
-from .detector import Detections, decode_yolov8, letterbox, to_nchw, undo_letterbox
-from .fit import fit_score
-from .geometry import clamp_box
+from .candidates import Candidates
+from .deadline import Deadline, elapsed_ms
+from .detector import Detections
 from .inputs import check_rgb, check_rgbd
-from .pose_inputs import PoseBatch, gather_features, prepare_pose_inputs
-from .refine import MAX_STARTS, best_landing, box_points, refine_pose
+from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
-from .selection import select_poses
 from .sessions import OnnxModel
+from .stage_detector import DetectorStage
+from .stage_fit import FitCheckStage
+from .stage_geometry import bundle_geometries
+from .stage_pose import PoseNetworkStage
+from .stage_refine import RefinerStage
 
 __all__ = ["EstimatorOptions", "PalletEstimator"]
 
-log = logging.getLogger(__name__)
-
-# The fusion and pose graphs run on at most this many pallets at once. onnxruntime's memory arena keeps the
-# largest batch it has seen: 16 pallets in one batch held about 95 MB more for good than 8 (soak, session 7),
-# while batches larger than 8 save little time per pallet.
-GRAPH_BATCH = 8
 STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
 
 
@@ -56,9 +52,9 @@ class EstimatorOptions:
 
     :ivar score_threshold: detector class score a box must exceed.
     :ivar iou_threshold: NMS IoU above which the weaker box of the same class goes.
-    :ivar max_pallets: at most this many detections (highest scores) go to the pose stage. Each costs about
-        40 ms on 2 cores; 16 covers the fullest racks of the validation sets (18 pallets at least 10 % visible,
-        35 of 200 occluded frames had more than 8, the limit before session 7).
+    :ivar max_pallets: at most this many detections (highest scores) go to the pose stage. Each costs tens of
+        ms on 2 cores (`benchmarks/latency.py`); 16 covers the fullest racks of the validation sets (18 pallets
+        at least 10 % visible; 35 of 200 occluded frames have more than 8).
     :ivar depth_range_m: (min, max) depth of a pixel to become a point; None = the bundle's.
     :ivar min_valid_points: fewer valid depth pixels in a box -> rejected ("too_few_points").
     :ivar min_confidence: best per-point confidence below this -> rejected ("low_confidence").
@@ -83,10 +79,9 @@ class EstimatorOptions:
         +-5 cm along the length and the width, then +-30 degrees, +-20 cm along the length); a landing that ICP trusts
         (`refine_start_max_rms_m`) and that explains the box's depth better (fit score at
         `refine_select_tol_m`) replaces it. It pulls the network's larger errors back into ICP's basin.
-        0 turns it off. The default 6 (session 10) against the 4 before: validation virtual-occluded
-        79.6 -> 82.0 % within 5 cm, virtual-clean 96.8 -> 97.3 %, indoor-noisy unchanged (measured with 10; the
-        last 4 of those 10 changed 1 pallet in 1815 with the session-10 networks, for half again the time of
-        a frame; `benchmarks/results/refine-starts.md`).
+        0 turns it off. 6 against 4: validation virtual-occluded 79.6 -> 82.0 % within 5 cm, virtual-clean
+        96.8 -> 97.3 %, indoor-noisy unchanged; 10 changed 1 pallet in 1815 more, for half again the time of a
+        frame (`benchmarks/results/refine-starts.md`).
     :ivar refine_start_points: depth points each extra start uses (an even subset of `refine_points`).
     :ivar refine_select_tol_m: tolerance of the fit score that compares landings, metres (tighter than
         `fit_tol_m`: on depth clean enough to trust ICP, 1.5 cm separates the right landing).
@@ -95,6 +90,10 @@ class EstimatorOptions:
         wrongly; on clean depth most landings that help are below 3 mm.
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
+    :ivar time_budget_ms: the frame's time budget from the start of `estimate`, milliseconds (None: no limit).
+        Candidates are posed in the order of their detector scores; those the budget leaves no time for are
+        reported as rejected ("time_budget"), never as poses. The stages check it between units of work (a
+        chunk of the pose network's batch, one pallet's refinement), so a frame ends at most one unit late.
     """
 
     score_threshold: float = 0.25
@@ -116,6 +115,7 @@ class EstimatorOptions:
     refine_start_max_rms_m: float = 0.003
     nonfinite_depth: str = "raise"
     seed: int = 0
+    time_budget_ms: float | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.score_threshold <= 1.0:
@@ -147,6 +147,8 @@ class EstimatorOptions:
             raise ValueError(f"refine_select_tol_m must be positive, got {self.refine_select_tol_m}")
         if not self.refine_start_max_rms_m > 0:
             raise ValueError(f"refine_start_max_rms_m must be positive, got {self.refine_start_max_rms_m}")
+        if self.time_budget_ms is not None and not self.time_budget_ms >= 0:
+            raise ValueError(f"time_budget_ms must be >= 0 or None, got {self.time_budget_ms}")
 
 
 class PalletEstimator:
@@ -156,37 +158,32 @@ class PalletEstimator:
     :param threads: onnxruntime intra-op threads per graph.
     :param precision: "fp32" or "int8" (the bundle's quantized graphs).
     :param options: `EstimatorOptions`.
+    :param clock: the monotonic clock (seconds) the time budget is measured on.
+
+    :ivar detector: `DetectorStage`. :ivar pose_network: `PoseNetworkStage`. :ivar refiner: `RefinerStage`.
+    :ivar fit_check: `FitCheckStage`. :ivar pallet_types: the bundle's `PalletGeometry`s.
     """
 
     def __init__(self, bundle: Bundle, threads: int = 2, precision: str = "fp32",
-                 options: EstimatorOptions | None = None) -> None:
+                 options: EstimatorOptions | None = None, clock: Callable[[], float] = time.perf_counter) -> None:
         if precision not in ("fp32", "int8"):
             raise ValueError(f"precision must be 'fp32' or 'int8', got {precision!r}")
         self.bundle = bundle
         self.precision = precision
         self.threads = int(threads)
-        self.options = options or EstimatorOptions()
+        self.options = o = options or EstimatorOptions()
+        self.clock = clock
         spec = bundle.pose_input_spec()
-        if self.options.depth_range_m is not None:
-            spec = dataclasses.replace(spec, depth_range_m=tuple(self.options.depth_range_m))
+        if o.depth_range_m is not None:
+            spec = replace(spec, depth_range_m=tuple(o.depth_range_m))
         self.spec = spec
-        self._load_sessions()
+        self.pallet_types, self._type_of_class = bundle_geometries(bundle)
+        self.detector = DetectorStage(bundle, precision, self.threads, tuple(self._type_of_class), o.score_threshold,
+                                      o.iou_threshold, o.max_pallets)
+        self.pose_network = PoseNetworkStage(bundle, precision, self.threads, spec, o.seed, o.min_valid_points)
         self._check_graphs_match_manifest()
-        # the fit score needs the model as points (a bundle carries points, not boxes)
-        self.model_points_m = bundle.pallet.points().astype(np.float64)
-        self.model_size_m = np.asarray(bundle.pallet.size_m, dtype=np.float64)
-        self.symmetries = np.asarray(bundle.pallet.symmetries, dtype=np.float64)
-        self.model_boxes_m = bundle.pallet.boxes_m
-        self.refines = bool(self.options.refine and self.options.refine_iterations > 0 and self.model_boxes_m is not None)
-        if self.options.refine and self.model_boxes_m is None:
-            log.warning("bundle %s has no pallet boxes_m: poses are not refined", bundle.name)
-        det = bundle.detector
-        names = [c.lower() for c in bundle.classes]
-        # a detector from another toolchain may know more classes than pallets: use the pallet ones
-        self._pallet_class_ids = tuple(i for i, c in enumerate(names) if "pallet" in c) or tuple(range(len(names)))
-        # reused across frames: the letterboxed image and the detector's input tensor
-        self._lb_buf = np.empty((*det.input_hw, 3), np.uint8)
-        self._det_in = np.empty((1, 3, *det.input_hw), np.float32)
+        self.refiner = RefinerStage(self.pallet_types, o)
+        self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence)
 
     @classmethod
     def from_bundle(cls, path: str | Path, threads: int = 2, precision: str = "fp32",
@@ -194,14 +191,31 @@ class PalletEstimator:
         """Load a bundle folder and build the sessions once. Keyword options go to `EstimatorOptions`."""
         return cls(load_bundle(path), threads=threads, precision=precision, options=EstimatorOptions(**options))
 
-    # -- setup ----------------------------------------------------------------------------------
-    def _load_sessions(self) -> None:
-        b, p = self.bundle, self.precision
-        d, f, q = b.detector, b.fusion, b.pose
-        self.detector = OnnxModel(b.graph("detector", p), self.threads, (d.input_name,), (d.output_name,))
-        self.fusion = OnnxModel(b.graph("fusion", p), self.threads, (f.rgb_input, f.depth_input), (f.output_name,))
-        self.pose = OnnxModel(b.graph("pose", p), self.threads, (q.points_input, q.features_input),
-                              (q.quat_output, q.trans_output, q.conf_output))
+    # the first pallet type's model, for callers that score or draw one type
+    @property
+    def model_points_m(self) -> np.ndarray:
+        """(n, 3) model points of the bundle's first pallet type, metres."""
+        return self.pallet_types[0].points_m
+
+    @property
+    def symmetries(self) -> np.ndarray:
+        """(S, 4, 4) symmetries of the bundle's first pallet type."""
+        return self.pallet_types[0].symmetries
+
+    @property
+    def model_size_m(self) -> np.ndarray:
+        """(3,) size of the bundle's first pallet type, metres."""
+        return self.pallet_types[0].size_m
+
+    @property
+    def model_boxes_m(self) -> np.ndarray | None:
+        """(k, 2, 3) boards and blocks of the bundle's first pallet type, metres, or None."""
+        return self.pallet_types[0].boxes_m
+
+    @property
+    def refines(self) -> bool:
+        """Whether poses are refined (for at least one pallet type)."""
+        return self.refiner.enabled
 
     def _check_graphs_match_manifest(self) -> None:
         """Fixed axes the graphs declare must equal the manifest's sizes."""
@@ -216,12 +230,13 @@ class PalletEstimator:
                 problems.append(f"{model.path.name} input {name!r} axis {axis} is {shape[axis]}, the manifest's "
                                 f"{what} is {value}")
 
-        expect(self.detector, d.input_name, 2, d.input_hw[0], "detector.input_hw[0]")
-        expect(self.detector, d.input_name, 3, d.input_hw[1], "detector.input_hw[1]")
-        expect(self.fusion, f.rgb_input, 2, f.crop_hw[0], "fusion.crop_hw[0]")
-        expect(self.fusion, f.rgb_input, 3, f.crop_hw[1], "fusion.crop_hw[1]")
-        expect(self.pose, q.points_input, 1, q.num_points, "pose.num_points")
-        expect(self.pose, q.features_input, 2, f.feature_dim, "fusion.feature_dim")
+        det, fusion, pose = self.detector.model, self.pose_network.fusion, self.pose_network.pose
+        expect(det, d.input_name, 2, d.input_hw[0], "detector.input_hw[0]")
+        expect(det, d.input_name, 3, d.input_hw[1], "detector.input_hw[1]")
+        expect(fusion, f.rgb_input, 2, f.crop_hw[0], "fusion.crop_hw[0]")
+        expect(fusion, f.rgb_input, 3, f.crop_hw[1], "fusion.crop_hw[1]")
+        expect(pose, q.points_input, 1, q.num_points, "pose.num_points")
+        expect(pose, q.features_input, 2, f.feature_dim, "fusion.feature_dim")
         if problems:
             raise BundleError(f"bundle {self.bundle.root} disagrees with its own graphs: " + "; ".join(problems))
 
@@ -244,31 +259,39 @@ class PalletEstimator:
     def estimate(self, rgb, depth=None, K=None, depth_scale=None) -> FrameResult:
         """Like `predict`, but the whole `FrameResult` (accepted, rejected, timings)."""
         t0 = time.perf_counter()
-        rgb, depth_m, K = self._inputs(rgb, depth, K, depth_scale)
+        deadline = Deadline(self.options.time_budget_ms, clock=self.clock)
+        rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
         timings: dict[str, float] = {}
-        detections = self._detect(rgb, timings)
-        return self._estimate_from_detections(rgb, depth_m, K, detections, timings, t0)
+        cands = self._run(rgb, depth_m, K, self._detect(rgb, timings), timings, deadline)
+        return self._result(cands, depth_m.shape, timings, t0)
 
-    def estimate_boxes(self, rgb, depth=None, K=None, depth_scale=None, boxes_xyxy=None,
-                       scores=None) -> FrameResult:
-        """The pose stage on boxes from elsewhere (a shared detector): (n, 4) image pixels, (n,) scores."""
+    def estimate_boxes(self, rgb, depth=None, K=None, depth_scale=None, boxes_xyxy=None, scores=None,
+                       class_ids=None) -> FrameResult:
+        """The pose stages on boxes from elsewhere (a shared detector): (n, 4) image pixels, (n,) scores,
+        (n,) detector class ids of this bundle (default: the first pallet class)."""
         t0 = time.perf_counter()
-        rgb, depth_m, K = self._inputs(rgb, depth, K, depth_scale)
-        if boxes_xyxy is None:
-            raise ValueError("estimate_boxes needs boxes_xyxy (n, 4)")
-        boxes = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
-        scores = np.ones(len(boxes)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(-1)
-        if len(scores) != len(boxes):
-            raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
-        det = Detections(boxes, scores, np.full(len(boxes), self._pallet_class_ids[0]))
-        return self._estimate_from_detections(rgb, depth_m, K, det, {}, t0)
+        deadline = Deadline(self.options.time_budget_ms, clock=self.clock)
+        rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
+        timings: dict[str, float] = {}
+        cands = self._run(rgb, depth_m, K, self._boxes(boxes_xyxy, scores, class_ids), timings, deadline)
+        return self._result(cands, depth_m.shape, timings, t0)
 
-    def _class_name(self, class_id: int) -> str:
-        classes = self.bundle.classes
-        return classes[class_id] if 0 <= class_id < len(classes) else str(class_id)
+    def candidates(self, rgb, depth=None, K=None, depth_scale=None, detections: Detections | None = None,
+                   timings: dict[str, float] | None = None) -> Candidates:
+        """Every stage's output for every detection of the frame (`Candidates`), for tools and benchmarks.
 
-    # -- stages ---------------------------------------------------------------------------------
-    def _inputs(self, rgb, depth, K, depth_scale):
+        :param detections: boxes from elsewhere (`Detections`, image pixels), or None to run the detector.
+        :param timings: optional dict that receives the stages' milliseconds.
+        """
+        deadline = Deadline(self.options.time_budget_ms, clock=self.clock)
+        rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
+        timings = {} if timings is None else timings
+        det = self._detect(rgb, timings) if detections is None else detections
+        return self._run(rgb, depth_m, K, det, timings, deadline)
+
+    def check_inputs(self, rgb, depth=None, K=None, depth_scale=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The validated frame: (rgb (H, W, 3) uint8, depth float32 metres (H, W), K (3, 3)), from arrays or
+        an `RGBDFrame` (`inputs.check_rgbd`)."""
         if hasattr(rgb, "rgb") and hasattr(rgb, "depth") and hasattr(rgb, "K"):   # an RGBDFrame
             frame = rgb
             if depth is not None:
@@ -280,143 +303,69 @@ class PalletEstimator:
             raise ValueError("depth is missing: pass depth (H, W) aligned to rgb, or an RGBDFrame")
         return check_rgbd(rgb, depth, K, depth_scale, self.options.nonfinite_depth)
 
+    # -- the pipeline ---------------------------------------------------------------------------
     def _detect(self, rgb: np.ndarray, timings: dict[str, float]) -> Detections:
         t = time.perf_counter()
-        d = self.bundle.detector
-        img, lb = letterbox(rgb, d.input_hw, d.letterbox_pad_value, out=self._lb_buf)
-        to_nchw(img, d.rgb_mean, d.rgb_std, d.pixel_scale, d.channel_order == "BGR", out=self._det_in)
-        timings["preprocess"] = _ms(t)
+        x, lb = self.detector.preprocess(rgb)
+        timings["preprocess"] = elapsed_ms(t)
         t = time.perf_counter()
-        out = self.detector.run({d.input_name: self._det_in}, [d.output_name])[d.output_name]
-        timings["detector"] = _ms(t)
+        raw = self.detector.infer(x)
+        timings["detector"] = elapsed_ms(t)
         t = time.perf_counter()
-        o = self.options
-        det = decode_yolov8(out, o.score_threshold, o.iou_threshold, self._pallet_class_ids, o.max_pallets)
-        det = Detections(undo_letterbox(det.boxes_xyxy, lb), det.scores, det.class_ids)
-        timings["decode_nms"] = _ms(t)
+        det = self.detector.postprocess(raw, lb)
+        timings["decode_nms"] = elapsed_ms(t)
         return det
 
-    def _pose_inputs(self, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, boxes: np.ndarray) -> PoseBatch:
-        """`prepare_pose_inputs` box by box, each with its own generator seeded by (seed, clamped box)."""
-        rows = []
-        for box in boxes:
-            box_i = clamp_box(box, depth_m.shape)
-            key = [int(self.options.seed)] + ([] if box_i is None else [int(c) for c in box_i])
-            rows.append(prepare_pose_inputs(rgb, depth_m, K, box[None], self.spec, np.random.default_rng(key)))
-        if not rows:
-            return prepare_pose_inputs(rgb, depth_m, K, np.zeros((0, 4)), self.spec, np.random.default_rng(0))
-        fields = [f.name for f in dataclasses.fields(PoseBatch)]
-        return PoseBatch(*(np.concatenate([getattr(r, f) for r in rows]) for f in fields))
+    def _boxes(self, boxes_xyxy, scores, class_ids) -> Detections:
+        if boxes_xyxy is None:
+            raise ValueError("estimate_boxes needs boxes_xyxy (n, 4)")
+        boxes = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+        scores = np.ones(len(boxes)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(-1)
+        if len(scores) != len(boxes):
+            raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
+        first = min(self._type_of_class)
+        class_ids = np.full(len(boxes), first) if class_ids is None else np.asarray(class_ids, np.int64).reshape(-1)
+        if len(class_ids) != len(boxes):
+            raise ValueError(f"{len(boxes)} boxes but {len(class_ids)} class ids")
+        unknown = sorted({int(c) for c in class_ids} - set(self._type_of_class))
+        if unknown:
+            raise ValueError(f"class ids {unknown} are not pallet classes of bundle {self.bundle.name} "
+                             f"(pallet classes: {sorted(self._type_of_class)})")
+        return Detections(boxes, scores, class_ids)
 
-    def _estimate_from_detections(self, rgb, depth_m, K, det: Detections, timings: dict[str, float],
-                                  t0: float) -> FrameResult:
-        o = self.options
-        hw = depth_m.shape
+    def _run(self, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, det: Detections,
+             timings: dict[str, float], deadline: Deadline) -> Candidates:
+        """The stages after the detector on `det`, highest score first, at most `max_pallets`."""
         for s in STAGES:
             timings.setdefault(s, 0.0)
-        order = np.argsort(-det.scores, kind="stable")[:o.max_pallets]
-        det = det.take(order)
-        if len(det) == 0:
-            timings["total"] = _ms(t0)
-            return FrameResult.empty(hw, timings)
+        det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
+        type_index = [self._type_of_class[int(c)] for c in det.class_ids]
+        cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points)
+        if len(cands):
+            self.pose_network(rgb, depth_m, K, cands, timings, deadline)
+            self.refiner(cands, depth_m, K, timings, deadline)
+            self.fit_check(cands, depth_m, K, timings)
+        return cands
 
-        t = time.perf_counter()
-        batch = self._pose_inputs(rgb, depth_m, K, det.boxes_xyxy)
-        timings["pose_inputs"] = _ms(t)
-        rejected: list[tuple[int, Rejection]] = []
-        go = []
-        for i in range(len(det)):
-            if not batch.box_in_image[i]:
-                rejected.append((i, Rejection(det.boxes_xyxy[i], det.scores[i], "box_outside_image",
-                                              "the box does not overlap the image")))
-            elif batch.n_valid[i] < o.min_valid_points:
-                rejected.append((i, Rejection(det.boxes_xyxy[i], det.scores[i], "too_few_points",
-                                              f"{int(batch.n_valid[i])} valid depth pixels in the box, "
-                                              f"need {o.min_valid_points}", int(batch.n_valid[i]))))
+    def _result(self, cands: Candidates, image_hw: tuple[int, int], timings: dict[str, float],
+                t0: float) -> FrameResult:
+        """Accepted poses and rejections in the candidates' order (highest detector score first)."""
+        poses, rejected = [], []
+        for i in range(len(cands)):
+            pose = None
+            if not np.isnan(cands.fit[i, 2]):
+                g = self.pallet_types[int(cands.type_index[i])]
+                pose = PalletPose(cands.T_cam_pallet[i], cands.confidence[i], cands.scores[i], cands.boxes_xyxy[i],
+                                  int(cands.n_valid[i]), FitScore(*cands.fit[i]),
+                                  self._class_name(int(cands.class_ids[i])), g.name)
+            if cands.reason[i] == "":
+                poses.append(pose)
             else:
-                go.append(i)
-        accepted: list[tuple[int, PalletPose]] = []
-        if go:
-            sub = batch.take(np.asarray(go))
-            f, q = self.bundle.fusion, self.bundle.pose
-            outs = []
-            for c in range(0, len(go), GRAPH_BATCH):   # see GRAPH_BATCH: bounds the graphs' memory
-                part = slice(c, c + GRAPH_BATCH)
-                t = time.perf_counter()
-                feat = self.fusion.run({f.rgb_input: sub.rgb_crops[part], f.depth_input: sub.depth_crops[part]},
-                                       [f.output_name])[f.output_name]
-                timings["fusion"] += _ms(t)
-                t = time.perf_counter()
-                emb = gather_features(feat, sub.choose[part])
-                outs.append(self.pose.run({q.points_input: sub.points[part], q.features_input: emb}))
-                timings["pose"] += _ms(t)
-            t = time.perf_counter()
-            quat, trans, conf_pts = (np.concatenate([o[k] for o in outs])
-                                     for k in (q.quat_output, q.trans_output, q.conf_output))
-            T, conf, _ = select_poses(quat, trans, conf_pts, sub.points, sub.centres, "wxyz")
-            timings["selection"] = _ms(t)
-            t = time.perf_counter()
-            T_net = T.copy()
-            fits: list[FitScore | None] = [None] * len(go)
-            if self.refines:
-                for k, i in enumerate(go):
-                    box_obs = box_points(depth_m, K, det.boxes_xyxy[i], o.refine_points, self.spec.depth_range_m)
-                    obs = sub.points[k].astype(np.float64) + sub.centres[k]
-                    T[k], fits[k] = self._refine(T_net[k], obs, box_obs, depth_m, K)
-            timings["refine"] = _ms(t)
-            t = time.perf_counter()
-            for k, i in enumerate(go):
-                fit = fits[k]
-                if fit is None:
-                    obs = sub.points[k].astype(np.float64) + sub.centres[k]
-                    fit = fit_score(T[k], obs, self.model_points_m, depth_m, K, o.fit_tol_m)
-                pose = PalletPose(T[k], conf[k], det.scores[i], det.boxes_xyxy[i], int(sub.n_valid[k]), fit,
-                                  self._class_name(int(det.class_ids[i])))
-                if conf[k] < o.min_confidence:
-                    rejected.append((i, Rejection(det.boxes_xyxy[i], det.scores[i], "low_confidence",
-                                                  f"confidence {conf[k]:.3f} < {o.min_confidence}",
-                                                  pose.n_valid_points, pose)))
-                elif fit.score < o.min_fit:
-                    rejected.append((i, Rejection(det.boxes_xyxy[i], det.scores[i], "poor_fit",
-                                                  f"fit {fit.score:.3f} < {o.min_fit} (inliers "
-                                                  f"{fit.inlier_fraction:.2f}, free-space violation "
-                                                  f"{fit.free_space_violation:.2f})", pose.n_valid_points, pose)))
-                else:
-                    accepted.append((i, pose))
-            timings["fit"] = _ms(t)
-        timings["total"] = _ms(t0)
-        return FrameResult(poses=[p for _, p in sorted(accepted, key=lambda x: x[0])],
-                           rejected=[r for _, r in sorted(rejected, key=lambda x: x[0])],
-                           timings_ms=timings, image_hw=hw)
+                rejected.append(Rejection(cands.boxes_xyxy[i], cands.scores[i], cands.reason[i], cands.detail[i],
+                                          int(cands.n_valid[i]), pose))
+        timings["total"] = elapsed_ms(t0)
+        return FrameResult(poses=poses, rejected=rejected, timings_ms=timings, image_hw=tuple(image_hw))
 
-    def _refine(self, T_net: np.ndarray, obs_cam: np.ndarray, box_obs_cam: np.ndarray, depth_m: np.ndarray,
-                K: np.ndarray) -> tuple[np.ndarray, FitScore | None]:
-        """One detection's pose after refinement, and its fit score when already computed (else None).
-
-        :param T_net: (4, 4) the network's pose. :param obs_cam: (n, 3) the sampled points of the detection
-        (the fit score's), camera frame. :param box_obs_cam: (m, 3) the box's depth points for ICP.
-        """
-        o = self.options
-        T, fit = T_net, None
-        res = refine_pose(T_net, box_obs_cam, self.model_boxes_m, iterations=o.refine_iterations)
-        # noisy depth pulls ICP off: its residual tells whether the depth is clean enough to trust it, and
-        # then it must explain the depth at least as well as the network's pose
-        if np.isfinite(res.rms_m) and res.rms_m < o.refine_max_rms_m:
-            fit_icp = fit_score(res.T_cam_pallet, obs_cam, self.model_points_m, depth_m, K, o.fit_tol_m)
-            fit_net = fit_score(T_net, obs_cam, self.model_points_m, depth_m, K, o.fit_tol_m)
-            keep_icp = fit_icp.score >= fit_net.score + o.refine_margin
-            T, fit = (res.T_cam_pallet, fit_icp) if keep_icp else (T_net, fit_net)
-        if o.refine_starts > 0:
-            # the network's larger errors lie outside ICP's basin: ICP from starts around the pose, and a
-            # trusted landing that explains the depth better at a tight tolerance replaces it
-            T_best, j = best_landing(T, box_obs_cam, self.model_boxes_m, o.refine_starts, o.refine_start_points,
-                                     lambda T_: fit_score(T_, box_obs_cam, self.model_points_m, depth_m, K,
-                                                          o.refine_select_tol_m, self.model_boxes_m).score,
-                                     o.refine_start_max_rms_m, o.refine_iterations)
-            if j >= 0:
-                T, fit = T_best, None
-        return T, fit
-
-
-def _ms(t: float) -> float:
-    return (time.perf_counter() - t) * 1000.0
+    def _class_name(self, class_id: int) -> str:
+        classes = self.bundle.classes
+        return classes[class_id] if 0 <= class_id < len(classes) else str(class_id)

@@ -2,22 +2,21 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 
-def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str | None = None) -> None:
+def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """--bundle, --int8, --threads, --score-threshold, --max-pallets, --min-fit, --seed, --no-refine,
-    --refine-starts."""
-    if bundle_default is None:
-        parser.add_argument("--bundle", required=True, help="model bundle folder")
-    else:
-        parser.add_argument("--bundle", default=bundle_default, help=f"model bundle folder (default: {bundle_default})")
+    --refine-starts, --time-budget-ms."""
+    parser.add_argument("--bundle", help="model bundle folder (default: $PALLET6D_BUNDLE, else the installed "
+                                         "pallet6d-models package's epal-default, else ./models/epal-default)")
     parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
     parser.add_argument("--max-pallets", type=int, default=None,
                         help="pose at most this many detections per frame, the highest-scoring ones (default: "
-                             "EstimatorOptions.max_pallets); each costs about 40 ms on 2 cores")
+                             "EstimatorOptions.max_pallets)")
     parser.add_argument("--min-fit", type=float, default=0.2, help="reject poses whose fit score is below this")
     parser.add_argument("--seed", type=int, default=0, help="point sampling seed")
     parser.add_argument("--no-refine", action="store_true",
@@ -25,17 +24,29 @@ def add_estimator_arguments(parser: argparse.ArgumentParser, bundle_default: str
     parser.add_argument("--refine-starts", type=int, default=None,
                         help="extra ICP starts around each pose, 0-14; a landing counts on clean depth only "
                              "(default: EstimatorOptions.refine_starts, 6; 0 is fastest)")
+    parser.add_argument("--time-budget-ms", type=float, default=None,
+                        help="per-frame time budget: pallets are posed highest detector score first, and those left "
+                             "when it is spent are reported as skipped (reason time_budget); default: no limit")
 
 
 def load_estimator(args: argparse.Namespace, command: str):
-    """The `PalletEstimator` the arguments describe, or None after printing why it cannot be loaded."""
+    """The `PalletEstimator` the arguments describe, or None after printing why it cannot be loaded.
+    Without `--bundle`, `args.bundle` becomes the default bundle's folder (`default_bundle`)."""
     from .bundle import BundleError
+    from .default_bundle import BundleNotFoundError, default_bundle
     from .estimator import PalletEstimator
 
+    if args.bundle is None:
+        try:
+            args.bundle = default_bundle()
+        except BundleNotFoundError as exc:
+            print(f"pallet6d {command}: {exc}", file=sys.stderr)
+            return None
+        logging.getLogger(__name__).info("bundle: %s", args.bundle)
     try:
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
-        extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets))
-                 if v is not None}
+        extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
+                                   ("time_budget_ms", args.time_budget_ms)) if v is not None}
         return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32",
                                            score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,

@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import check_K, invert_T, transform_points
+from .geometry import check_K
 from .results import FitScore
 
-__all__ = ["distance_to_boxes", "distance_to_points", "fit_score"]
+__all__ = ["check_poses", "distance_to_boxes", "distance_to_points", "fit_score", "fit_scores"]
 
 
 def distance_to_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> np.ndarray:
@@ -59,36 +59,105 @@ def distance_to_points(pts: np.ndarray, model_pts: np.ndarray, chunk: int = 512)
     return out
 
 
-def _free_space_violation(model_cam: np.ndarray, depth_m: np.ndarray, K: np.ndarray, tol_m: float,
-                          cell_px: int = 4) -> float:
-    """Fraction of the model's camera-facing points that lie more than `tol_m` in front of the observed depth.
+def _free_space_violations(model_cam: np.ndarray, depth_m: np.ndarray, K: np.ndarray, tol_m: float,
+                           cell_px: int = 4) -> np.ndarray:
+    """Per pose, the fraction of the model's camera-facing points more than `tol_m` in front of the observed depth.
 
     Only points the camera would see of the model itself count (a coarse z-buffer of the model on
-    `cell_px` pixel cells): the far side of a correctly posed pallet sits behind its near side, not
-    in free space, and must not dilute the fraction.
+    `cell_px` pixel cells, one per pose): the far side of a correctly posed pallet sits behind its near
+    side, not in free space, and must not dilute the fraction.
 
-    :param model_cam: (m, 3) posed model points, camera frame, metres.
-    :return: fraction in [0, 1]; 0 when no visible model point lands on valid depth.
+    :param model_cam: (P, m, 3) posed model points, camera frame, metres.
+    :return: (P,) fractions in [0, 1]; 0 for a pose with no visible model point on valid depth.
     """
     h, w = depth_m.shape
-    mc = model_cam[model_cam[:, 2] > 1e-6]
-    if len(mc) == 0:
-        return 0.0
-    u = np.round(mc[:, 0] * K[0, 0] / mc[:, 2] + K[0, 2]).astype(np.int64)
-    v = np.round(mc[:, 1] * K[1, 1] / mc[:, 2] + K[1, 2]).astype(np.int64)
+    P = len(model_cam)
+    z_all = model_cam[..., 2]
+    ok = z_all > 1e-6
+    pose, idx = np.nonzero(ok)
+    x, y, z = model_cam[pose, idx, 0], model_cam[pose, idx, 1], z_all[pose, idx]
+    u = np.round(x * K[0, 0] / z + K[0, 2]).astype(np.int64)
+    v = np.round(y * K[1, 1] / z + K[1, 2]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    if not np.any(inside):
-        return 0.0
-    u, v, z = u[inside], v[inside], mc[inside, 2]
+    pose, u, v, z = pose[inside], u[inside], v[inside], z[inside]
+    if len(z) == 0:
+        return np.zeros(P)
     cell = (v // cell_px) * ((w + cell_px - 1) // cell_px) + u // cell_px
-    z_near = np.full(int(cell.max()) + 1, np.inf)
-    far_first = np.argsort(-z, kind="stable")
-    z_near[cell[far_first]] = z[far_first]      # fancy assignment: the last (nearest) write wins
+    # one z-buffer per pose, each over the span of cells its points reach, laid end to end
+    lo, hi = np.full(P, np.iinfo(np.int64).max), np.full(P, -1)
+    np.minimum.at(lo, pose, cell)
+    np.maximum.at(hi, pose, cell)
+    span = np.maximum(hi - lo + 1, 0)
+    start = np.concatenate([[0], np.cumsum(span)[:-1]])
+    key = start[pose] + cell - lo[pose]
+    z_near = np.full(int(span.sum()), np.inf)
+    np.minimum.at(z_near, key, z)
     d_obs = depth_m[v, u]
-    use = (z <= z_near[cell] + tol_m) & (d_obs > 0)
-    if not np.any(use):
-        return 0.0
-    return float((z[use] < d_obs[use] - tol_m).mean())
+    use = (z <= z_near[key] + tol_m) & (d_obs > 0)
+    n_use = np.bincount(pose[use], minlength=P)
+    n_bad = np.bincount(pose[use], weights=z[use] < d_obs[use] - tol_m, minlength=P)
+    return np.where(n_use > 0, n_bad / np.maximum(n_use, 1), 0.0)
+
+
+def check_poses(T: np.ndarray, name: str) -> np.ndarray:
+    """(P, 4, 4) float64 finite transforms, or ValueError naming `name`."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} must be finite (4, 4) transforms, got shape {T.shape}")
+    return T
+
+
+def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarray | None, model_pts: np.ndarray,
+               depth_m: np.ndarray, K: np.ndarray, tol_m: float = 0.04,
+               model_boxes_m: np.ndarray | None = None,
+               points_in_boxes_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`fit_score` of P poses at once, each against its own observed points (one numpy pass).
+
+    :param T_cam_model: (P, 4, 4) poses to check.
+    :param pts_obs_cam: (P, N, 3) observed points per pose, camera frame, metres; pose i uses its first
+        `n_obs[i]` rows (the rest is padding).
+    :param n_obs: (P,) valid rows per pose; None = all N.
+    :param model_pts, depth_m, K, tol_m, model_boxes_m: as in `fit_score`.
+    :param points_in_boxes_m: optional (k, 2, 3) boxes that hold every model point (the pallet's own boxes,
+        when `model_pts` are sampled on them): with distances to points, an observed point farther than
+        `tol_m` from these boxes is farther from every model point too and skips the nearest-point search.
+    :return: (inlier_fraction, free_space_violation, score), each (P,).
+    """
+    if not tol_m > 0:
+        raise ValueError(f"tol_m must be positive, got {tol_m}")
+    K = check_K(K)
+    T = check_poses(T_cam_model, "T_cam_model")
+    P = len(T)
+    obs = np.asarray(pts_obs_cam, dtype=np.float64)
+    if obs.ndim != 3 or obs.shape[0] != P or obs.shape[2] != 3:
+        raise ValueError(f"pts_obs_cam must be ({P}, N, 3), got shape {obs.shape}")
+    N = obs.shape[1]
+    n_obs = np.full(P, N) if n_obs is None else np.asarray(n_obs, dtype=np.int64).reshape(P)
+    model = np.asarray(model_pts, dtype=np.float64).reshape(-1, 3)
+
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    obs_model = (obs - t[:, None]) @ R                                      # (P, N, 3) model frame
+    valid = np.arange(N)[None] < n_obs[:, None]
+    # only points within tol_m of the model's bounding box can be inliers: the rest of the box's
+    # background skips the exact distance
+    if model_boxes_m is not None:
+        boxes = np.asarray(model_boxes_m, dtype=np.float64)
+        lo, hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
+    else:
+        lo, hi = model.min(0), model.max(0)
+    gap = np.maximum(np.maximum(lo - obs_model, obs_model - hi), 0.0)
+    cand = valid & ((gap * gap).sum(-1) <= (tol_m + 1e-6) ** 2)
+    if model_boxes_m is None and points_in_boxes_m is not None and cand.any():
+        cand[cand] = distance_to_boxes(obs_model[cand], points_in_boxes_m) <= tol_m + 1e-6
+    inlier_pts = np.zeros((P, N), dtype=bool)
+    if cand.any():
+        d = distance_to_boxes(obs_model[cand], model_boxes_m) if model_boxes_m is not None \
+            else distance_to_points(obs_model[cand], model)
+        inlier_pts[cand] = d <= tol_m
+    inlier = np.where(n_obs > 0, inlier_pts.sum(1) / np.maximum(n_obs, 1), 0.0)
+
+    violation = _free_space_violations(model @ np.swapaxes(R, 1, 2) + t[:, None], depth_m, K, tol_m)
+    return inlier, violation, inlier * (1.0 - violation)
 
 
 def fit_score(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, model_pts: np.ndarray, depth_m: np.ndarray,
@@ -107,22 +176,10 @@ def fit_score(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, model_pts: np.nd
     :return: `FitScore`; inlier fraction 0 when there are no observed points, violation 0 when no model
         point lands on valid depth.
     """
-    if not tol_m > 0:
-        raise ValueError(f"tol_m must be positive, got {tol_m}")
-    K = check_K(K)
     T = np.asarray(T_cam_model, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ValueError(f"T_cam_model must be a finite (4, 4) transform, got shape {T.shape}")
-    obs = np.asarray(pts_obs_cam, dtype=np.float64).reshape(-1, 3)
-
-    if len(obs):
-        obs_model = transform_points(invert_T(T), obs)
-        d = distance_to_boxes(obs_model, model_boxes_m) if model_boxes_m is not None \
-            else distance_to_points(obs_model, model_pts)
-        inlier = float((d <= tol_m).mean())
-    else:
-        inlier = 0.0
-
-    violation = _free_space_violation(transform_points(T, np.asarray(model_pts, dtype=np.float64).reshape(-1, 3)),
-                                      depth_m, K, tol_m)
-    return FitScore(inlier_fraction=inlier, free_space_violation=violation, score=inlier * (1.0 - violation))
+    obs = np.asarray(pts_obs_cam, dtype=np.float64).reshape(1, -1, 3)
+    inlier, violation, score = fit_scores(T[None], obs, None, model_pts, depth_m, K, tol_m, model_boxes_m)
+    return FitScore(inlier_fraction=float(inlier[0]), free_space_violation=float(violation[0]),
+                    score=float(score[0]))

@@ -154,7 +154,7 @@ def _check_frame(rgb: np.ndarray, depth_m: np.ndarray, boxes_xyxy, masks) -> tup
 
 
 def prepare_pose_inputs(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, boxes_xyxy, spec: PoseInputSpec,
-                        rng: np.random.Generator, masks: np.ndarray | None = None) -> PoseBatch:
+                        rng, masks: np.ndarray | None = None, return_pixels: bool = False):
     """Crops, encodings, sampled centred points and feature-map indices for every box (module docstring).
 
     :param rgb: (H, W, 3) uint8 RGB.
@@ -162,13 +162,20 @@ def prepare_pose_inputs(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, box
     :param K: (3, 3) intrinsics of the (registered) RGB-D pair.
     :param boxes_xyxy: (B, 4) boxes in image pixels (B may be 0).
     :param spec: the bundle's `PoseInputSpec`.
-    :param rng: the generator for point sampling (seed it for reproducible results).
+    :param rng: the generator for point sampling (seed it for reproducible results), or a sequence of B
+        generators, one per box (a box's points then do not depend on the other boxes).
     :param masks: optional (B, H, W) bool object masks; points are then taken inside the mask only.
+    :param return_pixels: also return, per box, the (v, u) int64 rows and columns of every candidate pixel
+        (step 4, row-major; empty for an unusable box), so a caller need not select them again.
+    :return: `PoseBatch`, or (`PoseBatch`, list of B (v, u) pairs) with `return_pixels`.
     """
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), got {type(rng)}")
     K = geometry.check_K(K)
     boxes, masks = _check_frame(rgb, depth_m, boxes_xyxy, masks)
+    rngs = [rng] * len(boxes) if isinstance(rng, np.random.Generator) else \
+        list(rng) if isinstance(rng, (list, tuple)) else []
+    if len(rngs) != len(boxes) or not all(isinstance(r, np.random.Generator) for r in rngs):
+        raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)) or one per box "
+                        f"({len(boxes)}), got {type(rng)}")
     depth_m = geometry.depth_to_metres(depth_m)  # float32 copy with NaN/inf/negative -> 0
     b, (h, w), n = len(boxes), spec.crop_hw, spec.num_points
     rgb_crops = np.zeros((b, 3, h, w), np.float32)
@@ -182,6 +189,8 @@ def prepare_pose_inputs(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, box
     mean = np.asarray(spec.rgb_mean, np.float32).reshape(3, 1, 1)
     std = np.asarray(spec.rgb_std, np.float32).reshape(3, 1, 1)
     lo, hi = spec.depth_range_m
+    empty = np.zeros(0, np.int64)
+    pixels = [(empty, empty)] * b
     for i, box in enumerate(boxes):
         box_i = geometry.clamp_box(box, depth_m.shape)
         if box_i is None:
@@ -195,9 +204,10 @@ def prepare_pose_inputs(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, box
         depth_crops[i, 0], _ = encode_depth(d_c, spec.depth_clip_m)
         v, u = geometry.select_pixels(depth_m, box_i, None if masks is None else masks[i], lo, hi)
         n_valid[i] = len(v)
+        pixels[i] = (v, u)
         if len(v) == 0:
             continue
-        idx = geometry.sample_indices(len(v), n, rng)
+        idx = geometry.sample_indices(len(v), n, rngs[i])
         v, u = v[idx], u[idx]
         pts = geometry.backproject_pixels(u, v, depth_m[v, u], K).astype(np.float64)
         centres[i] = pts.mean(0)
@@ -206,7 +216,8 @@ def prepare_pose_inputs(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, box
         cu = np.clip(np.floor((u - x1 + 0.5) * w / (x2 - x1)), 0, w - 1).astype(np.int64)
         cv_ = np.clip(np.floor((v - y1 + 0.5) * h / (y2 - y1)), 0, h - 1).astype(np.int64)
         choose[i] = cv_ * w + cu
-    return PoseBatch(rgb_crops, depth_crops, points, choose, centres, n_valid, boxes_int, in_image, n_valid > 0)
+    batch = PoseBatch(rgb_crops, depth_crops, points, choose, centres, n_valid, boxes_int, in_image, n_valid > 0)
+    return (batch, pixels) if return_pixels else batch
 
 
 def gather_features(features: np.ndarray, choose: np.ndarray) -> np.ndarray:

@@ -14,18 +14,26 @@ few stop in a local minimum about 2 cm off, where boards repeat); D435-like dept
 several cm, half of it correlated over patches) leaves several cm, which is the data's own limit.
 From 15-30 degrees or 10-20 cm off, ICP stops in a wrong minimum: `best_landing` runs it again from
 starts around the pose (`start_offsets`, batched by `refine_poses`) and a fit score picks the landing.
+
+`refine_batch` does all of it for every detection of a frame at once: ICP from the network's poses, the
+gate, the starts and the landings' choice, each one numpy pass over padded arrays (docs/refinement.md).
+The work is then arithmetic on the points, not Python calls: per ICP step, every point's closest box.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import backproject_pixels, clamp_box, invert_T, select_pixels, transform_points
+from .fit import check_poses, distance_to_boxes, fit_scores
+from .geometry import backproject_pixels, check_K, clamp_box, select_pixels, transform_points
+from .results import FitScore
 
-__all__ = ["best_landing", "box_points", "closest_on_boxes", "RefineResult", "refine_pose", "refine_poses",
+__all__ = ["best_landing", "box_points", "closest_on_boxes", "default_starts", "FrameRefinement", "offsets_from_starts",
+           "refine_batch", "RefineGeometry", "RefineOptions", "RefineResult", "refine_pose", "refine_poses",
            "start_offsets"]
 
 
@@ -63,48 +71,74 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     :param boxes_m: (k, 2, 3) min and max corners.
     :return: (closest (n, 3), unit normal (n, 3), distance (n,)) in metres.
     """
-    p = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
     boxes = _check_boxes(boxes_m)
+    return _closest(np.asarray(pts, dtype=np.float64).reshape(-1, 3), boxes, _extents(boxes))
+
+
+def _extents(boxes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per axis, the distinct (min, max) extents of the boxes (u, 2) and each box's extent (k,)."""
+    out = []
+    for a in range(3):
+        extent, box_col = np.unique(boxes[:, :, a], axis=0, return_inverse=True)
+        out.append((extent, box_col.reshape(-1)))
+    return out
+
+
+def _argmin_rows(v: np.ndarray) -> np.ndarray:
+    """(n,) index of the smallest of each column of a (k, n) array, the first on ties (as `argmin`)."""
+    best, arg = v[0].copy(), np.zeros(v.shape[1], dtype=np.int64)
+    for i in range(1, len(v)):
+        better = v[i] < best
+        np.copyto(best, v[i], where=better)
+        arg[better] = i
+    return arg
+
+
+def _closest(p: np.ndarray, boxes: np.ndarray,
+             extents: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`closest_on_boxes` of (n, 3) float64 points, with the boxes' `_extents`."""
     n = len(p)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
     lo, hi = boxes[:, 0], boxes[:, 1]                           # (k, 3)
-    # squared distance outside each box, one axis at a time, in place on two (n, k) buffers (ICP calls this
-    # every iteration; with (n, k, 3) temporaries it was most of the refinement's time)
-    d_out2, gap, tmp = np.zeros((n, len(boxes))), np.empty((n, len(boxes))), np.empty((n, len(boxes)))
-    for a in range(3):
-        pa = p[:, a, None]
-        np.subtract(lo[None, :, a], pa, out=gap)
-        np.subtract(pa, hi[None, :, a], out=tmp)
-        np.maximum(gap, tmp, out=gap)
+    # squared distance outside each box, one axis at a time: a pallet's boards and blocks share few distinct
+    # extents per axis (EPAL: 16 over the three axes for 20 boxes), so each axis' squared gap is computed once
+    # per distinct extent and gathered per box (ICP calls this every iteration for every point). Arrays are
+    # (boxes, points): numpy's inner loops then run along the points.
+    p_axes = np.ascontiguousarray(p.T)                           # (3, n)
+    d_out2 = np.zeros((len(boxes), n))
+    for a, (extent, box_col) in enumerate(extents):
+        pa = p_axes[a]
+        gap = np.subtract(extent[:, 0, None], pa)
+        np.maximum(gap, pa - extent[:, 1, None], out=gap)
         np.maximum(gap, 0.0, out=gap)
         np.multiply(gap, gap, out=gap)
-        d_out2 += gap
-    j = d_out2.argmin(1)                                         # nearest box per point
-    d = np.sqrt(d_out2[np.arange(n), j])
+        d_out2 += gap[box_col]
+    j = _argmin_rows(d_out2)                                     # nearest box per point
+    d = np.sqrt(d_out2[j, np.arange(n)])
     q = np.clip(p, lo[j], hi[j])
     normal = np.zeros((n, 3))
     out = d > 0.0
-    normal[out] = (p[out] - q[out]) / d[out, None]
+    np.divide(p - q, d[:, None], out=normal, where=out[:, None])
     ins = np.flatnonzero(~out)
     if len(ins) == 0:
         return q, normal, d
     # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
     # of at its outside distance (boxes may overlap); the nearest wins
-    pi, o2 = p[ins], d_out2[ins]
-    d_in = np.full(o2.shape, np.inf)                              # (m, k) depth below each box's nearest face
-    for a in range(3):
-        pa = pi[:, a, None]
-        np.minimum(d_in, pa - lo[None, :, a], out=d_in)
-        np.minimum(d_in, hi[None, :, a] - pa, out=d_in)
+    pi, o2 = p[ins], d_out2[:, ins]
+    d_in = np.full(o2.shape, np.inf)                              # (k, m) depth below each box's nearest face
+    for a, (extent, box_col) in enumerate(extents):
+        pa = p_axes[a, ins]
+        below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
+        np.minimum(d_in, below[box_col], out=d_in)
     dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
-    ji = dist.argmin(1)
+    ji = _argmin_rows(dist)
     r = np.arange(len(ins))
-    di = dist[r, ji]
+    di = dist[ji, r]
     blo, bhi = lo[ji], hi[ji]
     qi = np.clip(pi, blo, bhi)
     ni = np.zeros((len(ins), 3))
-    via_out = o2[r, ji] > 0.0
+    via_out = o2[ji, r] > 0.0
     ni[via_out] = (pi[via_out] - qi[via_out]) / di[via_out, None]
     face = np.flatnonzero(~via_out)                               # move to the nearest face
     to_face = np.concatenate([pi[face] - blo[face], bhi[face] - pi[face]], axis=1)   # -x -y -z +x +y +z
@@ -133,31 +167,32 @@ _STARTS = ((15.0, 0.0, 0.0), (-15.0, 0.0, 0.0), (0.0, 0.1, 0.0), (0.0, -0.1, 0.0
 MAX_STARTS = len(_STARTS)
 
 
-def start_offsets(n: int) -> np.ndarray:
-    """The first `n` extra ICP starts: (n, 4, 4) pallet-frame offsets (a yaw about z, or a slide along x or y)."""
+DEFAULT_STARTS = 6
+
+
+def default_starts(n: int = DEFAULT_STARTS) -> np.ndarray:
+    """The first `n` extra ICP starts as (n, 3) rows of (yaw_deg, dx_m, dy_m), for the EPAL pallet."""
     if not 0 <= int(n) <= MAX_STARTS:
         raise ValueError(f"number of starts must be in [0, {MAX_STARTS}], got {n}")
-    out = np.tile(np.eye(4), (int(n), 1, 1))
-    for i in range(int(n)):
-        yaw_deg, dx_m, dy_m = _STARTS[i]
-        a = np.deg2rad(yaw_deg)
-        out[i, :2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-        out[i, :2, 3] = dx_m, dy_m
+    return np.array(_STARTS[:int(n)], dtype=np.float64).reshape(-1, 3)
+
+
+def offsets_from_starts(starts: np.ndarray) -> np.ndarray:
+    """(S, 4, 4) pallet-frame offsets (a yaw about z, then a slide along x and y) of (S, 3) start rows
+    (yaw_deg, dx_m, dy_m)."""
+    rows = np.asarray(starts, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != 3 or not np.all(np.isfinite(rows)):
+        raise ValueError(f"starts must be finite (S, 3) rows of (yaw_deg, dx_m, dy_m), got shape {rows.shape}")
+    a = np.deg2rad(rows[:, 0])
+    out = np.tile(np.eye(4), (len(rows), 1, 1))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
+    out[:, :2, 3] = rows[:, 1:]
     return out
 
 
-def _exp_se3(delta: np.ndarray) -> np.ndarray:
-    """(4, 4) transform of a small motion (rotation vector w, translation v) = delta[:3], delta[3:]."""
-    w, v = delta[:3], delta[3:]
-    theta = float(np.linalg.norm(w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if theta < 1e-12:
-        R = np.eye(3) + K
-    else:
-        R = np.eye(3) + np.sin(theta) / theta * K + (1 - np.cos(theta)) / theta ** 2 * K @ K
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, v
-    return T
+def start_offsets(n: int) -> np.ndarray:
+    """The first `n` extra ICP starts: (n, 4, 4) pallet-frame offsets (a yaw about z, or a slide along x or y)."""
+    return offsets_from_starts(default_starts(n))
 
 
 @dataclass(frozen=True)
@@ -210,9 +245,7 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
                  stop_near: np.ndarray | None = None, stop_near_m: float = 0.005) -> list[RefineResult]:
     """`refine_pose` from several starting poses on the same points at once (one numpy pass per step).
 
-    Each start runs exactly as `refine_pose` would run it alone (its own prior, stopping and result);
-    batching saves only the per-call overhead (about 7 % for 9 starts of 600 points: the closest-point
-    search is most of the time either way).
+    Each start runs exactly as `refine_pose` would run it alone (its own prior, stopping and result).
 
     :param T_cam_pallet: (m, 4, 4) starting poses, pallet -> camera.
     :param stop_near: optional (4, 4) pose, e.g. an ICP result the starts surround: a start that comes within
@@ -220,17 +253,66 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
         `stopped_near`, since it would only land on that pose again. Saves the rest of its iterations.
     :return: m RefineResults, in the order of the starts.
     """
-    T0 = np.asarray(T_cam_pallet, dtype=np.float64)
-    if T0.ndim != 3 or T0.shape[1:] != (4, 4) or not np.all(np.isfinite(T0)):
-        raise ValueError(f"T_cam_pallet must be finite (4, 4) transforms, got shape {T0.shape}")
-    if not 0 < corr_end_m <= corr_start_m:
-        raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
+    T0 = check_poses(T_cam_pallet, "T_cam_pallet")
     pts = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.all(np.isfinite(pts), axis=1)]
-    m, n = len(T0), len(pts)
+    m = len(T0)
+    near = None if stop_near is None else np.broadcast_to(np.asarray(stop_near, dtype=np.float64), (m, 4, 4))
+    run = _icp(T0, np.broadcast_to(pts, (m,) + pts.shape), np.full(m, len(pts)), boxes_m, iterations,
+               corr_start_m, corr_end_m, prior_rot_rad, prior_trans_m, min_inliers, tol, near, stop_near_m)
+    return [RefineResult(run.T_cam_pallet[i], int(run.iterations[i]), int(run.n_inliers[i]), float(run.rms_m[i]),
+                         float(np.linalg.norm(run.T_cam_pallet[i, :3, 3] - T0[i, :3, 3])), bool(run.converged[i]),
+                         bool(run.stopped_near[i])) for i in range(m)]
+
+
+def _exp_se3_batch(delta: np.ndarray) -> np.ndarray:
+    """(P, 4, 4) transforms of small motions (rotation vector w, translation v) = delta[:, :3], delta[:, 3:]."""
+    w = delta[:, :3]
+    theta = np.linalg.norm(w, axis=1)
+    Kx = np.zeros((len(delta), 3, 3))
+    Kx[:, 0, 1], Kx[:, 0, 2], Kx[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    Kx[:, 1, 0], Kx[:, 2, 0], Kx[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    small = theta < 1e-12
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0, np.sin(th) / th)[:, None, None]
+    b = np.where(small, 0.0, (1 - np.cos(th)) / th ** 2)[:, None, None]
+    T = np.tile(np.eye(4), (len(delta), 1, 1))
+    T[:, :3, :3] += a * Kx + b * (Kx @ Kx)
+    T[:, :3, 3] = delta[:, 3:]
+    return T
+
+
+@dataclass(frozen=True)
+class _IcpRun:
+    """Per pose (P,): final pose (P, 4, 4), steps run, inliers and RMS of the last step, flags."""
+
+    T_cam_pallet: np.ndarray
+    iterations: np.ndarray
+    n_inliers: np.ndarray
+    rms_m: np.ndarray
+    converged: np.ndarray
+    stopped_near: np.ndarray
+
+
+def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, iterations: int,
+         corr_start_m: float, corr_end_m: float, prior_rot_rad: float, prior_trans_m: float, min_inliers: int,
+         tol: float, stop_near: np.ndarray | None, stop_near_m: float) -> _IcpRun:
+    """`refine_pose` for P poses at once, each on its own points; one numpy pass per step for all.
+
+    :param T0: (P, 4, 4) starting poses. :param pts: (P, N, 3) camera frame, metres; pose i uses its first
+    `n_pts[i]` rows. :param stop_near: None or (P, 4, 4), a pose per start at which it stops.
+    """
+    if not 0 < corr_end_m <= corr_start_m:
+        raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
     boxes = _check_boxes(boxes_m)
+    extents = _extents(boxes)
+    m, n = pts.shape[:2]
+    valid = np.arange(n)[None] < np.asarray(n_pts)[:, None]                             # (P, N)
     model_lo, model_hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
-    T_pal_cam = np.stack([invert_T(T) for T in T0])
+    R0, t0 = T0[:, :3, :3], T0[:, :3, 3]
+    T_pal_cam = np.tile(np.eye(4), (m, 1, 1))
+    T_pal_cam[:, :3, :3] = np.swapaxes(R0, 1, 2)
+    T_pal_cam[:, :3, 3] = -(np.swapaxes(R0, 1, 2) @ t0[..., None])[..., 0]
     prior = np.diag([prior_rot_rad ** -2] * 3 + [prior_trans_m ** -2] * 3)
     xi = np.zeros((m, 6))
     n_in, rms, done = np.zeros(m, dtype=np.int64), np.full(m, np.nan), np.zeros(m, dtype=np.int64)
@@ -238,20 +320,20 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     active = np.ones(m, dtype=bool)
     if stop_near is not None:
         corners = np.array(list(itertools.product(*zip(model_lo, model_hi))))               # (8, 3) pallet frame
-        corners_cam = transform_points(np.asarray(stop_near, dtype=np.float64), corners)
+        corners_cam = transform_points(stop_near, np.broadcast_to(corners, (m, 8, 3)))    # (P, 8, 3)
     steps = max(int(iterations), 0)
     for it in range(steps):
         a = np.flatnonzero(active)
         if len(a) == 0:
             break
         thr = corr_start_m * (corr_end_m / corr_start_m) ** (it / max(steps - 1, 1))
-        p = transform_points(T_pal_cam[a], np.broadcast_to(pts, (len(a), n, 3)))        # (a, n, 3)
+        p = transform_points(T_pal_cam[a], pts[a])                                        # (a, n, 3)
         # only points within thr of the model's bounding box can correspond: skip the rest of the box's
         # background (floor, rack, load) in the closest-point search, which is most of the time
-        near = np.all((p > model_lo - thr) & (p < model_hi + thr), axis=-1)                 # (a, n)
+        near = np.all((p > model_lo - thr) & (p < model_hi + thr), axis=-1) & valid[a]     # (a, n)
         q, nrm, d = np.zeros_like(p), np.zeros_like(p), np.full((len(a), n), np.inf)
         if near.any():
-            q[near], nrm[near], d[near] = closest_on_boxes(p[near], boxes_m)
+            q[near], nrm[near], d[near] = _closest(p[near], boxes, extents)
         use = d < thr                                                                     # (a, n)
         n_use = use.sum(1)
         starved = n_use < min_inliers                 # this start stops here, keeping its pose so far
@@ -261,7 +343,8 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
         if len(a) == 0:
             break
         w = np.where(use, (1.0 - (np.minimum(d, thr) / thr) ** 2) ** 2, 0.0)           # Tukey biweight
-        r = ((p - q) * nrm).sum(-1)                                                       # point-to-plane
+        r = (p[..., 0] - q[..., 0]) * nrm[..., 0] + (p[..., 1] - q[..., 1]) * nrm[..., 1] \
+            + (p[..., 2] - q[..., 2]) * nrm[..., 2]                                        # point-to-plane
         J = np.empty(p.shape[:-1] + (6,))                    # d r / d (w, v) of a motion applied to p
         for c, (c1, c2) in enumerate(((1, 2), (2, 0), (0, 1))):                         # p x nrm
             np.subtract(p[..., c1] * nrm[..., c2], p[..., c2] * nrm[..., c1], out=J[..., c])
@@ -269,28 +352,25 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
         wsum = w.sum(1)
         var = np.maximum((w * r * r).sum(1) / wsum, 0.002 ** 2)                          # noise, metres^2
         Jw = J * w[..., None]
-        H = np.einsum("ani,anj->aij", Jw, J) / var[:, None, None] + prior
-        g = np.einsum("ani,an->ai", Jw, r) / var[:, None] + xi[a] @ prior
+        H = np.matmul(np.swapaxes(Jw, 1, 2), J) / var[:, None, None] + prior
+        g = np.matmul(np.swapaxes(Jw, 1, 2), r[..., None])[..., 0] / var[:, None] + xi[a] @ prior
         delta = -np.linalg.solve(H, g[..., None])[..., 0]
         xi[a] += delta                                                                    # small-motion sum
-        for k, i in enumerate(a):
-            T_pal_cam[i] = _exp_se3(delta[k]) @ T_pal_cam[i]
+        T_pal_cam[a] = _exp_se3_batch(delta) @ T_pal_cam[a]
         n_in[a], rms[a], done[a] = n_use, np.sqrt((w * r * r).sum(1) / wsum), it + 1
         conv = (np.abs(delta).sum(1) < tol) & (it >= steps // 2)    # converged at a tight threshold
         converged[a[conv]], active[a[conv]] = True, False
         if stop_near is not None:
             # stop_near's box corners (camera frame) taken into each start's pallet frame come back
             # unmoved when the two poses agree
-            here = transform_points(T_pal_cam[a], np.broadcast_to(corners_cam, (len(a), 8, 3)))
+            here = transform_points(T_pal_cam[a], corners_cam[a])
             near_pose = np.linalg.norm(here - corners, axis=-1).max(1) < stop_near_m
             stopped[a[near_pose]], active[a[near_pose]] = True, False
-    out = []
-    for i in range(m):
-        T = invert_T(T_pal_cam[i])
-        out.append(RefineResult(T, int(done[i]), int(n_in[i]), float(rms[i]),
-                                float(np.linalg.norm(T[:3, 3] - T0[i, :3, 3])), bool(converged[i]),
-                                bool(stopped[i])))
-    return out
+    T = np.tile(np.eye(4), (m, 1, 1))
+    Rt = np.swapaxes(T_pal_cam[:, :3, :3], 1, 2)
+    T[:, :3, :3] = Rt
+    T[:, :3, 3] = -(Rt @ T_pal_cam[:, :3, 3, None])[..., 0]
+    return _IcpRun(T, done, n_in, rms, converged, stopped)
 
 
 def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, n_starts: int,
@@ -322,3 +402,217 @@ def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
             if s > best:
                 best_T, best_k, best = r.T_cam_pallet, k, s
     return best_T, best_k
+
+
+@dataclass(frozen=True, eq=False)
+class RefineGeometry:
+    """One pallet type as refinement needs it (the pallet frame, metres).
+
+    :ivar model_points_m: (m, 3) surface points (the fit score's free-space term and distances).
+    :ivar boxes_m: (k, 2, 3) min/max corners of its boards, blocks, runners, legs (ICP's model).
+    :ivar starts: (S, 3) extra ICP starts, rows of (yaw_deg, dx_m, dy_m); (0, 3) for none.
+    """
+
+    model_points_m: np.ndarray
+    boxes_m: np.ndarray
+    starts: np.ndarray = dataclasses.field(default_factory=default_starts)
+    points_on_boxes: bool = dataclasses.field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        pts = np.asarray(self.model_points_m, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) == 0:
+            raise ValueError(f"model_points_m must be (m, 3) with m >= 1, got shape {pts.shape}")
+        object.__setattr__(self, "model_points_m", pts)
+        object.__setattr__(self, "boxes_m", _check_boxes(self.boxes_m))
+        starts = np.asarray(self.starts, dtype=np.float64)
+        object.__setattr__(self, "starts", np.zeros((0, 3)) if starts.size == 0 else starts)
+        offsets_from_starts(self.starts)                       # validates the rows
+        # surface points sampled on the boxes let the fit score skip points far from the boxes
+        object.__setattr__(self, "points_on_boxes", bool(distance_to_boxes(pts, self.boxes_m).max() <= 1e-6))
+
+    @property
+    def in_boxes(self) -> np.ndarray | None:
+        """The boxes when they hold every model point (see `fit_scores`), else None."""
+        return self.boxes_m if self.points_on_boxes else None
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """How `refine_batch` refines (the estimator's `refine_*` options).
+
+    :ivar iterations: ICP steps, from the network's pose and from each start.
+    :ivar max_rms_m: the ICP pose counts only when its final RMS is below this, metres.
+    :ivar margin: and when its fit score beats the network pose's by this much (0: at least matches it).
+    :ivar fit_tol_m: tolerance of that fit score (and of the returned one), metres.
+    :ivar start_points: depth points each start uses (an even subset of the box's).
+    :ivar select_tol_m: tolerance of the fit score that compares the starts' landings, metres.
+    :ivar start_max_rms_m: a landing counts only when its ICP RMS is below this, metres.
+    :ivar stop_near_m: a start that comes this close to the pose it surrounds stops (0: all run to the end).
+    """
+
+    iterations: int = 20
+    max_rms_m: float = 0.004
+    margin: float = 0.0
+    fit_tol_m: float = 0.04
+    start_points: int = 300
+    select_tol_m: float = 0.015
+    start_max_rms_m: float = 0.003
+    stop_near_m: float = 0.005
+
+    def __post_init__(self) -> None:
+        if int(self.iterations) < 0 or int(self.start_points) < 1:
+            raise ValueError(f"iterations must be >= 0 and start_points >= 1, got {self.iterations}, "
+                             f"{self.start_points}")
+        for name in ("max_rms_m", "fit_tol_m", "select_tol_m", "start_max_rms_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not -1.0 <= self.margin <= 1.0 or not self.stop_near_m >= 0:
+            raise ValueError(f"need margin in [-1, 1] and stop_near_m >= 0, got {self.margin}, {self.stop_near_m}")
+
+
+# where a refined pose came from (`FrameRefinement.source`; k >= 0 is the landing of start k)
+FROM_NETWORK, FROM_ICP = -2, -1
+
+
+@dataclass(frozen=True, eq=False)
+class FrameRefinement:
+    """`refine_batch`'s result for n detections.
+
+    :ivar T_cam_pallet: (n, 4, 4) refined poses.
+    :ivar fits: n `FitScore`s of those poses at `fit_tol_m` on the detections' sampled points.
+    :ivar source: (n,) int: FROM_NETWORK (-2), FROM_ICP (-1), or k >= 0 (the landing of start k won).
+    :ivar icp_rms_m: (n,) final RMS of ICP from the network's pose, metres (NaN when it never stepped).
+    """
+
+    T_cam_pallet: np.ndarray
+    fits: tuple[FitScore, ...]
+    source: np.ndarray
+    icp_rms_m: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.fits)
+        for name, shape in (("T_cam_pallet", (n, 4, 4)), ("source", (n,)), ("icp_rms_m", (n,))):
+            if np.shape(getattr(self, name)) != shape:
+                raise ValueError(f"FrameRefinement.{name} must have shape {shape}, got {np.shape(getattr(self, name))}")
+
+
+def _padded(rows: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(len(rows), max n, 3) zero-padded stack of (n_i, 3) arrays, and the (len(rows),) counts."""
+    counts = np.array([len(r) for r in rows], dtype=np.int64)
+    out = np.zeros((len(rows), int(counts.max(initial=0)), 3))
+    for i, r in enumerate(rows):
+        out[i, :len(r)] = r
+    return out, counts
+
+
+def refine_batch(T_net_cam_pallet: np.ndarray, obs_cam: np.ndarray, box_obs_cam: list[np.ndarray],
+                 geometry: RefineGeometry | Sequence[RefineGeometry], depth_m: np.ndarray, K: np.ndarray,
+                 options: RefineOptions | None = None) -> FrameRefinement:
+    """Refine all detections of a frame at once: ICP from the network's pose, the RMS and fit-score gate,
+    ICP from the geometry's starts around the pose so far, and the best-fitting trusted landing.
+
+    Per detection this is what `refine_pose`, `fit_score` and `best_landing` do one after the other; here
+    each of those steps runs once for all detections and all starts (one numpy pass per ICP step).
+
+    :param T_net_cam_pallet: (n, 4, 4) the network's poses, pallet -> camera.
+    :param obs_cam: (n, N, 3) each detection's sampled points (the fit score's), camera frame, metres.
+    :param box_obs_cam: n arrays (m_i, 3): each box's depth points for ICP (`box_points`), camera frame.
+    :param geometry: one `RefineGeometry` for all detections, or a list/tuple of one per detection
+        (detections that share the same object refine together).
+    :param depth_m: (H, W) float metres, 0 = no data. :param K: 3x3 intrinsics.
+    :return: `FrameRefinement`.
+    """
+    o = options or RefineOptions()
+    T_net = check_poses(T_net_cam_pallet, "T_net_cam_pallet")
+    n = len(T_net)
+    obs = np.asarray(obs_cam, dtype=np.float64)
+    if obs.ndim != 3 or obs.shape[0] != n or obs.shape[2] != 3:
+        raise ValueError(f"obs_cam must be ({n}, N, 3), got shape {obs.shape}")
+    if len(box_obs_cam) != n:
+        raise ValueError(f"box_obs_cam must hold {n} arrays, got {len(box_obs_cam)}")
+    box_obs = []
+    for i, b in enumerate(box_obs_cam):
+        b = np.asarray(b, dtype=np.float64)
+        if b.ndim != 2 or b.shape[1] != 3:
+            raise ValueError(f"box_obs_cam[{i}] must be (m, 3), got shape {b.shape}")
+        box_obs.append(b[np.all(np.isfinite(b), axis=1)])
+    geoms = [geometry] * n if isinstance(geometry, RefineGeometry) else \
+        list(geometry) if isinstance(geometry, (list, tuple)) else None
+    if geoms is None or len(geoms) != n or not all(isinstance(g, RefineGeometry) for g in geoms):
+        raise TypeError(f"geometry must be a RefineGeometry or {n} of them")
+    K = check_K(K)
+
+    T_out, source, rms = T_net.copy(), np.full(n, FROM_NETWORK), np.full(n, np.nan)
+    fit = np.full((n, 3), np.nan)                                  # inlier fraction, violation, score
+    groups: dict[int, list[int]] = {}
+    for i, g in enumerate(geoms):
+        groups.setdefault(id(g), []).append(i)
+    for idx in groups.values():
+        sel = np.asarray(idx)
+        _refine_group(T_net[sel], obs[sel], [box_obs[i] for i in idx], geoms[idx[0]], depth_m, K, o,
+                      T_out, source, rms, fit, sel)
+    fits = tuple(FitScore(float(a), float(b), float(c)) for a, b, c in fit)
+    return FrameRefinement(T_out, fits, source, rms)
+
+
+# refine_pose's defaults: corr_start_m, corr_end_m, prior_rot_rad, prior_trans_m, min_inliers, tol
+_ICP_DEFAULTS = (0.08, 0.015, 0.1, 0.1, 30, 1e-4)
+
+
+def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray], geom: RefineGeometry,
+                  depth_m: np.ndarray, K: np.ndarray, o: RefineOptions, T_out: np.ndarray, source: np.ndarray,
+                  rms_out: np.ndarray, fit_out: np.ndarray, sel: np.ndarray) -> None:
+    """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
+    g = len(T_net)
+    pts, n_pts = _padded(box_obs)
+    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0)
+    T = T_net.copy()
+    src = np.full(g, FROM_NETWORK)
+    fit = np.full((g, 3), np.nan)
+    # noisy depth pulls ICP off: its residual tells whether the depth is clean enough to trust it, and
+    # then it must explain the depth at least as well as the network's pose
+    gate = np.flatnonzero(np.isfinite(base.rms_m) & (base.rms_m < o.max_rms_m))
+    if len(gate):
+        both = fit_scores(np.concatenate([base.T_cam_pallet[gate], T_net[gate]]),
+                          np.concatenate([obs[gate], obs[gate]]), None, geom.model_points_m, depth_m, K, o.fit_tol_m,
+                          points_in_boxes_m=geom.in_boxes)
+        both = np.stack(both, 1)
+        f_icp, f_net = both[:len(gate)], both[len(gate):]
+        keep = f_icp[:, 2] >= f_net[:, 2] + o.margin
+        T[gate[keep]], src[gate[keep]] = base.T_cam_pallet[gate[keep]], FROM_ICP
+        fit[gate] = np.where(keep[:, None], f_icp, f_net)
+
+    # the network's larger errors lie outside ICP's basin: ICP from starts around the pose, and a trusted
+    # landing that explains the box's depth better at a tight tolerance replaces it
+    S = len(geom.starts)
+    run = np.flatnonzero(n_pts > 0) if S > 0 else np.zeros(0, dtype=np.int64)
+    if len(run):
+        subsets = []
+        for i in run:
+            pick = np.linspace(0, n_pts[i] - 1, min(int(o.start_points), int(n_pts[i]))).round().astype(np.int64)
+            subsets.append(box_obs[i][pick])
+        sub, n_sub = _padded(subsets)
+        offsets = offsets_from_starts(geom.starts)                                        # (S, 4, 4)
+        T_start = (T[run][:, None] @ offsets[None]).reshape(-1, 4, 4)                      # detection-major
+        near = np.repeat(T[run], S, axis=0) if o.stop_near_m > 0 else None
+        land = _icp(T_start, np.repeat(sub, S, axis=0), np.repeat(n_sub, S), geom.boxes_m, o.iterations,
+                    *_ICP_DEFAULTS, near, o.stop_near_m)
+        trusted = ~land.stopped_near & np.isfinite(land.rms_m) & (land.rms_m < o.start_max_rms_m)
+        cand = np.flatnonzero(trusted)                                                    # landing rows
+        owner = np.concatenate([np.arange(len(run)), cand // S])                         # row in `run`
+        poses = np.concatenate([T[run], land.T_cam_pallet[cand]])
+        score = fit_scores(poses, pts[run][owner], n_pts[run][owner], geom.model_points_m, depth_m, K,
+                           o.select_tol_m, geom.boxes_m)[2]
+        landing_score = np.full((len(run), S), -np.inf)
+        landing_score[cand // S, cand % S] = score[len(run):]
+        k = landing_score.argmax(1)                                   # the first of the best, as in order
+        won = landing_score[np.arange(len(run)), k] > score[:len(run)]
+        wins = run[won]
+        T[wins] = land.T_cam_pallet[won.nonzero()[0] * S + k[won]]
+        src[wins], fit[wins] = k[won], np.nan
+
+    todo = np.flatnonzero(np.isnan(fit[:, 0]))
+    if len(todo):
+        fit[todo] = np.stack(fit_scores(T[todo], obs[todo], None, geom.model_points_m, depth_m, K, o.fit_tol_m,
+                                        points_in_boxes_m=geom.in_boxes), 1)
+    T_out[sel], source[sel], rms_out[sel], fit_out[sel] = T, src, base.rms_m, fit

@@ -2,7 +2,7 @@
 
 - `FitScore`: how well a posed pallet model agrees with the observed depth (see `fit.py`).
 - `PalletPose`: one accepted pallet: `T_cam_pallet`, quaternion, network confidence, detector score,
-  box, valid-point count, fit score.
+  box, valid-point count, fit score, detector class and pallet type.
 - `Rejection`: one detection that did not become a pose, with the reason; when a pose was computed but
   failed a check (fit score, network confidence) it is attached for debugging, never returned as accepted.
 - `FrameResult`: everything about one frame: accepted poses, rejections, per-stage milliseconds.
@@ -25,6 +25,7 @@ REJECT_REASONS = (
     "too_few_points",       # fewer valid depth pixels in the box (and depth range) than min_valid_points
     "low_confidence",       # the best per-point network confidence is below min_confidence
     "poor_fit",             # the posed pallet model disagrees with the observed depth (fit.py)
+    "time_budget",          # skipped: the frame's time budget was spent before this detection was posed
 )
 
 
@@ -81,6 +82,7 @@ class PalletPose:
     :ivar n_valid_points: valid depth pixels in the box (before sampling/oversampling).
     :ivar fit: geometric agreement with the observed depth.
     :ivar class_name: the detector class.
+    :ivar pallet_type: the pallet type whose geometry posed and checked it (e.g. "epal"; "" when unknown).
     """
 
     T_cam_pallet: np.ndarray
@@ -90,8 +92,12 @@ class PalletPose:
     n_valid_points: int
     fit: FitScore
     class_name: str = "pallet"
+    pallet_type: str = ""
 
     def __post_init__(self) -> None:
+        if not isinstance(self.pallet_type, str) or not isinstance(self.class_name, str):
+            raise TypeError(f"PalletPose.class_name and pallet_type must be str, got {type(self.class_name).__name__}, "
+                            f"{type(self.pallet_type).__name__}")
         T = _array(self.T_cam_pallet, (4, 4), "PalletPose.T_cam_pallet")
         R = T[:3, :3]
         if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-5) \
@@ -125,7 +131,8 @@ class PalletPose:
         return rot_to_quat(self.R)
 
     def to_dict(self) -> dict:
-        return {"class": self.class_name, "t_m": [round(float(x), 4) for x in self.t_m],
+        return {"class": self.class_name, "pallet_type": self.pallet_type,
+                "t_m": [round(float(x), 4) for x in self.t_m],
                 "quat_wxyz": [round(float(x), 5) for x in self.quat_wxyz],
                 "confidence": round(self.confidence, 4), "detector_score": round(self.detector_score, 4),
                 "box_xyxy": [round(float(x), 1) for x in self.box_xyxy], "n_valid_points": self.n_valid_points,
@@ -171,7 +178,7 @@ class FrameResult:
     :ivar poses: accepted pallets, highest detector score first.
     :ivar rejected: detections that did not become poses, with reasons.
     :ivar timings_ms: milliseconds per stage (keys: preprocess, detector, decode_nms, pose_inputs,
-        fusion, pose, selection, fit, total).
+        fusion, pose, selection, refine, fit, total).
     :ivar image_hw: (H, W) of the input frame.
     """
 

@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True,
                         help="replay:DIR, bop:DIR, bag:FILE, realsense[:SERIAL] or oakd[:MXID]")
-    add_estimator_arguments(parser, bundle_default="models/epal-default")
+    add_estimator_arguments(parser)
     parser.add_argument("--out", type=Path, help="write overlay PNGs (3D boxes and axes) here")
     parser.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0: all)")
     parser.add_argument("--format", choices=("json", "text"), default="json",

@@ -16,7 +16,9 @@ log = logging.getLogger(__name__)
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="virtual-occluded", choices=sorted(PRESETS),
-                        help="scene/sensor preset mirroring the paper's datasets (default: virtual-occluded)")
+                        help="scene/sensor preset: the paper's datasets (virtual-clean, virtual-occluded, "
+                             "indoor-noisy) or real warehouses (forklift-approach, mixed; docs/sim-scenes.md) "
+                             "(default: virtual-occluded)")
     parser.add_argument("--frames", type=int, default=100, help="number of frames (default: 100)")
     parser.add_argument("--seed", type=int, default=0, help="random seed; same seed, same dataset (default: 0)")
     parser.add_argument("--out", type=Path, required=True, help="dataset root directory")

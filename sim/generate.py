@@ -7,27 +7,33 @@ view); `generate_frame(config, seed, index)` draws the scene for frame `index` o
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from pallet6d.runtime.geometry import project_points, transform_points
-from pallet6d.sim.pallets import PALLET_MODELS, box_corners, get_pallet_model
+from pallet6d.sim.appearance import Appearance, draw_appearance, shade_appearance, surface_albedo
+from pallet6d.sim.camera_effects import apply_camera_effects
+from pallet6d.sim.depth_sensors import DepthModel, apply_sensor, depth_model_for
+from pallet6d.sim.forklift_view import PalletFaceGT, face_gts, pocket_visibility
+from pallet6d.sim.pallets import box_corners, get_pallet_model
 from pallet6d.sim.presets import SimConfig
 from pallet6d.sim.raycast import pixel_rays, raycast_boxes
-from pallet6d.sim.scene import Scene, SceneError
-from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel, apply_depth_model, apply_rgb_model
-from pallet6d.sim.shading import shade
+from pallet6d.sim.scene import ForkliftVehicle, Scene, SceneError
+from pallet6d.sim.sensors import PixelInfo, RgbCameraModel, StereoDepthModel, apply_rgb_model
+from pallet6d.sim.shading import SurfaceHits, albedo, shade, surface_hits
+from pallet6d.sim.tof import ToFDepthModel, register_rgb_to_depth
 from pallet6d.sim.warehouse import build_scene
 
-__all__ = ["PalletGT", "SimFrame", "obj_id_of", "render_scene", "generate_frame", "mask_bbox_xywh"]
+__all__ = ["PalletGT", "SimFrame", "obj_id_of", "render_scene", "with_forklift_gt", "generate_frame",
+           "mask_bbox_xywh"]
 
 log = logging.getLogger(__name__)
 
 
 def obj_id_of(model_name: str) -> int:
-    """BOP object id of a pallet model: its 1-based position in PALLET_MODELS (epal = 1)."""
-    return PALLET_MODELS.index(model_name) + 1
+    """BOP object id of a pallet model: the catalogue's stable id (epal = 1)."""
+    return get_pallet_model(model_name).obj_id
 
 
 def mask_bbox_xywh(mask: np.ndarray) -> np.ndarray:
@@ -88,6 +94,8 @@ class SimFrame:
     T_world_cam: np.ndarray
     pallets: list[PalletGT]
     target_instance: int | None = None
+    vehicle: ForkliftVehicle | None = None            # the forklift carrying the camera, forklift views only
+    faces: list[PalletFaceGT] = field(default_factory=list)   # front face and pockets of pallets in view
 
     def __post_init__(self) -> None:
         h, w = self.depth_m.shape
@@ -95,6 +103,11 @@ class SimFrame:
             raise ValueError(f"rgb must be ({h}, {w}, 3) uint8, got {self.rgb.shape} {self.rgb.dtype}")
         if self.depth_ideal_m.shape != (h, w):
             raise ValueError(f"depth_ideal_m must be ({h}, {w}), got {self.depth_ideal_m.shape}")
+
+    @property
+    def T_vehicle_cam(self) -> np.ndarray | None:
+        """(4, 4) camera-to-vehicle transform (forklift views), else None."""
+        return None if self.vehicle is None else self.vehicle.T_vehicle_cam
 
     def pallet(self, instance_id: int) -> PalletGT:
         for p in self.pallets:
@@ -176,26 +189,66 @@ def _raycast(scene: Scene):
     return rc, inst_img, (R, t, half, material, color, seed)
 
 
-def render_scene(scene: Scene, depth_model: StereoDepthModel | None = None, rgb_model: RgbCameraModel | None = None,
-                 rng: np.random.Generator | None = None, _cast=None) -> SimFrame:
+def _pixel_info(hits: SurfaceHits, surface_rgb: np.ndarray, rgb_lin: np.ndarray, box_index: np.ndarray) -> PixelInfo:
+    """Per-pixel normals, albedo (grey level of the surface colour) and lit intensity for the depth models."""
+    return PixelInfo(normal_cam=hits.to_image(hits.normal_cam), albedo=hits.to_image(surface_rgb.mean(1)),
+                     box_index=box_index, intensity=rgb_lin.mean(2).astype(np.float32))
+
+
+def render_scene(scene: Scene, depth_model: DepthModel | None = None, rgb_model: RgbCameraModel | None = None,
+                 rng: np.random.Generator | None = None, _cast=None, appearance: Appearance | None = None) -> SimFrame:
     """Render a scene with exact ground truth.
 
-    :param depth_model: None = ideal depth sensor. :param rgb_model: None = noise-free camera.
-    :param rng: noise source for the sensor models (required when one is given).
+    :param depth_model: None = ideal depth sensor; else a model from `depth_sensors` (D435, OAK-D, ToF).
+    :param rgb_model: None = noise-free camera. Not used with an appearance (its camera effects apply).
+    :param rng: noise source for the sensor models (required when one is given, or an appearance).
+    :param appearance: None = the plain look (`shading.shade`); else the drawn randomised appearance
+        (`appearance.draw_appearance`): styles, colours, lamps with shadows, camera effects.
     """
     scene.validate()
-    if (depth_model is not None or rgb_model is not None) and rng is None:
+    if (depth_model is not None or rgb_model is not None or appearance is not None) and rng is None:
         raise ValueError("render_scene: pass rng when a sensor model is given (noise must be seeded)")
+    if appearance is not None and len(appearance.style) != len(scene.boxes):
+        raise ValueError(f"render_scene: the appearance was drawn for {len(appearance.style)} boxes, the scene has "
+                         f"{len(scene.boxes)}")
     rc, inst_img, packed = _raycast(scene) if _cast is None else _cast
     R, t, half, material, color, seed = packed
-    light_cam = scene.T_cam_world[:3, :3] @ scene.light.direction_world
-    rgb_lin = shade(rc.depth_m, rc.box_index, pixel_rays(scene.K, scene.image_hw), R, t, half, material, color,
-                    seed, light_cam, scene.light.intensity, scene.light.ambient, scene.light.headlight)
-    depth = apply_depth_model(rc.depth_m, float(scene.K[0, 0]), depth_model, rng)
-    rgb = apply_rgb_model(rgb_lin, rgb_model or RgbCameraModel(shot_noise=0.0), rng)
+    rays = pixel_rays(scene.K, scene.image_hw)
+    hits = surface_rgb = None
+    if appearance is None:
+        light_cam = scene.T_cam_world[:3, :3] @ scene.light.direction_world
+        rgb_lin = shade(rc.depth_m, rc.box_index, rays, R, t, half, material, color, seed, light_cam,
+                        scene.light.intensity, scene.light.ambient, scene.light.headlight)
+    else:
+        hits = surface_hits(rc.depth_m, rc.box_index, rays, R, t, half)
+        surface_rgb = surface_albedo(hits, material, seed, appearance)
+        rgb_lin = shade_appearance(hits, surface_rgb, material, appearance, scene.T_cam_world, (R, t, half))
+    info = None
+    if depth_model is not None and not isinstance(depth_model, StereoDepthModel):
+        if hits is None:
+            hits = surface_hits(rc.depth_m, rc.box_index, rays, R, t, half)
+            surface_rgb = albedo(hits, material, color, seed)
+        info = _pixel_info(hits, surface_rgb, rgb_lin, rc.box_index)
+    depth = apply_sensor(rc.depth_m, float(scene.K[0, 0]), depth_model, info, rng)
+    if appearance is None:
+        rgb = apply_rgb_model(rgb_lin, rgb_model or RgbCameraModel(shot_noise=0.0), rng)
+    else:
+        rgb = apply_camera_effects(rgb_lin, appearance.camera, rng)
+    if isinstance(depth_model, ToFDepthModel) and depth_model.register_rgb:
+        rgb = register_rgb_to_depth(rgb, depth)
     gts = _pallet_gts(scene, depth, inst_img, rc.full_masks)
     return SimFrame(rgb=rgb, depth_m=depth, depth_ideal_m=rc.depth_m, K=scene.K.copy(),
                     T_world_cam=scene.T_world_cam.copy(), pallets=gts, target_instance=scene.target_instance)
+
+
+def with_forklift_gt(scene: Scene, frame: SimFrame) -> SimFrame:
+    """`frame` with the vehicle's camera mounting and the front face and pockets of every pallet in view
+    (with the visible part of each pocket, measured on the exact depth)."""
+    frame.vehicle = scene.vehicle
+    faces = face_gts(scene, [p.instance_id for p in frame.pallets])
+    frame.faces = [replace(f, pocket_visib_fract=pocket_visibility(f, frame.pallet(f.instance_id).T_cam_pallet,
+                                                                   frame.depth_ideal_m, frame.K)) for f in faces]
+    return frame
 
 
 def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
@@ -207,8 +260,8 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
     rng = np.random.default_rng((int(seed), int(index)))
     best = 0.0
     for attempt in range(config.max_attempts):
-        scene = build_scene(config, rng)
         try:
+            scene = build_scene(config, rng)
             scene.validate()
         except SceneError as exc:
             log.debug("frame %d attempt %d: %s", index, attempt, exc)
@@ -218,19 +271,34 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
         full = rc.full_masks.get(scene.target_instance)
         n_all = 0 if full is None else int(full.sum())
         # The whole target must be inside the image (its silhouette does not touch the border) ...
-        inside = n_all > 0 and not _touches_border(full)
+        inside = n_all > 0 and (not config.target_inside or not _touches_border(full))
+        if inside and _touches_border(full):   # ... or, where allowed, its visible fraction counts the part out of view
+            target = next(p for p in scene.pallets if p.instance_id == scene.target_instance)
+            n_all = max(n_all, _silhouette_px_count(get_pallet_model(target.model_name).boxes_m,
+                                                    scene.T_cam_world @ target.T_world_pallet, scene.K, scene.image_hw))
         visib = int((inst_img == scene.target_instance).sum()) / n_all if n_all else 0.0
         best = max(best, visib if inside else 0.0)
         if inside and visib >= config.min_target_visib:
             sensor_rng = np.random.default_rng((int(seed), int(index), 1))
-            depth_model = StereoDepthModel() if config.sensor == "d435" else None
+            if config.sensor_mix:
+                pick = np.random.default_rng((int(seed), int(index), 3)).integers(len(config.sensor_mix))
+                depth_model = depth_model_for(config.sensor_mix[int(pick)])
+            else:
+                depth_model = config.sensor_model if config.sensor_model is not None else depth_model_for(config.sensor)
+            if config.appearance is not None:
+                app_rng = np.random.default_rng((int(seed), int(index), 2))
+                appearance = draw_appearance(config.appearance, scene, app_rng)
+                frame = render_scene(scene, depth_model, None, sensor_rng, _cast=cast, appearance=appearance)
+                return with_forklift_gt(scene, frame)
             blur = sensor_rng.uniform(2, 9) if sensor_rng.random() < config.blur_prob else 0.0
             rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*config.exposure),
                                        noise_sigma=sensor_rng.uniform(*config.rgb_noise_sigma),
-                                       shot_noise=0.01 if config.sensor == "d435" else 0.004, blur_px=blur)
-            return render_scene(scene, depth_model, rgb_model, sensor_rng, _cast=cast)
+                                       shot_noise=0.004 if config.sensor == "ideal" else 0.01, blur_px=blur)
+            frame = render_scene(scene, depth_model, rgb_model, sensor_rng, _cast=cast)
+            return with_forklift_gt(scene, frame)
         log.debug("frame %d attempt %d: target visible fraction %.2f, inside image %s", index, attempt, visib,
                   inside)
-    raise SceneError(f"preset {config.name!r}: no scene with the target pallet fully in the image and at least "
+    where = "fully in the image and " if config.target_inside else ""
+    raise SceneError(f"preset {config.name!r}: no scene with the target pallet {where}at least "
                      f"{config.min_target_visib:.0%} visible after {config.max_attempts} attempts (best "
                      f"{best:.0%}); widen the field of view, move the camera back or lower min_target_visib")

@@ -24,7 +24,8 @@ def colorize_depth(depth_m: np.ndarray, max_m: float | None = None) -> np.ndarra
 
 def draw_preview(frame: SimFrame, axis_m: float = 0.3) -> np.ndarray:
     """RGB image with every pallet's 3D box (green: target, yellow: others), x/y/z axes (red/green/blue),
-    instance id and visible fraction; the colourised depth under it (beside it for tall images).
+    instance id and visible fraction, front-face centre and fork pockets; the colourised depth under it
+    (beside it for tall images).
 
     :return: (H2, W2, 3) uint8 RGB.
     """
@@ -47,5 +48,22 @@ def draw_preview(frame: SimFrame, axis_m: float = 0.3) -> np.ndarray:
         x, y = int(np.clip(pts[:, 0].min(), 0, w - 60)), int(np.clip(pts[:, 1].min() - 4, 10, h - 2))
         cv2.putText(img, f"{p.instance_id}:{p.visib_fract:.2f}", (x, y), cv2.FONT_HERSHEY_SIMPLEX, 0.4, color, 1,
                     cv2.LINE_AA)
+    for f in frame.faces:
+        _draw_face(img, f, frame.pallet(f.instance_id).T_cam_pallet, frame.K)
     depth = colorize_depth(frame.depth_m)
     return np.vstack([img, depth]) if w >= h else np.hstack([img, depth])
+
+
+def _draw_face(img: np.ndarray, f, T_cam_pallet: np.ndarray, K: np.ndarray) -> None:
+    """A pallet's front-face centre (white dot) and its pocket openings (cyan; red where blocked; L/R)."""
+    for k, corners in enumerate(f.pocket_corners_cam(T_cam_pallet)):
+        uv = project_points(corners, K)
+        if not np.all(np.isfinite(uv)):
+            continue
+        color = (255, 40, 40) if f.pocket_blocked[k] else (0, 230, 255)
+        cv2.polylines(img, [np.round(uv).astype(np.int32)], True, color, 1, cv2.LINE_AA)
+        o = np.round(uv.mean(0)).astype(int)
+        cv2.putText(img, "LR"[k], (int(o[0]) - 3, int(o[1]) + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.3, color, 1, cv2.LINE_AA)
+    uv = project_points(f.face_centre_cam[None], K)
+    if np.all(np.isfinite(uv)):
+        cv2.circle(img, tuple(np.round(uv[0]).astype(int)), 3, (255, 255, 255), -1, cv2.LINE_AA)

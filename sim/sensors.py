@@ -15,7 +15,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["StereoDepthModel", "RgbCameraModel", "stereo_shadow_mask", "apply_depth_model", "apply_rgb_model"]
+__all__ = ["SENSORS", "StereoDepthModel", "RgbCameraModel", "PixelInfo", "stereo_shadow_mask", "apply_depth_model",
+           "apply_rgb_model", "correlated_noise"]
+
+# Depth sensors selectable by name (`SimConfig.sensor`); their models: `pallet6d.sim.depth_sensors.SENSOR_MODELS`.
+SENSORS: tuple[str, ...] = ("ideal", "d435", "oakd", "tof")
 
 
 @dataclass(frozen=True)
@@ -49,6 +53,36 @@ class RgbCameraModel:
     shot_noise: float = 0.01       # photon noise grows with sqrt(signal)
     blur_px: float = 0.0           # horizontal motion blur length in pixels (0 = none)
     gamma: float = 1.0            # the shaded image is already display-referred; < 1 brightens shadows
+
+
+@dataclass
+class PixelInfo:
+    """What a depth sensor model may know about each pixel besides its ideal depth.
+
+    normal_cam: (H, W, 3) unit surface normal, camera frame (0 where nothing was hit).
+    albedo: (H, W) surface reflectance in [0, 1] (grey level of the texture before lighting).
+    box_index: (H, W) int index of the box hit, -1 = none.
+    intensity: (H, W) linear grey level of the lit image (the texture a passive stereo matcher sees).
+    """
+
+    normal_cam: np.ndarray
+    albedo: np.ndarray
+    box_index: np.ndarray
+    intensity: np.ndarray
+
+    def __post_init__(self) -> None:
+        h, w = self.box_index.shape
+        if self.normal_cam.shape != (h, w, 3) or self.albedo.shape != (h, w) or self.intensity.shape != (h, w):
+            raise ValueError(f"PixelInfo arrays must be ({h}, {w}[, 3]), got normal {self.normal_cam.shape}, "
+                             f"albedo {self.albedo.shape}, intensity {self.intensity.shape}")
+
+
+def correlated_noise(shape: tuple[int, int], cell_px: int, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) float32 unit-variance noise, smooth over about `cell_px` pixels (bilinear upsampled cells)."""
+    h, w = shape
+    coarse = rng.standard_normal(((h + cell_px - 1) // cell_px, (w + cell_px - 1) // cell_px)).astype(np.float32)
+    smooth = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+    return smooth / max(float(smooth.std()), 1e-6)
 
 
 def stereo_shadow_mask(depth_m: np.ndarray, f_px: float, baseline_m: float) -> np.ndarray:
@@ -95,9 +129,7 @@ def apply_depth_model(depth_m: np.ndarray, f_px: float, model: StereoDepthModel 
     # Noise: half white, half correlated over ~8 px windows.
     sigma = model.sigma_m(out, f_px).astype(np.float32)
     white = rng.standard_normal((h, w)).astype(np.float32)
-    coarse = rng.standard_normal(((h + 7) // 8, (w + 7) // 8)).astype(np.float32)
-    smooth = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
-    smooth /= max(float(smooth.std()), 1e-6)
+    smooth = correlated_noise((h, w), 8, rng)
     out = out + sigma * (np.float32(np.sqrt(0.5)) * white + np.float32(np.sqrt(0.5)) * smooth)
     # Invalid pixels: stereo shadow, speckle holes, out of range, no surface.
     invalid = ~valid | stereo_shadow_mask(depth, f_px, model.baseline_m)

@@ -6,14 +6,16 @@ painted walls. Lighting is ambient + Lambert (directional light) + a lamp at the
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from pallet6d.sim.scene import MATERIALS
 
-__all__ = ["value_noise_2d", "shade"]
+__all__ = ["BACKGROUND_RGB", "SurfaceHits", "value_noise_2d", "surface_hits", "albedo", "shade"]
 
 _WOOD, _CARD, _METAL, _CONCRETE, _WALL, _PLASTIC, _FILM = (MATERIALS.index(m) for m in MATERIALS)
-_BACKGROUND_RGB = np.array([0.08, 0.08, 0.09], dtype=np.float32)
+BACKGROUND_RGB = np.array([0.08, 0.08, 0.09], dtype=np.float32)
 
 
 def _hash01(ix: np.ndarray, iy: np.ndarray, seed: np.ndarray | int) -> np.ndarray:
@@ -127,6 +129,66 @@ _TEXTURES = {_WOOD: _wood, _CARD: _cardboard, _METAL: _metal, _CONCRETE: _concre
              _PLASTIC: _plastic, _FILM: _film}
 
 
+@dataclass
+class SurfaceHits:
+    """The ray-cast surface at every pixel that hit a box (P such pixels).
+
+    pix: (P,) flat pixel indices; box: (P,) box index; p_box: (P, 3) hit point in its box's frame;
+    half_m: (P, 3) that box's half size; axis: (P,) box axis of the face hit; normal_cam / view_cam: (P, 3) unit
+    face normal and direction to the camera; p_cam: (P, 3) hit point, camera frame, metres.
+    """
+
+    image_hw: tuple[int, int]
+    pix: np.ndarray
+    box: np.ndarray
+    p_box: np.ndarray
+    half_m: np.ndarray
+    axis: np.ndarray
+    normal_cam: np.ndarray
+    view_cam: np.ndarray
+    p_cam: np.ndarray
+
+    def to_image(self, values: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        """(P,) or (P, C) per-hit values -> (H, W) or (H, W, C) float32 image, `fill` where nothing was hit."""
+        values = np.asarray(values, dtype=np.float32)
+        out = np.full((self.image_hw[0] * self.image_hw[1],) + values.shape[1:], fill, dtype=np.float32)
+        out[self.pix] = values
+        return out.reshape(tuple(self.image_hw) + values.shape[1:])
+
+
+def surface_hits(depth_m: np.ndarray, box_index: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
+                 R_cam_box: np.ndarray, t_cam_box: np.ndarray, half_m: np.ndarray) -> SurfaceHits:
+    """Hit points, faces and normals of a ray-cast frame (see `shade` for the parameters)."""
+    h, w = depth_m.shape
+    pix = np.flatnonzero(box_index >= 0)
+    b = box_index.ravel()[pix]
+    z = depth_m.ravel()[pix]
+    ray = np.stack([rays[0].ravel()[pix], rays[1].ravel()[pix], np.ones(pix.size, np.float32)], 1)
+    p_cam = ray * z[:, None]
+    R = R_cam_box[b].astype(np.float32)                               # (P, 3, 3)
+    p = np.einsum("pji,pj->pi", R, p_cam - t_cam_box[b].astype(np.float32))
+    half = half_m[b].astype(np.float32)
+    axis = np.argmax(np.abs(p) / half, axis=1)
+    rows = np.arange(pix.size)
+    sign = np.sign(p[rows, axis]).astype(np.float32)
+    normal = R[rows, :, axis] * sign[:, None]
+    view = -ray / np.linalg.norm(ray, axis=1, keepdims=True)
+    return SurfaceHits((h, w), pix, b, p, half, axis, normal, view, p_cam)
+
+
+def albedo(hits: SurfaceHits, material: np.ndarray, color: np.ndarray, texture_seed: np.ndarray) -> np.ndarray:
+    """(P, 3) float32 textured surface colour (reflectance) of every hit, before lighting."""
+    rgb = np.empty((hits.pix.size, 3), dtype=np.float32)
+    mat = material[hits.box]
+    seeds = texture_seed[hits.box].astype(np.int64)
+    base = color[hits.box].astype(np.float32)
+    for m, fn in _TEXTURES.items():
+        sel = np.flatnonzero(mat == m)
+        if sel.size:
+            rgb[sel] = fn(hits.p_box[sel], hits.half_m[sel], hits.axis[sel], seeds[sel], base[sel])
+    return rgb
+
+
 def shade(depth_m: np.ndarray, box_index: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
           R_cam_box: np.ndarray, t_cam_box: np.ndarray, half_m: np.ndarray, material: np.ndarray,
           color: np.ndarray, texture_seed: np.ndarray, light_dir_cam: np.ndarray, intensity: float,
@@ -142,32 +204,13 @@ def shade(depth_m: np.ndarray, box_index: np.ndarray, rays: tuple[np.ndarray, np
     """
     h, w = depth_m.shape
     out = np.empty((h, w, 3), dtype=np.float32)
-    out[:] = _BACKGROUND_RGB
-    pix = np.flatnonzero(box_index >= 0)
-    if pix.size == 0:
+    out[:] = BACKGROUND_RGB
+    hits = surface_hits(depth_m, box_index, rays, R_cam_box, t_cam_box, half_m)
+    if hits.pix.size == 0:
         return out
-    b = box_index.ravel()[pix]
-    z = depth_m.ravel()[pix]
-    ray = np.stack([rays[0].ravel()[pix], rays[1].ravel()[pix], np.ones(pix.size, np.float32)], 1)
-    p_cam = ray * z[:, None]
-    R = R_cam_box[b].astype(np.float32)                               # (P, 3, 3)
-    p = np.einsum("pji,pj->pi", R, p_cam - t_cam_box[b].astype(np.float32))
-    half = half_m[b].astype(np.float32)
-    axis = np.argmax(np.abs(p) / half, axis=1)
-    rows = np.arange(pix.size)
-    sign = np.sign(p[rows, axis]).astype(np.float32)
-    normal = R[rows, :, axis] * sign[:, None]
-    view = -ray / np.linalg.norm(ray, axis=1, keepdims=True)
-    lambert = np.maximum(normal @ (-np.asarray(light_dir_cam, np.float32)), 0)
-    lamp = np.maximum((normal * view).sum(1), 0)
+    lambert = np.maximum(hits.normal_cam @ (-np.asarray(light_dir_cam, np.float32)), 0)
+    lamp = np.maximum((hits.normal_cam * hits.view_cam).sum(1), 0)
     light = ambient + intensity * lambert + headlight * lamp
-    rgb = np.empty((pix.size, 3), dtype=np.float32)
-    mat = material[b]
-    seeds = texture_seed[b].astype(np.int64)
-    base = color[b].astype(np.float32)
-    for m, fn in _TEXTURES.items():
-        sel = np.flatnonzero(mat == m)
-        if sel.size:
-            rgb[sel] = fn(p[sel], half[sel], axis[sel], seeds[sel], base[sel])
-    out.reshape(-1, 3)[pix] = rgb * light[:, None]
+    rgb = albedo(hits, material, color, texture_seed)
+    out.reshape(-1, 3)[hits.pix] = rgb * light[:, None]
     return out

@@ -1,5 +1,6 @@
 """Random warehouse scenes (paper Fig. 3): racks with pallets and loads, aisle pallets, occluders, walls,
-and a forklift camera placed in front of a pallet to pick up.
+and a forklift camera placed in front of a pallet to pick up; with `rich_content`, the real-warehouse
+content of `loads.py`; with the "forklift" layout, the forklift's own view (`forklift_view.py`).
 
 World frame: z up, floor z = 0. The rack row runs along x with its front at y = 0 and its depth along +y;
 the aisle is y < 0. Pallets in racks have their length (x) along the rack depth, so the forklift's forks
@@ -12,9 +13,12 @@ import math
 import numpy as np
 
 from pallet6d.runtime.geometry import make_T
-from pallet6d.sim.pallets import get_pallet_model
-from pallet6d.sim.presets import SimConfig
-from pallet6d.sim.scene import MATERIALS, Box, Light, PalletPlacement, Scene, look_at_T_world_cam, pallet_boxes
+from pallet6d.sim.forklift_view import place_forklift
+from pallet6d.sim.loads import WOOD_COLORS, distractor_boxes, load_boxes, pallet_look, pocket_obstacle, truck_bed_boxes
+from pallet6d.sim.pallets import face_normal, get_pallet_model
+from pallet6d.sim.presets import LAYOUTS, SimConfig
+from pallet6d.sim.scene import (MATERIALS, Box, Light, PalletPlacement, Scene, SceneError, look_at_T_world_cam,
+                                pallet_boxes)
 
 __all__ = ["build_scene"]
 
@@ -23,8 +27,6 @@ RACK_DEPTH_M = 1.1
 BAY_CLEAR_M = 2.7
 UPRIGHT_M = (0.1, 0.08)
 BEAM_H_M = 0.12
-WOOD_COLORS = np.array([[0.82, 0.66, 0.45], [0.72, 0.58, 0.40], [0.62, 0.57, 0.49], [0.58, 0.44, 0.30],
-                        [0.86, 0.74, 0.55]])
 
 
 def _rz(yaw_rad: float) -> np.ndarray:
@@ -57,16 +59,43 @@ class _Builder:
 
     # --- pallets and their loads --------------------------------------------------------------------
     def add_pallet(self, model_name: str, xy: tuple[float, float], z_floor: float, yaw: float,
-                   clearance_m: float) -> PalletPlacement:
+                   clearance_m: float, load: bool = True) -> PalletPlacement:
         model = get_pallet_model(model_name)
         T = make_T(_rz(yaw), [xy[0], xy[1], z_floor + model.size_m[2] / 2])
         p = PalletPlacement(len(self.pallets) + 1, model_name, T)
         self.pallets.append(p)
+        if self.cfg.rich_content:
+            color, parts, missing = pallet_look(self.rng, model_name, self.cfg.missing_board_prob)
+            self.boxes.extend(pallet_boxes(p, color, self.seed(), missing=missing, part_colors=parts))
+            if load and self.rng.random() < self.cfg.load_prob and clearance_m > 0.25:
+                self.boxes.extend(load_boxes(self.rng, p, clearance_m))
+            return p
         color = WOOD_COLORS[self.rng.integers(len(WOOD_COLORS))] * self.rng.uniform(0.9, 1.08, 3)
         self.boxes.extend(pallet_boxes(p, color, self.seed()))
         if self.rng.random() < self.cfg.load_prob and clearance_m > 0.25:
             self.add_load(p, clearance_m)
         return p
+
+    def random_model(self) -> str:
+        return self.cfg.pallet_models[int(self.rng.integers(len(self.cfg.pallet_models)))]
+
+    def add_stack(self, model_name: str, xy, yaw: float, count: int) -> list[PalletPlacement]:
+        """A stack of empty pallets of one type (the top one may carry a load)."""
+        h = get_pallet_model(model_name).size_m[2]
+        out = []
+        for k in range(count):
+            yaw_k = yaw + math.radians(self.rng.uniform(-2, 2))
+            xy_k = (xy[0] + self.rng.uniform(-0.015, 0.015), xy[1] + self.rng.uniform(-0.015, 0.015))
+            out.append(self.add_pallet(model_name, xy_k, k * h, yaw_k, 2.0, load=k == count - 1))
+        return out
+
+    def free(self, xy, radius: float) -> bool:
+        """No pallet or stack already stands within `radius` plus its own half diagonal of `xy` (floor)."""
+        for p in self.pallets:
+            r = np.linalg.norm(get_pallet_model(p.model_name).size_m[:2]) / 2
+            if np.hypot(*(np.asarray(xy) - p.T_world_pallet[:2, 3])) < radius + r + 0.1:
+                return False
+        return True
 
     def add_load(self, p: PalletPlacement, clearance_m: float) -> None:
         """Boxes stacked on a pallet (cardboard layers, or a stretch-wrapped block)."""
@@ -207,10 +236,140 @@ def _camera_for(b: _Builder, target: PalletPlacement, approach: np.ndarray) -> t
     return T, eye
 
 
+def _face_towards(p: PalletPlacement, direction_world: np.ndarray) -> str:
+    """The face with fork pockets whose outward normal is closest to `direction_world`."""
+    faces = list(get_pallet_model(p.model_name).pockets_m)
+    if not faces:
+        raise SceneError(f"{p.model_name} has no fork pockets: a forklift cannot pick it up")
+    return max(faces, key=lambda f: float((p.T_world_pallet[:3, :3] @ face_normal(f)) @ direction_world))
+
+
+def _yaw_facing(b: _Builder, model_name: str, direction_world, jitter_deg: float) -> float:
+    """A yaw that turns one random pocket face of the model towards `direction_world` (+- jitter)."""
+    faces = list(get_pallet_model(model_name).pockets_m)
+    n = face_normal(faces[int(b.rng.integers(len(faces)))])
+    return math.atan2(direction_world[1], direction_world[0]) - math.atan2(n[1], n[0]) \
+        + math.radians(b.rng.uniform(-1, 1) * jitter_deg)
+
+
+def _add_extras(b: _Builder, half_x: float, y_range: tuple[float, float], n_pallets: int, n_distractors: int,
+                keep_out) -> None:
+    """Pallets, stacks of empty pallets and distractors on the floor, away from `keep_out(xy)`."""
+    rng = b.rng
+    for _ in range(n_pallets):
+        xy = np.array([rng.uniform(-half_x, half_x), rng.uniform(*y_range)])
+        if keep_out(xy) or not b.free(xy, 0.75):
+            continue
+        model_name = b.random_model()
+        yaw = rng.uniform(-math.pi, math.pi) if rng.random() < 0.5 else _yaw_facing(b, model_name, [0, -1, 0], 10)
+        if rng.random() < 0.35:
+            b.add_stack(model_name, xy, yaw, int(rng.integers(2, 8)))
+        else:
+            b.add_pallet(model_name, tuple(xy), 0.0, yaw, 2.0)
+    for _ in range(n_distractors):
+        xy = np.array([rng.uniform(-half_x, half_x), rng.uniform(*y_range)])
+        if keep_out(xy) or not b.free(xy, 0.6):
+            continue
+        b.boxes.extend(distractor_boxes(rng, xy, rng.uniform(-math.pi, math.pi)))
+
+
+def _build_forklift(b: _Builder) -> Scene:
+    """The forklift's own view: a target pallet on the floor, in a rack, on a truck bed or on a stack of
+    pallets, other pallets and clutter around, and the vehicle approaching it from the aisle (-y)."""
+    cfg, rng = b.cfg, b.rng
+    kind = rng.choice(["floor", "rack", "truck", "stack"], p=[0.4, 0.3, 0.15, 0.15])
+    y_front = -cfg.target_distance_m[1] - 3.5
+    half_x = rng.uniform(5.0, 9.0)
+    back = (RACK_DEPTH_M + rng.uniform(0.2, 0.5) if kind == "rack" else rng.uniform(3.0, 4.0) if kind == "truck"
+            else rng.uniform(2.0, 6.0))                    # the back wall
+    if kind == "rack":
+        rack_ids, half_len = b.add_racks()
+        half_x = max(half_x, half_len + 1.0)
+        low = [i for i in rack_ids if b.pallets[i - 1].T_world_pallet[2, 3] < cfg.cam_height_m[1] - 0.4]
+        if not low:
+            x = rng.uniform(-half_len + 1.0, half_len - 1.0)
+            low = [b.add_pallet(b.random_model(), (x, RACK_DEPTH_M / 2), 0.0, math.pi / 2, 1.5).instance_id]
+        target = b.pallets[low[int(rng.integers(len(low)))] - 1]
+    elif kind == "truck":
+        bed_h, bed_len = rng.uniform(1.0, 1.4), rng.uniform(6.0, 12.0)
+        bed_y = 1.225
+        b.boxes.extend(truck_bed_boxes(rng, (0.0, bed_y), 0.0, bed_len, bed_h))
+        ids = []
+        x = -bed_len / 2 + 0.1
+        while True:
+            model_name = b.random_model()
+            size = get_pallet_model(model_name).size_m
+            yaw = _yaw_facing(b, model_name, [0, -1, 0], 3)
+            extent = abs(math.cos(yaw)) * size[0] + abs(math.sin(yaw)) * size[1]
+            if x + extent > bed_len / 2 - 0.1:
+                break
+            depth = abs(math.sin(yaw)) * size[0] + abs(math.cos(yaw)) * size[1]
+            y = bed_y - 1.225 + depth / 2 + rng.uniform(0.0, 0.08)
+            if rng.random() < 0.85:
+                ids.append(b.add_pallet(model_name, (x + extent / 2, y), bed_h, yaw, 2.5).instance_id)
+            x += extent + rng.uniform(0.02, 0.3)
+        if not ids:
+            ids = [b.add_pallet(b.random_model(), (0.0, 0.6), bed_h, math.pi / 2, 2.5).instance_id]
+        target = b.pallets[ids[int(rng.integers(len(ids)))] - 1]
+    else:
+        model_name = b.random_model()
+        yaw = _yaw_facing(b, model_name, [0, -1, 0], 30)
+        xy = (rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3))
+        if kind == "stack":
+            stack = b.add_stack(model_name, xy, yaw, int(rng.integers(2, 7)))
+            low = [p for p in stack if p.T_world_pallet[2, 3] < cfg.cam_height_m[1] - 0.4]
+            target = low[int(rng.integers(len(low)))]
+        else:
+            target = b.add_pallet(model_name, xy, 0.0, yaw, 2.0)
+        for side in (-1, 1):   # neighbours in the same row
+            if rng.random() < 0.6:
+                gap = rng.uniform(0.05, 0.6)
+                size = get_pallet_model(model_name).size_m
+                nxy = (xy[0] + side * (max(size[:2]) + gap), xy[1] + rng.uniform(-0.1, 0.1))
+                if b.free(nxy, 0.3):
+                    b.add_pallet(b.random_model(), nxy, 0.0, yaw + math.radians(rng.uniform(-5, 5)), 2.0)
+    b.add_room(half_x, back, y_front, rng.uniform(4.0, 9.0))
+    face = _face_towards(target, np.array([0.0, -1.0, 0.0]))
+    n_w = target.T_world_pallet[:3, :3] @ face_normal(face)
+    centre = target.T_world_pallet[:3, 3]
+    corridor = lambda xy: abs(xy[0] - centre[0]) < 1.6 and xy[1] < centre[1] + 0.8  # noqa: E731
+    n_floor = int(rng.integers(cfg.floor_pallets[0], cfg.floor_pallets[1] + 1))
+    _add_extras(b, half_x - 0.8, (y_front + 1.0, back - 0.8 if kind != "rack" else -1.0), n_floor,
+                int(rng.integers(1, 5)), corridor)
+    if rng.random() < cfg.pocket_obstacle_prob:
+        b.boxes.extend(pocket_obstacle(rng, target, face))
+    vehicle = place_forklift(rng, target, face, cfg.target_distance_m, cfg.approach_yaw_deg, cfg.K,
+                             (cfg.height, cfg.width), cfg.cam_height_m)
+    b.boxes.extend(vehicle.boxes)
+    T_world_cam = vehicle.T_world_vehicle @ vehicle.T_vehicle_cam
+    eye = T_world_cam[:3, 3]
+    dist = float(np.linalg.norm(centre[:2] - eye[:2]))
+    for _ in range(int(rng.integers(cfg.occluders[0], cfg.occluders[1] + 1))):
+        if dist < 2.5:
+            break
+        f = rng.uniform(0.4, 0.75)
+        xy = eye[:2] + f * (centre[:2] - eye[:2]) + np.array([-n_w[1], n_w[0]]) * rng.uniform(-0.9, 0.9)
+        b.boxes.extend(distractor_boxes(rng, xy, rng.uniform(-0.4, 0.4)))
+    light = _random_light(rng)
+    return Scene(b.boxes, b.pallets, T_world_cam, cfg.K, (cfg.height, cfg.width), light, target.instance_id,
+                 vehicle=vehicle)
+
+
+def _random_light(rng: np.random.Generator) -> Light:
+    light_dir = np.array([rng.uniform(-0.6, 0.6), rng.uniform(-0.2, 0.8), -1.0])
+    return Light(light_dir, intensity=rng.uniform(0.45, 0.8), ambient=rng.uniform(0.25, 0.45),
+                 headlight=rng.uniform(0.05, 0.25))
+
+
 def build_scene(cfg: SimConfig, rng: np.random.Generator) -> Scene:
     """Draw one random scene for `cfg` (not yet checked for target visibility: see generate.py)."""
     b = _Builder(cfg, rng)
-    if cfg.layout == "warehouse":
+    layout = cfg.layout
+    if layout == "mixed":
+        layout = LAYOUTS[int(rng.choice(3, p=cfg.view_probs))]
+    if layout == "forklift":
+        return _build_forklift(b)
+    if layout == "warehouse":
         rack_ids, half_len = b.add_racks()
         y_front = -cfg.target_distance_m[1] - 3.5
         b.add_room(half_len + rng.uniform(1.5, 4.0), RACK_DEPTH_M + rng.uniform(0.2, 0.5), y_front, 9.0)
@@ -222,6 +381,9 @@ def build_scene(cfg: SimConfig, rng: np.random.Generator) -> Scene:
                 continue
             aisle_ids.append(b.add_pallet(cfg.pallet_models[int(rng.integers(len(cfg.pallet_models)))], xy, 0.0,
                                           rng.uniform(-math.pi, math.pi), 2.0).instance_id)
+        if cfg.rich_content:
+            _add_extras(b, half_len, (y_front + 1.0, -1.0), int(rng.integers(0, 4)), int(rng.integers(0, 4)),
+                        lambda xy: abs(xy[0]) < 1.0)
         candidates = rack_ids + aisle_ids
         if not candidates:   # an empty rack: put one pallet on the floor level so there is a target
             x = rng.uniform(-half_len + 1.0, half_len - 1.0)
@@ -245,6 +407,9 @@ def build_scene(cfg: SimConfig, rng: np.random.Generator) -> Scene:
         for _ in range(int(rng.integers(1, 4))):   # clutter along the walls
             b.add_occluder(np.array([rng.uniform(-x_room + 0.5, x_room - 0.5), y_back - rng.uniform(0.4, 0.8)]),
                            rng.uniform(-0.3, 0.3))
+        if cfg.rich_content:
+            _add_extras(b, x_room - 0.8, (-cfg.target_distance_m[1] - 2.0, y_back - 0.8), int(rng.integers(0, 3)),
+                        int(rng.integers(0, 3)), lambda xy: abs(xy[0]) < 1.5 and xy[1] < 1.0)
         approach = np.array([0.0, 1.0, 0.0])
     T_world_cam, eye = _camera_for(b, target, approach)
     # Occluders stand on the floor between the camera and the target.
@@ -253,7 +418,5 @@ def build_scene(cfg: SimConfig, rng: np.random.Generator) -> Scene:
         f = rng.uniform(0.35, 0.75)
         xy = eye[:2] + f * (centre[:2] - eye[:2]) + np.cross(approach, [0, 0, 1])[:2] * rng.uniform(-0.7, 0.7)
         b.add_occluder(xy, rng.uniform(-0.4, 0.4))
-    light_dir = np.array([rng.uniform(-0.6, 0.6), rng.uniform(-0.2, 0.8), -1.0])
-    light = Light(light_dir, intensity=rng.uniform(0.45, 0.8), ambient=rng.uniform(0.25, 0.45),
-                  headlight=rng.uniform(0.05, 0.25))
-    return Scene(b.boxes, b.pallets, T_world_cam, cfg.K, (cfg.height, cfg.width), light, target.instance_id)
+    return Scene(b.boxes, b.pallets, T_world_cam, cfg.K, (cfg.height, cfg.width), _random_light(rng),
+                 target.instance_id)

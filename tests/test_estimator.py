@@ -12,23 +12,19 @@ from pallet6d.runtime.cameras import RGBDFrame
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
 from pallet6d.runtime.metrics import add_sym
 from pallet6d.runtime.results import FrameResult, PalletPose
-from pallet6d.sim.generate import generate_frame
-from pallet6d.sim.presets import get_preset
+
+from estimator_fixtures import scene, visible_boxes
 
 
 @pytest.fixture(scope="module")
 def frame():
-    return generate_frame(get_preset("virtual-clean"), seed=0)
+    return scene()
 
 
 @pytest.fixture(scope="module")
 def boxes(frame):
     """The visible boxes of four pallets, as a detector would give them."""
-    out = []
-    for p in sorted(frame.pallets, key=lambda p: -p.visib_fract)[:4]:
-        x, y, w, h = p.bbox_visib_xywh
-        out.append([x, y, x + w, y + h])
-    return np.array(out, float)
+    return visible_boxes(frame, 4)
 
 
 @pytest.fixture(scope="module")
@@ -108,14 +104,13 @@ def test_four_pallets_batched_equal_one_at_a_time(est, frame, boxes):
 
 
 def test_graphs_run_in_chunks_of_graph_batch_with_the_same_poses(est, frame, boxes, monkeypatch):
-    from pallet6d.runtime import estimator as estimator_module
-
     whole = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
     calls = []
-    fusion_run = est.fusion.run
-    monkeypatch.setattr(est.fusion, "run", lambda feeds, out: calls.append(len(next(iter(feeds.values()))))
+    fusion = est.pose_network.fusion
+    fusion_run = fusion.run
+    monkeypatch.setattr(fusion, "run", lambda feeds, out: calls.append(len(next(iter(feeds.values()))))
                         or fusion_run(feeds, out))
-    monkeypatch.setattr(estimator_module, "GRAPH_BATCH", 3)
+    monkeypatch.setattr(est.pose_network, "graph_batch", 3)
     chunked = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
     assert calls == [3, 1]
     assert len(chunked.poses) == len(whole.poses) == 4
@@ -253,7 +248,6 @@ def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(b
 
 
 def test_extra_starts_bring_back_a_network_pose_turned_out_of_icps_basin(bundle_dir, frame, boxes, monkeypatch):
-    from pallet6d.runtime import estimator as estimator_module
     from pallet6d.runtime.geometry import make_T
     from pallet6d.sim.pallets import get_pallet_model
 
@@ -262,14 +256,14 @@ def test_extra_starts_bring_back_a_network_pose_turned_out_of_icps_basin(bundle_
     a = np.deg2rad(20.0)
     turn = make_T(np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]), np.zeros(3))
 
-    def network_pose(quat, trans, conf, points, centres, order):
-        return T_gt @ turn, np.ones(len(T_gt)), np.zeros(len(T_gt), np.int64)
+    def network_pose(quat, trans, conf, batch):
+        return T_gt @ turn, np.ones(len(T_gt))
 
-    monkeypatch.setattr(estimator_module, "select_poses", network_pose)
     pallet = get_pallet_model("epal")
     pts = pallet.surface_points(500, seed=0)
 
     def errors(est):
+        monkeypatch.setattr(est.pose_network, "postprocess", network_pose)
         r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
         assert len(r.poses) == len(boxes)
         return np.array([add_sym(p.T_cam_pallet[:3, :3], p.T_cam_pallet[:3, 3], T[:3, :3], T[:3, 3], pts,

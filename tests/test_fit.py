@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from pallet6d.runtime.fit import distance_to_boxes, distance_to_points, fit_score
+from pallet6d.runtime.fit import distance_to_boxes, distance_to_points, fit_score, fit_scores
 from pallet6d.runtime.geometry import (backproject_pixels, clamp_box, make_T, quat_to_rot, sample_indices,
                                        select_pixels)
 
@@ -84,3 +84,28 @@ def test_distances():
         distance_to_boxes(np.zeros((1, 3)), np.zeros((2, 3)))
     with pytest.raises(ValueError, match="tol_m"):
         fit_score(np.eye(4), np.zeros((1, 3)), MODEL_PTS, np.zeros((4, 4)), np.eye(3), tol_m=0)
+
+
+@pytest.mark.parametrize("boxes", [EPAL.boxes_m, None], ids=["boxes", "points"])
+def test_fit_scores_equal_fit_score_pose_by_pose(scene, boxes):
+    frame, T_gt, obs = scene
+    rng = np.random.default_rng(4)
+    Ts = np.stack([T_gt] + [make_T(T_gt[:3, :3], T_gt[:3, 3] + rng.uniform(-0.1, 0.1, 3)) for _ in range(3)]
+                  + [T_gt @ RZ90])
+    counts = np.array([len(obs), 300, 0, 1, 120])                # each pose its own first rows, one with none
+    inlier, violation, score = fit_scores(Ts, np.broadcast_to(obs, (len(Ts),) + obs.shape), counts, MODEL_PTS,
+                                          frame.depth_m, frame.K, 0.04, boxes)
+    # with the boxes holding every model point, distances to points may skip points far from the boxes
+    in_boxes = fit_scores(Ts, np.broadcast_to(obs, (len(Ts),) + obs.shape), counts, MODEL_PTS, frame.depth_m,
+                          frame.K, 0.04, boxes, points_in_boxes_m=EPAL.boxes_m)
+    for i, T in enumerate(Ts):
+        ref = fit_score(T, obs[:counts[i]], MODEL_PTS, frame.depth_m, frame.K, 0.04, boxes)
+        assert (inlier[i], violation[i], score[i]) == (ref.inlier_fraction, ref.free_space_violation, ref.score)
+        assert (in_boxes[0][i], in_boxes[2][i]) == (ref.inlier_fraction, ref.score)
+    assert inlier[2] == 0.0
+    none = fit_scores(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), None, MODEL_PTS, frame.depth_m, frame.K)
+    assert none[2].shape == (0,)
+    with pytest.raises(ValueError, match="pts_obs_cam"):
+        fit_scores(Ts, obs[None], None, MODEL_PTS, frame.depth_m, frame.K)
+    with pytest.raises(ValueError, match="T_cam_model"):
+        fit_scores(np.eye(4), obs[None], None, MODEL_PTS, frame.depth_m, frame.K)

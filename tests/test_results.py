@@ -20,6 +20,7 @@ def test_pose_fields_and_quaternion_round_trip():
     np.testing.assert_allclose(quat_to_rot(p.quat_wxyz), p.R, atol=1e-12)
     np.testing.assert_allclose(p.t_m, [0.1, 0.2, 3.0])
     assert p.to_dict()["n_valid_points"] == 123 and not p.T_cam_pallet.flags.writeable
+    assert p.pallet_type == "" and _pose(pallet_type="gma").to_dict()["pallet_type"] == "gma"
 
 
 @pytest.mark.parametrize("kw, exc, match", [
@@ -30,6 +31,7 @@ def test_pose_fields_and_quaternion_round_trip():
     (dict(n_valid_points=-1), ValueError, "n_valid_points"),
     (dict(fit=0.5), TypeError, "FitScore"),
     (dict(confidence=np.nan), ValueError, "finite"),
+    (dict(pallet_type=None), TypeError, "pallet_type must be str"),
 ])
 def test_pose_validation(kw, exc, match):
     with pytest.raises(exc, match=match):
@@ -41,6 +43,7 @@ def test_fit_rejection_and_frame_result():
         FitScore(1.2, 0.0, 0.5)
     with pytest.raises(ValueError, match="reason must be one of"):
         Rejection([0, 0, 1, 1], 0.5, "bad_luck")
+    assert Rejection([0, 0, 1, 1], 0.5, "time_budget").to_dict()["reason"] == "time_budget"
     r = Rejection([0, 0, 1, 1], 0.5, "poor_fit", "fit 0.1", 10, _pose())
     fr = FrameResult([_pose()], [r], {"total": 1.0}, (10, 20))
     d = fr.to_dict()

@@ -26,3 +26,16 @@ def test_sim_cli_rejects_unknown_preset(tmp_path):
 def test_sim_cli_bad_size(tmp_path, capsys):
     assert cli.main(["sim", "--frames", "1", "--size", "big", "--out", str(tmp_path)]) == 2
     assert "--size" in capsys.readouterr().err
+
+
+def test_sim_cli_forklift_approach_writes_the_forklift_side_file(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "fa"
+    rc = cli.main(["sim", "--preset", "forklift-approach", "--frames", "1", "--seed", "2", "--size", "160x96",
+                   "--out", str(out)])
+    assert rc == 0
+    side = json.loads((out / "train" / "000000" / "scene_forklift.json").read_text())
+    assert list(side) == ["0"] and side["0"]["cam_R_c2v"] is not None
+    assert any(p["target"] for p in side["0"]["pallets"])
+    assert len(BopDataset(out)) == 1

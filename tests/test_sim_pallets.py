@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from pallet6d.sim.pallets import PALLET_MODELS, ROT_Z_180, PalletModel, box_corners, get_pallet_model
+from pallet6d.sim.scene import MATERIALS
 
 
 def box_set(boxes: np.ndarray) -> np.ndarray:
@@ -120,3 +121,117 @@ def test_ply_is_a_millimetre_triangle_mesh(tmp_path):
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     centre = box_corners(m.boxes_m).mean(1).repeat(12, 0)
     assert np.all(np.einsum("ij,ij->i", normal, tri.mean(1) - centre) > 0)
+
+
+# --- the catalogue: types, ids, fork pockets, refine starts ----------------------------------------------
+
+CATALOGUE_SIZES_MM = {
+    "epal": (1200, 800, 144), "gma": (1219, 1016, 121), "eur3": (1200, 1000, 144), "eur2": (1200, 1000, 162),
+    "eur6": (800, 600, 144), "block_1210": (1200, 1000, 150), "plastic_9leg": (1200, 800, 150),
+    "plastic_3runner": (1200, 800, 150), "plastic_3runner_1210": (1200, 1000, 150),
+    "plastic_closed": (1200, 800, 160), "plastic_closed_1210": (1200, 1000, 160),
+}
+
+
+def test_catalogue_has_every_type_with_stable_obj_ids():
+    assert set(PALLET_MODELS) == set(CATALOGUE_SIZES_MM)
+    ids = {name: get_pallet_model(name).obj_id for name in PALLET_MODELS}
+    assert ids["epal"] == 1 and ids["gma"] == 2 and ids["eur3"] == 3      # the ids of existing datasets
+    assert sorted(ids.values()) == list(range(1, len(PALLET_MODELS) + 1))
+    for name, size in CATALOGUE_SIZES_MM.items():
+        m = get_pallet_model(name)
+        np.testing.assert_allclose(m.size_m * 1000, size, atol=1e-6, err_msg=name)
+        assert m.material == ("plastic" if name.startswith("plastic") else "wood")
+        assert m.points(300).shape == (300, 3)
+
+
+def _ray_hits(boxes: np.ndarray, depth_axis: int, lateral: float, z: float) -> bool:
+    """Whether a line along `depth_axis` through the whole pallet at (lateral, z) passes through a part."""
+    lat = 1 - depth_axis
+    inside = (boxes[:, 0, lat] < lateral) & (lateral < boxes[:, 1, lat]) & (boxes[:, 0, 2] < z) & (z < boxes[:, 1, 2])
+    return bool(inside.any())
+
+
+@pytest.mark.parametrize("name", PALLET_MODELS)
+def test_pockets_are_open_through_the_pallet_and_bounded_by_parts(name):
+    m = get_pallet_model(name)
+    assert set(m.pockets_m) == {"+x", "-x", "+y", "-y"}      # every catalogue type is four-way
+    floor = -m.size_m[2] / 2
+    for face, pk in m.pockets_m.items():
+        axis = 0 if face[1] == "x" else 1
+        lat = 1 - axis
+        for lo, hi in pk:
+            np.testing.assert_allclose([lo[axis], hi[axis]], [-m.size_m[axis] / 2, m.size_m[axis] / 2])
+            assert hi[lat] - lo[lat] >= 0.15 or name == "gma" and face[1] == "y"   # GMA notches: 229 mm
+            assert hi[2] - lo[2] >= 0.035
+            mid_lat, mid_z = (lo[lat] + hi[lat]) / 2, (lo[2] + hi[2]) / 2
+            # Open: lines through the opening (centre and near its corners) pass through no part.
+            for dl in (0.0, -0.45, 0.45):
+                for dz in (0.0, -0.45, 0.45):
+                    assert not _ray_hits(m.boxes_m, axis, mid_lat + dl * (hi[lat] - lo[lat]),
+                                         mid_z + dz * (hi[2] - lo[2])), (name, face)
+            # Bounded: just beside it, blocks/legs/stringers; just above it, boards or the deck (slatted decks
+            # have gaps: somewhere across its width); below, the floor or a base board or runner.
+            assert _ray_hits(m.boxes_m, axis, lo[lat] - 0.005, mid_z) and _ray_hits(m.boxes_m, axis, hi[lat] + 0.005,
+                                                                                     mid_z), (name, face)
+            across = np.linspace(lo[lat], hi[lat], 9)[1:-1]
+            assert any(_ray_hits(m.boxes_m, axis, x, hi[2] + 0.005) for x in across), (name, face)
+            if lo[2] > floor + 1e-9:
+                assert any(_ray_hits(m.boxes_m, axis, x, lo[2] - 0.005) for x in across), (name, face)
+
+
+@pytest.mark.parametrize("name", PALLET_MODELS)
+def test_pockets_are_left_then_right_and_symmetric(name):
+    m = get_pallet_model(name)
+    for face, pk in m.pockets_m.items():
+        n = {"+x": [1, 0, 0], "-x": [-1, 0, 0], "+y": [0, 1, 0], "-y": [0, -1, 0]}[face]
+        left_dir = np.cross(n, [0, 0, 1])            # seen from outside, left is normal x up
+        assert pk[0].mean(0) @ left_dir > pk[1].mean(0) @ left_dir
+    # A 180 degree turn maps the +x openings onto the -x ones in the same order (left stays left).
+    for a, b in (("+x", "-x"), ("+y", "-y")):
+        turned = np.stack([transform_boxes(ROT_Z_180, box[None])[0] for box in m.pockets_m[a]])
+        np.testing.assert_allclose(turned, m.pockets_m[b], atol=1e-9)
+
+
+def test_epal_pockets_have_the_real_entry_sizes():
+    m = get_pallet_model("epal")
+    size = lambda box, lat: np.round((box[1] - box[0])[[lat, 2]] * 1000, 1).tolist()  # noqa: E731
+    assert [size(b, 1) for b in m.pockets_m["+x"]] == [[227.5, 100.0]] * 2     # 800 mm side, from the floor
+    assert [size(b, 0) for b in m.pockets_m["+y"]] == [[382.5, 100.0]] * 2     # 1200 mm side, above the boards
+    gma = get_pallet_model("gma")
+    assert [size(b, 0) for b in gma.pockets_m["+y"]] == [[229.0, 38.0]] * 2      # through the stringer notches
+
+
+def test_refine_starts_are_epals_scaled_by_size():
+    from pallet6d.runtime.refine import _STARTS
+
+    np.testing.assert_allclose(get_pallet_model("epal").refine_starts, _STARTS)
+    half = get_pallet_model("eur6")
+    assert half.refine_starts.shape == (len(_STARTS), 3)
+    np.testing.assert_allclose(half.refine_starts[:, 0], np.asarray(_STARTS)[:, 0])
+    np.testing.assert_allclose(half.refine_starts[:, 1:], np.asarray(_STARTS)[:, 1:] * [0.8 / 1.2, 0.6 / 0.8])
+
+
+def test_bad_pockets_raise():
+    box = np.array([[[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]])
+    with pytest.raises(ValueError, match="pockets_m"):
+        PalletModel("bad", box, pockets_m={"+z": np.zeros((2, 2, 3))})
+    outside = np.array([[[-1, -2, -1], [1, -0.5, 0]], [[-1, 0.5, -1], [1, 1, 0]]], dtype=float)
+    with pytest.raises(ValueError, match="outside"):
+        PalletModel("bad", box, pockets_m={"+x": outside})
+    with pytest.raises(ValueError, match="face"):
+        get_pallet_model().face_centre_m("top")
+
+
+def test_missing_board_changes_the_boxes_not_the_model():
+    from pallet6d.sim.scene import PalletPlacement, pallet_boxes
+
+    m = get_pallet_model("epal")
+    p = PalletPlacement(1, "epal", np.eye(4))
+    full = pallet_boxes(p, np.array([0.7, 0.6, 0.4]), 0)
+    worn = pallet_boxes(p, np.array([0.7, 0.6, 0.4]), 0, missing=(1,), part_colors=np.full((len(m.boxes_m), 3), 0.3))
+    assert len(full) == len(m.boxes_m) and len(worn) == len(m.boxes_m) - 1
+    assert all(np.allclose(b.color, 0.3) for b in worn)
+    assert get_pallet_model(p.model_name) is m
+    plastic = pallet_boxes(PalletPlacement(2, "plastic_9leg", np.eye(4)), np.array([0.1, 0.2, 0.6]), 0)
+    assert {b.material for b in plastic} == {MATERIALS.index("plastic")}

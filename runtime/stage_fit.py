@@ -1,0 +1,53 @@
+"""Fit check stage: does each posed pallet agree with the depth image? (`fit.py`), then the acceptance gates."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .candidates import Candidates
+from .deadline import elapsed_ms
+from .fit import fit_score
+from .stage_geometry import PalletGeometry
+from .stage_refine import fit_array
+
+__all__ = ["FitCheckStage"]
+
+
+class FitCheckStage:
+    """Fit scores of the candidates' poses against the depth, with each candidate's own pallet model.
+
+    :param geometries: the pallet types (a candidate's `type_index` points into them).
+    :param tol_m: distance tolerance of the fit score, metres.
+    :param min_fit: a pose whose fit score is below this is rejected ("poor_fit").
+    :param min_confidence: a pose whose network confidence is below this is rejected ("low_confidence").
+    """
+
+    def __init__(self, geometries: tuple[PalletGeometry, ...], tol_m: float, min_fit: float,
+                 min_confidence: float) -> None:
+        self.geometries = tuple(geometries)
+        self.tol_m, self.min_fit, self.min_confidence = float(tol_m), float(min_fit), float(min_confidence)
+
+    def score(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
+              K: np.ndarray) -> np.ndarray:
+        """Fit of n poses. :param T_cam_pallet: (n, 4, 4). :param obs_cam: (n, N, 3) observed points, camera
+        frame, metres. :param type_index: (n,). :return: (n, 3) inlier fraction, free-space violation, score."""
+        out = np.zeros((len(T_cam_pallet), 3))
+        for k, (T, obs, j) in enumerate(zip(T_cam_pallet, obs_cam, type_index)):
+            out[k] = fit_array(fit_score(T, obs, self.geometries[int(j)].points_m, depth_m, K, self.tol_m))
+        return out
+
+    def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float]) -> None:
+        """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates."""
+        t = time.perf_counter()
+        rows = np.flatnonzero(cands.alive)
+        todo = rows[np.isnan(cands.fit[rows, 2])]
+        cands.assign(todo, fit=self.score(cands.T_cam_pallet[todo], cands.points_cam[todo], cands.type_index[todo],
+                                          depth_m, K))
+        conf, fit = cands.confidence[rows], cands.fit[rows]
+        low = conf < self.min_confidence
+        poor = ~low & (fit[:, 2] < self.min_fit)
+        cands.reject(rows[low], "low_confidence", [f"confidence {c:.3f} < {self.min_confidence}" for c in conf[low]])
+        cands.reject(rows[poor], "poor_fit", [f"fit {s:.3f} < {self.min_fit} (inliers {i:.2f}, free-space violation "
+                                              f"{v:.2f})" for i, v, s in fit[poor]])
+        timings["fit"] = elapsed_ms(t)

@@ -1,0 +1,52 @@
+"""The pallet geometry the refiner and the fit check need, per pallet type of a bundle (numpy only).
+
+A bundle's detector reports one class per pallet type (`Bundle.pallet_types`); each candidate is refined,
+symmetry-checked and fit-checked with its own type's model. `PalletGeometry` holds one type's arrays, ready
+for the stages (float64, loaded once); `bundle_geometries` reads them from a bundle together with the
+detector classes that report each type.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["PalletGeometry", "bundle_geometries"]
+
+
+@dataclass(frozen=True)
+class PalletGeometry:
+    """One pallet type's model, pallet frame, metres.
+
+    :ivar name: the type's name (e.g. "epal").
+    :ivar points_m: (n, 3) float64 model surface points (fit check, metrics).
+    :ivar boxes_m: (k, 2, 3) float64 min/max corners of its boards/blocks, or None (then no refinement).
+    :ivar symmetries: (S, 4, 4) float64, identity first.
+    :ivar size_m: (3,) float64 length, width, height.
+    :ivar refine_starts: (S, 3) float64 extra ICP starts, rows of (yaw_deg, dx_m, dy_m), most useful first.
+    """
+
+    name: str
+    points_m: np.ndarray
+    boxes_m: np.ndarray | None
+    symmetries: np.ndarray
+    size_m: np.ndarray
+    refine_starts: np.ndarray
+
+    @classmethod
+    def from_type(cls, t) -> "PalletGeometry":
+        """From a bundle's `PalletType` (model points loaded)."""
+        boxes = None if t.boxes_m is None else np.asarray(t.boxes_m, dtype=np.float64)
+        return cls(name=str(t.name), points_m=np.asarray(t.points(), dtype=np.float64), boxes_m=boxes,
+                   symmetries=np.asarray(t.symmetries, dtype=np.float64), size_m=np.asarray(t.size_m, dtype=np.float64),
+                   refine_starts=np.asarray(t.refine_starts, dtype=np.float64).reshape(-1, 3))
+
+
+def bundle_geometries(bundle) -> tuple[tuple[PalletGeometry, ...], dict[int, int]]:
+    """Every pallet type of a bundle and which detector class reports which type.
+
+    :return: (geometries in the bundle's order, {detector class id: index into geometries}); a detector
+        class without a type (an external detector's other classes) is absent.
+    """
+    geometries = tuple(PalletGeometry.from_type(t) for t in bundle.pallet_types)
+    return geometries, {int(t.class_id): i for i, t in enumerate(bundle.pallet_types)}

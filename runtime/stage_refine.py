@@ -1,0 +1,114 @@
+"""Refiner stage: the candidates' poses refined on their boxes' depth, each with its own pallet type's boards
+and blocks, all candidates of a frame at once (`refine.refine_batch`).
+
+Per candidate: robust point-to-plane ICP from the network's pose; its pose replaces the network's only when
+the depth is clean enough for ICP to be trusted (`refine_max_rms_m`) and it fits the depth at least as well
+(`refine_margin`). Then ICP from the type's starts around the pose so far; a trusted landing that explains
+the box's depth better at a tight tolerance replaces it.
+"""
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from .candidates import Candidates
+from .deadline import Deadline, elapsed_ms
+from .geometry import backproject_pixels
+from .refine import RefineGeometry, RefineOptions, refine_batch
+from .stage_geometry import PalletGeometry
+
+__all__ = ["RefinerStage", "fit_array"]
+
+log = logging.getLogger(__name__)
+
+
+def fit_array(fit) -> np.ndarray:
+    """(3,) inlier fraction, free-space violation, score of a `FitScore`."""
+    return np.array([fit.inlier_fraction, fit.free_space_violation, fit.score])
+
+
+class RefinerStage:
+    """ICP refinement of the candidates' poses.
+
+    :param geometries: the pallet types (a candidate's `type_index` points into them); a type without
+        `boxes_m` is not refined.
+    :param options: `EstimatorOptions` (the `refine*` and `fit_tol_m` fields).
+
+    :ivar budget_chunk: under a time budget, candidates are refined this many at a time, highest score first,
+        and the budget is checked before each group (1: the tightest bound, at the cost of batching).
+    """
+
+    def __init__(self, geometries: tuple[PalletGeometry, ...], options) -> None:
+        self.geometries = tuple(geometries)
+        self.options = o = options
+        on = bool(o.refine and o.refine_iterations > 0)
+        for g in self.geometries:
+            if o.refine and g.boxes_m is None:
+                log.warning("pallet type %s has no pallet boxes_m in the bundle: its poses are not refined", g.name)
+        # one RefineGeometry per type, built once: refine_batch refines the candidates of one object together
+        self._refine_geometry = tuple(
+            RefineGeometry(g.points_m, g.boxes_m, g.refine_starts[:o.refine_starts]) if on and g.boxes_m is not None
+            else None for g in self.geometries)
+        self.refine_options = RefineOptions(
+            iterations=o.refine_iterations, max_rms_m=o.refine_max_rms_m, margin=o.refine_margin,
+            fit_tol_m=o.fit_tol_m, start_points=o.refine_start_points, select_tol_m=o.refine_select_tol_m,
+            start_max_rms_m=o.refine_start_max_rms_m)
+        self.budget_chunk = 2
+
+    @property
+    def refines_type(self) -> tuple[bool, ...]:
+        """Per pallet type: whether its candidates are refined."""
+        return tuple(g is not None for g in self._refine_geometry)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any pallet type is refined."""
+        return any(self.refines_type)
+
+    def box_points(self, pixels: tuple[np.ndarray, np.ndarray], depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+        """A box's depth points for ICP: its candidate pixels (v, u), thinned by an even stride to at most
+        `refine_points`, back-projected. :return: (m, 3) float32 camera frame, metres."""
+        v, u = pixels
+        if len(v) > self.options.refine_points:
+            keep = np.linspace(0, len(v) - 1, self.options.refine_points).round().astype(np.int64)
+            v, u = v[keep], u[keep]
+        return backproject_pixels(u, v, depth_m[v, u], K)
+
+    def refine(self, T_net: np.ndarray, obs_cam: np.ndarray, box_obs_cam: list[np.ndarray], type_index: np.ndarray,
+               depth_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Refined poses of n candidates of refined types, all at once (`refine_batch`).
+
+        :param T_net: (n, 4, 4) the network's poses. :param obs_cam: (n, N, 3) each candidate's sampled points
+            (the fit score's), camera frame, metres. :param box_obs_cam: n (m_i, 3) depth points for ICP.
+        :param type_index: (n,) pallet type of each candidate. :param depth_m: (H, W) metres. :param K: (3, 3).
+        :return: T_cam_pallet (n, 4, 4), and the fit (inlier fraction, free-space violation, score) of each
+            returned pose, (n, 3).
+        """
+        geometries = [self._refine_geometry[int(j)] for j in type_index]
+        if any(g is None for g in geometries):
+            raise ValueError("refine: a candidate's pallet type is not refined (no boxes_m, or refinement is off)")
+        if len(geometries) == 0:
+            return np.zeros((0, 4, 4)), np.zeros((0, 3))
+        res = refine_batch(T_net, obs_cam, box_obs_cam, geometries, depth_m, K, self.refine_options)
+        return res.T_cam_pallet, np.array([fit_array(f) for f in res.fits]).reshape(-1, 3)
+
+    def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
+                 deadline: Deadline | None = None) -> None:
+        """The stage on the alive rows of `cands` of refined types: sets `T_cam_pallet` and `fit` where computed.
+        Under a time budget the rows go `budget_chunk` at a time, highest score first; those left when it
+        expires are rejected ("time_budget")."""
+        t = time.perf_counter()
+        rows = np.flatnonzero(cands.alive & np.asarray(self.refines_type, bool)[cands.type_index])
+        step = self.budget_chunk if deadline is not None and deadline.budget_ms is not None else max(len(rows), 1)
+        chunks = [rows[k:k + step] for k in range(0, len(rows), step)]
+        for c, idx in enumerate(chunks):
+            if deadline is not None and deadline.expired():
+                cands.reject(np.concatenate(chunks[c:]), "time_budget",
+                             "the frame's time budget was spent before this pallet was refined")
+                break
+            box_obs = [self.box_points(cands.pixels[i], depth_m, K) for i in idx]
+            T, fit = self.refine(cands.T_net[idx], cands.points_cam[idx], box_obs, cands.type_index[idx], depth_m, K)
+            cands.assign(idx, T_cam_pallet=T, fit=fit)
+        timings["refine"] = elapsed_ms(t)

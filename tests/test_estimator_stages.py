@@ -1,0 +1,254 @@
+"""The estimator's stages on their own, the pipeline they make, time budgets and pallet types per detection."""
+import dataclasses
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from pallet6d.runtime.bundle import PalletType, load_bundle
+from pallet6d.runtime.candidates import Candidates
+from pallet6d.runtime.detector import Detections
+from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
+from pallet6d.runtime.fit import fit_score
+from pallet6d.runtime.pallet_geometry import default_refine_starts
+from pallet6d.sim.pallets import get_pallet_model
+
+from estimator_fixtures import scene, visible_boxes
+
+KW = dict(threads=1, score_threshold=0.0, min_fit=0.0)
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return scene()
+
+
+@pytest.fixture(scope="module")
+def boxes(frame):
+    """The visible boxes of three pallets, most visible first."""
+    return visible_boxes(frame, 3)
+
+
+@pytest.fixture(scope="module")
+def est(bundle_dir):
+    return PalletEstimator.from_bundle(bundle_dir, **KW)
+
+
+def _cands(est, boxes, scores=None):
+    n = len(boxes)
+    scores = np.linspace(0.9, 0.5, n) if scores is None else scores
+    return Candidates.new(boxes, scores, np.zeros(n, np.int64), np.zeros(n, np.int64), est.spec.num_points)
+
+
+def _inputs(est, frame):
+    return est.check_inputs(frame.rgb, frame.depth_m, frame.K)
+
+
+# -- the stages on their own ------------------------------------------------------------------------------
+def test_pose_inputs_with_one_generator_per_box_and_the_selected_pixels(est, frame, boxes):
+    from pallet6d.runtime.geometry import clamp_box, select_pixels
+    from pallet6d.runtime.pose_inputs import prepare_pose_inputs
+
+    rgb, depth_m, K = _inputs(est, frame)
+    lo, hi = est.spec.depth_range_m
+    batch, pixels = prepare_pose_inputs(rgb, depth_m, K, boxes, est.spec,
+                                        [np.random.default_rng(i) for i in range(len(boxes))], return_pixels=True)
+    for i, box in enumerate(boxes):                   # each box as if alone, with its own generator
+        alone = prepare_pose_inputs(rgb, depth_m, K, box[None], est.spec, np.random.default_rng(i))
+        np.testing.assert_array_equal(alone.points[0], batch.points[i])
+        v, u = select_pixels(depth_m, clamp_box(box, depth_m.shape), None, lo, hi)
+        np.testing.assert_array_equal(pixels[i][0], v)
+        np.testing.assert_array_equal(pixels[i][1], u)
+    with pytest.raises(TypeError, match="one per box"):
+        prepare_pose_inputs(rgb, depth_m, K, boxes, est.spec, [np.random.default_rng(0)])
+
+
+def test_detector_stage_steps_make_detect(est, frame):
+    x, lb = est.detector.preprocess(frame.rgb)
+    assert x.shape == (1, 3, *est.bundle.detector.input_hw) and x.dtype == np.float32
+    raw = est.detector.infer(x)
+    det = est.detector.postprocess(raw, lb)
+    ref = est.detect(frame.rgb)
+    np.testing.assert_array_equal(det.boxes_xyxy, ref.boxes_xyxy)
+    np.testing.assert_array_equal(det.scores, ref.scores)
+    # an output with no score above the threshold gives no detection
+    assert len(est.detector.postprocess(np.zeros_like(raw), lb)) == 0
+
+
+def test_stages_on_no_candidates(est, frame):
+    rgb, depth_m, K = _inputs(est, frame)
+    c, timings = _cands(est, np.zeros((0, 4))), {}
+    est.pose_network(rgb, depth_m, K, c, timings)
+    est.refiner(c, depth_m, K, timings)
+    est.fit_check(c, depth_m, K, timings)
+    assert len(c) == 0
+    T, fit = est.refiner.refine(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), [], np.zeros(0, np.int64), depth_m, K)
+    assert T.shape == (0, 4, 4) and fit.shape == (0, 3)
+    fit = est.fit_check.score(np.zeros((0, 4, 4)), np.zeros((0, 5, 3)), np.zeros(0, np.int64), depth_m, K)
+    assert fit.shape == (0, 3)
+
+
+def test_one_candidate_through_the_stages_equals_estimate_boxes(est, frame, boxes):
+    rgb, depth_m, K = _inputs(est, frame)
+    c, timings = _cands(est, boxes[:1], [0.8]), {}
+    est.pose_network(rgb, depth_m, K, c, timings)
+    assert c.alive.all() and c.n_valid[0] > 0 and len(c.pixels[0][0]) == c.n_valid[0]
+    np.testing.assert_array_equal(c.T_cam_pallet, c.T_net)              # not refined yet
+    est.refiner(c, depth_m, K, timings)
+    assert not np.isnan(c.fit).any()                                     # refine_batch scores what it returns
+    est.fit_check(c, depth_m, K, timings)
+    assert set(timings) >= {"pose_inputs", "fusion", "pose", "selection", "refine", "fit"}
+    r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:1], scores=[0.8])
+    assert len(r.poses) == 1
+    np.testing.assert_array_equal(r.poses[0].T_cam_pallet, c.T_cam_pallet[0])
+    assert r.poses[0].fit.score == c.fit[0, 2] and r.poses[0].pallet_type == est.pallet_types[0].name
+
+
+def test_refiner_and_fit_check_leave_rejected_candidates_alone(est, frame, boxes):
+    rgb, depth_m, K = _inputs(est, frame)
+    c = _cands(est, boxes)
+    est.pose_network(rgb, depth_m, K, c, {})
+    T_net = c.T_cam_pallet.copy()
+    c.reject(np.arange(len(c)), "low_confidence", "rejected by the test")
+    est.refiner(c, depth_m, K, {})
+    est.fit_check(c, depth_m, K, {})
+    np.testing.assert_array_equal(c.T_cam_pallet, T_net)
+    assert np.isnan(c.fit).all() and set(c.reason) == {"low_confidence"}
+
+
+def test_pose_network_rejects_boxes_off_the_image_and_without_depth(est, frame, boxes):
+    rgb, depth_m, K = _inputs(est, frame)
+    depth = depth_m.copy()
+    x1, y1, x2, y2 = boxes[1].astype(int)
+    depth[y1:y2, x1:x2] = 0.0
+    c = _cands(est, np.vstack([[5000.0, 5000.0, 5100.0, 5100.0], boxes[1]]))
+    est.pose_network(rgb, depth, K, c, {})
+    assert c.reason.tolist() == ["box_outside_image", "too_few_points"] and not c.alive.any()
+    assert "valid depth pixels" in c.detail[1]
+
+
+def test_nan_depth_pixels_are_never_points(bundle_dir, frame, boxes):
+    depth = frame.depth_m.copy()
+    x1, y1, x2, y2 = boxes[0].astype(int)
+    depth[y1:(y1 + y2) // 2, x1:x2] = np.nan                         # the top half of the first box
+    lenient = PalletEstimator.from_bundle(bundle_dir, nonfinite_depth="as_missing", **KW)
+    rgb, depth_m, K = lenient.check_inputs(frame.rgb, depth, frame.K)
+    c = _cands(lenient, boxes)
+    lenient.pose_network(rgb, depth_m, K, c, {})
+    v, u = c.pixels[0]
+    assert len(v) == c.n_valid[0] > 0 and np.all(v >= (y1 + y2) // 2) and np.all(depth_m[v, u] > 0)
+    assert np.all(np.isfinite(c.points_cam[0]))
+    # the same frame whole: every candidate either posed with finite numbers or rejected with a reason
+    r = lenient.estimate_boxes(frame.rgb, depth, frame.K, boxes_xyxy=boxes)
+    assert len(r.poses) + len(r.rejected) == len(boxes)
+    assert all(np.all(np.isfinite(p.T_cam_pallet)) for p in r.poses)
+
+
+def test_estimate_reads_as_the_stages_in_order(est, frame):
+    """The record `candidates` returns is what `estimate` reports: accepted rows in order, the rest rejected."""
+    cands = est.candidates(frame.rgb, frame.depth_m, frame.K)
+    r = est.estimate(frame.rgb, frame.depth_m, frame.K)
+    assert np.all(np.diff(cands.scores) <= 0)
+    alive = cands[cands.alive]
+    assert len(r.poses) == len(alive) and len(r.rejected) == len(cands) - len(alive)
+    for p, T, s in zip(r.poses, alive.T_cam_pallet, alive.scores):
+        np.testing.assert_array_equal(p.T_cam_pallet, T)
+        assert p.detector_score == s
+
+
+# -- time budget ----------------------------------------------------------------------------------------
+def test_zero_time_budget_poses_nothing_and_reports_every_detection(bundle_dir, frame, boxes):
+    est = PalletEstimator.from_bundle(bundle_dir, time_budget_ms=0.0, **KW)
+    r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    assert r.poses == [] and [x.reason for x in r.rejected] == ["time_budget"] * len(boxes)
+    assert all(x.pose is None for x in r.rejected)
+    json.dumps(r.to_dict())
+
+
+def test_time_budget_poses_the_best_scores_first_and_skips_the_rest(bundle_dir, frame, boxes):
+    """A fake clock that moves 1 ms each time it is read: the budget runs out part way through the frame."""
+    ticks = itertools.count()
+    est = PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(time_budget_ms=3.5, **{
+        k: v for k, v in KW.items() if k != "threads"}), clock=lambda: next(ticks) / 1000.0)
+    est.refiner.budget_chunk = 1
+    scores = [0.6, 0.9, 0.7]                                            # not in score order on purpose
+    r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes, scores=scores)
+    assert 1 <= len(r.poses) < len(boxes)
+    assert [p.detector_score for p in r.poses] == sorted(scores, reverse=True)[:len(r.poses)]
+    assert [x.reason for x in r.rejected] == ["time_budget"] * (len(boxes) - len(r.poses))
+    assert all(x.pose is None for x in r.rejected)
+    assert max(x.detector_score for x in r.rejected) < min(p.detector_score for p in r.poses)
+    # without a budget the same clock changes nothing
+    free = PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(**{
+        k: v for k, v in KW.items() if k != "threads"}), clock=lambda: next(ticks) / 1000.0)
+    assert len(free.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes, scores=scores).poses) == 3
+
+
+def test_time_budget_option_is_checked():
+    with pytest.raises(ValueError, match="time_budget_ms"):
+        EstimatorOptions(time_budget_ms=-1.0)
+
+
+# -- pallet types per detection ---------------------------------------------------------------------------
+def _gma_type(class_id: int) -> PalletType:
+    m = get_pallet_model("gma")
+    return PalletType(name="gma", class_id=class_id, size_m=tuple(m.size_m), diameter_m=m.diameter_m,
+                      points_file="gma_points.npy", symmetries=m.symmetries, boxes_m=m.boxes_m,
+                      refine_starts=default_refine_starts(m.size_m), points_m=m.surface_points(500, seed=0))
+
+
+def test_each_detection_uses_its_own_types_geometry(bundle_dir, frame, boxes):
+    bundle = load_bundle(bundle_dir)
+    epal = bundle.pallet_types[0]
+    two = dataclasses.replace(bundle, pallet_types=(epal, _gma_type(epal.class_id + 1)))
+    only_gma = dataclasses.replace(bundle, pallet_types=(_gma_type(epal.class_id),))
+    opts = EstimatorOptions(**{k: v for k, v in KW.items() if k != "threads"})
+    mixed = PalletEstimator(two, threads=1, options=opts)
+    classes = [epal.class_id, epal.class_id + 1, epal.class_id + 1]
+    r = mixed.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes, class_ids=classes)
+    assert [p.pallet_type for p in r.poses] == ["epal", "gma", "gma"]
+    # the same detections with a bundle of one type each: a row's pose is that of its own type
+    as_epal = PalletEstimator(bundle, threads=1, options=opts).estimate_boxes(
+        frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:1])
+    as_gma = PalletEstimator(only_gma, threads=1, options=opts).estimate_boxes(
+        frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[1:])
+    for p, q in zip(r.poses, as_epal.poses + as_gma.poses):
+        np.testing.assert_allclose(p.T_cam_pallet, q.T_cam_pallet, atol=1e-9)
+        assert p.fit.score == pytest.approx(q.fit.score, abs=1e-12)
+    # the fit of a gma row is the fit of the gma model, not the epal one
+    rgb, depth_m, K = mixed.check_inputs(frame.rgb, frame.depth_m, frame.K)
+    c = mixed.candidates(rgb, depth_m, K, detections=Detections(boxes, np.linspace(0.9, 0.5, 3), classes))
+    gma_pts = mixed.pallet_types[1].points_m
+    expect = fit_score(c.T_cam_pallet[1], c.points_cam[1], gma_pts, depth_m, K, opts.fit_tol_m)
+    assert c.type_index.tolist() == [0, 1, 1] and c.fit[1, 2] == pytest.approx(expect.score, abs=1e-12)
+    with pytest.raises(ValueError, match="not pallet classes"):
+        mixed.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:1], class_ids=[7])
+
+
+# -- the reference-pose comparison (benchmarks/reference_poses.py) ------------------------------------------
+def test_reference_poses_record_then_compare(bundle_dir, sim_bop_dataset, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).parents[1] / "benchmarks" / "reference_poses.py"
+    ref = tmp_path / "ref.json"
+    common = ["--bundle", str(bundle_dir), "--precision", "fp32"]
+
+    def run(*args):
+        return subprocess.run([sys.executable, str(script), *args, *common], capture_output=True, text=True,
+                              timeout=300)
+
+    done = run("record", "--data", str(sim_bop_dataset), "--out", str(ref))
+    assert done.returncode == 0, done.stderr
+    same = run("compare", "--ref", str(ref))
+    assert same.returncode == 0 and "largest pose difference 0," in same.stdout, same.stdout + same.stderr
+    # a recorded pose moved by 1 micrometre is reported
+    doc = json.loads(ref.read_text())
+    frames = next(iter(doc["runs"]["fp32"].values()))
+    pose = next(r for f in frames for r in f["accepted"] + [x["pose"] for x in f["rejected"] if x["pose"]])
+    pose["T_cam_pallet"][0][3] += 1e-6
+    ref.write_text(json.dumps(doc))
+    moved = run("compare", "--ref", str(ref))
+    assert moved.returncode == 1 and "pose differs by 1e-06" in moved.stdout, moved.stdout + moved.stderr
