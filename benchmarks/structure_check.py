@@ -2,7 +2,7 @@
 
 For each frame of BOP datasets, runs the estimator on the frame as recorded and on inputs that do not belong
 together (a flat wall's depth under the image, another frame's depth, depth 10x too near, a focal length 2x too
-long), and scores every pose the estimator accepts with its fit check alone (`structure=False`) with
+long), and scores every pose the estimator accepts with its fit check alone (`structure=None`) with
 `runtime/structure.py`. Reports, per dataset and variant: those poses, how many are within 5 cm (ADD-sym) of a
 ground-truth pallet, and how many of each the structure check keeps. The estimator's poses are cached per dataset and
 variant (`--cache DIR`), so re-scoring with other thresholds takes seconds. Measures only.
@@ -95,7 +95,7 @@ def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8
                 poses = dict(np.load(path))
             else:
                 est = est or PalletEstimator.from_bundle(bundle, threads=2, precision="int8" if int8 else "fp32",
-                                                         structure=False)
+                                                         structure=None)
                 poses = estimate(est, ds, variant, n)
                 if path is not None:
                     path.parent.mkdir(parents=True, exist_ok=True)
