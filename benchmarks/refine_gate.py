@@ -53,7 +53,7 @@ def icp_rows(est: PalletEstimator, f):
 
 def pallet_rows(bundle: str, data: Path, precision: str, threads: int) -> np.ndarray:
     """(n, 5): ADD-sym of the network's pose, of ICP's pose (m), their fit scores, ICP's RMS (m; nan: no result)."""
-    plain = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, refine=False, min_fit=0.0)
+    plain = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, refine=False, min_fit=0.0, structure=None)
     rows = []
     ds = BopDataset(data)
     for i in range(len(ds)):

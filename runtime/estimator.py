@@ -37,6 +37,7 @@ from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel
 from .stage_detector import DetectorStage
 from .stage_fit import FitCheckStage
+from .structure import StructureParams
 from .stage_geometry import bundle_geometries
 from .stage_pose import PoseNetworkStage
 from .stage_refine import RefinerStage
@@ -90,6 +91,11 @@ class EstimatorOptions:
         wrongly; on clean depth most landings that help are below 3 mm.
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
+    :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's
+        boards and fork openings where the pose puts them, and the detector's box must match it; a pose that
+        fails is rejected ("no_pallet_structure"). None turns the check off. On validation frames it kept 272 of
+        273 poses within 5 cm and refused 95 % of the poses the fit check alone accepted on inputs that do not
+        belong together (flat-wall depth, depth 10x off, focal length 2x off; `docs/structure-check.md`).
     :ivar time_budget_ms: the frame's time budget from the start of `estimate`, milliseconds (None: no limit).
         Candidates are posed in the order of their detector scores; those the budget leaves no time for are
         reported as rejected ("time_budget"), never as poses. The stages check it between units of work (a
@@ -115,6 +121,7 @@ class EstimatorOptions:
     refine_start_max_rms_m: float = 0.003
     nonfinite_depth: str = "raise"
     seed: int = 0
+    structure: StructureParams | None = StructureParams()
     time_budget_ms: float | None = None
 
     def __post_init__(self) -> None:
@@ -183,7 +190,7 @@ class PalletEstimator:
         self.pose_network = PoseNetworkStage(bundle, precision, self.threads, spec, o.seed, o.min_valid_points)
         self._check_graphs_match_manifest()
         self.refiner = RefinerStage(self.pallet_types, o)
-        self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence)
+        self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure)
 
     @classmethod
     def from_bundle(cls, path: str | Path, threads: int = 2, precision: str = "fp32",

@@ -8,9 +8,11 @@ import sys
 
 def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """--bundle, --int8, --threads, --score-threshold, --max-pallets, --min-fit, --seed, --no-refine,
-    --refine-starts, --time-budget-ms."""
+    --refine-starts, --time-budget-ms, --no-structure-check."""
     parser.add_argument("--bundle", help="model bundle folder (default: $PALLET6D_BUNDLE, else the installed "
                                          "pallet6d-models package's epal-default, else ./models/epal-default)")
+    parser.add_argument("--no-structure-check", action="store_true",
+                        help="accept poses without checking the pallet's boards and openings in the depth")
     parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
@@ -47,6 +49,8 @@ def load_estimator(args: argparse.Namespace, command: str):
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
         extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
                                    ("time_budget_ms", args.time_budget_ms)) if v is not None}
+        if args.no_structure_check:
+            extra["structure"] = None
         return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32",
                                            score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,

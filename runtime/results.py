@@ -25,6 +25,8 @@ REJECT_REASONS = (
     "too_few_points",       # fewer valid depth pixels in the box (and depth range) than min_valid_points
     "low_confidence",       # the best per-point network confidence is below min_confidence
     "poor_fit",             # the posed pallet model disagrees with the observed depth (fit.py)
+    "no_pallet_structure",  # the depth does not show the pallet's boards and openings where the pose puts them,
+                            # or the detector's box does not match the posed pallet (structure.py)
     "time_budget",          # skipped: the frame's time budget was spent before this detection was posed
 )
 

@@ -1,4 +1,5 @@
-"""Fit check stage: does each posed pallet agree with the depth image? (`fit.py`), then the acceptance gates."""
+"""Fit check stage: does each posed pallet agree with the depth image (`fit.py`) and show a pallet's structure
+there (`structure.py`)? Then the acceptance gates."""
 from __future__ import annotations
 
 import time
@@ -10,6 +11,7 @@ from .deadline import elapsed_ms
 from .fit import fit_score
 from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
+from .structure import StructureParams, structure_check
 
 __all__ = ["FitCheckStage"]
 
@@ -21,12 +23,26 @@ class FitCheckStage:
     :param tol_m: distance tolerance of the fit score, metres.
     :param min_fit: a pose whose fit score is below this is rejected ("poor_fit").
     :param min_confidence: a pose whose network confidence is below this is rejected ("low_confidence").
+    :param structure: thresholds of the structure check, or None to skip it; a pose that fails it is rejected
+        ("no_pallet_structure"). Types without boxes are not structure-checked.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], tol_m: float, min_fit: float,
-                 min_confidence: float) -> None:
+                 min_confidence: float, structure: StructureParams | None = StructureParams()) -> None:
         self.geometries = tuple(geometries)
         self.tol_m, self.min_fit, self.min_confidence = float(tol_m), float(min_fit), float(min_confidence)
+        self.structure = structure
+
+    def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
+        """The structure check on `rows` of `cands`, one batched call per pallet type; failures are rejected."""
+        for j, geom in enumerate(self.geometries):
+            mine = rows[cands.type_index[rows] == j]
+            if len(mine) == 0 or geom.boxes_m is None:
+                continue
+            scores = structure_check(cands.T_cam_pallet[mine], geom.boxes_m, depth_m, K, cands.boxes_xyxy[mine],
+                                     self.structure)
+            bad = [k for k, sc in enumerate(scores) if not sc.ok]
+            cands.reject(mine[bad], "no_pallet_structure", [_structure_detail(scores[k]) for k in bad])
 
     def score(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
               K: np.ndarray) -> np.ndarray:
@@ -50,4 +66,11 @@ class FitCheckStage:
         cands.reject(rows[low], "low_confidence", [f"confidence {c:.3f} < {self.min_confidence}" for c in conf[low]])
         cands.reject(rows[poor], "poor_fit", [f"fit {s:.3f} < {self.min_fit} (inliers {i:.2f}, free-space violation "
                                               f"{v:.2f})" for i, v, s in fit[poor]])
+        if self.structure is not None:
+            self.check_structure(cands, rows[~low & ~poor], depth_m, K)
         timings["fit"] = elapsed_ms(t)
+
+
+def _structure_detail(s) -> str:
+    return (f"{s.reason}: agreement {s.agreement:.2f}, openings open {s.open_fraction:.2f} ({s.open + s.closed} rays), "
+            f"box cover {s.box_cover:.2f}, box solid {s.box_solid:.2f}, seen IoU {s.seen_iou:.2f}")

@@ -29,8 +29,8 @@ def boxes(frame):
 
 @pytest.fixture(scope="module")
 def est(bundle_dir):
-    # min_fit=0: random weights never fit, and these tests are about the plumbing, not the accuracy
-    return PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0)
+    # min_fit=0, no structure check: random weights never fit, and these tests are about the plumbing
+    return PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, structure=None)
 
 
 def _key(result: FrameResult):
@@ -171,9 +171,9 @@ def test_bad_inputs_raise_clear_errors(est, frame, case):
 def test_nan_depth_as_missing_option(bundle_dir, frame):
     depth = frame.depth_m.copy()
     depth[depth == 0] = np.nan
-    lenient = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0,
+    lenient = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, structure=None,
                                           nonfinite_depth="as_missing")
-    strict_zero = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0)
+    strict_zero = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, structure=None)
     assert _key(lenient.estimate(frame.rgb, depth, frame.K)) == _key(strict_zero.estimate(frame.rgb, frame.depth_m,
                                                                                           frame.K))
 
@@ -211,7 +211,7 @@ def test_runtime_prediction_never_imports_torch(bundle_dir):
         import sys
         import numpy as np
         from pallet6d.runtime.estimator import PalletEstimator
-        est = PalletEstimator.from_bundle({str(bundle_dir)!r}, threads=1, score_threshold=0.0, min_fit=0.0)
+        est = PalletEstimator.from_bundle({str(bundle_dir)!r}, threads=1, score_threshold=0.0, min_fit=0.0, structure=None)
         rng = np.random.default_rng(0)
         rgb = rng.integers(0, 255, (120, 200, 3), dtype=np.uint8)
         depth = rng.uniform(1.0, 4.0, (120, 200)).astype(np.float32)
@@ -228,9 +228,9 @@ def test_runtime_prediction_never_imports_torch(bundle_dir):
 @pytest.mark.parametrize("margin, max_rms_m", [(0.0, 1.0), (0.02, 1.0), (1.0, 1.0), (0.0, 1e-9)])
 def test_refined_pose_is_kept_only_when_it_fits_the_depth_better_by_the_margin(bundle_dir, frame, boxes, margin,
                                                                                max_rms_m):
-    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine_margin=margin,
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, structure=None, refine_margin=margin,
                                       refine_max_rms_m=max_rms_m, refine_starts=0)
-    plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine=False)
+    plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, structure=None, refine=False)
     assert est.refines and not plain.refines
     r, r0 = (e.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes) for e in (est, plain))
     assert len(r.poses) == len(r0.poses) == len(boxes)
@@ -269,7 +269,7 @@ def test_extra_starts_bring_back_a_network_pose_turned_out_of_icps_basin(bundle_
         return np.array([add_sym(p.T_cam_pallet[:3, :3], p.T_cam_pallet[:3, 3], T[:3, :3], T[:3, 3], pts,
                                  pallet.symmetries) for p, T in zip(r.poses, T_gt)])
 
-    kw = dict(threads=1, score_threshold=0.0, min_fit=0.0)
+    kw = dict(threads=1, score_threshold=0.0, min_fit=0.0, structure=None)
     e_off = errors(PalletEstimator.from_bundle(bundle_dir, refine=False, **kw))
     e_icp = errors(PalletEstimator.from_bundle(bundle_dir, refine_starts=0, **kw))
     e_starts = errors(PalletEstimator.from_bundle(bundle_dir, **kw))
@@ -282,8 +282,8 @@ def test_noisy_depth_keeps_the_network_pose(bundle_dir, frame, boxes):
     # stereo-like noise (2 cm) pulls ICP off; its residual stays above refine_max_rms_m, so the network's pose stays
     rng = np.random.default_rng(3)
     depth = np.where(frame.depth_m > 0, frame.depth_m + rng.normal(0, 0.02, frame.depth_m.shape), 0).astype(np.float32)
-    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0)
-    plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, refine=False)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, structure=None)
+    plain = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, structure=None, refine=False)
     r, r0 = (e.estimate_boxes(frame.rgb, depth, frame.K, boxes_xyxy=boxes) for e in (est, plain))
     assert len(r.poses) == len(r0.poses) == len(boxes) >= 1
     for p, p0 in zip(r.poses, r0.poses):

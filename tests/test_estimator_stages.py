@@ -16,7 +16,7 @@ from pallet6d.sim.pallets import get_pallet_model
 
 from estimator_fixtures import scene, visible_boxes
 
-KW = dict(threads=1, score_threshold=0.0, min_fit=0.0)
+KW = dict(threads=1, score_threshold=0.0, min_fit=0.0, structure=None)
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ def _counted_gt(root) -> int:
                if g.bbox_visib_xywh is not None and g.visib_fract >= 0.1)
 
 
-@pytest.mark.parametrize("extra", [[], ["--gt-boxes", "--min-fit", "0"]])
+@pytest.mark.parametrize("extra", [[], ["--gt-boxes", "--min-fit", "0", "--no-structure-check"]])
 def test_eval_writes_a_summary_with_the_protocol_keys(tiny_bundle, sim_bop_dataset, tmp_path, capsys, extra):
     from pallet6d.runtime.cli import main
 
@@ -63,7 +63,7 @@ def test_eval_max_pallets_caps_the_pallets_posed_per_frame(tiny_bundle, sim_bop_
 
     out = tmp_path / "e.json"
     assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--json", str(out),
-                 "--gt-boxes", "--min-fit", "0", "--max-pallets", "1", "--threads", "1"]) == 0
+                 "--gt-boxes", "--min-fit", "0", "--no-structure-check", "--max-pallets", "1", "--threads", "1"]) == 0
     doc = json.loads(out.read_text())
     per_frame = [sum(r["detected"] for r in doc["records"] if r["frame"] == f) for f in range(doc["frames"])]
     assert max(per_frame) == 1 and doc["n_detected"] < doc["n_gt"]

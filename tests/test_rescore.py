@@ -16,7 +16,7 @@ def results(bundle_dir, sim_bop_dataset):
     from pallet6d.runtime.estimator import PalletEstimator
     from pallet6d.runtime.eval_cli import evaluate_dataset
 
-    est = PalletEstimator.from_bundle(bundle_dir, threads=1, min_fit=0.0)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, min_fit=0.0, structure=None)
     out = evaluate_dataset(est, sim_bop_dataset, gt_boxes=True)
     return {**out["summary"], "records": out["records"]}
 

@@ -15,7 +15,7 @@ def bop_dir(tmp_path_factory):
 
 def test_run_on_bop_prints_json_lines_ground_truth_and_overlays(bundle_dir, bop_dir, tmp_path, capsys):
     rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
-               "--score-threshold", "0", "--min-fit", "0", "--out", str(tmp_path / "ov"), "--max-frames", "2"])
+               "--score-threshold", "0", "--min-fit", "0", "--no-structure-check", "--out", str(tmp_path / "ov"), "--max-frames", "2"])
     assert rc == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     frames, summary = lines[:-1], lines[-1]
@@ -30,7 +30,7 @@ def test_run_on_bop_prints_json_lines_ground_truth_and_overlays(bundle_dir, bop_
 
 def test_run_text_report_names_poses_errors_and_summary(bundle_dir, bop_dir, capsys):
     args = ["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
-            "--score-threshold", "0", "--min-fit", "0", "--max-frames", "1"]
+            "--score-threshold", "0", "--min-fit", "0", "--no-structure-check", "--max-frames", "1"]
     assert main(args) == 0
     frame = json.loads(capsys.readouterr().out.splitlines()[0])
     assert main(args + ["--format", "text"]) == 0
@@ -61,7 +61,7 @@ def _failing_estimate(monkeypatch, fail_frames):
 def test_one_failing_frame_is_reported_and_the_run_goes_on(bundle_dir, bop_dir, monkeypatch, capsys):
     _failing_estimate(monkeypatch, {0})
     rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
-               "--score-threshold", "0", "--min-fit", "0"])
+               "--score-threshold", "0", "--min-fit", "0", "--no-structure-check"])
     assert rc == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert lines[0]["frame"] == 0 and "simulated failure" in lines[0]["error"] and "poses" not in lines[0]

@@ -263,7 +263,7 @@ def test_checkpoint_exports_to_a_bundle_the_runtime_loads(pose_run, sim_bop_data
     assert set(training) == {"detector", "pose"} and training["pose"]["seed"] == merged["provenance"]["pose"]["seed"]
     assert training["detector"]["stage"] == "detector" and training["pose"]["stage"] == "pose"
     assert training["pose"]["data"][0]["frames"] == len(BopDataset(sim_bop_dataset))
-    est = PalletEstimator.from_bundle(tmp_path / "bundle", threads=1, min_fit=0.0)
+    est = PalletEstimator.from_bundle(tmp_path / "bundle", threads=1, min_fit=0.0, structure=None)
     f = BopDataset(sim_bop_dataset)[0]
     boxes = [[x, y, x + w, y + h] for x, y, w, h in (g.bbox_visib_xywh for g in f.gts if g.visib_fract > 0.3)]
     result = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
