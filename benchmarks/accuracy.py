@@ -13,7 +13,6 @@ symmetric-ADD distribution), `accuracy_by_distance.png`, and `accuracy.md` (our 
 from __future__ import annotations
 
 import argparse
-import fcntl
 import json
 import logging
 import shutil
@@ -174,7 +173,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of the per-pallet point sampling (EstimatorOptions.seed): run a few to see the spread")
     ap.add_argument("--write-scores", action="store_true",
-                    help="record the summary in the bundle's manifest.json under scores.<fp32|int8>")
+                    help="record the summary in the bundle's report.json under scores.<fp32|int8>")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
 
@@ -210,22 +209,16 @@ def main(argv=None) -> int:
 
 
 def write_scores(bundle: Path, precision: str, results: dict[str, dict], command: str) -> None:
-    """Put the summaries in manifest.json `scores` (the manifest itself carries no sha256 of its own).
+    """Put the summaries in the bundle's report.json under scores.<precision> (`update_report`: locked and
+    atomic, the fp32 and int8 runs may finish together; the manifest is not touched)."""
+    from pallet6d.runtime.bundle import REPORT, update_report
 
-    The read-modify-write holds an exclusive lock on the manifest: the fp32 and int8 runs may finish together."""
-    path = bundle / "manifest.json"
     keep = ("n_gt", "frames", "precision", "recall", "add_acc", "add_sym_acc", "add_sym_median_m", "adds_acc")
-    with open(path, "r+", encoding="utf-8") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        manifest = json.loads(f.read())
-        manifest.setdefault("scores", {})[precision] = {
-            "command": command, "protocol": "held-out sim test sets, pallets >= 10% visible, a miss is a failure",
-            **{preset: {"test_seed": d["test_seed"], **{k: d[k] for k in keep if k in d}}
-               for preset, d in results.items()}}
-        f.seek(0)
-        f.write(json.dumps(manifest, indent=2) + "\n")
-        f.truncate()
-    print(f"wrote scores.{precision} into {path}")
+    update_report(bundle, ("scores", precision), {
+        "command": command, "protocol": "held-out sim test sets, pallets >= 10% visible, a miss is a failure",
+        **{preset: {"test_seed": d["test_seed"], **{k: d[k] for k in keep if k in d}}
+           for preset, d in results.items()}})
+    print(f"wrote scores.{precision} into {bundle / REPORT}")
 
 
 if __name__ == "__main__":

@@ -36,6 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pallet crops for calibration, taken from the presets in turn (default 96)")
     parser.add_argument("--torch-threads", type=int, default=0,
                         help="torch intra-op threads (0 = torch's default); 1 is fastest for --config tiny on a busy machine")
+    parser.add_argument("--pallet-types",
+                        help="comma-separated pallet types of pallet6d.sim.pallets the bundle carries (default: the "
+                             "config's one, epal); with several, the detector gets one class per type")
     parser.add_argument("--name", help="bundle name (default: the output folder's name)")
     parser.add_argument("--out", required=True, help="output folder (new or empty), e.g. models/edge")
 
@@ -43,6 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     from .bundle_export import INT8_STAGES, ExportError, export_bundle
     from .onnx_io import ParityError
+    from .pallet_types import parse_pallet_types
 
     if args.torch_threads > 0:
         import torch
@@ -50,16 +54,20 @@ def main(args: argparse.Namespace) -> int:
     classes = tuple(c.strip() for c in args.classes.split(",")) if args.classes else None
     command = "pallet6d export " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
     try:
-        manifest = export_bundle(get_config(args.config), args.out, seed=args.seed, checkpoint=args.checkpoint,
+        types = parse_pallet_types(args.pallet_types) if args.pallet_types else None
+        exported = export_bundle(get_config(args.config), args.out, seed=args.seed, checkpoint=args.checkpoint,
                                  random_init=args.random_init, int8=args.int8, detector_onnx=args.detector_onnx,
                                  classes=classes, name=args.name, command=command, calib_frames=args.calib_frames,
                                  calib_crops=args.calib_crops,
                                  fp16_weights=not args.fp32_weights,
                                  int8_stages=INT8_STAGES if args.int8_stages is None else
-                                 tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()))
+                                 tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()),
+                                 pallet_types=types)
     except (ExportError, ParityError) as exc:
         print(f"pallet6d export: {exc}", file=sys.stderr)
         return 1
-    print(f"wrote bundle {args.out} ({manifest['config']}, precision {', '.join(manifest['precision'])})")
-    print(json.dumps(manifest["checks"], indent=1))
+    m = exported.manifest
+    print(f"wrote bundle {args.out} ({m.config}, precision {', '.join(m.precision)}, pallet types "
+          f"{', '.join(t.name for t in m.pallet_types)})")
+    print(json.dumps(exported.report["checks"], indent=1))
     return 0

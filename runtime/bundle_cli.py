@@ -29,7 +29,11 @@ def main(args: argparse.Namespace) -> int:
         print(json.dumps({"name": b.name, "config": b.config, "classes": list(b.classes),
                           "precision": list(b.precision), "detector_input_hw": list(b.detector.input_hw),
                           "crop_hw": list(b.fusion.crop_hw), "num_points": b.pose.num_points,
-                          "pallet": b.pallet.name, "checks": b.checks.get("gflops", {}),
+                          "format_version": b.manifest.format_version,
+                          "pallet_types": [{"name": t.name, "class_id": t.class_id, "size_m": list(t.size_m),
+                                            "pocket_faces": list(t.pockets_m), "refine_starts": len(t.refine_starts)}
+                                           for t in b.pallet_types],
+                          "checks": b.checks.get("gflops", {}),
                           "provenance": {k: b.provenance.get(k) for k in ("command", "created", "random_init")}},
                          indent=1))
         return 0

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from .manifest_fields import BundleError
+
 __all__ = ["OnnxModel", "session_options"]
 
 log = logging.getLogger(__name__)
@@ -42,6 +44,7 @@ class OnnxModel:
     :param threads: intra-op threads.
     :param expect_inputs: input names the caller will feed; a graph without them raises ValueError.
     :param expect_outputs: output names the caller reads; a graph without them raises ValueError.
+    :raises BundleError: onnxruntime cannot load the graph (damaged, or from a newer opset).
     """
 
     def __init__(self, path: str | Path, threads: int = 2, expect_inputs: tuple[str, ...] = (),
@@ -49,8 +52,11 @@ class OnnxModel:
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"ONNX graph not found: {self.path}")
-        self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
-                                            providers=["CPUExecutionProvider"])
+        try:
+            self.session = ort.InferenceSession(str(self.path), sess_options=session_options(threads),
+                                                providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types; a bundle's graph is at fault
+            raise BundleError(f"ONNX graph {self.path}: onnxruntime cannot load it: {exc}") from None
         self.inputs = {i.name: i for i in self.session.get_inputs()}
         self.outputs = [o.name for o in self.session.get_outputs()]
         missing_in = [n for n in expect_inputs if n not in self.inputs]

@@ -1,10 +1,10 @@
-"""benchmarks/accuracy.py --write-scores: the summary lands in the manifest and the bundle still loads."""
+"""benchmarks/accuracy.py --write-scores: the summary lands in the report, the manifest is untouched."""
 import importlib.util
 import json
 import shutil
 from pathlib import Path
 
-from pallet6d.runtime.bundle import check_bundle
+from pallet6d.runtime.bundle import check_bundle, load_bundle, sha256_file
 
 _spec = importlib.util.spec_from_file_location("accuracy", Path(__file__).parents[1] / "benchmarks" / "accuracy.py")
 accuracy = importlib.util.module_from_spec(_spec)
@@ -17,9 +17,11 @@ def test_write_scores_records_each_preset_per_precision(bundle_dir, tmp_path, ca
     summary = {"test_seed": 9001, "n_gt": 10, "frames": 5, "precision": 0.9, "recall": 0.8,
                "add_acc": {"0.02": 0.1, "0.05": 0.5, "0.1": 0.7}, "add_sym_acc": {"0.02": 0.2, "0.05": 0.6, "0.1": 0.8},
                "records": [{"add_m": 0.01}]}
+    contract = sha256_file(bundle / "manifest.json")
     accuracy.write_scores(bundle, "fp32", {"virtual-clean": summary}, "python benchmarks/accuracy.py --bundle b")
     accuracy.write_scores(bundle, "int8", {"virtual-clean": dict(summary, recall=0.7)}, "cmd int8")
-    scores = json.loads((bundle / "manifest.json").read_text())["scores"]
+    scores = json.loads((bundle / "report.json").read_text())["scores"]
+    assert load_bundle(bundle).scores == scores and sha256_file(bundle / "manifest.json") == contract
     assert set(scores) == {"fp32", "int8"}
     clean = scores["fp32"]["virtual-clean"]
     assert clean["add_sym_acc"]["0.05"] == 0.6 and clean["recall"] == 0.8 and clean["test_seed"] == 9001

@@ -14,7 +14,7 @@ from pallet6d.export.fusion import build_fusion
 from pallet6d.export.losses import DetectorLoss, pose_loss
 from pallet6d.export.onnx_io import export_graph
 from pallet6d.export.pose import build_pose
-from pallet6d.runtime.bundle import check_bundle, load_bundle
+from pallet6d.runtime.bundle import BundleError, check_bundle, load_bundle
 from pallet6d.sim.pallets import get_pallet_model
 
 
@@ -151,14 +151,14 @@ def tiny_bundle(tmp_path_factory):
     cfg = get_config("tiny")
     out = tmp_path_factory.mktemp("b") / "tiny"
     calib = make_calibration_set(cfg, frames=4, max_crops=16, seed=0, synthetic=True)
-    manifest = export_bundle(cfg, out, seed=0, random_init=True, int8=True, calib=calib, command="test")
-    return out, manifest, calib
+    exported = export_bundle(cfg, out, seed=0, random_init=True, int8=True, calib=calib, command="test")
+    return out, exported.report, calib
 
 
 def test_export_parity_and_manifest(tiny_bundle):
-    out, manifest, _ = tiny_bundle
+    out, report, _ = tiny_bundle
     assert check_bundle(out) == []
-    par = manifest["checks"]["parity"]
+    par = report["checks"]["parity"]
     for stage, outputs in (("detector", ["output0"]), ("fusion", ["features"]), ("pose", ["quat", "trans", "conf"])):
         for o in outputs:
             assert par[stage][o]["max_abs"] <= 1e-4 * max(1.0, par[stage][o]["ref_max_abs"])
@@ -166,9 +166,9 @@ def test_export_parity_and_manifest(tiny_bundle):
     assert b.precision == ("fp32", "int8") and b.provenance["random_init"] is True
     assert "synthetic" in b.provenance["calibration"]
     assert b.pose_input_spec().num_points == 32 and b.fusion.crop_hw == (32, 32)
-    assert all(v > 0 for v in manifest["checks"]["gflops"].values())
+    assert all(v > 0 for v in report["checks"]["gflops"].values())
     # the float graphs keep float16 weights on disk (converted after int8 quantization, checked against float32)
-    half = manifest["checks"]["weights_fp16"]
+    half = report["checks"]["weights_fp16"]
     for stage in ("detector", "fusion", "pose"):
         assert half[stage]["converted"] > 0 and half[stage]["bytes_after"] < half[stage]["bytes_before"]
         assert all(d["rel_rms"] < 5e-3 for d in half[stage]["vs_fp32_weights"].values())
@@ -177,7 +177,7 @@ def test_export_parity_and_manifest(tiny_bundle):
 
 
 def test_int8_graphs_run_and_correlate(tiny_bundle):
-    out, manifest, calib = tiny_bundle
+    out, report, calib = tiny_bundle
     from pallet6d.export.onnx_io import ort_session, run_session
     b = load_bundle(out)
     feeds = {"rgb": calib.rgb_crops[:4], "depth": calib.depth_crops[:4]}
@@ -185,20 +185,20 @@ def test_int8_graphs_run_and_correlate(tiny_bundle):
     f8 = run_session(ort_session(b.graph("fusion", "int8")), feeds)["features"]
     assert f8.shape == f32.shape and np.corrcoef(f32.ravel(), f8.ravel())[0, 1] > 0.9
     for stage, o in (("detector", "output0"), ("fusion", "features")):
-        assert manifest["checks"]["int8"][stage][o]["corr"] > 0.9, (stage, manifest["checks"]["int8"][stage])
+        assert report["checks"]["int8"][stage][o]["corr"] > 0.9, (stage, report["checks"]["int8"][stage])
     # by default the pose net is not quantized: precision int8 runs its float graph
     assert b.graph("pose", "int8") == b.graph("pose") and not (out / "pose.int8.onnx").exists()
-    assert manifest["checks"]["int8"]["pose"] == "float graph (not quantized)"
+    assert report["checks"]["int8"]["pose"] == "float graph (not quantized)"
 
 
 def test_int8_stages_choose_what_is_quantized(tmp_path, tiny_bundle):
     calib = tiny_bundle[2]
-    manifest = export_bundle(get_config("tiny"), tmp_path / "all", random_init=True, int8=True, calib=calib,
-                             int8_stages=("detector", "fusion", "pose"))
+    report = export_bundle(get_config("tiny"), tmp_path / "all", random_init=True, int8=True, calib=calib,
+                           int8_stages=("detector", "fusion", "pose")).report
     b = load_bundle(tmp_path / "all")
     assert b.graph("pose", "int8").name == "pose.int8.onnx"
     for o in ("quat", "trans"):
-        assert manifest["checks"]["int8"]["pose"][o]["corr"] > 0.9, manifest["checks"]["int8"]["pose"]
+        assert report["checks"]["int8"]["pose"][o]["corr"] > 0.9, report["checks"]["int8"]["pose"]
     with pytest.raises(ExportError, match="int8 stages"):
         export_bundle(get_config("tiny"), tmp_path / "bad", random_init=True, int8=True, calib=calib,
                       int8_stages=("pose", "refine"))
@@ -216,6 +216,40 @@ def test_export_refuses_bad_arguments(tmp_path, tiny_bundle):
         export_bundle(cfg, tmp_path / "y", checkpoint=bad, calib=tiny_bundle[2])
 
 
+def test_pallet_types_follow_the_pose_training(tmp_path, tiny_bundle, caplog):
+    """Without --pallet-types a bundle carries the types its pose stage was trained on, where the detector has a
+    class for each; a one-class detector reports only the first."""
+    cfg = get_config("tiny")
+    torch.manual_seed(2)
+    nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
+            "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
+    prov = {"pose": {"stage": "pose", "pallet_types": {"2": "gma", "1": "epal"}}}
+    torch.save({"config": "tiny", "provenance": prov, **{k: v.state_dict() for k, v in nets.items()}},
+               tmp_path / "ckpt.pt")
+    with caplog.at_level("WARNING"):
+        b = export_bundle(cfg, tmp_path / "one", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2]).bundle
+    assert [(t.name, t.class_id) for t in b.pallet_types] == [("epal", 0)] and "pallet type epal only" in caplog.text
+    with pytest.raises(ExportError, match="detector has 1 classes, not 2"):
+        export_bundle(cfg, tmp_path / "two", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2],
+                      pallet_types=("epal", "gma"))
+    prov["pose"]["pallet_types"]["3"] = "crate"
+    torch.save({"config": "tiny", "provenance": prov, **{k: v.state_dict() for k, v in nets.items()}},
+               tmp_path / "ckpt.pt")
+    with pytest.raises(ExportError, match="trained on a pallet type without a model.*crate"):
+        export_bundle(cfg, tmp_path / "three", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2])
+
+
+def test_export_cli_refuses_unknown_pallet_types(tmp_path, capsys):
+    from pallet6d.runtime import cli
+
+    assert cli.main(["export", "--config", "tiny", "--random-init", "--pallet-types", "epal,chep",
+                     "--out", str(tmp_path / "x")]) == 1
+    assert "unknown pallet type(s) ['chep']" in capsys.readouterr().err and not (tmp_path / "x").exists()
+    assert cli.main(["export", "--config", "tiny", "--random-init", "--pallet-types", "epal,epal",
+                     "--out", str(tmp_path / "x")]) == 1
+    assert "named twice" in capsys.readouterr().err
+
+
 def test_checkpoint_round_trip_and_external_detector(tmp_path, tiny_bundle):
     cfg = get_config("tiny")
     torch.manual_seed(1)
@@ -230,9 +264,15 @@ def test_checkpoint_round_trip_and_external_detector(tmp_path, tiny_bundle):
                              input_hw=(64, 96), classes=("pallet", "box"))
     ext = export_graph(build_detector(ext_cfg).eval(), (torch.rand(1, 3, 64, 96),), tmp_path / "yolo.onnx",
                        ["images"], ["output0"])
-    m = export_bundle(cfg, tmp_path / "ext", random_init=True, detector_onnx=ext, classes=("pallet", "box"), calib=calib)
-    assert m["detector"]["source"] == "external" and m["detector"]["input_hw"] == [64, 96]
-    assert m["classes"] == ["pallet", "box"] and check_bundle(tmp_path / "ext") == []
+    m = export_bundle(cfg, tmp_path / "ext", random_init=True, detector_onnx=ext, classes=("pallet", "box"),
+                      calib=calib).manifest
+    assert m.detector.source == "external" and m.detector.input_hw == (64, 96)
+    assert m.classes == ("pallet", "box") and check_bundle(tmp_path / "ext") == []
+    # the one pallet type is the "pallet" class; "box" reports no type
+    b = load_bundle(tmp_path / "ext")
+    assert b.pallet_class_ids == (0,) and b.pallet.name == "epal"
+    with pytest.raises(BundleError, match="class 1 \\('box'\\) is no pallet type"):
+        b.pallet_type_for_class(1)
     with pytest.raises(ExportError, match="2 classes but 1 names"):
         export_bundle(cfg, tmp_path / "ext2", random_init=True, detector_onnx=ext, classes=("pallet",), calib=calib)
     with pytest.raises(ExportError, match="expected one input"):

@@ -259,7 +259,7 @@ def test_checkpoint_exports_to_a_bundle_the_runtime_loads(pose_run, sim_bop_data
     calib = make_calibration_set(CFG, frames=2, max_crops=4, seed=0, synthetic=True)
     manifest = export_bundle(CFG, tmp_path / "bundle", checkpoint=tmp_path / "model.pt", calib=calib)
     # the training recipe, data and seeds travel into the bundle's provenance
-    training = manifest["provenance"]["training"]
+    training = manifest.report["provenance"]["training"]
     assert set(training) == {"detector", "pose"} and training["pose"]["seed"] == merged["provenance"]["pose"]["seed"]
     assert training["detector"]["stage"] == "detector" and training["pose"]["stage"] == "pose"
     assert training["pose"]["data"][0]["frames"] == len(BopDataset(sim_bop_dataset))
