@@ -1,0 +1,145 @@
+"""Structure check on posed pallets: true poses kept, poses on mismatched inputs refused.
+
+For each frame of BOP datasets, runs the estimator on the frame as recorded and on inputs that do not belong
+together (a flat wall's depth under the image, another frame's depth, depth 10x too near, a focal length 2x too
+long), and scores every pose the estimator accepts with its fit check alone (`structure=False`) with
+`runtime/structure.py`. Reports, per dataset and variant: those poses, how many are within 5 cm (ADD-sym) of a
+ground-truth pallet, and how many of each the structure check keeps. The estimator's poses are cached per dataset and
+variant (`--cache DIR`), so re-scoring with other thresholds takes seconds. Measures only.
+
+    python benchmarks/structure_check.py --bundle models/epal-default --data DIR [DIR ...] --frames 30 \
+        --cache /tmp/structure-cache --out FILE.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from collections import Counter
+from dataclasses import asdict, fields
+from pathlib import Path
+
+import numpy as np
+
+from pallet6d.runtime.bop import BopDataset
+from pallet6d.runtime.estimator import PalletEstimator
+from pallet6d.runtime.metrics import add_sym
+from pallet6d.runtime.structure import StructureParams, structure_check
+
+VARIANTS = ("as_recorded", "flat_wall", "other_frame", "depth_x0.1", "focal_x2")
+
+
+def mismatch(name: str, frame, other=None) -> tuple[np.ndarray, np.ndarray]:
+    """(depth_m, K) of an input built from `frame` that does (as_recorded) or does not belong to its image.
+
+    :param other: another frame of the same size, for "other_frame".
+    """
+    d, K = frame.depth_m, frame.K.copy()
+    if name == "as_recorded":
+        return d, K
+    if name == "flat_wall":
+        valid = d[d > 0]
+        return np.full_like(d, float(np.median(valid)) if len(valid) else 3.0), K
+    if name == "other_frame":
+        return other.depth_m, K
+    if name == "depth_x0.1":
+        return d * np.float32(0.1), K
+    if name == "focal_x2":
+        K[0, 0] *= 2.0
+        K[1, 1] *= 2.0
+        return d, K
+    raise ValueError(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
+
+
+def _other(ds: BopDataset, i: int, n: int):
+    return ds[(i + n // 2) % n]
+
+
+def estimate(est: PalletEstimator, ds: BopDataset, variant: str, n: int) -> dict[str, np.ndarray]:
+    """The poses the estimator accepts without the structure check, with each one's ADD-sym error (inf on a
+    mismatched input)."""
+    rows = {"frame": [], "T": [], "box": [], "err": [], "fit": []}
+    pts, sym = est.model_points_m, est.symmetries
+    for i in range(n):
+        f = ds[i]
+        depth_m, K = mismatch(variant, f, _other(ds, i, n) if variant == "other_frame" else None)
+        for p in est.estimate(f.rgb, depth_m, K).poses:
+            T = p.T_cam_pallet
+            err = min((add_sym(T[:3, :3], T[:3, 3], g.T_cam_model[:3, :3], g.T_cam_model[:3, 3], pts, sym)
+                       for g in f.gts), default=np.inf) if variant == "as_recorded" else np.inf
+            for k, v in (("frame", i), ("T", T), ("box", p.box_xyxy), ("err", err), ("fit", p.fit.score)):
+                rows[k].append(v)
+    return {"frame": np.array(rows["frame"], int), "T": np.array(rows["T"]).reshape(-1, 4, 4),
+            "box": np.array(rows["box"]).reshape(-1, 4), "err": np.array(rows["err"]), "fit": np.array(rows["fit"])}
+
+
+def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray, params: StructureParams) -> list:
+    """Structure scores of cached poses, in their order."""
+    out = []
+    for i in np.unique(poses["frame"]):
+        sel = poses["frame"] == i
+        f = ds[int(i)]
+        depth_m, K = mismatch(variant, f, _other(ds, int(i), n) if variant == "other_frame" else None)
+        out.extend(structure_check(poses["T"][sel], boxes_m, depth_m, K, poses["box"][sel], params))
+    return out
+
+
+def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8: bool, cache: Path | None) -> dict:
+    est = None
+    out, rows = {}, []
+    for root in data:
+        ds = BopDataset(root)
+        n = min(frames, len(ds))
+        for variant in VARIANTS:
+            path = None if cache is None else cache / f"{Path(root).name}-{variant}-{n}{'-int8' if int8 else ''}.npz"
+            if path is not None and path.exists():
+                poses = dict(np.load(path))
+            else:
+                est = est or PalletEstimator.from_bundle(bundle, threads=2, precision="int8" if int8 else "fp32",
+                                                         structure=False)
+                poses = estimate(est, ds, variant, n)
+                if path is not None:
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    np.savez(path, **poses)
+            boxes_m = np.asarray((est.model_boxes_m if est else _boxes(bundle)))
+            scores = score(ds, variant, n, poses, boxes_m, params)
+            good = poses["err"] < 0.05
+            kept = np.array([s.ok for s in scores], bool)
+            c = {"frames": n, "accepted": len(good), "within_5cm": int(good.sum()), "kept": int(kept.sum()),
+                 "kept_within_5cm": int((kept & good).sum()),
+                 "reasons": dict(Counter(s.reason or "ok" for s in scores))}
+            out[f"{Path(root).name}/{variant}"] = c
+            print(f"{Path(root).name:>24} {variant:>12}: {c}", flush=True)
+            rows.extend({"data": Path(root).name, "variant": variant, "frame": int(fr), "add_sym_m": float(e),
+                         "fit": float(ft), **asdict(s)} for fr, e, ft, s in zip(poses["frame"], poses["err"],
+                                                                                poses["fit"], scores))
+    out["poses"] = rows
+    return out
+
+
+def _boxes(bundle: str) -> np.ndarray:
+    from pallet6d.runtime.bundle import load_bundle
+    return np.asarray(load_bundle(bundle).pallet.boxes_m)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bundle", default="models/epal-default")
+    ap.add_argument("--data", nargs="+", required=True)
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--int8", action="store_true")
+    ap.add_argument("--cache", type=Path, help="folder for the estimator's poses per dataset and variant")
+    ap.add_argument("--params", default="{}", help="StructureParams overrides as JSON, e.g. '{\"min_agreement\": 0.7}'")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args()
+    overrides = json.loads(args.params)
+    unknown = set(overrides) - {f.name for f in fields(StructureParams)}
+    if unknown:
+        ap.error(f"unknown StructureParams fields: {sorted(unknown)}")
+    res = run(args.bundle, args.data, args.frames, StructureParams(**overrides), args.int8, args.cache)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,267 @@
+"""Pallet structure check: does the depth show a pallet of this type where the pose puts it? (numpy only)
+
+The fit score (`fit.py`) asks whether the observed points lie on the posed model's surface. A pallet's face is
+mostly a plane, so a wall, a carton face or the floor can pass it. This check looks for what only a pallet shows,
+by casting rays through a grid of pixels over the posed model's projected silhouette against the model's boxes
+(boards, blocks, runners, legs) and comparing with the observed depth:
+
+- a ray that hits a box expects a surface at that depth: *solid* when the observed depth is within the tolerance,
+  *see-through* when it lies behind (the camera saw through wood), no evidence when it lies in front (something
+  occludes the pallet) or is missing;
+- a ray that enters the pallet's bounding box but hits no box passes through an opening (a fork pocket, a gap
+  between boards): *open* when the observed depth lies behind the entry point by more than the tolerance,
+  *closed* when a surface sits at the entry (a wall or a carton face where the pocket should be), no evidence
+  when it lies in front or is missing.
+
+A pose is accepted when the evidence agrees with the model (solid + open against see-through + closed), the
+openings it can see are mostly open, the detector's box lies inside the posed model's silhouette, and, when the
+caller knows which way is up (a calibrated camera), the pallet stands upright.
+
+Mismatched inputs fail it: depth of a flat wall (openings closed), another frame's depth (nothing agrees), a
+depth scale or a focal length that is off (the posed model's boards project where the image has none).
+The tolerance grows with range like stereo depth noise: `tol_m + tol_quad_per_m * z**2`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import check_K
+
+__all__ = ["StructureParams", "StructureScore", "structure_check", "cast_rays_boxes"]
+
+_BIG = 1e12
+
+
+@dataclass(frozen=True)
+class StructureParams:
+    """Thresholds of the structure check (lengths in metres).
+
+    :ivar grid: rays per side of the grid over the posed model's projected bounding box.
+    :ivar tol_m: depth tolerance at zero range.
+    :ivar tol_quad_per_m: tolerance growth with range, metres per metre squared (stereo noise grows with z**2).
+    :ivar min_evidence: fewer rays with evidence (solid, see-through, open, closed) -> "structure_unseen".
+    :ivar min_agreement: (solid + open) / all evidence below this -> "structure_mismatch".
+    :ivar min_opening_evidence: openings are judged only with at least this many open + closed rays.
+    :ivar min_open_fraction: open / (open + closed) below this -> "openings_closed".
+    :ivar min_box_cover: fraction of the detector's box inside the posed model's projected box; below ->
+        "box_mismatch".
+    :ivar min_box_solid: of the rays inside the detector's box that hit the posed model and have depth, the
+        fraction that find its surface there; below -> "box_mismatch" (the box shows something else: a surface in
+        front of or behind the pose).
+    :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
+    """
+
+    grid: int = 32
+    tol_m: float = 0.02
+    tol_quad_per_m: float = 0.004
+    min_evidence: int = 40
+    min_agreement: float = 0.6
+    min_opening_evidence: int = 12
+    min_open_fraction: float = 0.35
+    min_box_cover: float = 0.6
+    min_box_solid: float = 0.3
+    max_tilt_deg: float = 25.0
+
+    def __post_init__(self) -> None:
+        if int(self.grid) < 4:
+            raise ValueError(f"grid must be >= 4, got {self.grid}")
+        for name in ("tol_m", "tol_quad_per_m"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not self.tol_m > 0:
+            raise ValueError(f"tol_m must be positive, got {self.tol_m}")
+        for name in ("min_agreement", "min_open_fraction", "min_box_cover", "min_box_solid"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if int(self.min_evidence) < 1 or int(self.min_opening_evidence) < 1:
+            raise ValueError("min_evidence and min_opening_evidence must be >= 1")
+        if not 0.0 < self.max_tilt_deg <= 180.0:
+            raise ValueError(f"max_tilt_deg must be in (0, 180], got {self.max_tilt_deg}")
+
+
+@dataclass(frozen=True)
+class StructureScore:
+    """Structure evidence of one posed pallet (counts are rays of the grid).
+
+    :ivar solid: rays where the model expects a surface and the depth has one there.
+    :ivar see_through: rays where the model expects a surface and the depth lies behind it.
+    :ivar open: rays through an opening of the model whose depth lies behind the entry.
+    :ivar closed: rays through an opening with a surface at the entry.
+    :ivar agreement: (solid + open) / (solid + see_through + open + closed), 0 without evidence.
+    :ivar open_fraction: open / (open + closed), 1 without openings in view.
+    :ivar box_cover: fraction of the detector's box inside the posed model's projected box.
+    :ivar box_solid: of the rays inside the detector's box that hit the model and have depth, the fraction that
+        find its surface (NaN when there are none: no evidence either way).
+    :ivar tilt_deg: angle between the pallet's z axis and the up vector (NaN without one).
+    :ivar reason: "" when accepted, else one of "structure_unseen", "structure_mismatch", "openings_closed",
+        "box_mismatch", "tilted".
+    """
+
+    solid: int
+    see_through: int
+    open: int
+    closed: int
+    agreement: float
+    open_fraction: float
+    box_cover: float
+    box_solid: float
+    tilt_deg: float
+    reason: str
+
+    @property
+    def ok(self) -> bool:
+        return self.reason == ""
+
+
+def cast_rays_boxes(origin: np.ndarray, dirs: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First hit of rays with a union of axis-aligned boxes, and where they enter the boxes' bounding box.
+
+    Rays are `origin + s * dirs[i]`, s > 0; with `dirs` scaled to unit camera z, s is the camera depth.
+
+    :param origin: (n, 3) ray origins, one per batch item, in the boxes' frame.
+    :param dirs: (n, r, 3) ray directions in the same frame.
+    :param boxes_m: (k, 2, 3) min/max corners.
+    :return: (n, r) parameter of the first box hit (inf when none) and (n, r) parameter where the ray enters the
+        boxes' bounding box (inf when it misses it).
+    """
+    boxes = np.asarray(boxes_m, dtype=np.float64)
+    o = np.asarray(origin, dtype=np.float64)[:, None, None, :]                  # (n, 1, 1, 3)
+    d = np.asarray(dirs, dtype=np.float64)[:, :, None, :]                       # (n, r, 1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = np.where(np.abs(d) > 1e-12, 1.0 / d, _BIG)
+
+    def slab(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        t1, t2 = (lo - o) * inv, (hi - o) * inv
+        near = np.minimum(t1, t2).max(-1)
+        far = np.maximum(t1, t2).min(-1)
+        hit = (near <= far) & (far > 0)
+        return np.where(hit, np.maximum(near, 0.0), np.inf)
+
+    t_box = slab(boxes[None, None, :, 0], boxes[None, None, :, 1]).min(-1)   # (n, r)
+    t_bbox = slab(boxes[:, 0].min(0), boxes[:, 1].max(0))[..., 0]            # (n, r)
+    return t_box, t_bbox
+
+
+def _projected_boxes(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(n, 4) xyxy image box of the posed boxes' bounding-box corners (corners behind the camera dropped)."""
+    lo, hi = boxes_m[:, 0].min(0), boxes_m[:, 1].max(0)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    pc = corners @ T_cam_pallet[:, :3, :3].transpose(0, 2, 1) + T_cam_pallet[:, None, :3, 3]   # (n, 8, 3)
+    z = pc[..., 2]
+    front = z > 1e-3
+    zs = np.where(front, z, 1.0)
+    u = np.where(front, K[0, 0] * pc[..., 0] / zs + K[0, 2], np.nan)
+    v = np.where(front, K[1, 1] * pc[..., 1] / zs + K[1, 2], np.nan)
+    with np.errstate(invalid="ignore"):
+        out = np.stack([np.nanmin(u, 1), np.nanmin(v, 1), np.nanmax(u, 1), np.nanmax(v, 1)], 1)
+    return out
+
+
+def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                    boxes_xyxy: np.ndarray, params: StructureParams = StructureParams(),
+                    up_cam: np.ndarray | None = None) -> list[StructureScore]:
+    """Structure evidence for posed pallets of one type in one frame.
+
+    :param T_cam_pallet: (n, 4, 4) poses, metres.
+    :param boxes_m: (k, 2, 3) the type's boards/blocks as min/max corners, pallet frame, metres.
+    :param depth_m: (H, W) float metres, 0 = no data.
+    :param K: 3x3 intrinsics.
+    :param boxes_xyxy: (n, 4) the detector's boxes, image pixels.
+    :param params: thresholds.
+    :param up_cam: optional (3,) unit up direction in the camera frame (from a calibration); None skips the tilt test.
+    :return: one `StructureScore` per pose.
+    """
+    K = check_K(K)
+    T = np.asarray(T_cam_pallet, dtype=np.float64).reshape(-1, 4, 4)
+    boxes = np.asarray(boxes_m, dtype=np.float64)
+    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0 or not np.all(np.isfinite(boxes)):
+        raise ValueError(f"boxes_m must be a finite (k, 2, 3) array with k >= 1, got shape {boxes.shape}")
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got shape {depth.shape}")
+    det = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+    if len(det) != len(T):
+        raise ValueError(f"{len(T)} poses but {len(det)} boxes")
+    if not np.all(np.isfinite(T)):
+        raise ValueError("T_cam_pallet must be finite")
+    if len(T) == 0:
+        return []
+    h, w = depth.shape
+
+    proj = _projected_boxes(T, boxes, K)
+    clip = np.stack([np.clip(proj[:, 0], 0, w - 1), np.clip(proj[:, 1], 0, h - 1),
+                     np.clip(proj[:, 2], 0, w - 1), np.clip(proj[:, 3], 0, h - 1)], 1)
+    valid_proj = np.all(np.isfinite(proj), 1) & (clip[:, 2] > clip[:, 0]) & (clip[:, 3] > clip[:, 1])
+    clip = np.where(valid_proj[:, None], clip, 0.0)
+
+    # a grid of pixel centres over each projected box (clipped to the image)
+    g = (np.arange(params.grid) + 0.5) / params.grid
+    gu = clip[:, 0:1] + g[None] * (clip[:, 2:3] - clip[:, 0:1])                 # (n, G)
+    gv = clip[:, 1:2] + g[None] * (clip[:, 3:4] - clip[:, 1:2])
+    u = np.repeat(gu[:, None, :], params.grid, 1).reshape(len(T), -1)           # (n, G*G)
+    v = np.repeat(gv[:, :, None], params.grid, 2).reshape(len(T), -1)
+    ui = np.clip(np.round(u).astype(np.int64), 0, w - 1)
+    vi = np.clip(np.round(v).astype(np.int64), 0, h - 1)
+    z_obs = depth[vi, ui].astype(np.float64)                                    # (n, R)
+
+    # rays in the pallet frame, scaled so the parameter is the camera depth
+    # through the centres of the pixels whose depth is read
+    d_cam = np.stack([(ui - K[0, 2]) / K[0, 0], (vi - K[1, 2]) / K[1, 1], np.ones(ui.shape)], -1)
+    R = T[:, :3, :3]
+    dirs = d_cam @ R                                    # R^T d for each ray: (n, R, 3)
+    origin = -np.einsum("nji,nj->ni", R, T[:, :3, 3])   # camera centre in the pallet frame
+    t_box, t_bbox = cast_rays_boxes(origin, dirs, boxes)
+
+    known = z_obs > 0
+    z_ref = np.where(np.isfinite(t_box), t_box, t_bbox)
+    tol = params.tol_m + params.tol_quad_per_m * np.where(np.isfinite(z_ref), z_ref, 0.0) ** 2
+    hit = np.isfinite(t_box) & known
+    gap = ~np.isfinite(t_box) & np.isfinite(t_bbox) & known
+    solid = hit & (np.abs(z_obs - t_box) <= tol)
+    see_through = hit & (z_obs > t_box + tol)
+    opened = gap & (z_obs > t_bbox + tol)
+    closed = gap & (np.abs(z_obs - t_bbox) <= tol)
+
+    in_box = (u >= det[:, 0:1]) & (u <= det[:, 2:3]) & (v >= det[:, 1:2]) & (v <= det[:, 3:4])
+    box_hits = (hit & in_box).sum(1)
+    box_solid = np.where(box_hits > 0, (solid & in_box).sum(1) / np.maximum(box_hits, 1), np.nan)
+
+    inter_w = np.maximum(0.0, np.minimum(det[:, 2], proj[:, 2]) - np.maximum(det[:, 0], proj[:, 0]))
+    inter_h = np.maximum(0.0, np.minimum(det[:, 3], proj[:, 3]) - np.maximum(det[:, 1], proj[:, 1]))
+    det_area = np.maximum((det[:, 2] - det[:, 0]) * (det[:, 3] - det[:, 1]), 1e-9)
+    cover = np.where(valid_proj, np.nan_to_num(inter_w * inter_h) / det_area, 0.0)
+
+    if up_cam is not None:
+        up = np.asarray(up_cam, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-9:
+            raise ValueError(f"up_cam must be a finite non-zero 3-vector, got {up_cam}")
+        up = up / np.linalg.norm(up)
+        # a symmetric pallet may come back upside down (z down): the face is as vertical either way
+        tilt = np.degrees(np.arccos(np.clip(np.abs(R[:, :, 2] @ up), -1.0, 1.0)))
+    else:
+        tilt = np.full(len(T), np.nan)
+
+    out = []
+    for i in range(len(T)):
+        s, st, op, cl = int(solid[i].sum()), int(see_through[i].sum()), int(opened[i].sum()), int(closed[i].sum())
+        evidence = s + st + op + cl
+        agreement = (s + op) / evidence if evidence else 0.0
+        open_fraction = op / (op + cl) if op + cl else 1.0
+        if not valid_proj[i] or cover[i] < params.min_box_cover or box_solid[i] < params.min_box_solid:
+            # NaN box_solid (no depth on the pallet inside the box) compares False: judged by the evidence below
+            reason = "box_mismatch"
+        elif np.isfinite(tilt[i]) and tilt[i] > params.max_tilt_deg:
+            reason = "tilted"
+        elif evidence < params.min_evidence:
+            reason = "structure_unseen"
+        elif agreement < params.min_agreement:
+            reason = "structure_mismatch"
+        elif op + cl >= params.min_opening_evidence and open_fraction < params.min_open_fraction:
+            reason = "openings_closed"
+        else:
+            reason = ""
+        out.append(StructureScore(s, st, op, cl, float(agreement), float(open_fraction), float(cover[i]),
+                                  float(box_solid[i]), float(tilt[i]), reason))
+    return out

@@ -1,0 +1,155 @@
+"""The structure check on depth rendered from the pallet's own boxes: true poses pass, mismatches do not."""
+import numpy as np
+import pytest
+
+from pallet6d.runtime.geometry import make_T, quat_to_rot
+from pallet6d.runtime.structure import StructureParams, cast_rays_boxes, structure_check
+from pallet6d.sim.pallets import get_pallet_model
+
+EPAL = get_pallet_model("epal")
+H, W = 240, 320
+K = np.array([[260.0, 0, (W - 1) / 2], [0, 260.0, (H - 1) / 2], [0, 0, 1]])
+BACK_WALL_M = 7.0
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    a = np.radians(deg) / 2
+    return quat_to_rot(np.array([np.cos(a), np.sin(a), 0, 0]))
+
+
+# the pallet 3 m ahead, its -x face (the 800 mm side with fork pockets) towards the camera, seen a little from above:
+# pallet z (up) = camera -y, pallet x (length) = camera z
+R_CAM_PALLET = _rot_x(-10.0) @ np.array([[0.0, 1, 0], [0, 0, -1], [1, 0, 0]])
+T_TRUE = make_T(R_CAM_PALLET, np.array([0.1, 0.45, 3.0]))
+
+
+def _render(T_cam_pallet: np.ndarray, K_: np.ndarray = K) -> np.ndarray:
+    """Ideal depth of the posed pallet in front of a flat back wall, metres."""
+    v, u = np.mgrid[0:H, 0:W]
+    d_cam = np.stack([(u - K_[0, 2]) / K_[0, 0], (v - K_[1, 2]) / K_[1, 1], np.ones((H, W))], -1).reshape(1, -1, 3)
+    R, t = T_cam_pallet[:3, :3], T_cam_pallet[:3, 3]
+    t_box, _ = cast_rays_boxes((-R.T @ t)[None], d_cam @ R, EPAL.boxes_m)
+    return np.minimum(t_box[0], BACK_WALL_M).reshape(H, W).astype(np.float32)
+
+
+def _box(T: np.ndarray) -> np.ndarray:
+    """The posed pallet's visible box in the image, as a detector would give it."""
+    depth = _render(T)
+    v, u = np.nonzero(depth < BACK_WALL_M)
+    return np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float)
+
+
+DEPTH = _render(T_TRUE)
+BOX = _box(T_TRUE)
+
+
+def _check(T=T_TRUE, depth=DEPTH, K_=K, box=BOX, **kw):
+    return structure_check(T[None], EPAL.boxes_m, depth, K_, box, **kw)[0]
+
+
+def test_true_pose_passes_with_open_pockets():
+    s = _check()
+    assert s.ok, s
+    assert s.agreement > 0.95 and s.open_fraction > 0.9
+    assert s.open > 20 and s.solid > 100
+
+
+def test_cast_rays_boxes_hits_the_face_at_its_depth():
+    # a ray along the camera axis from 3 m in front of the -x face at a block's height and centre
+    origin = np.array([[-3.6, 0.0, 0.0]])
+    dirs = np.array([[[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]])
+    t_box, t_bbox = cast_rays_boxes(origin, dirs, EPAL.boxes_m)
+    assert t_box[0, 0] == pytest.approx(3.0, abs=1e-9) and t_bbox[0, 0] == pytest.approx(3.0, abs=1e-9)
+    assert np.isinf(t_box[0, 1]) and np.isinf(t_bbox[0, 1])
+
+
+@pytest.mark.parametrize("name, make_input, reasons", [
+    ("flat wall at the face", lambda: (np.full((H, W), 3.0, np.float32) - 0.4, K),
+     {"openings_closed", "structure_mismatch", "box_mismatch"}),
+    ("depth 10x too near", lambda: (DEPTH * np.float32(0.1), K), {"box_mismatch"}),
+    ("focal length 2x too long", lambda: (DEPTH, K * np.array([[2.0], [2.0], [1.0]])),
+     {"box_mismatch", "structure_mismatch"}),
+    ("another frame's depth", lambda: (_render(make_T(R_CAM_PALLET, np.array([-1.2, 0.6, 4.5]))), K),
+     {"structure_mismatch", "openings_closed", "box_mismatch"}),
+    ("no depth at all", lambda: (np.zeros((H, W), np.float32), K), {"structure_unseen"}),
+])
+def test_mismatched_inputs_fail(name, make_input, reasons):
+    depth, K_ = make_input()
+    s = _check(depth=depth, K_=K_)
+    assert not s.ok and s.reason in reasons, (name, s)
+
+
+@pytest.mark.parametrize("name, T_wrong", [
+    ("slid 30 cm sideways", make_T(R_CAM_PALLET, T_TRUE[:3, 3] + np.array([0.3, 0, 0]))),
+    ("turned 90 degrees about z", T_TRUE @ make_T(quat_to_rot(np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])),
+                                                  np.zeros(3))),
+    ("40 cm too near", make_T(R_CAM_PALLET, T_TRUE[:3, 3] * (2.6 / 3.0))),
+])
+def test_wrong_poses_fail(name, T_wrong):
+    assert not _check(T=T_wrong).ok, name
+
+
+def test_symmetric_pose_passes():
+    T_sym = T_TRUE @ EPAL.symmetries[1]
+    assert _check(T=T_sym).ok
+
+
+def test_occluder_in_front_is_no_evidence_for_the_structure_but_fails_the_box():
+    depth = np.minimum(DEPTH, np.float32(1.0))     # a sheet 1 m from the camera hides everything
+    s = _check(depth=depth)
+    assert s.solid + s.see_through + s.open + s.closed == 0
+    assert s.box_solid == 0.0 and s.reason == "box_mismatch"     # the box shows the sheet, not the pallet
+
+
+def test_partly_hidden_pallet_passes():
+    depth = DEPTH.copy()
+    depth[:, : int(BOX[0, 0] + 0.4 * (BOX[0, 2] - BOX[0, 0]))] = 1.0   # a post hides the left 40 % of the pallet
+    v, u = np.nonzero((depth < BACK_WALL_M) & (depth > 1.0))
+    s = _check(depth=depth, box=np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float))
+    assert s.ok, s
+
+
+def test_box_far_from_the_pose_is_a_mismatch():
+    s = _check(box=BOX + np.array([[150.0, 0, 150.0, 0]]))
+    assert s.reason == "box_mismatch"
+
+
+def test_tilt_against_an_up_vector():
+    up_cam = R_CAM_PALLET[:, 2]                     # the pallet's own up: upright
+    assert _check(up_cam=up_cam).ok
+    up_tilted = _rot_x(40.0) @ up_cam
+    assert _check(up_cam=up_tilted).reason == "tilted"
+    assert np.isnan(_check().tilt_deg)
+
+
+def test_empty_and_batched():
+    assert structure_check(np.zeros((0, 4, 4)), EPAL.boxes_m, DEPTH, K, np.zeros((0, 4))) == []
+    T2 = np.stack([T_TRUE, make_T(R_CAM_PALLET, T_TRUE[:3, 3] + np.array([0.3, 0, 0]))])
+    s = structure_check(T2, EPAL.boxes_m, DEPTH, K, np.repeat(BOX, 2, 0))
+    assert [x.ok for x in s] == [True, False]
+    one = _check()                                 # batching does not change a pose's score
+    assert (s[0].solid, s[0].see_through, s[0].open, s[0].closed) == (one.solid, one.see_through, one.open, one.closed)
+
+
+@pytest.mark.parametrize("kwargs, exc, match", [
+    (dict(T=np.full((4, 4), np.nan)), ValueError, "finite"),
+    (dict(box=np.zeros((2, 4))), ValueError, "1 poses but 2 boxes"),
+    (dict(depth=np.zeros((3, 4, 5))), ValueError, r"depth_m must be \(H, W\)"),
+    (dict(K_=np.eye(2)), ValueError, "3x3"),
+    (dict(up_cam=np.zeros(3)), ValueError, "non-zero"),
+])
+def test_bad_input_raises(kwargs, exc, match):
+    with pytest.raises(exc, match=match):
+        _check(**kwargs)
+
+
+def test_bad_boxes_raise():
+    with pytest.raises(ValueError, match="boxes_m"):
+        structure_check(T_TRUE[None], np.zeros((0, 2, 3)), DEPTH, K, BOX)
+
+
+@pytest.mark.parametrize("kwargs", [dict(grid=2), dict(tol_m=0.0), dict(min_agreement=1.5), dict(max_tilt_deg=0.0),
+                                    dict(min_evidence=0)])
+def test_bad_params_raise(kwargs):
+    with pytest.raises(ValueError):
+        StructureParams(**kwargs)
