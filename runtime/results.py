@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .forklift import ForkliftInfo
 from .geometry import rot_to_quat
 
 __all__ = ["FitScore", "PalletPose", "Rejection", "FrameResult", "REJECT_REASONS"]
@@ -25,6 +26,7 @@ REJECT_REASONS = (
     "too_few_points",       # fewer valid depth pixels in the box (and depth range) than min_valid_points
     "low_confidence",       # the best per-point network confidence is below min_confidence
     "poor_fit",             # the posed pallet model disagrees with the observed depth (fit.py)
+    "outside_roi",          # outside the region of interest or the depth hint (roi.py), dropped before posing
 )
 
 
@@ -81,6 +83,8 @@ class PalletPose:
     :ivar n_valid_points: valid depth pixels in the box (before sampling/oversampling).
     :ivar fit: geometric agreement with the observed depth.
     :ivar class_name: the detector class.
+    :ivar T_vehicle_pallet: (4, 4) the pose in the calibrated vehicle frame (None without a calibration).
+    :ivar forklift: front face, pockets and `pick_safe` (vehicle frame; None without a calibration or pockets).
     """
 
     T_cam_pallet: np.ndarray
@@ -90,8 +94,15 @@ class PalletPose:
     n_valid_points: int
     fit: FitScore
     class_name: str = "pallet"
+    T_vehicle_pallet: np.ndarray | None = None
+    forklift: ForkliftInfo | None = None
 
     def __post_init__(self) -> None:
+        if self.T_vehicle_pallet is not None:
+            object.__setattr__(self, "T_vehicle_pallet",
+                               _array(self.T_vehicle_pallet, (4, 4), "PalletPose.T_vehicle_pallet"))
+        if self.forklift is not None and not isinstance(self.forklift, ForkliftInfo):
+            raise TypeError(f"PalletPose.forklift must be a ForkliftInfo or None, got {type(self.forklift).__name__}")
         T = _array(self.T_cam_pallet, (4, 4), "PalletPose.T_cam_pallet")
         R = T[:3, :3]
         if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-5) \
@@ -129,7 +140,16 @@ class PalletPose:
                 "quat_wxyz": [round(float(x), 5) for x in self.quat_wxyz],
                 "confidence": round(self.confidence, 4), "detector_score": round(self.detector_score, 4),
                 "box_xyxy": [round(float(x), 1) for x in self.box_xyxy], "n_valid_points": self.n_valid_points,
-                "fit": self.fit.to_dict()}
+                "fit": self.fit.to_dict(), **self._vehicle_dict()}
+
+    def _vehicle_dict(self) -> dict:
+        if self.T_vehicle_pallet is None:
+            return {}
+        out = {"t_vehicle_m": [round(float(x), 4) for x in self.T_vehicle_pallet[:3, 3]],
+               "quat_vehicle_wxyz": [round(float(x), 5) for x in rot_to_quat(self.T_vehicle_pallet[:3, :3])]}
+        if self.forklift is not None:
+            out["forklift"] = self.forklift.to_dict()
+        return out
 
 
 @dataclass(frozen=True)
