@@ -13,7 +13,7 @@ import numpy as np
 
 from pallet6d.runtime.floor import FloorPlane, fit_floor_plane
 
-__all__ = ["FloorPlane", "fit_floor_plane", "T_vehicle_cam_from_floor", "pitch_roll_deg"]
+__all__ = ["FloorPlane", "fit_floor_plane", "fit_floor_for_calibration", "T_vehicle_cam_from_floor", "pitch_roll_deg"]
 
 
 def T_vehicle_cam_from_floor(plane: FloorPlane, yaw_deg: float = 0.0, x_m: float = 0.0,
@@ -47,3 +47,23 @@ def pitch_roll_deg(R_vehicle_cam: np.ndarray) -> tuple[float, float]:
     pitch = np.degrees(np.arcsin(np.clip(-axis[2], -1.0, 1.0)))
     roll = np.degrees(np.arctan2(right[2], -down[2]))
     return float(pitch), float(roll)
+
+
+# a camera mounted upright (image rows down): the floor's normal is its -y, give or take the pitch and roll
+UPRIGHT_UP_CAM = np.array([0.0, -1.0, 0.0])
+
+
+def fit_floor_for_calibration(depths_m: list[np.ndarray], K: np.ndarray, max_range_m: float = 4.0,
+                              max_tilt_deg: float = 45.0, seed: int = 0) -> FloorPlane:
+    """The floor plane for `calib floor`: one fit over the lower image part of one or more depth images of a
+    still camera, within `max_range_m` (far stereo depth is noisy), tilted at most `max_tilt_deg` from an upright
+    camera's up (walls and box faces are never taken for the floor).
+
+    :param depths_m: (H, W) metres each. :param K: (3, 3). :raises ValueError: no floor plane found.
+    """
+    from pallet6d.runtime.floor import floor_points
+
+    if not depths_m:
+        raise ValueError("no depth images to fit the floor on")
+    pts = np.concatenate([floor_points(d, K, step=8, max_range_m=max_range_m) for d in depths_m])
+    return fit_floor_plane(pts, np.random.default_rng(seed), up_hint=UPRIGHT_UP_CAM, max_tilt_deg=max_tilt_deg)
