@@ -208,9 +208,11 @@ def load_calibration(path: str | Path) -> Calibration:
 class CalibrationMonitor:
     """Whether vehicle-frame output may be given now: the floor must keep agreeing with the calibration.
 
-    `update(depth_m, K)` checks the floor every `every_n` frames (the first frame always). After `n_bad` checks
-    in a row that see the floor elsewhere, the camera counts as moved: `ok` turns False until `n_good` checks in
-    a row agree again. Frames that show too little floor change nothing.
+    `update(depth_m, K)` checks the floor every `every_n` frames (the first frame always, and every frame while
+    a check disagrees). At start, before any check has agreed, one that sees the floor elsewhere stops vehicle-frame
+    output; later it takes `n_bad` in a row (a forklift driving over a ramp edge is not a knock). The camera then
+    counts as moved: `ok` stays False until `n_good` checks in a row agree again. Frames that show too little floor
+    change nothing.
     """
 
     def __init__(self, calibration: Calibration, every_n: int = 30, n_bad: int = 2, n_good: int = 3,
@@ -225,6 +227,7 @@ class CalibrationMonitor:
         self._frames = 0
         self._bad = 0
         self._good = 0
+        self._verified = False     # no check has agreed yet: at start one disagreement is enough
 
     def update(self, depth_m: np.ndarray, K: np.ndarray) -> FloorCheck | None:
         """Check this frame's floor when one is due; return the check (None when none was due)."""
@@ -237,13 +240,14 @@ class CalibrationMonitor:
         if check.agrees is None:
             return check
         if check.agrees:
+            self._verified = True
             self._bad, self._good = 0, self._good + 1
             if not self.ok and self._good >= self.n_good:
                 self.ok = True
                 log.warning("camera floor agrees with the calibration again: vehicle-frame output resumes")
         else:
             self._good, self._bad = 0, self._bad + 1
-            if self.ok and self._bad >= self.n_bad:
+            if self.ok and (self._bad >= self.n_bad or not self._verified):
                 self.ok = False
                 log.error("camera moved since calibration (%s): vehicle-frame output stops", check.detail)
         return check

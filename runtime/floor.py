@@ -145,13 +145,24 @@ class FloorCheck:
 
 
 def check_floor(calibrated: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_tilt_deg: float = 1.0,
-                max_height_diff_m: float = 0.03, min_inlier_ratio: float = 0.25, seed: int = 0) -> FloorCheck:
-    """Fit the floor of one frame near the calibrated one (within 15 degrees) and compare.
+                max_height_diff_m: float = 0.03, min_inlier_ratio: float = 0.1, band_m: float = 0.3,
+                seed: int = 0) -> FloorCheck:
+    """Fit the floor of one frame near the calibrated one (points within `band_m` of it, planes within 15
+    degrees) and compare. Many points far below the calibrated floor (where nothing can be) also disagree.
+
+    A forklift's view is mostly pallets, loads and racks: the floor may be a tenth of the lower image, so a plane
+    that `min_inlier_ratio` of those points support (and at least 300) counts as the floor seen.
 
     :param calibrated: the floor plane stored in the calibration (camera frame).
     :param depth_m: (H, W) metres. :param K: (3, 3) of that image.
     """
     pts = floor_points(depth_m, K)
+    height = pts @ calibrated.normal + calibrated.d                 # above the calibrated floor, metres
+    below = float(np.mean(height < -band_m)) if len(pts) else 0.0
+    if len(pts) >= 200 and below >= 0.2:
+        return FloorCheck(False, float("nan"), float("nan"), f"{below:.0%} of the depth points low in the image lie "
+                                                             f"more than {band_m} m below the calibrated floor")
+    pts = pts[np.abs(height) <= band_m]     # racks, truck beds and pallet stacks are not the floor
     if len(pts) < 200:
         return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {len(pts)} depth points low in "
                                                                "the image")
@@ -160,9 +171,13 @@ def check_floor(calibrated: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_
                                iterations=200, up_hint=calibrated.normal, max_tilt_deg=15.0)
     except ValueError as exc:
         return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {exc}")
+    if seen.inlier_ratio * len(pts) < 300:
+        return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {seen.inlier_ratio * len(pts):.0f} "
+                                                               "floor points")
     tilt = plane_angle_deg(seen.normal, calibrated.normal)
     dh = seen.d - calibrated.d
     agrees = tilt <= max_tilt_deg and abs(dh) <= max_height_diff_m
     detail = (f"floor tilted {tilt:.2f} deg (max {max_tilt_deg}) and camera height off by {100 * dh:+.1f} cm "
               f"(max {100 * max_height_diff_m:.0f}) from the calibration")
     return FloorCheck(bool(agrees), tilt, float(dh), detail)
+
