@@ -1,7 +1,11 @@
 """Calibration accuracy on simulated views: the floor fit (pitch, roll, height; exact and D435-like depth of a
 floor with boxes on it) and board extrinsics (a ChArUco board rendered into a grey view, 1.2-2.2 m ahead).
 
-    python benchmarks/forklift_calib.py --floors 60 --boards 60 --out benchmarks/results/forklift/calib.json
+    python benchmarks/forklift_calib.py --floors 60 --boards 60 --frames /work/data/forklift-frames \
+        --out benchmarks/results/forklift/calib.json
+
+With `--frames` (cached forklift-approach frames, `benchmarks/forklift_frames.py`) it also counts how often the
+running floor check agrees, disagrees or sees no floor, with the exact calibration and with a knocked camera.
 """
 from __future__ import annotations
 
@@ -9,10 +13,9 @@ import argparse
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from pallet6d.calib.board import BoardSpec, T_vehicle_cam_from_board, board_image, board_pose
+from pallet6d.calib.board import BoardSpec, T_vehicle_cam_from_board, board_pose, render_board
 from pallet6d.calib.cli import upright_board_R
 from pallet6d.calib.floor import T_vehicle_cam_from_floor, fit_floor_for_calibration, pitch_roll_deg
 from pallet6d.runtime.geometry import invert_T, make_T
@@ -82,7 +85,7 @@ def floor_errors(n: int, seed: int, sensor: str) -> dict:
         dp.append(p - pt)
         dr.append(r - rt)
         dh.append(T[2, 3] - T_true[2, 3])
-    ok = [abs(a) <= 0.3 and abs(b) <= 0.3 and abs(c) <= 0.01 for a, b, c in zip(dp, dr, dh)]
+    ok = [abs(a) <= 0.3 and abs(b) <= 0.3 and abs(c) <= 0.01 for a, b, c in zip(dp, dr, dh)] + [False] * failed
     return {"frames": len(dp) + failed, "failed": failed, "pitch_err_deg": _stats(dp), "roll_err_deg": _stats(dr),
             "height_err_m": _stats(dh), "within_target": float(np.mean(ok)) if ok else 0.0}
 
@@ -100,15 +103,7 @@ def render_board_view(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray,
     half = np.array([BOARD.cols * BOARD.square_m, BOARD.rows * BOARD.square_m, 0]) / 2
     T_vb = make_T(R_vb, centre - R_vb @ half)
     T_cb = invert_T(T_vc) @ T_vb
-    ss, px = 4, 100                                                     # supersampling, board pixels per square
-    m = BOARD.square_m / px                                             # board image pixel centres -> metres
-    S = np.array([[m, 0, 0.5 * m], [0, m, 0.5 * m], [0, 0, 1]])
-    A = np.array([[ss, 0, (ss - 1) / 2], [0, ss, (ss - 1) / 2], [0, 0, 1]])   # view pixels -> supersampled
-    Hm = A @ K @ np.column_stack([T_cb[:3, 0], T_cb[:3, 1], T_cb[:3, 3]]) @ S
-    img = board_image(BOARD, px)
-    bg = rng.integers(60, 200)
-    big = cv2.warpPerspective(img, Hm, (W * ss, H * ss), flags=cv2.INTER_LINEAR, borderValue=int(bg))
-    view = cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA).astype(np.float64)
+    view = render_board(BOARD, K, T_cb, (H, W), background=int(rng.integers(60, 200))).astype(np.float64)
     view = view * rng.uniform(0.6, 1.0) + rng.normal(0, 2.0, view.shape)
     return np.clip(view, 0, 255).astype(np.uint8), K, T_vc, T_vb
 
@@ -127,14 +122,36 @@ def board_errors(n: int, seed: int) -> dict:
         dR = T[:3, :3] @ T_vc[:3, :3].T
         dr.append(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
         dt.append(np.linalg.norm(T[:3, 3] - T_vc[:3, 3]))
-    ok = [a <= 0.3 and b <= 0.01 for a, b in zip(dr, dt)]
+    ok = [a <= 0.3 and b <= 0.01 for a, b in zip(dr, dt)] + [False] * failed
     return {"views": n, "not_found": failed, "rotation_err_deg": _stats(dr), "translation_err_m": _stats(dt),
             "within_target": float(np.mean(ok)) if ok else 0.0}
+
+
+def floor_check_rates(frames_dir: Path, depth_key: str) -> dict:
+    """The running floor check on forklift-approach frames: with the exact calibration (false alarms) and with the
+    camera knocked after calibration (2 degrees of pitch, 1.5 of roll, or 5 cm of height)."""
+    from pallet6d.runtime.floor import FloorPlane, check_floor
+
+    knocks = {"exact": (0.0, 0.0, 0.0), "pitch_2deg": (2.0, 0.0, 0.0), "roll_1.5deg": (0.0, 1.5, 0.0),
+              "height_5cm": (0.0, 0.0, 0.05)}
+    counts = {k: {"agrees": 0, "disagrees": 0, "unseen": 0} for k in knocks}
+    for path in sorted(frames_dir.glob("*.npz")):
+        z = np.load(path)
+        T = z["T_vehicle_cam"]
+        for name, (dp, dr, dh) in knocks.items():
+            p, r = np.radians(dp), np.radians(dr)
+            Rp = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])   # about camera x
+            Rr = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]])   # about camera z
+            R = T[:3, :3] @ Rp @ Rr                       # the calibration the camera had before the knock
+            c = check_floor(FloorPlane(R[2].copy(), float(T[2, 3] + dh)), z[depth_key], z["K"])
+            counts[name]["unseen" if c.agrees is None else "agrees" if c.agrees else "disagrees"] += 1
+    return counts
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--floors", type=int, default=60)
+    ap.add_argument("--frames", type=Path, help="cached forklift-approach frames for the floor check")
     ap.add_argument("--boards", type=int, default=60)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--out", type=Path)
@@ -142,6 +159,9 @@ def main() -> None:
     out = {"floor_clean": floor_errors(args.floors, args.seed, "ideal"),
            "floor_d435": floor_errors(args.floors, args.seed, "d435"),
            "board": board_errors(args.boards, args.seed)}
+    if args.frames:
+        out["floor_check_clean"] = floor_check_rates(args.frames, "depth_ideal_m")
+        out["floor_check_d435"] = floor_check_rates(args.frames, "depth_m")
     print(json.dumps(out, indent=1))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ from pallet6d.runtime.geometry import check_K, invert_T, make_T
 from .intrinsics import CameraIntrinsics
 
 __all__ = ["BoardSpec", "parse_board", "detect_board", "calibrate_intrinsics", "board_pose",
-           "T_vehicle_cam_from_board", "board_image"]
+           "T_vehicle_cam_from_board", "board_image", "render_board"]
 
 
 @dataclass(frozen=True)
@@ -151,3 +151,20 @@ def board_image(spec: BoardSpec, px_per_square: int = 100, margin_px: int = 0) -
     tile = (np.add.outer(np.arange(spec.rows), np.arange(spec.cols)) % 2 == 0)
     img = np.where(np.kron(tile, np.ones((px_per_square, px_per_square))), 0, 255).astype(np.uint8)
     return cv2.copyMakeBorder(img, margin_px, margin_px, margin_px, margin_px, cv2.BORDER_CONSTANT, value=255)
+
+
+def render_board(spec: BoardSpec, K: np.ndarray, T_cam_board: np.ndarray, image_hw: tuple[int, int],
+                 background: int = 128, supersample: int = 4) -> np.ndarray:
+    """A grey (H, W) uint8 view of the board at `T_cam_board` through a pinhole camera `K` (antialiased by
+    supersampling), for testing the board steps without a camera."""
+    h, w = image_hw
+    px = 100
+    m = spec.square_m / px                                             # board image pixel centres -> metres
+    S = np.array([[m, 0, 0.5 * m], [0, m, 0.5 * m], [0, 0, 1]])
+    ss = int(supersample)
+    A = np.array([[ss, 0, (ss - 1) / 2], [0, ss, (ss - 1) / 2], [0, 0, 1]])   # view pixels -> supersampled
+    T = np.asarray(T_cam_board, dtype=np.float64)
+    Hm = A @ check_K(K) @ np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]]) @ S
+    big = cv2.warpPerspective(board_image(spec, px), Hm, (w * ss, h * ss), flags=cv2.INTER_LINEAR,
+                              borderValue=int(background))
+    return cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA)
