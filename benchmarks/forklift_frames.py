@@ -1,6 +1,7 @@
 """Render forklift-approach frames once and cache what the forklift benchmarks need (numpy .npz per frame).
 
-    python benchmarks/forklift_frames.py --out /work/data/forklift-frames --frames 120 --seed 7
+    python benchmarks/forklift_frames.py --out /work/data/forklift-frames --frames 100 --seed 7
+    python benchmarks/forklift_frames.py --out /work/data/forklift-frames-epal --frames 60 --seed 8 --models epal
 
 Target 1-4 m ahead (`target_distance_m`), obstacles in pockets with probability `--obstacle-prob`, depth both
 D435-like (`depth_m`) and exact (`depth_ideal_m`).
@@ -25,9 +26,12 @@ def main() -> None:
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--obstacle-prob", type=float, default=0.4)
+    ap.add_argument("--models", help="comma-separated pallet types (default: the preset's, all types)")
     args = ap.parse_args()
     cfg = replace(get_preset("forklift-approach"), target_distance_m=(1.0, 4.0),
                   pocket_obstacle_prob=args.obstacle_prob)
+    if args.models:
+        cfg = replace(cfg, pallet_models=tuple(args.models.split(",")))
     args.out.mkdir(parents=True, exist_ok=True)
     for i in range(args.start, args.start + args.frames):
         path = args.out / f"{i:05d}.npz"

@@ -3,11 +3,13 @@ face yaw against the simulator's ground truth, and the `pick_safe` confusion tab
 
     python benchmarks/forklift_pockets.py --frames /work/data/forklift-frames \
         --out benchmarks/results/forklift/pockets.json
-    python benchmarks/forklift_pockets.py --frames ... --estimator models/epal-default --out .../pockets-e2e.json
+    python benchmarks/forklift_pockets.py --frames /work/data/forklift-frames-epal --estimator models/epal-default \
+        [--gt-boxes] --out benchmarks/results/forklift/pockets-e2e.json
 
 Without `--estimator` the ground-truth poses are used (this tests the geometry and the pocket check); with it
 the estimator's poses (the detection whose box overlaps the target's most), reported for the pallet types the
-bundle knows. Pallets are the targets (the pallet the forklift approaches, 1-4 m ahead); `--all` adds every
+bundle knows; `--gt-boxes` poses the ground truth's visible boxes instead of the detector's (the pose stage
+alone). Pallets are the targets (the pallet the forklift approaches, 1-4 m ahead); `--all` adds every
 other pallet with its face in view.
 """
 from __future__ import annotations
@@ -29,7 +31,8 @@ def _iou(a, b) -> float:
     return inter / max((a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter, 1e-9)
 
 
-def evaluate(frames_dir: Path, depth_key: str, params: ForkliftParams, estimator=None, all_pallets=False) -> dict:
+def evaluate(frames_dir: Path, depth_key: str, params: ForkliftParams, estimator=None, all_pallets=False,
+             gt_boxes=False) -> dict:
     rows = []
     for path in sorted(frames_dir.glob("*.npz")):
         z = np.load(path)
@@ -37,7 +40,11 @@ def evaluate(frames_dir: Path, depth_key: str, params: ForkliftParams, estimator
         T_vc = z["T_vehicle_cam"]
         depth = z[depth_key]
         result = None
-        if estimator is not None:
+        if estimator is not None and gt_boxes:        # the pose stage on the ground truth's visible boxes
+            boxes = [[x, y, x + w, y + h] for x, y, w, h in (fc["box_xywh"] for fc in faces
+                                                               if fc["target"] or all_pallets)]
+            result = estimator.estimate_boxes(z["rgb"], depth, z["K"], boxes_xyxy=np.asarray(boxes, float))
+        elif estimator is not None:
             result = estimator.estimate(z["rgb"], depth, z["K"])
         for fc in faces:
             if not (fc["target"] or all_pallets) or fc["face_centre_vehicle_mm"] is None:
@@ -95,6 +102,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     ap.add_argument("--estimator", help="a bundle: use its poses instead of the ground truth")
     ap.add_argument("--all", action="store_true", help="every pallet with its face in view, not only targets")
+    ap.add_argument("--gt-boxes", action="store_true",
+                    help="with --estimator: pose the ground truth's visible boxes (no detector)")
     args = ap.parse_args()
     est = None
     if args.estimator:
@@ -102,7 +111,7 @@ def main() -> None:
         est = PalletEstimator.from_bundle(args.estimator)
     out = {}
     for key, name in (("depth_ideal_m", "clean"), ("depth_m", "d435")):
-        res = evaluate(args.frames, key, ForkliftParams(), est, args.all)
+        res = evaluate(args.frames, key, ForkliftParams(), est, args.all, args.gt_boxes)
         out[name] = res
         print(name, json.dumps({k: v for k, v in res.items() if k != "rows"}))
     if args.out:
