@@ -69,8 +69,8 @@ def evaluate(frames_dir: Path, depth_key: str, params: ForkliftParams, estimator
             # a symmetric pallet seen from its other side has the same pockets in the other order
             err = min(np.linalg.norm(est_c - gt_c, axis=1).max(), np.linalg.norm(est_c[::-1] - gt_c, axis=1).max())
             dyaw = (info.face_yaw_deg - fc["face_yaw_deg"] + 180) % 360 - 180
-            rows.append({**row, "face_ok": info.face == fc["face"] or err < 0.05, "pocket_err_m": float(err),
-                         "yaw_err_deg": float(abs(dyaw)), "pick_safe": info.pick_safe, "reason": info.reason,
+            rows.append({**row, "face_ok": bool(info.face == fc["face"] or err < 0.05), "pocket_err_m": float(err),
+                         "yaw_err_deg": float(abs(dyaw)), "pick_safe": bool(info.pick_safe), "reason": info.reason,
                          "states": [p.state for p in info.pockets]})
     return summarize(rows) | {"rows": rows}
 

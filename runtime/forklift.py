@@ -6,7 +6,7 @@ Pallet frame: origin at the centre of the pallet's bounding box, x along its len
 Per pallet, from its type's geometry (`size_m`, `boxes_m`, `pockets_m`):
 
 - the front face: of the faces with fork pockets, the one whose outward normal points most towards the vehicle
-  (towards the vehicle frame's origin);
+  (against the forks' direction, -x);
 - the face centre (centre of that face of the bounding box, at half the pallet's height), the face's yaw
   relative to the forks (0 when the forks point straight into it, positive when it is turned anticlockwise seen
   from above), the lateral offset (its y) and the distance (its x: from the fork roots along the forks);
@@ -72,7 +72,7 @@ class ForkliftParams:
     tol_m: float = 0.03
     tol_quad_per_m: float = 0.006
     min_rays: int = 8
-    max_blocked_fraction: float = 0.25
+    max_blocked_fraction: float = 0.15
     max_view_angle_deg: float = 50.0
 
     def __post_init__(self) -> None:
@@ -186,20 +186,17 @@ class ForkliftInfo:
                 "reason": self.reason, "detail": self.detail}
 
 
-def front_face(pockets_m: Mapping[str, np.ndarray], size_m, T_vehicle_pallet: np.ndarray) -> str | None:
-    """The face with fork pockets whose outward normal points most towards the vehicle's origin.
+def front_face(pockets_m: Mapping[str, np.ndarray], T_vehicle_pallet: np.ndarray) -> str | None:
+    """The face with fork pockets whose outward normal points most towards the vehicle: most against the forks'
+    direction (-x), so its yaw relative to the forks is within +-45 degrees.
 
-    :param pockets_m: face -> (2, 2, 3) pocket boxes (pallet frame). :param size_m: (3,) the pallet's size.
-    :param T_vehicle_pallet: (4, 4). :return: the face, or None for a pallet without pockets.
+    :param pockets_m: face -> (2, 2, 3) pocket boxes (pallet frame). :param T_vehicle_pallet: (4, 4).
+    :return: the face, or None for a pallet without pockets.
     """
-    T = np.asarray(T_vehicle_pallet, dtype=np.float64)
-    size = np.asarray(size_m, dtype=np.float64)
+    R = np.asarray(T_vehicle_pallet, dtype=np.float64)[:3, :3]
     best, best_cos = None, -np.inf
     for face in pockets_m:
-        n = T[:3, :3] @ FACE_NORMALS[face]
-        to_origin = -(T[:3, :3] @ (FACE_NORMALS[face] * size / 2) + T[:3, 3])
-        to_origin[2] = 0.0                               # towards the vehicle over the floor
-        cos = float(n @ to_origin / max(np.linalg.norm(to_origin), 1e-9))
+        cos = -float((R @ FACE_NORMALS[face])[0])     # the normal against the forks' direction (-x)
         if cos > best_cos:
             best, best_cos = face, cos
     return best
@@ -327,7 +324,7 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
         raise ValueError(f"T_cam_pallet and T_vehicle_cam must be (4, 4), got {T_cam_pallet.shape}, "
                          f"{T_vehicle_cam.shape}")
     T_vp = T_vehicle_cam @ T_cam_pallet
-    face = front_face(pockets_m, size_m, T_vp)
+    face = front_face(pockets_m, T_vp)
     if face is None:
         return None
     centre_p, pocket_p, sizes = face_frame_points(pockets_m[face], size_m, face)

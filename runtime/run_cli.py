@@ -152,6 +152,12 @@ def _text(line: dict) -> str:
         out.append(f"  {p['class']}  t_cam = ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:.3f}) m  q_wxyz = "
                    f"({q[0]:+.3f}, {q[1]:+.3f}, {q[2]:+.3f}, {q[3]:+.3f})  confidence {p['confidence']:.2f}  "
                    f"fit {p['fit']['score']:.2f}")
+        if "forklift" in p:
+            fk = p["forklift"]
+            c = fk["face_centre_m"]
+            out.append(f"    vehicle: face {fk['face']} at ({c[0]:.3f}, {c[1]:+.3f}, {c[2]:.3f}) m, yaw "
+                       f"{fk['face_yaw_deg']:+.1f} deg, pockets {'/'.join(q['state'] for q in fk['pockets'])}, "
+                       + ("pick safe" if fk["pick_safe"] else f"NOT safe: {fk['detail']}"))
     for g in line.get("gt", []):
         where = f"  ground truth at {g['distance_m']:.1f} m ({100 * g['visib_fract']:.0f}% visible): "
         if not g["detected"] or g["add_sym_m"] is None:
