@@ -36,7 +36,8 @@ def _K() -> np.ndarray:
 
 def _camera(rng: np.random.Generator) -> np.ndarray:
     """A forklift camera's T_vehicle_cam: 0.3-2 m high, pitched 3-20 degrees down, small roll and yaw."""
-    pitch, roll, yaw = np.radians(rng.uniform(3, 20)), np.radians(rng.uniform(-1.5, 1.5)), np.radians(rng.uniform(-2, 2))
+    pitch, roll = np.radians(rng.uniform(3, 20)), np.radians(rng.uniform(-1.5, 1.5))
+    yaw = np.radians(rng.uniform(-2, 2))
     R0 = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)        # optical axis along x, image down = -z
     Ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
     Rx = np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])

@@ -29,7 +29,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="calib_command", metavar="STEP", required=True)
     p = sub.add_parser("intrinsics", help="intrinsics from images of a chessboard or ChArUco board")
     p.add_argument("--images", type=Path, required=True, help="folder of PNG/JPG images of the board")
-    p.add_argument("--board", required=True, help="chessboard:COLSxROWS:SQUARE_M or charuco:COLSxROWS:SQUARE_M:MARKER_M")
+    p.add_argument("--board", required=True,
+                   help="chessboard:COLSxROWS:SQUARE_M or charuco:COLSxROWS:SQUARE_M:MARKER_M")
     p.add_argument("--out", type=Path, required=True, help="intrinsics JSON to write")
     p = sub.add_parser("extrinsics", help="camera-to-vehicle transform from a ChArUco board at a measured place")
     p.add_argument("--image", type=Path, required=True, help="an image of the board from the mounted camera")
@@ -43,7 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--source", required=True, help="replay:DIR, bag:FILE, realsense[:SERIAL] or oakd[:MXID]")
     p.add_argument("--intrinsics", type=Path, help="intrinsics JSON (default: the source's own)")
     p.add_argument("--extrinsics", type=Path, help="JSON from calib extrinsics: yaw and position over the floor")
-    p.add_argument("--yaw-deg", type=float, default=0.0, help="camera yaw from the mount drawing (without --extrinsics)")
+    p.add_argument("--yaw-deg", type=float, default=0.0,
+                   help="camera yaw from the mount drawing (without --extrinsics)")
     p.add_argument("--x-m", type=float, default=0.0, help="camera x from the fork roots (without --extrinsics)")
     p.add_argument("--y-m", type=float, default=0.0, help="camera y, left positive (without --extrinsics)")
     p.add_argument("--frames", type=int, default=10, help="frames to fit the floor on (default 10)")

@@ -146,12 +146,13 @@ class FloorCheck:
 
 def check_floor(calibrated: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_tilt_deg: float = 1.0,
                 max_height_diff_m: float = 0.03, min_inlier_ratio: float = 0.1, band_m: float = 0.3,
-                seed: int = 0) -> FloorCheck:
+                min_floor_points: int = 1000, seed: int = 0) -> FloorCheck:
     """Fit the floor of one frame near the calibrated one (points within `band_m` of it, planes within 15
     degrees) and compare. Many points far below the calibrated floor (where nothing can be) also disagree.
 
     A forklift's view is mostly pallets, loads and racks: the floor may be a tenth of the lower image, so a plane
-    that `min_inlier_ratio` of those points support (and at least 300) counts as the floor seen.
+    that `min_inlier_ratio` of those points support, and at least `min_floor_points` of them (every 4th pixel
+    each way), counts as the floor seen: a few hundred points between pallets on a crowded floor are too few.
 
     :param calibrated: the floor plane stored in the calibration (camera frame).
     :param depth_m: (H, W) metres. :param K: (3, 3) of that image.
@@ -171,7 +172,7 @@ def check_floor(calibrated: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_
                                iterations=200, up_hint=calibrated.normal, max_tilt_deg=15.0)
     except ValueError as exc:
         return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {exc}")
-    if seen.inlier_ratio * len(pts) < 300:
+    if seen.inlier_ratio * len(pts) < min_floor_points:
         return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {seen.inlier_ratio * len(pts):.0f} "
                                                                "floor points")
     tilt = plane_angle_deg(seen.normal, calibrated.normal)

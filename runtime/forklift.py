@@ -343,7 +343,8 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
                            int(evidence[k, 0]), int(evidence[k, 1])) for k, side in enumerate(("left", "right")))
     reason, detail = "", ""
     if view > params.max_view_angle_deg:
-        reason, detail = "face_oblique", f"face seen at {view:.0f} deg from square (max {params.max_view_angle_deg:.0f})"
+        reason = "face_oblique"
+        detail = f"face seen at {view:.0f} deg from square (max {params.max_view_angle_deg:.0f})"
     elif any(p.state == "blocked" for p in pockets):
         reason = "pocket_blocked"
         detail = "; ".join(f"{p.side} pocket blocked ({p.blocked_rays} of {p.open_rays + p.blocked_rays} rays find "

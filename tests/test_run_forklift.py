@@ -47,7 +47,7 @@ def test_vehicle_frame_run_gives_vehicle_poses_and_pockets(bundle_dir, forklift_
 
 
 def test_a_knocked_camera_stops_vehicle_output(bundle_dir, forklift_bop, tmp_path, capsys):
-    cal = _calibration_file(forklift_bop, tmp_path / "cam.toml", extra_pitch_deg=4.0)
+    cal = _calibration_file(forklift_bop, tmp_path / "cam.toml", extra_pitch_deg=2.0)
     rc = main(["run", "--source", f"bop:{forklift_bop}", "--bundle", str(bundle_dir), "--threads", "1",
                "--calibration", str(cal)])
     assert rc == 0
