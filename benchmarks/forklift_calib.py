@@ -61,8 +61,8 @@ def render_floor_view(rng: np.random.Generator, sensor: str) -> tuple[np.ndarray
         t_floor = np.where(rays_v[:, 2] < -1e-9, -o[2] / rays_v[:, 2], np.inf)
     boxes = []
     for _ in range(rng.integers(1, 5)):
-        c = np.array([rng.uniform(3.5, 6.0), rng.uniform(-2.5, 2.5)])   # 3 m of free floor ahead
         half = rng.uniform(0.2, 0.8, 2)
+        c = np.array([3.5 + half[0] + rng.uniform(0, 2.5), rng.uniform(-2.5, 2.5)])   # 3.5 m of free floor ahead
         boxes.append([[*(c - half), 0.0], [*(c + half), rng.uniform(0.3, 2.0)]])
     t_box, _ = cast_rays_boxes(o[None], rays_v[None], np.asarray(boxes))
     t = np.minimum(t_floor, t_box[0])

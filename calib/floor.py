@@ -66,4 +66,5 @@ def fit_floor_for_calibration(depths_m: list[np.ndarray], K: np.ndarray, max_ran
     if not depths_m:
         raise ValueError("no depth images to fit the floor on")
     pts = np.concatenate([floor_points(d, K, step=8, max_range_m=max_range_m) for d in depths_m])
-    return fit_floor_plane(pts, np.random.default_rng(seed), up_hint=UPRIGHT_UP_CAM, max_tilt_deg=max_tilt_deg)
+    return fit_floor_plane(pts, np.random.default_rng(seed), up_hint=UPRIGHT_UP_CAM, max_tilt_deg=max_tilt_deg,
+                           inlier_tol_quad_per_m=0.0)

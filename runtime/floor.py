@@ -59,13 +59,16 @@ def _plane_from_points(pts: np.ndarray) -> tuple[np.ndarray, float]:
 
 def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol_m: float = 0.02,
                     iterations: int = 300, min_inlier_ratio: float = 0.2, up_hint: np.ndarray | None = None,
-                    max_tilt_deg: float = 90.0) -> FloorPlane:
+                    max_tilt_deg: float = 90.0, inlier_tol_quad_per_m: float = 0.0, refits: int = 2) -> FloorPlane:
     """RANSAC plane fit, refined by least squares on the inliers.
 
     :param points_cam: (n, 3) camera-frame points, metres (e.g. the lower part of a back-projected depth image).
     :param rng: random generator (the fit is deterministic for a given generator state).
     :param up_hint: (3,) the expected floor normal (camera frame); with it, planes tilted more than
         `max_tilt_deg` from it are never chosen (walls, pallet faces).
+    :param inlier_tol_quad_per_m: the inlier tolerance grows as `inlier_tol_m + this * z**2` (stereo depth noise
+        grows with z**2; a band narrower than the noise far away cuts it unevenly and tilts the fit).
+    :param refits: least-squares refits, each on the inliers of the previous plane.
     :raises ValueError: too few points, or no plane supported by `min_inlier_ratio` of them.
     """
     pts = np.asarray(points_cam, dtype=np.float64)
@@ -75,6 +78,7 @@ def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol
     if len(pts) < 3:
         raise ValueError(f"need at least 3 valid points to fit the floor, got {len(pts)}")
     min_cos = np.cos(np.radians(max_tilt_deg)) if up_hint is not None else -np.inf
+    tol = inlier_tol_m + inlier_tol_quad_per_m * pts[:, 2] ** 2
     best_count, best = -1, None
     for _ in range(iterations):
         a, b, c = pts[rng.choice(len(pts), 3, replace=False)]
@@ -85,18 +89,24 @@ def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol
         n /= norm
         if up_hint is not None and abs(float(n @ up_hint)) < min_cos:
             continue
-        count = int((np.abs(pts @ n - n @ a) < inlier_tol_m).sum())
+        count = int((np.abs(pts @ n - n @ a) < tol).sum())
         if count > best_count:
             best_count, best = count, (n, float(-n @ a))
     if best is None:
         raise ValueError("no floor plane: no sampled point triple spans a plane of the expected tilt")
     n, d = best
-    inliers = np.abs(pts @ n + d) < inlier_tol_m
+    inliers = np.abs(pts @ n + d) < tol
     ratio = float(inliers.mean())
     if ratio < min_inlier_ratio:
         raise ValueError(f"no floor plane: best plane explains {ratio:.0%} of the points "
                          f"(need {min_inlier_ratio:.0%}); aim the camera so the floor is visible")
     n, d = _plane_from_points(pts[inliers])
+    for _ in range(int(refits)):
+        again = np.abs(pts @ n + d) < tol
+        if again.sum() < 3:
+            break
+        inliers = again
+        n, d = _plane_from_points(pts[inliers])
     if d < 0:  # orient the normal towards the camera origin
         n, d = -n, -d
     rms = float(np.sqrt(np.mean((pts[inliers] @ n + d) ** 2)))
