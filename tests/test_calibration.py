@@ -120,3 +120,37 @@ def test_run_refuses_vehicle_frame_without_calibration(tmp_path, capsys):
     assert rc == 2 and "needs a calibration" in err and "pallet6d calib floor" in err and "--frame camera" in err
     rc = main(["run", "--source", f"bop:{tmp_path}", "--calibration", str(tmp_path / "none.toml")])
     assert rc == 2 and "cannot read the calibration" in capsys.readouterr().err
+
+
+def test_toml_writer_round_trips_through_tomllib_and_refuses_what_toml_cannot_hold():
+    import tomllib
+
+    from pallet6d.runtime.calibration import to_toml
+    data = {"s": 'a "quoted" \\ path\nnext', "i": 3, "b": True, "m": [[1.5, -2.0], [0.0, 1e-12]],
+            "t": {"x": 0.1, "l": ["a", "b"]}}
+    assert tomllib.loads(to_toml(data)) == data
+    with pytest.raises(ValueError, match="TOML cannot hold"):
+        to_toml({"x": float("nan")})
+    with pytest.raises(TypeError, match="cannot write"):
+        to_toml({"x": object()})
+
+
+def test_floor_fit_with_an_up_hint_never_takes_a_wall():
+    from pallet6d.runtime.floor import fit_floor_plane
+
+    rng = np.random.default_rng(0)
+    wall = np.c_[rng.uniform(-2, 2, 3000), rng.uniform(-1, 1, 3000), np.full(3000, 3.0)]    # facing the camera
+    floor = np.c_[rng.uniform(-2, 2, 800), np.full(800, 1.0), rng.uniform(1, 4, 800)]      # 1 m below it
+    pts = np.r_[wall, floor]
+    assert abs(fit_floor_plane(pts, np.random.default_rng(1), min_inlier_ratio=0.1).normal[2]) > 0.99
+    plane = fit_floor_plane(pts, np.random.default_rng(1), min_inlier_ratio=0.1,
+                            up_hint=np.array([0.0, -1.0, 0.0]), max_tilt_deg=30)
+    np.testing.assert_allclose(plane.normal, [0, -1, 0], atol=1e-3)
+    assert plane.camera_height_m == pytest.approx(1.0, abs=0.005)
+
+
+def test_floor_check_takes_nan_depth_as_missing():
+    T_vc = camera(0.8, 10.0)
+    depth = render(T_vc, pallet_pose(2.5))
+    depth[np.random.default_rng(0).random(depth.shape) < 0.3] = np.nan
+    assert check_floor(_calibration(T_vc).floor, depth, K).agrees is True
