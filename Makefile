@@ -36,7 +36,7 @@ sys-deps:
 	fi
 
 run: $(STAMP) $(DEMO_REC)/.done
-	$(PY) -m pallet6d.runtime.cli run --bundle $(BUNDLE) --source bop:$(DEMO_REC) --format text --out $(RUN_OUT)/overlays
+	$(PY) -m pallet6d.runtime.cli run --frame camera --bundle $(BUNDLE) --source bop:$(DEMO_REC) --format text --out $(RUN_OUT)/overlays
 
 $(DEMO_REC)/.done: | $(STAMP)
 	$(PY) -m pallet6d.runtime.cli sim --preset virtual-occluded --frames 8 --seed 7 --out $(DEMO_REC) --preview

@@ -1,92 +1,70 @@
 """Camera-to-vehicle extrinsics from the floor plane seen in one depth image.
 
 A forklift camera sees the warehouse floor. Fitting that plane gives the camera's mounting height, pitch and
-roll — the three extrinsic parameters that drift when a camera bracket is knocked — without any target.
-Yaw and the position along the floor cannot be seen from the floor and stay as configured.
+roll, the three extrinsic parameters that drift when a camera bracket is knocked, without any target.
+Yaw and the position along the floor cannot be seen from the floor: they come from a board
+(`calib/board.py`) or from the mount drawing.
 
-Vehicle frame: origin on the floor under the camera, z up, x forward (the camera's optical axis projected
-onto the floor), y to the left.
+Vehicle frame: x forward along the forks, y left, z up, origin on the floor between the fork roots.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-__all__ = ["FloorPlane", "fit_floor_plane", "T_vehicle_cam_from_floor"]
+from pallet6d.runtime.floor import FloorPlane, fit_floor_plane
+
+__all__ = ["FloorPlane", "fit_floor_plane", "fit_floor_for_calibration", "T_vehicle_cam_from_floor", "pitch_roll_deg"]
 
 
-@dataclass(frozen=True)
-class FloorPlane:
-    """Plane n . p + d = 0 in the camera frame, with n a unit normal pointing up (towards the camera)."""
+def T_vehicle_cam_from_floor(plane: FloorPlane, yaw_deg: float = 0.0, x_m: float = 0.0,
+                             y_m: float = 0.0) -> np.ndarray:
+    """4x4 transform mapping camera-frame points into the vehicle frame.
 
-    normal: np.ndarray      # (3,)
-    d: float                # metres; the camera's height above the floor is d (camera origin is on the + side)
-    inlier_ratio: float
-    rms_m: float
-
-    @property
-    def camera_height_m(self) -> float:
-        return float(self.d)
-
-
-def _plane_from_points(pts: np.ndarray) -> tuple[np.ndarray, float]:
-    centroid = pts.mean(axis=0)
-    _, _, vt = np.linalg.svd(pts - centroid, full_matrices=False)
-    n = vt[-1]
-    return n, float(-n @ centroid)
-
-
-def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol_m: float = 0.02,
-                    iterations: int = 300, min_inlier_ratio: float = 0.2) -> FloorPlane:
-    """RANSAC plane fit, refined by least squares on the inliers.
-
-    :param points_cam: (n, 3) camera-frame points, metres (e.g. the lower part of a back-projected depth image).
-    :param rng: random generator (the fit is deterministic for a given generator state).
-    :raises ValueError: too few points, or no plane supported by `min_inlier_ratio` of them.
+    :param plane: the floor in the camera frame (gives pitch, roll and height).
+    :param yaw_deg: the optical axis' heading in the vehicle frame, anticlockwise seen from above (0: along x).
+    :param x_m, y_m: the camera's position over the floor, relative to the point between the fork roots.
     """
-    pts = np.asarray(points_cam, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"points_cam must be (n, 3), got shape {pts.shape}")
-    pts = pts[np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)]
-    if len(pts) < 3:
-        raise ValueError(f"need at least 3 valid points to fit the floor, got {len(pts)}")
-    best_count, best = -1, None
-    for _ in range(iterations):
-        a, b, c = pts[rng.choice(len(pts), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm < 1e-9:
-            continue
-        n /= norm
-        count = int((np.abs(pts @ n - n @ a) < inlier_tol_m).sum())
-        if count > best_count:
-            best_count, best = count, (n, float(-n @ a))
-    if best is None:
-        raise ValueError("all sampled point triples were collinear: no floor plane")
-    n, d = best
-    inliers = np.abs(pts @ n + d) < inlier_tol_m
-    ratio = float(inliers.mean())
-    if ratio < min_inlier_ratio:
-        raise ValueError(f"no floor plane: best plane explains {ratio:.0%} of the points "
-                         f"(need {min_inlier_ratio:.0%}); aim the camera so the floor is visible")
-    n, d = _plane_from_points(pts[inliers])
-    if d < 0:  # orient the normal towards the camera origin
-        n, d = -n, -d
-    rms = float(np.sqrt(np.mean((pts[inliers] @ n + d) ** 2)))
-    return FloorPlane(normal=n, d=d, inlier_ratio=ratio, rms_m=rms)
-
-
-def T_vehicle_cam_from_floor(plane: FloorPlane) -> np.ndarray:
-    """4x4 transform mapping camera-frame points into the vehicle frame (see module docstring)."""
     z_v = plane.normal                                  # vehicle up, in camera coordinates
     forward = np.array([0.0, 0.0, 1.0]) - z_v[2] * z_v  # optical axis projected on the floor
     if np.linalg.norm(forward) < 1e-6:
         raise ValueError("camera looks straight down: forward direction is undefined")
-    x_v = forward / np.linalg.norm(forward)
+    x_h = forward / np.linalg.norm(forward)             # heading of the optical axis, camera coordinates
+    y_h = np.cross(z_v, x_h)
+    a = np.radians(yaw_deg)
+    x_v = np.cos(a) * x_h - np.sin(a) * y_h             # vehicle x is the heading turned back by the yaw
     y_v = np.cross(z_v, x_v)
-    R_vehicle_cam = np.stack([x_v, y_v, z_v])           # rows: vehicle axes in camera coordinates
     T = np.eye(4)
-    T[:3, :3] = R_vehicle_cam
-    T[:3, 3] = [0.0, 0.0, plane.d]                      # camera origin is d above the floor, right above 0
+    T[:3, :3] = np.stack([x_v, y_v, z_v])               # rows: vehicle axes in camera coordinates
+    T[:3, 3] = [x_m, y_m, plane.d]
     return T
+
+
+def pitch_roll_deg(R_vehicle_cam: np.ndarray) -> tuple[float, float]:
+    """The camera's pitch (degrees below the horizon of its optical axis) and roll (degrees, positive when the
+    image's right side is higher) from a (3, 3) camera-to-vehicle rotation."""
+    R = np.asarray(R_vehicle_cam, dtype=np.float64)
+    axis, right, down = R[:, 2], R[:, 0], R[:, 1]
+    pitch = np.degrees(np.arcsin(np.clip(-axis[2], -1.0, 1.0)))
+    roll = np.degrees(np.arctan2(right[2], -down[2]))
+    return float(pitch), float(roll)
+
+
+# a camera mounted upright (image rows down): the floor's normal is its -y, give or take the pitch and roll
+UPRIGHT_UP_CAM = np.array([0.0, -1.0, 0.0])
+
+
+def fit_floor_for_calibration(depths_m: list[np.ndarray], K: np.ndarray, max_range_m: float = 4.0,
+                              max_tilt_deg: float = 45.0, seed: int = 0) -> FloorPlane:
+    """The floor plane for `calib floor`: one fit over the lower image part of one or more depth images of a
+    still camera, within `max_range_m` (far stereo depth is noisy), tilted at most `max_tilt_deg` from an upright
+    camera's up (walls and box faces are never taken for the floor).
+
+    :param depths_m: (H, W) metres each. :param K: (3, 3). :raises ValueError: no floor plane found.
+    """
+    from pallet6d.runtime.floor import floor_points
+
+    if not depths_m:
+        raise ValueError("no depth images to fit the floor on")
+    pts = np.concatenate([floor_points(d, K, step=8, max_range_m=max_range_m) for d in depths_m])
+    return fit_floor_plane(pts, np.random.default_rng(seed), up_hint=UPRIGHT_UP_CAM, max_tilt_deg=max_tilt_deg,
+                           inlier_tol_quad_per_m=0.0)

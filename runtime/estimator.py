@@ -37,6 +37,7 @@ from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel
 from .stage_detector import DetectorStage
 from .stage_fit import FitCheckStage
+from .roi import RegionOfInterest, roi_filter
 from .structure import StructureParams
 from .stage_geometry import bundle_geometries
 from .stage_pose import PoseNetworkStage
@@ -96,6 +97,8 @@ class EstimatorOptions:
         fails is rejected ("no_pallet_structure"). None turns the check off. On validation frames it kept 272 of
         273 poses within 5 cm and refused 95 % of the poses the fit check alone accepted on inputs that do not
         belong together (flat-wall depth, depth 10x off, focal length 2x off; `docs/structure-check.md`).
+    :ivar roi: where pallets are expected (an image box and/or a depth hint, `roi.py`); detections outside are
+        rejected ("outside_roi") before the pose network. None: everywhere.
     :ivar time_budget_ms: the frame's time budget from the start of `estimate`, milliseconds (None: no limit).
         Candidates are posed in the order of their detector scores; those the budget leaves no time for are
         reported as rejected ("time_budget"), never as poses. The stages check it between units of work (a
@@ -122,6 +125,7 @@ class EstimatorOptions:
     nonfinite_depth: str = "raise"
     seed: int = 0
     structure: StructureParams | None = StructureParams()
+    roi: RegionOfInterest | None = None
     time_budget_ms: float | None = None
 
     def __post_init__(self) -> None:
@@ -348,6 +352,10 @@ class PalletEstimator:
         det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
         type_index = [self._type_of_class[int(c)] for c in det.class_ids]
         cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points)
+        if self.options.roi is not None:
+            keep, why = roi_filter(cands.boxes_xyxy, depth_m, self.options.roi)
+            drop = np.flatnonzero(~keep)
+            cands.reject(drop, "outside_roi", [why[i] for i in drop])
         if len(cands):
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
             self.refiner(cands, depth_m, K, timings, deadline)

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .forklift import ForkliftInfo
 from .geometry import rot_to_quat
 
 __all__ = ["FitScore", "PalletPose", "Rejection", "FrameResult", "REJECT_REASONS"]
@@ -28,6 +29,7 @@ REJECT_REASONS = (
     "no_pallet_structure",  # the depth does not show the pallet's boards and openings where the pose puts them,
                             # or the detector's box does not match the posed pallet (structure.py)
     "time_budget",          # skipped: the frame's time budget was spent before this detection was posed
+    "outside_roi",          # outside the region of interest or the depth hint (roi.py), dropped before posing
 )
 
 
@@ -85,6 +87,8 @@ class PalletPose:
     :ivar fit: geometric agreement with the observed depth.
     :ivar class_name: the detector class.
     :ivar pallet_type: the pallet type whose geometry posed and checked it (e.g. "epal"; "" when unknown).
+    :ivar T_vehicle_pallet: (4, 4) the pose in the calibrated vehicle frame (None without a calibration).
+    :ivar forklift: front face, pockets and `pick_safe` (vehicle frame; None without a calibration or pockets).
     """
 
     T_cam_pallet: np.ndarray
@@ -95,11 +99,18 @@ class PalletPose:
     fit: FitScore
     class_name: str = "pallet"
     pallet_type: str = ""
+    T_vehicle_pallet: np.ndarray | None = None
+    forklift: ForkliftInfo | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.pallet_type, str) or not isinstance(self.class_name, str):
             raise TypeError(f"PalletPose.class_name and pallet_type must be str, got {type(self.class_name).__name__}, "
                             f"{type(self.pallet_type).__name__}")
+        if self.T_vehicle_pallet is not None:
+            object.__setattr__(self, "T_vehicle_pallet",
+                               _array(self.T_vehicle_pallet, (4, 4), "PalletPose.T_vehicle_pallet"))
+        if self.forklift is not None and not isinstance(self.forklift, ForkliftInfo):
+            raise TypeError(f"PalletPose.forklift must be a ForkliftInfo or None, got {type(self.forklift).__name__}")
         T = _array(self.T_cam_pallet, (4, 4), "PalletPose.T_cam_pallet")
         R = T[:3, :3]
         if not np.allclose(T[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=1e-5) \
@@ -138,7 +149,16 @@ class PalletPose:
                 "quat_wxyz": [round(float(x), 5) for x in self.quat_wxyz],
                 "confidence": round(self.confidence, 4), "detector_score": round(self.detector_score, 4),
                 "box_xyxy": [round(float(x), 1) for x in self.box_xyxy], "n_valid_points": self.n_valid_points,
-                "fit": self.fit.to_dict()}
+                "fit": self.fit.to_dict(), **self._vehicle_dict()}
+
+    def _vehicle_dict(self) -> dict:
+        if self.T_vehicle_pallet is None:
+            return {}
+        out = {"t_vehicle_m": [round(float(x), 4) for x in self.T_vehicle_pallet[:3, 3]],
+               "quat_vehicle_wxyz": [round(float(x), 5) for x in rot_to_quat(self.T_vehicle_pallet[:3, :3])]}
+        if self.forklift is not None:
+            out["forklift"] = self.forklift.to_dict()
+        return out
 
 
 @dataclass(frozen=True)

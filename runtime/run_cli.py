@@ -20,6 +20,7 @@ from typing import Iterator
 import numpy as np
 
 from .estimator_cli import add_estimator_arguments, load_estimator
+from .forklift_cli import ForkliftOutput, add_forklift_arguments
 
 HELP = "estimate pallet poses on a camera or recording (one JSON line per frame)"
 
@@ -36,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="json: one JSON line per frame (default); text: a readable report")
     parser.add_argument("--max-failures", type=int, default=10,
                         help="give up (exit 1) after this many frames in a row whose estimation failed (default 10)")
+    add_forklift_arguments(parser)
 
 
 def _bop_frames(root: str) -> Iterator[tuple[object, list | None]]:
@@ -73,10 +75,16 @@ def _source_frames(spec: str) -> Iterator[tuple[object, list | None]]:
 
 
 def main(args: argparse.Namespace) -> int:
+    from .calibration import CalibrationError
     from .cameras import CameraError
 
     if args.max_failures < 1:   # before loading the bundle: a wrong option fails at once
         print(f"pallet6d run: --max-failures must be >= 1, got {args.max_failures}", file=sys.stderr)
+        return 2
+    try:
+        forklift = ForkliftOutput.from_args(args)
+    except ValueError as exc:
+        print(f"pallet6d run: {exc}", file=sys.stderr)
         return 2
     est = load_estimator(args, "run")
     if est is None:
@@ -90,7 +98,13 @@ def main(args: argparse.Namespace) -> int:
             if args.max_frames and n >= args.max_frames:
                 break
             try:
-                result = est.estimate(frame)
+                result = forklift.estimate(est, frame)
+            except CalibrationError as exc:   # a moved camera or a wrong calibration: no vehicle-frame output
+                n += 1
+                print(json.dumps({"frame": int(frame.frame_number), "timestamp_s": frame.timestamp_s,
+                                  "error": f"CalibrationError: {exc}"}) if args.format == "json"
+                      else f"frame {frame.frame_number}: error: {exc}", flush=True)
+                continue
             except Exception as exc:  # noqa: BLE001 - any one frame's failure is reported, never fatal alone
                 failures += 1
                 n += 1
@@ -138,6 +152,12 @@ def _text(line: dict) -> str:
         out.append(f"  {p['class']}  t_cam = ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:.3f}) m  q_wxyz = "
                    f"({q[0]:+.3f}, {q[1]:+.3f}, {q[2]:+.3f}, {q[3]:+.3f})  confidence {p['confidence']:.2f}  "
                    f"fit {p['fit']['score']:.2f}")
+        if "forklift" in p:
+            fk = p["forklift"]
+            c = fk["face_centre_m"]
+            out.append(f"    vehicle: face {fk['face']} at ({c[0]:.3f}, {c[1]:+.3f}, {c[2]:.3f}) m, yaw "
+                       f"{fk['face_yaw_deg']:+.1f} deg, pockets {'/'.join(q['state'] for q in fk['pockets'])}, "
+                       + ("pick safe" if fk["pick_safe"] else f"NOT safe: {fk['detail']}"))
     for g in line.get("gt", []):
         where = f"  ground truth at {g['distance_m']:.1f} m ({100 * g['visib_fract']:.0f}% visible): "
         if not g["detected"] or g["add_sym_m"] is None:

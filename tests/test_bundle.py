@@ -337,7 +337,8 @@ def test_graph_onnxruntime_cannot_load_is_a_bundle_error(bundle, capsys):
         OnnxModel(bundle / "fusion.onnx", threads=1)
     problems = check_bundle(bundle)
     assert len(problems) == 1 and "fusion (fusion.onnx): ONNX graph" in problems[0], problems
-    assert cli.main(["run", "--source", f"replay:{bundle / 'none'}", "--bundle", str(bundle), "--threads", "1"]) == 2
+    assert cli.main(["run", "--source", f"replay:{bundle / 'none'}", "--bundle", str(bundle), "--threads", "1",
+                     "--frame", "camera"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "cannot load bundle" in err[0] and "fusion.onnx: onnxruntime cannot load it" in err[0]
 

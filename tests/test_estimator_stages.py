@@ -252,3 +252,13 @@ def test_reference_poses_record_then_compare(bundle_dir, sim_bop_dataset, tmp_pa
     ref.write_text(json.dumps(doc))
     moved = run("compare", "--ref", str(ref))
     assert moved.returncode == 1 and "pose differs by 1e-06" in moved.stdout, moved.stdout + moved.stderr
+
+
+def test_roi_option_rejects_detections_outside_before_posing(bundle_dir, frame, boxes):
+    from pallet6d.runtime.roi import RegionOfInterest
+
+    roi = RegionOfInterest(box_xyxy=(0.0, 0.0, 1.0, 1.0))          # a 1-pixel corner: no box centre lies in it
+    est = PalletEstimator.from_bundle(bundle_dir, roi=roi, **KW)
+    r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    assert r.poses == [] and len(r.rejected) == len(boxes)
+    assert all(x.reason == "outside_roi" and x.pose is None for x in r.rejected)

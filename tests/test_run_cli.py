@@ -15,7 +15,8 @@ def bop_dir(tmp_path_factory):
 
 def test_run_on_bop_prints_json_lines_ground_truth_and_overlays(bundle_dir, bop_dir, tmp_path, capsys):
     rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
-               "--score-threshold", "0", "--min-fit", "0", "--no-structure-check", "--out", str(tmp_path / "ov"), "--max-frames", "2"])
+               "--frame", "camera", "--score-threshold", "0", "--min-fit", "0", "--no-structure-check", "--out", str(tmp_path / "ov"),
+               "--max-frames", "2"])
     assert rc == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     frames, summary = lines[:-1], lines[-1]
@@ -30,7 +31,7 @@ def test_run_on_bop_prints_json_lines_ground_truth_and_overlays(bundle_dir, bop_
 
 def test_run_text_report_names_poses_errors_and_summary(bundle_dir, bop_dir, capsys):
     args = ["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
-            "--score-threshold", "0", "--min-fit", "0", "--no-structure-check", "--max-frames", "1"]
+            "--frame", "camera", "--score-threshold", "0", "--min-fit", "0", "--no-structure-check", "--max-frames", "1"]
     assert main(args) == 0
     frame = json.loads(capsys.readouterr().out.splitlines()[0])
     assert main(args + ["--format", "text"]) == 0
@@ -41,7 +42,7 @@ def test_run_text_report_names_poses_errors_and_summary(bundle_dir, bop_dir, cap
 
 
 def test_run_with_a_missing_bundle_fails_clearly(tmp_path, capsys):
-    rc = main(["run", "--source", f"bop:{tmp_path}", "--bundle", str(tmp_path / "nope")])
+    rc = main(["run", "--source", f"bop:{tmp_path}", "--bundle", str(tmp_path / "nope"), "--frame", "camera"])
     assert rc == 2 and "cannot load bundle" in capsys.readouterr().err
 
 
@@ -61,7 +62,7 @@ def _failing_estimate(monkeypatch, fail_frames):
 def test_one_failing_frame_is_reported_and_the_run_goes_on(bundle_dir, bop_dir, monkeypatch, capsys):
     _failing_estimate(monkeypatch, {0})
     rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
-               "--score-threshold", "0", "--min-fit", "0", "--no-structure-check"])
+               "--frame", "camera", "--score-threshold", "0", "--min-fit", "0", "--no-structure-check"])
     assert rc == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert lines[0]["frame"] == 0 and "simulated failure" in lines[0]["error"] and "poses" not in lines[0]
@@ -73,11 +74,12 @@ def test_one_failing_frame_is_reported_and_the_run_goes_on(bundle_dir, bop_dir, 
 def test_failures_in_a_row_end_the_run(bundle_dir, bop_dir, monkeypatch, capsys):
     _failing_estimate(monkeypatch, {0, 1})
     rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--threads", "1",
-               "--max-failures", "2"])
+               "--frame", "camera", "--max-failures", "2"])
     out = capsys.readouterr()
     assert rc == 1 and "2 frames in a row failed" in out.err
     assert [json.loads(x)["frame"] for x in out.out.splitlines()] == [0, 1]
-    assert main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--max-failures", "0"]) == 2
+    assert main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--max-failures", "0",
+                 "--frame", "camera"]) == 2
 
 
 def test_live_sources_go_through_latest_frame(monkeypatch):

@@ -1,0 +1,112 @@
+import numpy as np
+import pytest
+
+from forklift_fixtures import EPAL, K, camera, pallet_pose, render
+from pallet6d.runtime.forklift import ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info
+from pallet6d.runtime.geometry import invert_T
+from pallet6d.runtime.results import FitScore, FrameResult, PalletPose
+
+
+def _info(T_vc, T_vp, depth, params=ForkliftParams(), pockets=None):
+    T_cp = invert_T(T_vc) @ T_vp
+    return forklift_info(T_cp, T_vc, EPAL.size_m, EPAL.pockets_m if pockets is None else pockets, EPAL.boxes_m,
+                         depth, K, params)
+
+
+def test_straight_ahead_face_pockets_and_clear_depth():
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    info = _info(T_vc, T_vp, render(T_vc, T_vp))
+    assert info.face == "-x" and info.pick_safe and info.reason == ""
+    np.testing.assert_allclose(info.face_centre_vehicle_m, [2.0, 0.0, 0.072], atol=1e-9)
+    assert info.distance_m == pytest.approx(2.0) and info.lateral_offset_m == pytest.approx(0.0, abs=1e-9)
+    assert info.face_yaw_deg == pytest.approx(0.0, abs=1e-9)
+    left, right = info.pockets
+    assert left.centre_vehicle_m[1] > 0 > right.centre_vehicle_m[1]          # left is +y seen from the forks
+    np.testing.assert_allclose(left.centre_vehicle_m, [2.0, 0.18625, 0.05], atol=1e-9)   # opening 0..0.1 m up
+    assert (left.width_m, left.height_m) == pytest.approx((0.2275, 0.1))
+    assert all(p.state == "clear" and p.open_rays >= 8 and p.blocked_rays == 0 for p in info.pockets)
+
+
+@pytest.mark.parametrize("yaw", [-20.0, 12.5, 30.0])
+def test_face_yaw_is_anticlockwise_positive_and_lateral_offset_is_y(yaw):
+    T_vc, T_vp = camera(), pallet_pose(2.5, yaw, lateral_m=0.3)
+    info = _info(T_vc, T_vp, None)
+    assert info.face_yaw_deg == pytest.approx(yaw, abs=1e-6)
+    assert info.lateral_offset_m == pytest.approx(info.face_centre_vehicle_m[1])
+    assert all(p.state == "hidden" for p in info.pockets) and info.reason == "pocket_hidden"
+
+
+def test_the_face_towards_the_vehicle_is_chosen_whichever_way_the_pallet_lies():
+    T_vc = camera()
+    assert _info(T_vc, pallet_pose(2.0, 180.0), None).face == "+x"
+    assert _info(T_vc, pallet_pose(2.0, 90.0), None).face == "+y"      # its +y axis points back at the forks
+    assert _info(T_vc, pallet_pose(2.0, 0.0), None, pockets={"+y": EPAL.pockets_m["+y"]}).face == "+y"
+    assert _info(T_vc, pallet_pose(2.0), None, pockets={}) is None
+
+
+def test_an_obstacle_in_a_pocket_makes_it_blocked_and_the_pick_unsafe():
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    lo, hi = EPAL.pockets_m["-x"][0]                 # left pocket of the -x face, pallet frame
+    carton = np.array([[[-0.6, lo[1] + 0.02, lo[2]], [-0.45, hi[1] - 0.02, hi[2] - 0.01]]])   # 15 cm in
+    info = _info(T_vc, T_vp, render(T_vc, T_vp, carton))
+    assert [p.state for p in info.pockets] == ["blocked", "clear"]
+    assert not info.pick_safe and info.reason == "pocket_blocked" and "left pocket blocked" in info.detail
+
+
+def test_an_obstacle_sticking_out_of_a_pocket_mouth_blocks_it():
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    lo, hi = EPAL.pockets_m["-x"][1]
+    crate = np.array([[[-0.65, lo[1], lo[2]], [-0.3, hi[1], hi[2]]]])       # 5 cm out of the face
+    info = _info(T_vc, T_vp, render(T_vc, T_vp, crate))
+    assert info.pockets[1].state == "blocked" and info.reason == "pocket_blocked"
+
+
+def test_a_wall_in_front_of_the_face_hides_the_pockets():
+    T_vc, T_vp = camera(), pallet_pose(2.5)
+    wall = np.array([[[-1.4, -0.6, -0.07], [-1.3, 0.6, 0.5]]])            # 0.7 m in front of the face
+    info = _info(T_vc, T_vp, render(T_vc, T_vp, wall))
+    assert all(p.state == "hidden" for p in info.pockets) and info.reason == "pocket_hidden"
+
+
+def test_a_face_seen_too_obliquely_is_not_safe():
+    T_vc, T_vp = camera(), pallet_pose(2.0, 25.0)
+    depth = render(T_vc, T_vp)
+    assert _info(T_vc, T_vp, depth, ForkliftParams(max_view_angle_deg=10.0)).reason == "face_oblique"
+
+
+def test_depth_that_is_all_missing_or_nan_hides_the_pockets():
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    depth = np.full((240, 424), np.nan, np.float32)
+    assert _info(T_vc, T_vp, depth).reason == "pocket_hidden"
+    assert _info(T_vc, T_vp, np.zeros((240, 424), np.float32)).reason == "pocket_hidden"
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(pick_safe=True, reason="pocket_blocked"), "empty exactly when"),
+    (dict(pick_safe=False, reason=""), "empty exactly when"),
+    (dict(pick_safe=False, reason="no_idea"), "must be one of"),
+    (dict(face="front"), "face"),
+    (dict(face_centre_vehicle_m=[1.0, np.nan, 0.0]), "face_centre_vehicle_m"),
+])
+def test_forklift_info_validates(kwargs, match):
+    pk = (Pocket("left", [2, 0.2, 0.07], 0.2, 0.1, "clear"), Pocket("right", [2, -0.2, 0.07], 0.2, 0.1, "clear"))
+    base = dict(face="-x", face_centre_vehicle_m=[2, 0, 0.07], face_normal_vehicle=[-1, 0, 0], face_yaw_deg=0,
+                lateral_offset_m=0, distance_m=2, view_angle_deg=5, pockets=pk, pick_safe=True, reason="")
+    with pytest.raises(ValueError, match=match):
+        ForkliftInfo(**{**base, **kwargs})
+    with pytest.raises(ValueError, match="state"):
+        Pocket("left", [0, 0, 0], 0.2, 0.1, "open")
+
+
+def test_attach_forklift_adds_the_vehicle_pose_and_outputs_to_every_pose():
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    T_cp = invert_T(T_vc) @ T_vp
+    pose = PalletPose(T_cp, 0.9, 0.8, [100, 100, 200, 160], 500, FitScore(0.9, 0.0, 0.9), class_name="pallet")
+    other = PalletPose(T_cp, 0.9, 0.8, [100, 100, 200, 160], 500, FitScore(0.9, 0.0, 0.9), class_name="drum")
+    result = attach_forklift(FrameResult([pose, other]), T_vc, {"pallet": EPAL}, render(T_vc, T_vp), K)
+    a, b = result.poses
+    np.testing.assert_allclose(a.T_vehicle_pallet, T_vp, atol=1e-9)
+    assert a.forklift.pick_safe and b.forklift is None and b.T_vehicle_pallet is not None
+    d = a.to_dict()
+    assert d["forklift"]["pick_safe"] and len(d["forklift"]["pockets"]) == 2 and "t_vehicle_m" in d
+    assert "t_vehicle_m" not in pose.to_dict() and "forklift" not in pose.to_dict()
