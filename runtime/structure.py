@@ -47,9 +47,9 @@ class StructureParams:
     :ivar min_open_fraction: open / (open + closed) below this -> "openings_closed".
     :ivar min_box_cover: fraction of the detector's box inside the posed model's projected box; below ->
         "box_mismatch".
-    :ivar min_box_solid: of the rays inside the detector's box that hit the posed model and have depth, the
-        fraction that find its surface there; below -> "box_mismatch" (the box shows something else: a surface in
-        front of or behind the pose).
+    :ivar min_box_solid: of the rays inside the detector's box that hit the posed model and find a surface at it
+        or behind it, the fraction that find its surface; below -> "box_mismatch" (the box shows something behind
+        the pose).
     :ivar min_seen_iou: IoU of the detector's box with the box around the rays that found the pallet's surface;
         below -> "box_mismatch" (the pose explains depth elsewhere than where the detector saw the pallet).
     :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
@@ -96,8 +96,8 @@ class StructureScore:
     :ivar agreement: (solid + open) / (solid + see_through + open + closed), 0 without evidence.
     :ivar open_fraction: open / (open + closed), 1 without openings in view.
     :ivar box_cover: fraction of the detector's box inside the posed model's projected box.
-    :ivar box_solid: of the rays inside the detector's box that hit the model and have depth, the fraction that
-        find its surface (NaN when there are none: no evidence either way).
+    :ivar box_solid: of the rays inside the detector's box that hit the model and find a surface at it or behind
+        it, the fraction that find its surface (NaN when there are none: no evidence either way).
     :ivar seen_iou: IoU of the detector's box with the box around the rays that found the pallet's surface (NaN
         when none did).
     :ivar tilt_deg: angle between the pallet's z axis and the up vector (NaN without one).
@@ -232,7 +232,7 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     closed = gap & (np.abs(z_obs - t_bbox) <= tol)
 
     in_box = (u >= det[:, 0:1]) & (u <= det[:, 2:3]) & (v >= det[:, 1:2]) & (v <= det[:, 3:4])
-    box_hits = (hit & in_box).sum(1)
+    box_hits = ((solid | see_through) & in_box).sum(1)       # an occluder in front is no evidence either way
     box_solid = np.where(box_hits > 0, (solid & in_box).sum(1) / np.maximum(box_hits, 1), np.nan)
 
     # the box around the rays that found the pallet's surface, against the detector's box
