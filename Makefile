@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv .venv
 	@# torch first, pinned: it resolves to the local CPU wheel, not the multi-GB CUDA build.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[export,realsense,oakd,dev]'
+	$(PY) -m pip install -q -e '.[export,realsense,oakd,serve,dev]'
 	@touch $@
 
 sys-deps:

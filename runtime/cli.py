@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str | None, str]] = {
     "record": ("pallet6d.runtime.record_cli", None, "record a camera to the replay format"),
     "train": ("pallet6d.export.train_cli", "export", "train the detector or the pose network"),
     "eval": ("pallet6d.runtime.eval_cli", None, "accuracy of a bundle on a BOP dataset"),
+    "serve": ("pallet6d.runtime.serve.cli", "serve", "the forklift daemon: camera loop and HTTP API"),
 }
 
 
