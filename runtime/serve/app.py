@@ -2,6 +2,9 @@
 camera loop except `POST /v1/detect`, which runs the estimator on the newest frame (at most `DETECT_SLOTS` at a
 time; more get 429).
 
+Handlers that never block are `async` (no thread hop per request); those that compute or write run in the
+framework's thread pool.
+
 Open endpoints: `GET /healthz`, `GET /readyz`, `GET /openapi.json`. With a bearer token configured every other
 endpoint needs `Authorization: Bearer TOKEN`.
 """
@@ -28,7 +31,7 @@ from ..results import FrameResult
 from .config import ServeConfig
 from .limits import RequestLimits
 from .loop import CameraLoop, NoFrameError, Published, RegionHint
-from .metrics import CONTENT_TYPE_LATEST, Metrics
+from .metrics import CONTENT_TYPE_LATEST, Metrics, RequestTimer
 from .snapshots import FrameRing
 
 __all__ = ["create_app", "result_payload"]
@@ -39,6 +42,8 @@ DETECT_SLOTS = 2          # POST /v1/detect requests estimating or waiting for t
 KEEPALIVE_S = 15.0        # a comment line on idle streams, so proxies and clients see the connection alive
 MJPEG_BOUNDARY = "pallet6d-frame"
 OVERLAY_JPEG_QUALITY = 80
+# routes whose handling time goes to pallet6d_http_request_seconds (the streams last as long as the client wants)
+TIMED_ROUTES = ("/healthz", "/readyz", "/metrics", "/v1/pallets", "/v1/detect", "/v1/overlay.jpg", "/v1/snapshot")
 
 Coord = Annotated[float, Field(ge=-100000, le=100000, allow_inf_nan=False)]
 
@@ -201,10 +206,11 @@ def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: Fr
                   description="Pallet 6D poses from the forklift's RGB-D camera.", lifespan=lifespan,
                   docs_url=None, redoc_url=None)
     app.add_middleware(RequestLimits, max_body_bytes=config.api.max_body_bytes)
+    app.add_middleware(RequestTimer, histogram=metrics.http_latency, routes=TIMED_ROUTES)
     app.state.ticks = ticks
     app.state.hub = hub
 
-    def authorized(request: Request) -> None:
+    async def authorized(request: Request) -> None:
         if not token:
             return
         scheme, _, given = request.headers.get("authorization", "").partition(" ")
@@ -216,15 +222,15 @@ def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: Fr
     no_result = {503: {"model": Problem, "description": "no result yet, or the camera is down"}}
 
     @app.get("/healthz", tags=["health"], summary="the process is alive")
-    def healthz() -> dict:
+    async def healthz() -> dict:
         return {"status": "ok"}
 
     @app.get("/readyz", tags=["health"], summary="model loaded, camera streaming, results fresh",
              responses={503: {"description": "not ready; `checks` says which part"}})
-    def readyz() -> JSONResponse:
+    async def readyz() -> JSONResponse:
         c = config.camera
         camera_age, result_age = loop.camera_age_s(), loop.result_age_s()
-        checks = {"model": loop.estimator is not None,
+        checks = {"model": bool(getattr(loop.estimator, "alive", loop.estimator is not None)),
                   "camera": loop.camera_fresh(),
                   "results": (c.mode == "triggered") or (math.isfinite(result_age)
                                                          and result_age <= 2 * c.frame_timeout_s),
@@ -237,12 +243,12 @@ def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: Fr
 
     @app.get("/metrics", tags=["health"], dependencies=auth, responses=unauthorized,
              summary="Prometheus metrics", response_class=Response)
-    def metrics_endpoint() -> Response:
+    async def metrics_endpoint() -> Response:
         return Response(metrics.exposition(), media_type=CONTENT_TYPE_LATEST)
 
     @app.get("/v1/pallets", tags=["pallets"], dependencies=auth, summary="the latest result",
              responses={200: {"model": PalletsResponse}, **unauthorized, **no_result})
-    def pallets() -> Response:
+    async def pallets() -> Response:
         pub = loop.latest
         if pub is None:
             raise HTTPException(503, "no result yet" + (f": {loop.last_error}" if loop.last_error else ""))

@@ -39,27 +39,53 @@ def main(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"pallet6d serve: {exc}", file=sys.stderr)
         return 2
-    estimator = _load_estimator(config)
-    if estimator is None:
-        return 2
     if args.check:
+        estimator = _load_estimator(config)
+        if estimator is None:
+            return 2
         print(f"pallet6d serve: {args.config}: configuration valid, bundle {estimator.bundle.name} loaded")
         return 0
-    return serve(config, estimator)
+    from .worker import EstimatorProcess
+
+    bundle = _bundle_path(config)
+    if bundle is None:
+        return 2
+    log.info("bundle: %s (%s, %d threads)", bundle, config.model.precision, config.model.threads)
+    try:
+        estimator = EstimatorProcess(bundle, config.model.threads, config.model.precision,
+                                     dataclasses.asdict(config.estimator))
+    except ValueError as exc:
+        print(f"pallet6d serve: cannot load the bundle {bundle}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return serve(config, estimator)
+    finally:
+        estimator.close()
+
+
+def _bundle_path(config) -> str | None:
+    from ..default_bundle import BundleNotFoundError, default_bundle
+
+    try:
+        return str(config.model.bundle or default_bundle())
+    except BundleNotFoundError as exc:
+        print(f"pallet6d serve: {exc}", file=sys.stderr)
+        return None
 
 
 def _load_estimator(config):
+    """The estimator in this process (`--check`), or None after printing why not."""
     from ..bundle import BundleError
-    from ..default_bundle import BundleNotFoundError, default_bundle
     from ..estimator import PalletEstimator
 
+    bundle = _bundle_path(config)
+    if bundle is None:
+        return None
     try:
-        bundle = config.model.bundle or default_bundle()
-        log.info("bundle: %s (%s, %d threads)", bundle, config.model.precision, config.model.threads)
         return PalletEstimator.from_bundle(bundle, threads=config.model.threads, precision=config.model.precision,
                                            **dataclasses.asdict(config.estimator))
-    except (BundleError, BundleNotFoundError, FileNotFoundError, ValueError) as exc:
-        print(f"pallet6d serve: cannot load the bundle: {exc}", file=sys.stderr)
+    except (BundleError, FileNotFoundError, ValueError) as exc:
+        print(f"pallet6d serve: cannot load the bundle {bundle}: {exc}", file=sys.stderr)
         return None
 
 

@@ -274,9 +274,14 @@ class CameraLoop:
 
     def _estimate(self, frame: RGBDFrame) -> FrameResult | None:
         """The estimator's result, or None after counting and logging its failure."""
+        from .worker import EstimatorCrashed
+
         try:
             with self._est_lock:
                 result = self.estimator.estimate(frame)
+        except EstimatorCrashed as exc:
+            self._failed("estimator", f"frame {frame.frame_number}: {exc}")
+            return None
         except (ValueError, TypeError) as exc:
             self._failed("bad_frame", f"frame {frame.frame_number}: rejected by the estimator: {exc}")
             return None

@@ -2,12 +2,13 @@
 process, as the tests run them, never share counters)."""
 from __future__ import annotations
 
+import time
 from typing import Callable
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client import CONTENT_TYPE_LATEST
 
-__all__ = ["Metrics", "CONTENT_TYPE_LATEST", "FAILURE_REASONS"]
+__all__ = ["Metrics", "RequestTimer", "CONTENT_TYPE_LATEST", "FAILURE_REASONS"]
 
 # Why a frame produced no result: stable label values.
 FAILURE_REASONS = (
@@ -20,6 +21,7 @@ FAILURE_REASONS = (
 # seconds: a stage of a few ms up to a whole frame of a few hundred ms on two cores
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28, 2.56)
 PALLET_BUCKETS = (0, 1, 2, 3, 4, 6, 8, 12, 16)
+HTTP_BUCKETS_S = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 1.0)
 
 
 class Metrics:
@@ -44,6 +46,9 @@ class Metrics:
                                  buckets=PALLET_BUCKETS, registry=r)
         self.result_age = Gauge("pallet6d_result_age_seconds", "Seconds since the latest result's frame arrived",
                                 registry=r)
+        self.http_latency = Histogram("pallet6d_http_request_seconds",
+                                      "Time from a request's arrival to the end of its response, by route",
+                                      ["route"], buckets=HTTP_BUCKETS_S, registry=r)
         self.snapshots = Counter("pallet6d_snapshots", "Snapshot recordings written", registry=r)
 
     def observe_result(self, timings_ms: dict[str, float], n_pallets: int) -> None:
@@ -57,3 +62,21 @@ class Metrics:
 
     def exposition(self) -> bytes:
         return generate_latest(self.registry)
+
+
+class RequestTimer:
+    """ASGI middleware: observes each request to one of `routes` (exact paths) in `histogram`."""
+
+    def __init__(self, app, histogram: Histogram, routes: tuple[str, ...]) -> None:
+        self.app, self.histogram, self.routes = app, histogram, frozenset(routes)
+
+    async def __call__(self, scope, receive, send) -> None:
+        path = scope.get("path", "")
+        if scope["type"] != "http" or path not in self.routes:
+            await self.app(scope, receive, send)
+            return
+        t0 = time.perf_counter()
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.histogram.labels(path).observe(time.perf_counter() - t0)
