@@ -3,8 +3,10 @@
 Phases (fractions of --minutes): warm-up (no clients, not scored), quiet (no clients), load (--clients polling
 `GET /v1/pallets` at --poll-hz each, plus one SSE stream client), quiet again. Reports:
 - the camera loop's rate (estimated frames per second, from /metrics) per phase: load vs the quiet phases;
-- `GET /v1/pallets` latency p50/p99/max seen by the pollers, and errors;
-- the daemon's RSS every --rss-every-s seconds (growth after the warm-up);
+- `GET /v1/pallets` latency p50/p99/max seen by the pollers, and errors, and the daemon's own handling time
+  (bucket bounds of pallet6d_http_request_seconds);
+- the daemon's RSS every --rss-every-s seconds, API process and estimator process (growth after the warm-up;
+  the snapshot ring fills first: `snapshot.frames` frames of about 2.3 MB at 1224x370);
 - tracebacks and ERROR lines in the daemon's log.
 
     python benchmarks/serve_soak.py --minutes 10 --out /work/runs/serve-soak
@@ -46,10 +48,26 @@ def make_replay(work: Path) -> Path:
 
 
 def rss_mb(pid: int) -> float:
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return 0.0
+
+
+def children(pid: int) -> list[int]:
+    """Direct children of `pid` (the estimator process, multiprocessing's resource tracker)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
 
 
 def frames_total(client: httpx.Client) -> float:
@@ -181,13 +199,14 @@ def main() -> int:
         time.sleep(0.5)
     print(f"ready after {time.monotonic() - t_start:.1f} s; pid {proc.pid}", flush=True)
 
-    rss: list[tuple[float, float]] = []
+    rss: list[tuple[float, float, float]] = []   # (s, API process MB, its children MB)
     stop_rss = threading.Event()
 
     def sample_rss() -> None:
         t0 = time.monotonic()
         while not stop_rss.is_set():
-            rss.append((round(time.monotonic() - t0, 1), round(rss_mb(proc.pid), 1)))
+            kids = sum(rss_mb(c) for c in children(proc.pid))
+            rss.append((round(time.monotonic() - t0, 1), round(rss_mb(proc.pid), 1), round(kids, 1)))
             stop_rss.wait(args.rss_every_s)
 
     threading.Thread(target=sample_rss, daemon=True).start()
@@ -215,7 +234,7 @@ def main() -> int:
         rc = proc.wait(60)
     lat = load.latencies_ms if load else []
     quiet = [results["phases"][p]["loop_fps"] for p in ("quiet", "quiet_after")]
-    warm_rss = [m for t, m in rss if t >= phases[0][1] * total_s]
+    warm_rss = [m + k for t, m, k in rss if t >= phases[0][1] * total_s]
     text = log_path.read_text(errors="replace")
     results.update({
         "pallets_get": {"requests": len(lat), "p50_ms": round(pct(lat, 50), 2), "p99_ms": round(pct(lat, 99), 2),
@@ -225,7 +244,7 @@ def main() -> int:
         "loop_rate_change_under_load": round(results["phases"]["load"]["loop_fps"] / statistics.fmean(quiet) - 1, 4)
         if statistics.fmean(quiet) > 0 else None,
         "rss_mb": rss,
-        "rss_after_warmup_mb": {"first": warm_rss[0] if warm_rss else None, "last": warm_rss[-1] if warm_rss else None,
+        "rss_after_warmup_mb_total": {"first": warm_rss[0] if warm_rss else None, "last": warm_rss[-1] if warm_rss else None,
                                 "max": max(warm_rss) if warm_rss else None},
         "tracebacks": text.count("Traceback"), "error_lines": sum(1 for x in text.splitlines() if x.startswith("ERROR")),
         "exit_status": rc, "load_average": os.getloadavg(),

@@ -104,8 +104,9 @@ class _StampedSource:
 
 
 class CameraLoop:
-    """The camera thread. :param config: the daemon's configuration. :param estimator: a `PalletEstimator`
-    (used only under this loop's lock). :param metrics: where counts go. :param ring: recent frames for snapshots.
+    """The camera thread. :param config: the daemon's configuration. :param estimator: anything with
+    `estimate(frame) -> FrameResult` and `model_size_m` (`EstimatorProcess`, `PalletEstimator`; called only under
+    this loop's lock). :param metrics: where counts go. :param ring: recent frames for snapshots.
     :param source_factory: spec -> `FrameSource` (default `open_source` with the config's replay options)."""
 
     def __init__(self, config: ServeConfig, estimator, metrics: Metrics, ring: FrameRing,
