@@ -84,3 +84,19 @@ def test_public_address_needs_a_token_from_a_file_or_the_environment(tmp_path):
         load(tmp_path, '[api]\nhost = "0.0.0.0"\n', environ={"PALLET6D_API_TOKEN": "short"})
     # a loopback address may have a token too (then every endpoint but the health checks needs it)
     assert load(tmp_path, "", environ={"PALLET6D_API_TOKEN": TOKEN}).api.token == TOKEN
+
+
+def test_systemd_unit_and_docker_image_run_the_daemon_supervised():
+    """CI cannot run systemd or Docker: the recipes are checked for what the daemon relies on."""
+    unit = (REPO / "deploy" / "pallet6d.service").read_text()
+    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "RestartPreventExitStatus=2",
+                 "ExecStart=/opt/pallet6d/venv/bin/pallet6d serve --config /etc/pallet6d/serve.toml", "User=pallet6d"):
+        assert line in unit, line
+    docker = (REPO / "Dockerfile").read_text()
+    daemon_stage = docker.split("FROM edge AS daemon", 1)[1]
+    assert "COPY deploy/serve.toml /etc/pallet6d/serve.toml" in daemon_stage
+    assert "serve --config /etc/pallet6d/serve.toml --check" in daemon_stage
+    assert "HEALTHCHECK" in daemon_stage and "/healthz" in daemon_stage and "FROM" not in daemon_stage
+    assert "[serve" in docker   # the runtime image installs the serve extra
+    smoke = (REPO / ".ci" / "smoke-installed").read_text()
+    assert "pallet6d serve --config" in smoke and "kill -TERM" in smoke

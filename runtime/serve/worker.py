@@ -1,9 +1,10 @@
 """`EstimatorProcess`: the `PalletEstimator` in a child process, with the same `estimate(frame)` call.
 
 Why a process: the estimator's Python stages (ICP refinement above all) hold the interpreter lock for most of a
-frame; in the same process they would make every HTTP answer wait for it (tens to hundreds of ms). In a child
-the API answers from its own interpreter, and a native crash of onnxruntime costs one frame and a restart of
-the child, never the daemon. A frame crosses the pipe pickled (about 1 MB at 848x480, a millisecond).
+frame; in the same process every HTTP answer would compete with them for it (a waiting thread gets it after up
+to 5 ms, the switch interval, each time). In a child the API answers from its own interpreter, and a native
+crash of onnxruntime costs one frame and a restart of the child, never the daemon. A frame crosses the pipe
+pickled (about 2 MB at 848x480).
 """
 from __future__ import annotations
 
@@ -106,7 +107,8 @@ class EstimatorProcess:
                 self._conn.send(frame)
                 kind, value = self._conn.recv()
             except (EOFError, OSError) as exc:
-                code = self._proc.exitcode if self._proc is not None else None
+                self._proc.join(2)   # reaped: its exit status says how it ended
+                code = self._proc.exitcode
                 self._close()
                 raise EstimatorCrashed(f"the estimator process ended (exit status {code}): {exc!r}") from None
         if kind == "ok":
