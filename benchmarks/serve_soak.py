@@ -244,9 +244,11 @@ def main() -> int:
         "loop_rate_change_under_load": round(results["phases"]["load"]["loop_fps"] / statistics.fmean(quiet) - 1, 4)
         if statistics.fmean(quiet) > 0 else None,
         "rss_mb": rss,
-        "rss_after_warmup_mb_total": {"first": warm_rss[0] if warm_rss else None, "last": warm_rss[-1] if warm_rss else None,
-                                "max": max(warm_rss) if warm_rss else None},
-        "tracebacks": text.count("Traceback"), "error_lines": sum(1 for x in text.splitlines() if x.startswith("ERROR")),
+        "rss_after_warmup_mb_total": {"first": warm_rss[0] if warm_rss else None,
+                                      "last": warm_rss[-1] if warm_rss else None,
+                                      "max": max(warm_rss) if warm_rss else None},
+        "tracebacks": text.count("Traceback"),
+        "error_lines": sum(1 for x in text.splitlines() if x.startswith("ERROR")),
         "exit_status": rc, "load_average": os.getloadavg(),
     })
     (args.out / "results.json").write_text(json.dumps(results, indent=1))

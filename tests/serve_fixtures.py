@@ -82,7 +82,8 @@ class Daemon:
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             if self.proc.poll() is not None:
-                raise AssertionError(f"pallet6d serve exited ({self.proc.returncode}) waiting for {what}:\n{self.log()}")
+                raise AssertionError(f"pallet6d serve exited ({self.proc.returncode}) waiting for {what}:\n"
+                                     f"{self.log()}")
             try:
                 if predicate():
                     return

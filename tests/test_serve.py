@@ -183,7 +183,8 @@ def test_triggered_mode_and_bearer_token(replay_dir, bundle_dir, tmp_path):
     try:
         d.wait(lambda: d.client.get("/readyz").status_code == 200, "readyz")
         assert d.client.get("/v1/pallets").status_code == 401
-        assert d.client.get("/v1/pallets", headers={"Authorization": "Bearer wrong-token-wrong-token"}).status_code == 401
+        wrong = {"Authorization": "Bearer wrong-token-wrong-token"}
+        assert d.client.get("/v1/pallets", headers=wrong).status_code == 401
         assert d.client.get("/metrics").status_code == 401
         assert d.client.get("/v1/pallets", headers=auth).status_code == 503   # nothing triggered yet
         assert d.metric("pallet6d_frames_total", auth) == 0                      # frames are not estimated

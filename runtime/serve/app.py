@@ -272,7 +272,8 @@ def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: Fr
             raise HTTPException(503, str(exc)) from None
         finally:
             detect_slots.release()
-        body = {**result_payload(pub, config.output.frame), "age_s": round(time.monotonic() - pub.received_monotonic, 4)}
+        age_s = round(time.monotonic() - pub.received_monotonic, 4)
+        body = {**result_payload(pub, config.output.frame), "age_s": age_s}
         return Response(json.dumps(body).encode(), media_type="application/json")
 
     @app.get("/v1/stream", tags=["pallets"], dependencies=auth, response_class=StreamingResponse,

@@ -2,7 +2,7 @@
 the file, the key and what is allowed, before any model or camera is opened.
 
     [camera]
-    source = "realsense"          # any `open_source` spec: realsense[:SERIAL], oakd[:MXID], bag:FILE, replay:DIR, bop:DIR
+    source = "realsense"          # realsense[:SERIAL], oakd[:MXID], bag:FILE, replay:DIR, bop:DIR
     mode = "continuous"           # or "triggered": estimate only on POST /v1/detect
     frame_timeout_s = 5.0         # no frame for this long: the camera counts as down and is reopened
     reconnect_min_s = 0.5         # first wait before reopening a failed camera, doubled up to reconnect_max_s
