@@ -232,16 +232,20 @@ def _estimator(values: Any, name: str) -> EstimatorOptions:
     out = {}
     for key, value in values.items():
         default = fields[key].default
-        if key == "depth_range_m":
-            if not (isinstance(value, list) and len(value) == 2
+        if key == "depth_range_m" or isinstance(value, list) or isinstance(default, tuple):
+            size = 2 if key == "depth_range_m" else len(default) if isinstance(default, tuple) else None
+            if not (isinstance(value, list) and (size is None or len(value) == size)
                     and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
-                raise ConfigError(f"{name}: estimator.depth_range_m: expected [min, max] in metres, got {value!r}")
-            out[key] = (float(value[0]), float(value[1]))
+                raise ConfigError(f"{name}: estimator.{key}: expected a list of {size or 'some'} numbers, "
+                                  f"got {value!r}")
+            out[key] = tuple(float(v) for v in value)
+        elif default is None or default is dataclasses.MISSING:
+            out[key] = value          # an option without a typed default: EstimatorOptions checks it
         else:
             out[key] = _typed(value, type(default), f"estimator.{key}", name)
     try:
         return EstimatorOptions(**out)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, IndexError) as exc:
         raise ConfigError(f"{name}: [estimator]: {exc}") from None
 
 
