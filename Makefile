@@ -25,7 +25,7 @@ $(STAMP): pyproject.toml
 	@test -x $(PY) || python3 -m venv .venv
 	@# torch first, pinned: it resolves to the local CPU wheel, not the multi-GB CUDA build.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[export,realsense,oakd,dev]'
+	$(PY) -m pip install -q -e '.[export,realsense,oakd,serve,dev]'
 	@touch $@
 
 sys-deps:
@@ -53,12 +53,12 @@ wheels: | $(STAMP)
 	$(PY) -m pip wheel -q --no-deps -w $(DIST) . ./models
 	$(PY) .ci/wheel_contents.py $(DIST)
 
-# The wheels installed as a user installs them (no editable install, no export extra, no torch, outside the
-# checkout), then the same check as the Dockerfile's build: .ci/smoke-installed. The environment has no pip of
-# its own (.venv's pip installs into it): only the wheels and their dependencies are in it.
+# The wheels installed as a user installs them (with the serve extra; no editable install, no export extra, no
+# torch, outside the checkout), then the same check as the Dockerfile's build: .ci/smoke-installed. The
+# environment has no pip of its own (.venv's pip installs into it): only the wheels and their dependencies are in it.
 wheel-check: wheels
 	rm -rf $(CHECK_DIR) && python3 -m venv --without-pip $(CHECK_DIR)/venv
-	$(PY) -m pip --python $(CHECK_DIR)/venv/bin/python install -q $(DIST)/pallet6d-*.whl $(DIST)/pallet6d_models-*.whl
+	$(PY) -m pip --python $(CHECK_DIR)/venv/bin/python install -q "$$(ls $(DIST)/pallet6d-*.whl)[serve]" $(DIST)/pallet6d_models-*.whl
 	env -u PALLET6D_BUNDLE PATH="$(CURDIR)/$(CHECK_DIR)/venv/bin:$$PATH" .ci/smoke-installed $(CHECK_DIR)/work
 
 clean:

@@ -26,6 +26,7 @@ SUBCOMMANDS: dict[str, tuple[str, str | None, str]] = {
     "train": ("pallet6d.export.train_cli", "export", "train the detector or the pose network"),
     "eval": ("pallet6d.runtime.eval_cli", None, "accuracy of a bundle on a BOP dataset"),
     "calib": ("pallet6d.calib.cli", None, "calibrate a forklift camera (intrinsics, board, floor)"),
+    "serve": ("pallet6d.runtime.serve.cli", "serve", "the forklift daemon: camera loop and HTTP API"),
 }
 
 

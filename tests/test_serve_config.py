@@ -1,0 +1,102 @@
+"""The daemon's TOML configuration: defaults, paths, and a clear error for each kind of mistake."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pallet6d.runtime.serve.config import ConfigError, ServeConfig
+
+REPO = Path(__file__).resolve().parents[1]
+TOKEN = "0123456789abcdef-token"
+
+
+def load(tmp_path: Path, text: str, environ: dict | None = None) -> ServeConfig:
+    path = tmp_path / "serve.toml"
+    path.write_text(text)
+    return ServeConfig.load(path, environ=environ or {})
+
+
+def test_the_example_config_is_valid_and_uses_the_defaults():
+    cfg = ServeConfig.load(REPO / "deploy" / "serve.toml", environ={})
+    assert cfg.camera.source == "realsense" and cfg.camera.mode == "continuous"
+    assert cfg.api.host == "127.0.0.1" and cfg.api.token == "" and cfg.model.precision == "int8"
+    assert cfg.estimator.score_threshold == 0.25 and cfg.snapshot.frames == 30
+
+
+def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path):
+    assert load(tmp_path, "").camera.source == "realsense"
+    cfg = load(tmp_path, '[camera]\nsource = "replay:rec"\n[model]\nbundle = "b"\n[snapshot]\ndir = "snaps"\n'
+                         '[estimator]\ndepth_range_m = [0.3, 6]\nmax_pallets = 4\n')
+    assert cfg.camera.source == f"replay:{tmp_path / 'rec'}"
+    assert cfg.model.bundle == str(tmp_path / "b") and cfg.snapshot.dir == str(tmp_path / "snaps")
+    assert cfg.estimator.depth_range_m == (0.3, 6.0) and cfg.estimator.max_pallets == 4
+    assert load(tmp_path, '[camera]\nsource = "realsense:123"\n').camera.source == "realsense:123"
+
+
+@pytest.mark.parametrize("text, where", [
+    ("[camera\n", "not valid TOML"),
+    ("[cameras]\n", "unknown section"),
+    ("[camera]\nsorce = 'replay:x'\n", "unknown key(s) ['sorce']"),
+    ("[camera]\nsource = 'webcam'\n", "camera.source"),
+    ("[camera]\nsource = 'replay:'\n", "camera.source"),
+    ("[camera]\nmode = 'sometimes'\n", "camera.mode"),
+    ("[camera]\nframe_timeout_s = 0\n", "camera.frame_timeout_s"),
+    ("[camera]\nframe_timeout_s = '5'\n", "expected float, got str"),
+    ("[camera]\nrealtime = 1\n", "camera.realtime: expected bool"),
+    ("[camera]\nreconnect_min_s = 20.0\n", "camera.reconnect_min_s"),
+    ("[model]\nprecision = 'fp16'\n", "model.precision"),
+    ("[model]\nthreads = 0\n", "model.threads"),
+    ("[model]\nthreads = true\n", "model.threads: expected int"),
+    ("[estimator]\nscore_threshold = 2.0\n", "score_threshold must be in [0, 1]"),
+    ("[estimator]\nthreshold = 0.5\n", "[estimator] unknown key(s) ['threshold']"),
+    ("[estimator]\ndepth_range_m = [1]\n", "estimator.depth_range_m"),
+    ("[output]\nframe = 'world'\n", "output.frame"),
+    ("[output]\nframe = 'vehicle'\n", "not available in this version"),
+    ("[output]\ncalibration = 'missing.toml'\n", "output.calibration: no such file"),
+    ("[api]\nhost = 'localhost'\n", "must be an IP address"),
+    ("[api]\nport = 70000\n", "api.port"),
+    ("[api]\nmax_body_bytes = 10\n", "api.max_body_bytes"),
+    ("[api]\nhost = '0.0.0.0'\n", "set a bearer token"),
+    ("[api]\ntoken_file = 'nope'\n", "api.token_file: cannot read"),
+    ("[api]\ntoken = 'inline'\n", "unknown key(s) ['token']"),
+    ("[snapshot]\nframes = 0\n", "snapshot.frames"),
+    ("[snapshot]\nframes = 100000\n", "snapshot.frames"),
+    ("camera = 3\n", "[camera] must be a table"),
+])
+def test_config_errors_name_the_key(tmp_path, text, where):
+    with pytest.raises(ConfigError) as err:
+        load(tmp_path, text)
+    assert where in str(err.value) and str(tmp_path / "serve.toml") in str(err.value)
+
+
+def test_missing_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        ServeConfig.load(tmp_path / "none.toml")
+
+
+def test_public_address_needs_a_token_from_a_file_or_the_environment(tmp_path):
+    (tmp_path / "token").write_text(TOKEN + "\n")
+    cfg = load(tmp_path, '[api]\nhost = "0.0.0.0"\ntoken_file = "token"\n')
+    assert cfg.api.token == TOKEN and TOKEN not in repr(cfg)
+    assert load(tmp_path, '[api]\nhost = "::"\n', environ={"PALLET6D_API_TOKEN": TOKEN}).api.token == TOKEN
+    with pytest.raises(ConfigError, match="at least 16"):
+        load(tmp_path, '[api]\nhost = "0.0.0.0"\n', environ={"PALLET6D_API_TOKEN": "short"})
+    # a loopback address may have a token too (then every endpoint but the health checks needs it)
+    assert load(tmp_path, "", environ={"PALLET6D_API_TOKEN": TOKEN}).api.token == TOKEN
+
+
+def test_systemd_unit_and_docker_image_run_the_daemon_supervised():
+    """CI cannot run systemd or Docker: the recipes are checked for what the daemon relies on."""
+    unit = (REPO / "deploy" / "pallet6d.service").read_text()
+    for line in ("Type=notify", "WatchdogSec=", "Restart=on-failure", "RestartPreventExitStatus=2",
+                 "ExecStart=/opt/pallet6d/venv/bin/pallet6d serve --config /etc/pallet6d/serve.toml", "User=pallet6d"):
+        assert line in unit, line
+    docker = (REPO / "Dockerfile").read_text()
+    daemon_stage = docker.split("FROM edge AS daemon", 1)[1]
+    assert "COPY deploy/serve.toml /etc/pallet6d/serve.toml" in daemon_stage
+    assert "serve --config /etc/pallet6d/serve.toml --check" in daemon_stage
+    assert "HEALTHCHECK" in daemon_stage and "/healthz" in daemon_stage and "FROM" not in daemon_stage
+    assert "[serve" in docker   # the runtime image installs the serve extra
+    smoke = (REPO / ".ci" / "smoke-installed").read_text()
+    assert "pallet6d serve --config" in smoke and "kill -TERM" in smoke
