@@ -61,7 +61,7 @@ class StructureParams:
     min_evidence: int = 40
     min_agreement: float = 0.6
     min_opening_evidence: int = 12
-    min_open_fraction: float = 0.35
+    min_open_fraction: float = 0.15
     min_box_cover: float = 0.6
     min_box_solid: float = 0.3
     min_seen_iou: float = 0.1
