@@ -177,50 +177,47 @@ def _run(args: argparse.Namespace, est, source, stop: StopSignals, tally: _Tally
     """Estimate every frame of a started source, one line each; an exit status when the run must end
     with one, None when the frames ran out or a stop was asked for."""
     with contextlib.closing(_frames(source, stop)) as frames:   # a live camera's grabber stops on a break
-        return _run_frames(args, est, source, frames, tally, out)
-
-
-def _run_frames(args: argparse.Namespace, est, source, frames, tally: _Tally, out: IO[str]) -> int | None:
-    for number, frame, error in frames:
-        if args.max_frames and tally.frames >= args.max_frames:
-            break
-        tally.frames += 1
-        gts = _ground_truth(source, frame) if error is None else None
-        result = None
-        if error is None:
-            try:
-                result = est.estimate(frame)
-            except Exception as exc:  # noqa: BLE001 - any one frame's failure is reported, never fatal alone
-                log.debug("frame %d: estimation failed", number, exc_info=True)
-                error = f"{type(exc).__name__}: {exc}"
-        if error is not None:
-            tally.errors += 1
-            tally.in_a_row += 1
-            line = {"frame": int(number), "timestamp_s": None if frame is None else frame.timestamp_s, "error": error}
-            if gts is not None:  # its pallets count as missed
-                line["gt"], _, _ = _evaluate(est, number, None, gts, tally.records)
-            print(json.dumps(line) if args.format == "json" else f"frame {number}: error: {error}", file=out,
-                  flush=True)
-            if tally.in_a_row >= args.max_failures:
-                print(f"pallet6d run: {args.source}: {tally.in_a_row} frames in a row failed, giving up; last: "
-                      f"{error}", file=sys.stderr)
-                return 1
-            continue
-        tally.in_a_row = 0
-        tally.estimated += 1
-        tally.poses += len(result.poses)
-        line = {"frame": int(number), "timestamp_s": frame.timestamp_s, **result.to_dict()}
-        if gts is not None:
-            line["gt"], f_tp, f_fp = _evaluate(est, number, result, gts, tally.records)
-            tally.tp, tally.fp = tally.tp + f_tp, tally.fp + f_fp
-        if args.out:
-            why = _write_overlay(args.out / f"{int(number):06d}.png", frame, result, est, gts)
-            if why:
-                tally.overlay_errors += 1
-                line["overlay_error"] = why
-                log.warning("frame %d: %s", number, why)
-        print(json.dumps(line) if args.format == "json" else _text(line), file=out, flush=True)
-    return None
+        for number, frame, error in frames:
+            if args.max_frames and tally.frames >= args.max_frames:
+                break
+            tally.frames += 1
+            gts = _ground_truth(source, frame) if error is None else None
+            result = None
+            if error is None:
+                try:
+                    result = est.estimate(frame)
+                except Exception as exc:  # noqa: BLE001 - any one frame's failure is reported, never fatal alone
+                    log.debug("frame %d: estimation failed", number, exc_info=True)
+                    error = f"{type(exc).__name__}: {exc}"
+            if error is not None:
+                tally.errors += 1
+                tally.in_a_row += 1
+                line = {"frame": int(number), "timestamp_s": None if frame is None else frame.timestamp_s,
+                        "error": error}
+                if gts is not None:  # its pallets count as missed
+                    line["gt"], _, _ = _evaluate(est, number, None, gts, tally.records)
+                print(json.dumps(line) if args.format == "json" else f"frame {number}: error: {error}", file=out,
+                      flush=True)
+                if tally.in_a_row >= args.max_failures:
+                    print(f"pallet6d run: {args.source}: {tally.in_a_row} frames in a row failed, giving up; last: "
+                          f"{error}", file=sys.stderr)
+                    return 1
+                continue
+            tally.in_a_row = 0
+            tally.estimated += 1
+            tally.poses += len(result.poses)
+            line = {"frame": int(number), "timestamp_s": frame.timestamp_s, **result.to_dict()}
+            if gts is not None:
+                line["gt"], f_tp, f_fp = _evaluate(est, number, result, gts, tally.records)
+                tally.tp, tally.fp = tally.tp + f_tp, tally.fp + f_fp
+            if args.out:
+                why = _write_overlay(args.out / f"{int(number):06d}.png", frame, result, est, gts)
+                if why:
+                    tally.overlay_errors += 1
+                    line["overlay_error"] = why
+                    log.warning("frame %d: %s", number, why)
+            print(json.dumps(line) if args.format == "json" else _text(line), file=out, flush=True)
+        return None
 
 
 def _ground_truth(source, frame) -> list | None:
