@@ -114,7 +114,7 @@ def test_an_unexpected_error_is_one_line_and_status_3(monkeypatch, capsys):
 
 # A slow endless recording in a child process: the parent stops it with a signal.
 _CHILD = r"""
-import sys, time
+import os, sys, time
 sys.path.insert(0, {tests!r})
 from camera_fixtures import K_SMALL, box_frame
 from pallet6d.runtime import cameras
@@ -125,6 +125,7 @@ class Slow(cameras.FrameSource):
         super().__init__("slow")
         self.i = 0
     def _start(self):
+        os.write(1, b"[warning] a native library writes to stdout\n")   # as depthai does on import
         self._K, self._depth_scale_m = K_SMALL, 0.001
     def _read(self):
         time.sleep(0.02)
@@ -167,7 +168,7 @@ def test_record_stops_on_a_signal_with_every_frame_on_disk_in_the_index(tmp_path
     assert len(list(ReplaySource(out).start())) == len(listed)
 
 
-def test_run_stops_on_sigterm_with_the_summary(bundle_dir):
+def test_run_stops_on_sigterm_with_the_summary_and_only_json_on_stdout(bundle_dir):
     child = _start_child(["run", "--source", "replay:x", "--bundle", str(bundle_dir), "--threads", "1"])
     first = child.stdout.readline()
     assert json.loads(first)["frame"] == 101   # box_frame(i) is frame 100 + i
@@ -175,6 +176,7 @@ def test_run_stops_on_sigterm_with_the_summary(bundle_dir):
     stdout, stderr = child.communicate(timeout=60)
     lines = [json.loads(first)] + _lines(stdout)
     assert child.returncode == 0 and "Traceback" not in stderr
+    assert "a native library writes to stdout" in stderr   # not in the JSON stream: every stdout line parsed
     summary = lines[-1]["summary"]
     assert summary["stopped_by"] == "SIGTERM" and summary["frames"] == len(lines) - 1
     assert [x["frame"] for x in lines[:-1]] == list(range(101, 100 + len(lines)))
