@@ -71,7 +71,7 @@ any_float = st.floats(allow_nan=True, allow_infinity=True)
 
 @FAST
 @given(st.lists(st.one_of(finite, any_float), min_size=9, max_size=9), st.integers(8, 4000), st.integers(8, 4000))
-def test_check_K_accepts_only_camera_matrices(values, h, w):
+def test_check_K_refuses_arbitrary_matrices_or_returns_a_camera_matrix(values, h, w):
     K = np.array(values).reshape(3, 3)
     try:
         out = check_K(K, (h, w))
@@ -79,6 +79,27 @@ def test_check_K_accepts_only_camera_matrices(values, h, w):
         return
     assert np.all(np.isfinite(out)) and np.allclose(out[2], [0, 0, 1]) and out[1, 0] == 0
     assert out[0, 0] > 0 and out[1, 1] > 0 and 0 <= out[0, 2] <= w and 0 <= out[1, 2] <= h
+
+
+@FAST
+@given(st.integers(8, 4000), st.integers(8, 4000), st.floats(0.01, 40), st.floats(0.3, 3), st.floats(-0.05, 0.05),
+       st.floats(-0.3, 1.3), st.floats(-0.3, 1.3), st.sampled_from(["none", "row", "K10"]))
+def test_check_K_accepts_exactly_the_plausible_cameras(h, w, f, aspect, skew, cx, cy, damage):
+    side = max(h, w)
+    fx, fy = f * side, f * side * aspect
+    K = np.array([[fx, skew * fx, cx * w], [0, fy, cy * h], [0, 0, 1]])
+    if damage == "row":
+        K[2] = [0.01, 0, 1]
+    elif damage == "K10":
+        K[1, 0] = 0.5
+    plausible = (damage == "none" and 0.1 <= f <= 20 and 0.1 <= f * aspect <= 20 and 0.5 <= aspect <= 2
+                 and abs(skew) <= 0.01 and 0 <= cx <= 1 and 0 <= cy <= 1)
+    try:
+        check_K(K, (h, w))
+        accepted = True
+    except ValueError:
+        accepted = False
+    assert accepted == plausible
 
 
 def _valid_K(h, w, f=1.0):
