@@ -104,8 +104,9 @@ def _result_stream() -> Iterator[IO[str]]:
     try:
         yield out
     finally:
-        out.close()
-        sys.stdout.flush()
+        with contextlib.suppress(BrokenPipeError):
+            out.close()
+        sys.stdout.flush()   # what Python code printed meanwhile goes to stderr too, before stdout is back
         os.dup2(saved, 1)
         os.close(saved)
 
@@ -153,6 +154,9 @@ def main(args: argparse.Namespace) -> int:
         try:
             with source:
                 status = _run(args, est, source, stop, tally, out)
+        except BrokenPipeError:   # the reader of the results went away (`| head`): nobody to tell
+            log.info("stdout closed after %d frames", tally.frames)
+            return 1
         except (CameraError, ValueError, OSError) as exc:
             print(f"pallet6d run: {args.source}: {exc}", file=sys.stderr)
             status = 1
