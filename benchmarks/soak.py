@@ -75,7 +75,8 @@ def soak(bundle: str, precision: str, threads: int, source: str, minutes: float,
         raise SystemExit("soak: fewer than three windows; run longer or use a smaller --window")
     return {"bundle": bundle, "precision": precision, "threads": threads,
             "refine_starts": est.options.refine_starts, "source": source, "frames": frames,
-            "rss_before_mb": round(rss_start, 1), **rss_summary(windows), "windows": windows}
+            "rss_before_mb": round(rss_start, 1), **rss_summary(windows), **latency_summary(windows),
+            "windows": windows}
 
 
 def rss_summary(windows: list[dict]) -> dict:
@@ -87,6 +88,18 @@ def rss_summary(windows: list[dict]) -> dict:
             "rss_peak_growth_mb": round(max(rss[half:]) - max(rss[:half]), 1)}
 
 
+def latency_summary(windows: list[dict]) -> dict:
+    """Latency drift after the first (warm-up) window: the median window p50 / p95 of the second half minus
+    that of the first half, ms (medians, so one window disturbed by other work on the machine does not decide)."""
+    w = windows[1:]
+    half = len(w) // 2
+
+    def drift(key: str) -> float:
+        return round(float(np.median([x[key] for x in w[half:]]) - np.median([x[key] for x in w[:half]])), 1)
+
+    return {"p50_drift_ms": drift("p50_ms"), "p95_drift_ms": drift("p95_ms")}
+
+
 def markdown(doc: dict, command: str) -> str:
     w = doc["windows"]
     lines = ["# Soak run", "", f"`{command}` on {doc['created']}, {doc['machine']}.", "",
@@ -94,7 +107,8 @@ def markdown(doc: dict, command: str) -> str:
              f"{doc['refine_starts']} extra ICP starts. "
              f"RSS before loading the bundle {doc['rss_before_mb']} MB; after the first window it stays within "
              f"{doc['rss_min_mb']}-{doc['rss_max_mb']} MB, and the peak of the second half minus that of the first "
-             f"is {doc['rss_peak_growth_mb']:+} MB.", "",
+             f"is {doc['rss_peak_growth_mb']:+} MB. Latency drift (median window of the second half minus the "
+             f"first, after the first window): p50 {doc['p50_drift_ms']:+} ms, p95 {doc['p95_drift_ms']:+} ms.", "",
              "| frames | minutes | RSS (MB) | p50 ms | p95 ms | poses / frame |", "|---|---|---|---|---|---|"]
     lines += [f"| {x['frames']} | {x['minutes']} | {x['rss_mb']} | {x['p50_ms']} | {x['p95_ms']} | "
               f"{x['poses_per_frame']:.2f} |" for x in w]
@@ -125,7 +139,8 @@ def main(argv=None) -> int:
     command = " ".join(["python benchmarks/soak.py", *sys.argv[1:]])
     (args.out / "soak.md").write_text(markdown(doc, command))
     print(f"RSS {doc['rss_min_mb']}-{doc['rss_max_mb']} MB after the first window, peak growth "
-          f"{doc['rss_peak_growth_mb']:+} MB; wrote {args.out}/soak.md")
+          f"{doc['rss_peak_growth_mb']:+} MB; latency drift p50 {doc['p50_drift_ms']:+} ms, p95 "
+          f"{doc['p95_drift_ms']:+} ms; wrote {args.out}/soak.md")
     return 0
 
 

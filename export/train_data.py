@@ -38,7 +38,7 @@ __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerpri
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 1         # bump when the cached arrays' meaning changes
+CACHE_VERSION = 2         # bump when the cached arrays' meaning changes
 
 
 @dataclass(frozen=True)
@@ -384,6 +384,31 @@ def build_detector_samples(root: str | Path, input_hw: tuple[int, int], max_fram
 # --------------------------------------------------------------------------------------------- cache
 
 
+def _to_cache(samples: PoseSamples | DetectorSamples) -> dict[str, np.ndarray]:
+    """Plain numeric arrays (no object arrays, so the cache loads without pickle): a detector's ragged
+    per-frame boxes become one (sum n_i, 4) array and the (F,) counts n_i."""
+    arrays = {f: getattr(samples, f) for f in type(samples).__dataclass_fields__}
+    if isinstance(samples, DetectorSamples):
+        boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in samples.boxes]
+        arrays["boxes"] = np.concatenate(boxes) if boxes else np.zeros((0, 4), np.float32)
+        arrays["boxes_count"] = np.array([len(b) for b in boxes], np.int64)
+    return arrays
+
+
+def _from_cache(cls: type, z) -> PoseSamples | DetectorSamples:
+    """The samples `_to_cache` stored."""
+    fields = {f: z[f] for f in cls.__dataclass_fields__}
+    if cls is DetectorSamples:
+        flat, counts = fields["boxes"], z["boxes_count"]
+        if flat.ndim != 2 or flat.shape[1] != 4 or counts.sum() != len(flat):
+            raise ValueError(f"detector cache boxes {flat.shape} disagree with their counts (sum {counts.sum()})")
+        boxes = np.empty(len(counts), dtype=object)
+        for i, b in enumerate(np.split(flat, np.cumsum(counts)[:-1]) if len(counts) else []):
+            boxes[i] = b   # one by one: a list of equal-shape arrays would be broadcast as one block
+        fields["boxes"] = boxes
+    return cls(**fields)
+
+
 def load_or_build(kind: str, root: str | Path, settings: dict, cache_dir: str | Path | None,
                   build: Callable[[], PoseSamples | DetectorSamples]):
     """Read `cache_dir/<kind>_<dataset>_<key>.npz` when its key matches the dataset fingerprint and
@@ -399,17 +424,17 @@ def load_or_build(kind: str, root: str | Path, settings: dict, cache_dir: str | 
         path = Path(cache_dir) / f"{kind}_{Path(root).resolve().name}_{key}.npz"
         if path.exists():
             try:
-                with np.load(path, allow_pickle=(kind == "detector")) as z:
+                with np.load(path, allow_pickle=False) as z:
                     if str(z["_key"]) == key:
                         log.info("cache hit: %s", path)
-                        return cls(*(z[f] for f in cls.__dataclass_fields__)), fp
+                        return _from_cache(cls, z), fp
             except (OSError, KeyError, ValueError) as exc:
                 log.warning("ignoring unreadable cache %s: %s", path, exc)
     samples = build()
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, _key=np.array(key), **{f: getattr(samples, f) for f in cls.__dataclass_fields__})
+        np.savez(tmp, _key=np.array(key), **_to_cache(samples))
         tmp.replace(path)
         log.info("cached %d %s samples in %s", len(samples), kind, path)
     return samples, fp

@@ -16,6 +16,11 @@ import logging
 import sys
 from typing import Sequence
 
+# Exit statuses every subcommand shares: 0 done, 1 the work failed (source, disk, data), 2 a bad option or
+# input named on the command line; these two for failures no subcommand handles itself.
+EXIT_INTERNAL = 3          # an unexpected error (a bug): one line, the traceback with -v
+EXIT_INTERRUPTED = 130     # Ctrl-C outside a command's own clean stop (128 + SIGINT)
+
 # name -> (module, extra that provides its dependencies or None, one-line summary for `pallet6d --help`)
 SUBCOMMANDS: dict[str, tuple[str, str | None, str]] = {
     "sim": ("pallet6d.sim.cli", None, "generate synthetic warehouse RGB-D scenes (BOP format)"),
@@ -76,7 +81,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "_main", None) is None:
         parser.print_help()
         return 0 if args.command is None else 2
-    return int(args._main(args) or 0)
+    try:
+        return int(args._main(args) or 0)
+    except KeyboardInterrupt:
+        print(f"pallet6d {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception as exc:  # noqa: BLE001 - the user gets one line; -v gives the traceback
+        logging.getLogger("pallet6d").debug("unexpected error", exc_info=True)
+        print(f"pallet6d {args.command}: unexpected error: {type(exc).__name__}: {exc}"
+              + ("" if args.verbose else " (run with -v for the traceback)"), file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":

@@ -26,13 +26,52 @@ __all__ = [
 ]
 
 
-def check_K(K: np.ndarray) -> np.ndarray:
-    """Validate a 3x3 pinhole matrix and return it as float64."""
-    K = np.asarray(K, dtype=np.float64)
+# A pinhole camera's focal length in pixels is W / (2 tan(HFOV / 2)): 0.1 W is a 157 degree lens, 20 W a
+# 2.9 degree one. Outside that range the numbers are not a camera that a forklift carries (a K in metres,
+# a K scaled for another resolution, 1e9 placeholders) and every back-projected point would be wrong.
+FOCAL_RANGE_OF_SIZE = (0.1, 20.0)
+MAX_SKEW_OF_FOCAL = 0.01       # |K[0, 1]| / fx; real calibrations give 0 or a rounding residue
+MAX_ASPECT = 2.0               # fy / fx and fx / fy; square pixels give 1
+
+
+def check_K(K: np.ndarray, image_hw: tuple[int, int] | None = None) -> np.ndarray:
+    """Validate a 3x3 pinhole camera matrix and return it as float64.
+
+    Always: finite, last row (0, 0, 1), K[1, 0] = 0, positive focal lengths, |skew| <= 1 % of fx, fy / fx
+    within [1/2, 2]. With `image_hw` (H, W) also: fx and fy within 0.1-20 times the image's larger side and
+    the principal point inside the image.
+
+    :param K: (3, 3) [[fx, s, cx], [0, fy, cy], [0, 0, 1]].
+    :param image_hw: (H, W) of the image K belongs to, or None when it is not known here.
+    :raises ValueError: saying which entry is wrong.
+    """
+    try:
+        K = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"intrinsics K must be a 3x3 matrix of numbers, got {type(K).__name__}") from None
     if K.shape != (3, 3):
         raise ValueError(f"intrinsics K must be 3x3, got shape {K.shape}")
-    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"intrinsics K must be finite with positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
+    if not np.all(np.isfinite(K)):
+        raise ValueError(f"intrinsics K must be finite, got {K.tolist()}")
+    if not (np.allclose(K[2], [0.0, 0.0, 1.0], rtol=0, atol=1e-6) and abs(K[1, 0]) <= 1e-6):
+        raise ValueError(f"intrinsics K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (transposed?), got {K.tolist()}")
+    fx, fy = K[0, 0], K[1, 1]
+    if fx <= 0 or fy <= 0:
+        raise ValueError(f"intrinsics K must have positive focal lengths, got fx={fx}, fy={fy}")
+    if abs(K[0, 1]) > MAX_SKEW_OF_FOCAL * fx:
+        raise ValueError(f"intrinsics K has skew {K[0, 1]} (more than {MAX_SKEW_OF_FOCAL:.0%} of fx={fx}); "
+                         "a pinhole camera has K[0, 1] = 0")
+    if not 1 / MAX_ASPECT <= fy / fx <= MAX_ASPECT:
+        raise ValueError(f"intrinsics K: fx={fx} and fy={fy} differ more than {MAX_ASPECT}x")
+    if image_hw is not None:
+        h, w = int(image_hw[0]), int(image_hw[1])
+        lo, hi = FOCAL_RANGE_OF_SIZE[0] * max(h, w), FOCAL_RANGE_OF_SIZE[1] * max(h, w)
+        if not (lo <= fx <= hi and lo <= fy <= hi):
+            raise ValueError(f"intrinsics K: focal lengths fx={fx:g}, fy={fy:g} px are implausible for a {w}x{h} "
+                             f"image (expected {lo:g}-{hi:g} px): intrinsics of another resolution, or not in pixels?")
+        if not (0 <= K[0, 2] <= w and 0 <= K[1, 2] <= h):
+            raise ValueError(f"intrinsics K: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {w}x{h} "
+                             "image: intrinsics of another resolution?")
     return K
 
 

@@ -3,8 +3,11 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
+from pathlib import Path
+
+from .cli_paths import writable_folder
+from .cli_signals import StopSignals
 
 HELP = "record a camera or recording to the replay format (or a RealSense .bag)"
 
@@ -51,7 +54,9 @@ def _source_options(args: argparse.Namespace, kind: str) -> dict:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pallet6d.runtime.cameras import CameraError, ReplayWriter, open_source, parse_source_spec
+    """Exit status: 0 recorded to the end, to --frames, or until SIGINT/SIGTERM; 1 the source or the disk
+    failed (the frames written so far stay listed in the index); 2 a bad option or --out."""
+    from pallet6d.runtime.cameras import CameraError, open_source, parse_source_spec
 
     if args.frames is not None and args.frames <= 0:
         print("pallet6d record: --frames must be positive", file=sys.stderr)
@@ -62,47 +67,57 @@ def main(args: argparse.Namespace) -> int:
     except (ValueError, TypeError) as exc:
         print(f"pallet6d record: {exc}", file=sys.stderr)
         return 2
-
-    stop = {"now": False}
-
-    def _on_sigint(signum, frame):  # finish the current frame, close the files cleanly
-        stop["now"] = True
-
-    previous = signal.signal(signal.SIGINT, _on_sigint)
-    n = 0
-    try:
-        with source:
-            if args.format == "bag":
-                from pallet6d.runtime.cameras.rsbag import RealSenseBagWriter
-                first = source.read()
-                if first is None:
-                    print("pallet6d record: the source has no frames", file=sys.stderr)
-                    return 1
-                writer = RealSenseBagWriter(args.out, (first.width, first.height), first.K,
-                                            depth_scale_m=first.depth_scale_m, fps=args.fps)
-                pending = [first]
-            else:
-                writer = ReplayWriter(args.out, rgb_format=args.rgb_format, overwrite=args.overwrite)
-                pending = []
-            with writer:
-                while not stop["now"] and (args.frames is None or n < args.frames):
-                    frame = pending.pop() if pending else source.read()
-                    if frame is None:
-                        break
-                    if args.format == "bag":
-                        writer.write(frame.rgb, frame.depth, frame.timestamp_s, frame.frame_number)
-                    else:
-                        writer.write(frame)
-                    n += 1
-                    if n % 100 == 0:
-                        log.info("recorded %d frames", n)
-    except FileExistsError as exc:
-        print(f"pallet6d record: {exc}", file=sys.stderr)
+    out = Path(args.out)
+    if args.format == "bag" and out.is_dir():
+        why = f"--out {out} is a folder; --format bag writes a .bag file"
+    else:
+        why = writable_folder(out if args.format == "replay" else out.parent)
+    if why:
+        print(f"pallet6d record: {why}", file=sys.stderr)
         return 2
-    except CameraError as exc:
-        print(f"pallet6d record: {exc} (kept {n} frames in {args.out})", file=sys.stderr)
-        return 1
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    print(f"recorded {n} frames from {args.source} to {args.out}")
+    counter = {"n": 0}
+    with StopSignals() as stop:
+        try:
+            with source:
+                _record(args, source, stop, counter)
+        except FileExistsError as exc:
+            print(f"pallet6d record: {exc}", file=sys.stderr)
+            return 2
+        except (CameraError, OSError, ValueError) as exc:
+            print(f"pallet6d record: {exc} (kept {counter['n']} frames in {args.out})", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:   # a second stop signal: the writer's `with` has closed the index already
+            stop.requested = stop.requested or "SIGINT"
+    how = f", stopped by {stop.requested}" if stop.requested else ""
+    print(f"recorded {counter['n']} frames from {args.source} to {args.out}{how}")
     return 0
+
+
+def _record(args: argparse.Namespace, source, stop: StopSignals, counter: dict) -> None:
+    """Copy frames from a started source to the writer until the end, --frames or a stop signal; the writer
+    rewrites its index atomically on the way out, so it lists every frame on disk."""
+    from pallet6d.runtime.cameras import ReplayWriter
+
+    if args.format == "bag":
+        from pallet6d.runtime.cameras.rsbag import RealSenseBagWriter
+        first = source.read()
+        if first is None:
+            raise ValueError("the source has no frames")
+        writer = RealSenseBagWriter(args.out, (first.width, first.height), first.K,
+                                    depth_scale_m=first.depth_scale_m, fps=args.fps)
+        pending = [first]
+    else:
+        writer = ReplayWriter(args.out, rgb_format=args.rgb_format, overwrite=args.overwrite)
+        pending = []
+    with writer:
+        while not stop.requested and (args.frames is None or counter["n"] < args.frames):
+            frame = pending.pop() if pending else source.read()
+            if frame is None:
+                break
+            if args.format == "bag":
+                writer.write(frame.rgb, frame.depth, frame.timestamp_s, frame.frame_number)
+            else:
+                writer.write(frame)
+            counter["n"] += 1
+            if counter["n"] % 100 == 0:
+                log.info("recorded %d frames", counter["n"])

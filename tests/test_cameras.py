@@ -43,7 +43,8 @@ def test_frame_rejects_bad_fields(change, exc, words):
 
 def test_from_depth_m_quantizes_and_blanks_invalid():
     depth_m = np.array([[1.2344, np.nan], [-1.0, 70.0]])
-    f = RGBDFrame.from_depth_m(np.zeros((2, 2, 3), np.uint8), depth_m, K_SMALL, 0.0, 0)
+    K = np.array([[2.0, 0, 1], [0, 2.0, 1], [0, 0, 1]])   # a 2x2 image needs a focal length of a few pixels
+    f = RGBDFrame.from_depth_m(np.zeros((2, 2, 3), np.uint8), depth_m, K, 0.0, 0)
     assert f.depth.tolist() == [[1234, 0], [0, 0]]  # 70 m does not fit in uint16 mm: no data
 
 

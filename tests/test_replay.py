@@ -117,10 +117,16 @@ def test_truncated_rgb_png(tmp_path):
     ("{not json", CameraError, "cannot read"),
     (json.dumps({"format": "other"}), CameraError, "not a pallet6d-replay"),
     (json.dumps({"format": "pallet6d-replay", "version": 99}), CameraError, "unsupported replay version"),
-    (json.dumps({"format": "pallet6d-replay", "version": 1, "K": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
-                 "width": 4, "height": 4, "depth_scale_m": 0.001}), CameraError, "missing|frames"),
+    (json.dumps({"format": "pallet6d-replay", "version": 1, "K": [[60, 0, 32], [0, 60, 24], [0, 0, 1]],
+                 "width": 64, "height": 48, "depth_scale_m": 0.001}), CameraError, "missing 'frames'"),
     (json.dumps({"format": "pallet6d-replay", "version": 1, "K": [[0, 0, 0], [0, 1, 0], [0, 0, 1]],
-                 "width": 4, "height": 4, "depth_scale_m": 0.001, "frames": []}), CameraError, "focal"),
+                 "width": 64, "height": 48, "depth_scale_m": 0.001, "frames": []}), CameraError, "focal"),
+    (json.dumps({"format": "pallet6d-replay", "version": 1, "K": [[60, 0, 0], [0, 60, 0], [32, 24, 1]],
+                 "width": 64, "height": 48, "depth_scale_m": 0.001, "frames": []}), CameraError, "transposed"),
+    (json.dumps({"format": "pallet6d-replay", "version": 1, "K": [[60, 0, 32], [0, 60, 24], [0, 0, 1]],
+                 "width": 8000, "height": 6000, "depth_scale_m": 0.001, "frames": []}), CameraError, "too large"),
+    (json.dumps({"format": "pallet6d-replay", "version": 1, "K": [[60, 0, 32], [0, 60, 24], [0, 0, 1]],
+                 "width": 64, "height": 48, "depth_scale_m": "abc", "frames": []}), CameraError, "depth_scale_m"),
 ])
 def test_bad_index(tmp_path, content, exc, words):
     if content is not None:

@@ -77,7 +77,9 @@ def test_failures_in_a_row_end_the_run(bundle_dir, bop_dir, monkeypatch, capsys)
                "--frame", "camera", "--max-failures", "2"])
     out = capsys.readouterr()
     assert rc == 1 and "2 frames in a row failed" in out.err
-    assert [json.loads(x)["frame"] for x in out.out.splitlines()] == [0, 1]
+    lines = [json.loads(x) for x in out.out.splitlines()]
+    assert [x["frame"] for x in lines[:-1]] == [0, 1]
+    assert lines[-1]["summary"]["errors"] == 2 and lines[-1]["summary"]["estimated"] == 0
     assert main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--max-failures", "0",
                  "--frame", "camera"]) == 2
 
@@ -106,9 +108,11 @@ def test_live_sources_go_through_latest_frame(monkeypatch):
         def _stop(self):
             self.stopped = True
 
+    from pallet6d.runtime.cli_signals import StopSignals
+
     src = FakeLive()
-    monkeypatch.setattr(cameras, "open_source", lambda spec: src)
-    got = [frame.frame_number for frame, gt in run_cli._source_frames("fake")]
+    with src:
+        got = [number for number, frame, error in run_cli._frames(src, StopSignals()) if error is None]
     assert got and got == sorted(got) and got[-1] == 104
     assert src.stopped
 

@@ -20,11 +20,14 @@ class BopSource(FrameSource):
     """Frames of a BOP dataset in order, as fast as read.
 
     Depth is handed out in the dataset's own units (`depth_scale_mm` mm per unit), so no value changes.
-    BOP frames carry no capture time: `timestamp_s` is `index / fps`.
+    BOP frames carry no capture time: `timestamp_s` is `frame_number / fps`, and `frame_number` is the frame's
+    index in the dataset (plus its length per earlier pass when looping). The ground truth of the frame just
+    read is `last_gts` (a list of `BopGT`; None after an unreadable frame).
 
     :param root: what `pallet6d.runtime.bop.BopDataset` opens.
     :param fps: nominal rate for the synthetic timestamps.
-    :param on_error: "skip" unreadable frames with a warning, or "raise" `FrameReadError`.
+    :param on_error: "skip" unreadable frames with a warning, or "raise" `FrameReadError` with its
+        `frame_number`; the next `read()` goes on with the next frame.
     """
 
     def __init__(self, root: str | Path, fps: float = 30.0, on_error: str = "skip", loop: bool = False) -> None:
@@ -36,6 +39,7 @@ class BopSource(FrameSource):
         super().__init__(f"bop:{self.root}")
         self.fps, self.on_error, self.loop = float(fps), on_error, bool(loop)
         self.skipped = 0
+        self.last_gts: list | None = None
         self._ds = None
 
     def __len__(self) -> int:
@@ -47,27 +51,40 @@ class BopSource(FrameSource):
             raise CameraNotFound(f"BOP dataset {self.root} does not exist")
         try:
             self._ds = BopDataset(self.root)
-        except (OSError, ValueError, KeyError) as exc:
+        except (OSError, ValueError, KeyError, TypeError) as exc:
             raise CameraError(f"{self.root}: cannot open BOP dataset: {exc}") from None
         if len(self._ds) == 0:
             raise CameraError(f"{self.root}: BOP dataset holds no frames")
         self._i = 0
-        self._n_out = 0
-        first = self._frame_at(0)  # intrinsics and depth units before the first read()
-        self._K, self._depth_scale_m = first.K, first.depth_scale_m
+        self._pass = 0
+        self.last_gts = None
+        # intrinsics and depth units before the first read(): those of the first readable frame
+        for i in range(len(self._ds)):
+            try:
+                first = self._frame_at(i)
+            except FrameReadError:
+                continue
+            self._K, self._depth_scale_m = first.K, first.depth_scale_m
+            return
+        raise CameraError(f"{self.root}: no readable frame in the whole dataset")
 
     def _stop(self) -> None:
         self._ds = None
 
     def _frame_at(self, i: int) -> RGBDFrame:
-        """Frame `i` of the dataset, numbered and stamped as the next frame handed out."""
+        """Frame `i` of the dataset, numbered `i` (plus the dataset's length per earlier pass of a loop);
+        its ground truth goes to `last_gts`."""
+        number = i + self._pass * len(self._ds)
+        self.last_gts = None
         try:
             f = self._ds[i]
-            return RGBDFrame.from_depth_m(np.asarray(f.rgb), np.asarray(f.depth_m), np.asarray(f.K),
-                                          timestamp_s=self._n_out / self.fps, frame_number=self._n_out,
-                                          source=self.name, depth_scale_m=float(f.depth_scale_mm) * 1e-3)
+            frame = RGBDFrame.from_depth_m(np.asarray(f.rgb), np.asarray(f.depth_m), np.asarray(f.K),
+                                           timestamp_s=number / self.fps, frame_number=number, source=self.name,
+                                           depth_scale_m=float(f.depth_scale_mm) * 1e-3)
         except (OSError, ValueError, TypeError, KeyError) as exc:
-            raise FrameReadError(f"{self.name}: frame {i}: {exc}") from exc
+            raise FrameReadError(f"{self.name}: frame {i}: {exc}", number) from exc
+        self.last_gts = f.gts
+        return frame
 
     def _read(self) -> RGBDFrame | None:
         n = len(self._ds)
@@ -76,19 +93,16 @@ class BopSource(FrameSource):
             if self._i >= n:
                 if not self.loop:
                     return None
-                self._i = 0
+                self._i, self._pass = 0, self._pass + 1
             i = self._i
             self._i += 1
             try:
-                frame = self._frame_at(i)
+                return self._frame_at(i)
             except FrameReadError as exc:
                 if self.on_error == "raise":
                     raise
                 self.skipped += 1
                 misses += 1
                 log.warning("%s: skipping frame %d: %s", self.name, i, exc)
-                if misses >= n:
+                if misses >= n:   # a whole pass unreadable: looping would never end
                     raise FrameReadError(f"{self.name}: no readable frame in the whole dataset") from None
-                continue
-            self._n_out += 1
-            return frame

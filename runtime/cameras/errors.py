@@ -22,7 +22,15 @@ class CameraTimeout(CameraError):
 
 
 class FrameReadError(CameraError):
-    """A recorded frame is missing, truncated or corrupt (raised in `on_error="raise"` mode)."""
+    """A recorded frame is missing, truncated or corrupt (raised in `on_error="raise"` mode).
+
+    :ivar frame_number: the frame number the unreadable frame would have had, so that a consumer can report
+        it in place of the frame and read on; None when the failure is not one frame's (nothing readable at all).
+    """
+
+    def __init__(self, message: str, frame_number: int | None = None) -> None:
+        super().__init__(message)
+        self.frame_number = frame_number
 
 
 class SourceSpecError(ValueError):

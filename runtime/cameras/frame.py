@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pallet6d.runtime.geometry import check_K, depth_to_metres
+from pallet6d.runtime.inputs import native_depth
 
 __all__ = ["RGBDFrame"]
 
@@ -21,7 +22,8 @@ class RGBDFrame:
 
     :param rgb: (H, W, 3) uint8 RGB (not BGR).
     :param depth: (H, W) uint16 depth in units of `depth_scale_m`, registered to `rgb` pixel for pixel; 0 = no data.
-    :param K: (3, 3) pinhole intrinsics of the colour image (and so of the aligned depth).
+    :param K: (3, 3) pinhole intrinsics of the colour image (and so of the aligned depth), `check_K` with
+        the image size.
     :param depth_scale_m: metres per depth unit (> 0).
     :param timestamp_s: capture time in seconds (device clock for cameras, recording time for replays).
     :param frame_number: frame counter of the source (monotonic within one stream).
@@ -38,7 +40,7 @@ class RGBDFrame:
 
     def __post_init__(self) -> None:
         rgb = np.asarray(self.rgb)
-        depth = np.asarray(self.depth)
+        depth = native_depth(np.asarray(self.depth))   # big-endian uint16 (some PNG readers) is converted
         if rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"rgb must be (H, W, 3), got shape {rgb.shape}")
         if rgb.dtype != np.uint8:
@@ -55,7 +57,7 @@ class RGBDFrame:
             raise ValueError(f"timestamp_s must be finite, got {self.timestamp_s}")
         object.__setattr__(self, "rgb", rgb)
         object.__setattr__(self, "depth", depth)
-        object.__setattr__(self, "K", check_K(self.K))
+        object.__setattr__(self, "K", check_K(self.K, rgb.shape[:2]))
         object.__setattr__(self, "depth_scale_m", scale)
         object.__setattr__(self, "timestamp_s", ts)
         object.__setattr__(self, "frame_number", int(self.frame_number))

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from .base import FrameSource
-from .errors import CameraDisconnected, CameraError, CameraNotFound, CameraTimeout
+from .errors import CameraDisconnected, CameraError, CameraNotFound, CameraTimeout, FrameReadError
 from .frame import RGBDFrame
 from .rsbag_playback import BagPlayback
 
@@ -226,7 +226,8 @@ class RealSenseCamera(FrameSource):
         aligned = self._align.process(fs)
         color, depth = aligned.get_color_frame(), aligned.get_depth_frame()
         if not color or not depth:
-            raise CameraTimeout(f"{self.name}: frameset without colour or depth")
+            number = (color or depth).get_frame_number() if (color or depth) else None
+            raise FrameReadError(f"{self.name}: frameset without colour or depth", number)
         rgb = np.asanyarray(color.get_data())
         rs = _rs()
         if self._color_format == rs.format.bgr8:
@@ -248,7 +249,13 @@ class RealSenseCamera(FrameSource):
         while True:
             frames = self._wait_frames()
             if frames is not None:
-                return self._to_frame(frames)
+                try:
+                    return self._to_frame(frames)
+                except FrameReadError as exc:
+                    if self.bag_path is not None:   # a recording reports it in place of the frame
+                        raise
+                    log.warning("%s; waiting for the next one", exc)   # a live camera sends another at once
+                    continue
             if self.bag_path is not None:
                 if self._playback_ended():
                     return None

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from pathlib import Path
@@ -35,6 +36,7 @@ import cv2
 import numpy as np
 
 from pallet6d.runtime.geometry import check_K
+from pallet6d.runtime.inputs import check_image_size
 
 from .base import FrameSource
 from .errors import CameraError, CameraNotFound, FrameReadError
@@ -137,20 +139,57 @@ def _load_index(root: Path) -> dict:
     if doc.get("version") != REPLAY_VERSION:
         raise CameraError(f"{path}: unsupported replay version {doc.get('version')!r} (this pallet6d reads {REPLAY_VERSION})")
     try:
-        doc["K"] = check_K(np.asarray(doc["K"], dtype=np.float64))
-        doc["width"], doc["height"] = int(doc["width"]), int(doc["height"])
+        for key in ("width", "height"):
+            if not _is_int(doc[key]) or doc[key] <= 0:
+                raise ValueError(f"{key} must be a positive integer, got {doc[key]!r}")
+        check_image_size(doc["height"], doc["width"])
+        doc["K"] = check_K(doc["K"], (doc["height"], doc["width"]))
+        if not _is_number(doc["depth_scale_m"]) or not doc["depth_scale_m"] > 0:
+            raise ValueError(f"depth_scale_m must be a positive number, got {doc['depth_scale_m']!r}")
         doc["depth_scale_m"] = float(doc["depth_scale_m"])
-        if not doc["depth_scale_m"] > 0 or doc["width"] <= 0 or doc["height"] <= 0:
-            raise ValueError("depth_scale_m, width and height must be positive")
         frames = doc["frames"]
         if not isinstance(frames, list):
             raise ValueError("frames must be a list")
-        for i, f in enumerate(frames):
-            if not {"rgb", "depth", "timestamp_s"} <= set(f):
-                raise ValueError(f"frame entry {i} lacks rgb, depth or timestamp_s")
-    except (KeyError, TypeError, ValueError) as exc:
+    except KeyError as exc:
+        raise CameraError(f"{path}: invalid replay index: missing {exc}") from None
+    except (TypeError, ValueError) as exc:
         raise CameraError(f"{path}: invalid replay index: {exc}") from None
+    doc["frames"] = [_frame_entry(i, f) for i, f in enumerate(frames)]
     return doc
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _rel_path(v) -> bool:
+    """A file name inside the recording: relative, without '..'."""
+    return isinstance(v, str) and bool(v) and not Path(v).is_absolute() and ".." not in Path(v).parts
+
+
+def _frame_entry(i: int, f) -> dict:
+    """One frame entry of camera.json, checked: rgb, depth (paths inside the folder), timestamp_s (finite
+    seconds), frame_number (int >= 0; the entry's position when absent) and `error`, the reason it cannot be
+    played (None when it can). A bad entry is one unreadable frame, not an unreadable recording."""
+    if not isinstance(f, dict):
+        return {"frame_number": i, "timestamp_s": None, "error": f"frame entry {i} is not an object: {f!r:.60}"}
+    fn = f.get("frame_number", i)
+    out = {"rgb": f.get("rgb"), "depth": f.get("depth"), "timestamp_s": f.get("timestamp_s"),
+           "frame_number": fn if _is_int(fn) and fn >= 0 else i, "error": None}
+    problems = [f"{k} must be a file name inside the recording, got {f.get(k)!r:.60}" for k in ("rgb", "depth")
+                if not _rel_path(f.get(k))]
+    if not _is_number(f.get("timestamp_s")):
+        problems.append(f"timestamp_s must be a finite number of seconds, got {f.get('timestamp_s')!r:.60}")
+        out["timestamp_s"] = None
+    if not (_is_int(fn) and fn >= 0):
+        problems.append(f"frame_number must be an integer >= 0, got {fn!r:.60}")
+    if problems:
+        out["error"] = f"frame entry {i}: " + "; ".join(problems)
+    return out
 
 
 def _imread(path: Path, flags: int) -> np.ndarray:
@@ -188,7 +227,8 @@ class ReplaySource(FrameSource):
     :param root: the folder (with camera.json).
     :param realtime: pace frames by their recorded timestamps (times 1/`speed`); else as fast as read.
     :param loop: start over at the end (frame numbers and timestamps keep increasing).
-    :param on_error: "skip" a missing/corrupt/truncated frame with a warning, or "raise" `FrameReadError`.
+    :param on_error: "skip" a missing/corrupt/truncated frame (or a bad entry of camera.json) with a warning,
+        or "raise" `FrameReadError` with its `frame_number`; the next `read()` goes on with the next frame.
     """
 
     def __init__(self, root: str | Path, realtime: bool = False, loop: bool = False, on_error: str = "skip",
@@ -235,10 +275,10 @@ class ReplaySource(FrameSource):
             return False
         if self._pass_yielded == 0:
             raise FrameReadError(f"{self.name}: no readable frame in the whole recording")
-        ts = [float(e["timestamp_s"]) for e in self._entries]
+        ts = [e["timestamp_s"] for e in self._entries if e["timestamp_s"] is not None]
         period = (ts[-1] - ts[0]) / (len(ts) - 1) if len(ts) > 1 else 1 / 30
-        self._t_offset += ts[-1] - ts[0] + period
-        self._fn_offset += max(int(e.get("frame_number", i)) for i, e in enumerate(self._entries)) + 1
+        self._t_offset += (ts[-1] - ts[0] if ts else 0.0) + period
+        self._fn_offset += max(e["frame_number"] for e in self._entries) + 1
         self._pos, self._pass, self._pass_yielded = 0, self._pass + 1, 0
         return True
 
@@ -249,19 +289,21 @@ class ReplaySource(FrameSource):
             i = self._pos
             self._pos += 1
             entry = self._entries[i]
+            number = entry["frame_number"] + self._fn_offset
             try:
+                if entry["error"] is not None:
+                    raise FrameReadError(f"{self.root / 'camera.json'}: {entry['error']}", number)
                 rgb, depth = read_frame_files(self.root / entry["rgb"], self.root / entry["depth"], self._size_wh)
             except FrameReadError as exc:
                 if self.on_error == "raise":
-                    raise
+                    raise FrameReadError(str(exc), number) from None
                 self.skipped += 1
-                log.warning("%s: skipping frame %d: %s", self.name, i, exc)
+                log.warning("%s: skipping frame %d: %s", self.name, number, exc)
                 continue
             self._pass_yielded += 1
-            t = float(entry["timestamp_s"]) + self._t_offset
+            t = entry["timestamp_s"] + self._t_offset
             self._pace(t)
-            return RGBDFrame(rgb, depth, self._K, self._depth_scale_m, t,
-                             int(entry.get("frame_number", i)) + self._fn_offset, self.name)
+            return RGBDFrame(rgb, depth, self._K, self._depth_scale_m, t, number, self.name)
 
     def _pace(self, t_rec: float) -> None:
         if not self.realtime:
