@@ -28,11 +28,11 @@ from typing import IO, Iterator
 
 import numpy as np
 
+from .calibration import CalibrationError
 from .cli_paths import writable_folder
 from .cli_signals import StopSignals
 from .estimator_cli import add_estimator_arguments, load_estimator
 from .forklift_cli import ForkliftOutput, add_forklift_arguments
-from .calibration import CalibrationError
 
 HELP = "estimate pallet poses on a camera or recording (one JSON line per frame)"
 
