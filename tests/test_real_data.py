@@ -1,0 +1,194 @@
+"""export/real_data.py: the real-photograph importer on a tiny fixture made here, and the sequence split."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+cv2 = pytest.importorskip("cv2")
+
+from pallet6d.export.real_data import (Source, appearance_sequences, file_stem, import_sources, load_records,
+                                       parse_yolo_label, sequence_of, split_by_sequence, timestamp_runs,
+                                       unstretched_size)
+
+
+@pytest.mark.parametrize("name, stem", [
+    ("1000736-6303_jpg.rf.92c0d6c8403755071eac22527c9ad815.jpg", "1000736-6303"),
+    ("1000736-6303_jpg.rf.0f869d3362cd4a183f05a6b51c9383aa.txt", "1000736-6303"),
+    ("palet101_PNG.rf.9579aacb1c5ec010a661629d440003a1.jpg", "palet101"),
+    ("20221018_133840.jpg", "20221018_133840"),
+    ("plain.png", "plain"),
+])
+def test_file_stem_drops_the_roboflow_hash(name, stem):
+    assert file_stem(name) == stem
+
+
+def test_parse_box_and_polygon_lines_keeping_pallet_classes():
+    text = "1 0.5 0.5 0.2 0.4\n0 0.1 0.1 0.2 0.2\n1 0.1 0.2 0.3 0.2 0.3 0.6 0.1 0.6 0.1 0.2\n\n1 0.9 0.9 0.4 0.4\n"
+    boxes, classes = parse_yolo_label(text, keep_classes=(1,))
+    assert classes == {0, 1}
+    np.testing.assert_allclose(boxes, [[0.4, 0.3, 0.6, 0.7], [0.1, 0.2, 0.3, 0.6], [0.7, 0.7, 1.0, 1.0]])
+
+
+@pytest.mark.parametrize("text", ["1 0.5 0.5 0.2", "1 0.1 0.1 0.2 0.2 0.3", "x 0.5 0.5 0.2 0.2"])
+def test_parse_rejects_malformed_lines(text):
+    with pytest.raises(ValueError, match="line 1"):
+        parse_yolo_label(text, (1,))
+
+
+def test_degenerate_boxes_are_dropped():
+    boxes, _ = parse_yolo_label("0 0.5 0.5 0.0 0.3\n0 1.2 0.5 0.2 0.2\n", (0,))
+    assert boxes.shape == (0, 4)
+
+
+@pytest.mark.parametrize("wh, aspect, expected", [((416, 416), 16 / 9, (555, 312)), ((640, 640), 1.0, (640, 640)),
+                                                  ((400, 400), 0.5, (283, 566))])
+def test_unstretched_size_keeps_the_pixel_count(wh, aspect, expected):
+    assert unstretched_size(wh, aspect) == expected
+    with pytest.raises(ValueError):
+        unstretched_size((0, 10), 1.0)
+
+
+def test_sequences_from_video_frames_and_timestamps():
+    assert sequence_of("WhatsApp-Video_mp4-0019", "video") == sequence_of("WhatsApp-Video_mp4-0003", "video")
+    assert sequence_of("palet101", "video") != sequence_of("palet7", "video")
+    assert sequence_of("no-number-here", "video") is None
+    keys = [sequence_of(s, "timestamp") for s in ("20221018_133827", "20221018_133840", "20221018_140000")]
+    runs = timestamp_runs(keys)
+    assert runs[0] == runs[1] != runs[2]
+
+
+def test_appearance_clusters_separate_distinct_looks():
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(size=32), rng.normal(size=32)
+    desc = np.vstack([a + 0.01 * rng.normal(size=(10, 32)), b + 0.01 * rng.normal(size=(12, 32))])
+    ids = appearance_sequences(desc, n_clusters=2, seed=0)
+    assert len(set(ids[:10])) == 1 and len(set(ids[10:])) == 1 and ids[0] != ids[10]
+    assert appearance_sequences(np.zeros((0, 4)), 3).shape == (0,)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_split_never_puts_one_sequence_in_two_splits(seed):
+    rng = np.random.default_rng(seed)
+    seqs = [f"s{int(k)}" for k in rng.integers(0, 15, size=200)]
+    split = split_by_sequence(seqs, 0.2, salt=str(seed))
+    by_seq: dict[str, set] = {}
+    for s, sp in zip(seqs, split):
+        by_seq.setdefault(s, set()).add(sp)
+    assert all(len(v) == 1 for v in by_seq.values())
+    frac = split.count("heldout") / len(split)
+    assert 0.2 <= frac < 0.6
+    assert set(split_by_sequence(["a", "b"], 0.2)) == {"train", "heldout"}
+    assert split_by_sequence(["a", "a"], 0.5) == ["train", "train"]
+    with pytest.raises(ValueError):
+        split_by_sequence(seqs, 1.0)
+
+
+# ------------------------------------------------------------------------------------------- the fixture
+
+
+def _write(folder, name, img, label):
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    (folder / "labels").mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(folder / "images" / f"{name}.jpg"), img)
+    if label is not None:
+        (folder / "labels" / f"{name}.txt").write_text(label)
+
+
+def _rect(cls, x1, y1, x2, y2):
+    """A label line as LOCO's export writes boxes: a closed 4-point polygon."""
+    return f"{cls} {x2} {y2} {x2} {y1} {x1} {y1} {x1} {y2} {x2} {y2}\n"
+
+
+@pytest.fixture
+def raw_sources(tmp_path):
+    """Two sources in the uploaders' layouts: a LOCO-like set stretched to 64x64 (4-point polygons, class 1 pallet,
+    class 0 forklift, an augmented train folder repeating a stem, a pallet-free frame, an unlabelled image) and a
+    video-frame set (plain boxes, loaded units) that repeats a LOCO stem."""
+    rng = np.random.default_rng(0)
+    raw = tmp_path / "raw"
+    loco = raw / "loco-like"
+    for k in range(6):
+        img = np.full((64, 64, 3), 40 * k, np.uint8) + rng.integers(0, 10, (64, 64, 3), dtype=np.uint8)
+        _write(loco / "valid", f"100{k}-7{k}_jpg.rf.{'a' * 32}", img, _rect(1, 0.25, 0.5, 0.75, 0.75) + _rect(0, 0, 0, .1, .1))
+    _write(loco / "valid", f"2000-1_jpg.rf.{'b' * 32}", np.zeros((64, 64, 3), np.uint8), _rect(0, 0.1, 0.1, 0.3, 0.3))
+    _write(loco / "valid", f"2001-1_jpg.rf.{'c' * 32}", np.zeros((64, 64, 3), np.uint8), None)
+    _write(loco / "train", f"1000-70_jpg.rf.{'d' * 32}", np.zeros((64, 64, 3), np.uint8), _rect(1, 0.1, 0.1, 0.2, 0.2))
+    _write(loco / "train", f"3000-9_jpg.rf.{'e' * 32}", np.full((64, 64, 3), 200, np.uint8), _rect(1, 0.1, 0.1, 0.5, 0.5))
+    video = raw / "video-like"
+    for k in range(0, 60, 5):
+        _write(video / "test", f"clip_mp4-{k:04d}_jpg.rf.{'f' * 32}", np.full((48, 48, 3), k, np.uint8),
+               "0 0.5 0.5 0.5 0.8\n")
+    _write(video / "test", f"1001-71_jpg.rf.{'0' * 32}", np.zeros((48, 48, 3), np.uint8), "0 0.5 0.5 0.5 0.5\n")
+    common = dict(repo="someone/repo", commit="0" * 40, licence="CC BY 4.0", attribution="someone",
+                  url="https://example.invalid", shows="test")
+    sources = (
+        Source(name="loco-like", folders=("valid",), augmented_folders=("train",), pallet_classes=(1,),
+               other_classes=(0, 2), original_aspect=16 / 9, aspect_known=False, convention="whole_pallet",
+               kinds=("wood",), sequence_rule="appearance", **common),
+        Source(name="video-like", folders=("test",), pallet_classes=(0,), original_aspect=2.0, aspect_known=True,
+               convention="loaded_unit", kinds=("plastic", "loaded"), sequence_rule="video", **common),
+        Source(name="missing", folders=("x",), pallet_classes=(0,), original_aspect=1.0, aspect_known=True,
+               convention="whole_pallet", kinds=("wood",), sequence_rule="video", **common),
+    )
+    return raw, sources
+
+
+def test_import_unstretches_deduplicates_and_marks(raw_sources, tmp_path):
+    raw, sources = raw_sources
+    out = tmp_path / "real"
+    recs = import_sources(raw, out, sources, heldout_fraction=0.3, n_clusters=3, seed=0)
+    by_stem = {r.stem: r for r in recs}
+    # duplicates: "1000-70" (augmented copy) and "1001-71" (other source) are kept once, from the first place seen
+    assert sorted(by_stem) == sorted([f"100{k}-7{k}" for k in range(6)] + ["2000-1", "3000-9"]
+                                     + [f"clip_mp4-{k:04d}" for k in range(0, 60, 5)])
+    assert by_stem["1000-70"].source == "loco-like" and not by_stem["1000-70"].augmented
+    assert by_stem["3000-9"].augmented
+    # LOCO-like: 64x64 stretched from 16:9 -> 85x48, the box in unstretched pixels
+    r = by_stem["1002-72"]
+    assert (r.width, r.height) == (85, 48)
+    np.testing.assert_allclose(r.box_array(), [[0.25 * 85, 0.5 * 48, 0.75 * 85, 0.75 * 48]], atol=0.01)
+    img = cv2.imread(str(out / r.image))
+    assert img.shape[:2] == (48, 85)
+    # pallet-free frame (other classes labelled) is a negative; an unlabelled image is dropped
+    assert by_stem["2000-1"].negative and by_stem["2000-1"].boxes_xyxy == []
+    assert "2001-1" not in by_stem
+    v = by_stem["clip_mp4-0010"]
+    assert v.convention == "loaded_unit" and v.kinds == ["plastic", "loaded"] and (v.width, v.height) == (68, 34)
+    # the split: whole sequences, and records read back unchanged
+    seq_splits: dict[str, set] = {}
+    for rec in recs:
+        seq_splits.setdefault(rec.sequence, set()).add(rec.split)
+    assert all(len(s) == 1 for s in seq_splits.values())
+    assert {r.split for r in recs if r.source == "video-like"} == {"train", "heldout"}
+    assert [r.stem for r in load_records(out)] == [r.stem for r in recs]
+    card = json.loads((out / "card.json").read_text())
+    names = [s["name"] for s in card["sources"]]
+    assert names == ["loco-like", "video-like", "missing"]
+    loco_counts = card["sources"][0]["counts"]
+    assert sum(c["images"] for c in loco_counts.values()) == 8
+    assert sum(c["negatives"] for c in loco_counts.values()) == 1
+    assert card["sources"][0]["dropped"]["duplicates"] == 1 and card["sources"][1]["dropped"]["duplicates"] == 1
+    assert "CC BY 4.0" in (out / "card.md").read_text()
+
+
+def test_train_samples_never_read_the_heldout_split(raw_sources, tmp_path):
+    pytest.importorskip("torch")
+    from pallet6d.export.real_samples import build_real_samples, real_train_val
+
+    raw, sources = raw_sources
+    out = tmp_path / "real"
+    recs = import_sources(raw, out, sources, heldout_fraction=0.3, n_clusters=3, seed=0)
+    train, val = real_train_val(recs, val_fraction=0.3)
+    assert train and all(r.split == "train" and r.convention == "whole_pallet" for r in train + val)
+    assert not {r.sequence for r in train} & {r.sequence for r in val}
+    s = build_real_samples(out, train, (64, 96))
+    assert s.images.shape == (len(train), 64, 96, 3)
+    # 85x48 letterboxed into 96x64: scale 96/85, padded top and bottom
+    r0, b0 = train[0], s.boxes[0]
+    if len(r0.boxes_xyxy):
+        assert np.all(b0[:, [0, 2]] <= 96) and np.all(b0[:, [1, 3]] <= 64)
+    held = next(r for r in recs if r.split == "heldout")
+    with pytest.raises(ValueError, match="train split"):
+        build_real_samples(out, [held], (64, 96))
