@@ -12,6 +12,12 @@ size (box height as a fraction of the image height, the real-data importer's bin
 size, precision by the detection's own size) and by pallet kind; sources whose boxes cover a loaded unit are
 reported on their own, since their boxes are not the convention the detector is trained for. Pallet-free
 photos (no depth) give detector false positives per frame. Only runtime code runs the bundle (onnxruntime).
+The uploaders' augmented copies (rotated by up to 15 degrees, boxes of the rotated rectangles) are left out
+unless --include-augmented.
+
+With --sim-negatives N, N simulated pallet-free RGB-D frames per preset (the preset's scenes with every pallet's
+boards and blocks removed; loads stay, hanging where their pallets were: hard negatives) go through the whole
+estimator at its default options: accepted poses per frame there are false accepts.
 """
 from __future__ import annotations
 
@@ -145,6 +151,50 @@ def markdown(title: str, d: dict, settings: dict) -> str:
     return "\n".join(lines)
 
 
+def sim_negative_frame(preset: str, seed: int, index: int):
+    """(rgb, depth_m, K) of a simulated scene of `preset` without any pallet (its loads and racks stay)."""
+    from pallet6d.sim.generate import render_scene
+    from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel
+    from pallet6d.sim.presets import get_preset
+    from pallet6d.sim.warehouse import build_scene
+    from pallet6d.sim.scene import SceneError
+
+    cfg = get_preset(preset)
+    rng = np.random.default_rng((int(seed), int(index)))
+    for _ in range(cfg.max_attempts):
+        scene = build_scene(cfg, rng)
+        scene.boxes = [b for b in scene.boxes if b.instance_id == 0]   # pallet parts carry their instance id
+        try:
+            scene.validate()
+        except SceneError:
+            continue
+        sensor_rng = np.random.default_rng((int(seed), int(index), 1))
+        depth_model = StereoDepthModel() if cfg.sensor == "d435" else None
+        rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*cfg.exposure),
+                                   noise_sigma=sensor_rng.uniform(*cfg.rgb_noise_sigma))
+        f = render_scene(scene, depth_model, rgb_model, sensor_rng)
+        return f.rgb, f.depth_m, f.K
+    raise SceneError(f"no valid pallet-free scene of {preset} (seed {seed}, frame {index})")
+
+
+def sim_negatives(est, presets: list[str], n_frames: int, seed: int) -> dict:
+    """Accepted poses and detections per frame on simulated pallet-free frames, per preset."""
+    out = {}
+    for preset in presets:
+        accepted = detections = 0
+        fits = []
+        for i in range(n_frames):
+            rgb, depth_m, K = sim_negative_frame(preset, seed, i)
+            res = est.estimate(rgb, depth_m.astype(np.float32), K)
+            accepted += len(res.poses)
+            detections += len(est.detect(rgb))
+            fits += [float(p.fit.score) for p in res.poses]
+        out[preset] = {"frames": n_frames, "accepted_poses_per_frame": accepted / n_frames,
+                       "detections_per_frame": detections / n_frames,
+                       "fit_scores_of_false_accepts": [round(f, 3) for f in fits]}
+    return out
+
+
 def evaluate(est, records: list[dict], root: Path, iou_threshold: float = 0.5,
              progress: bool = False) -> RealDataReport:
     """Run `est.detect` (a `PalletEstimator`) on every record's image and tally the report."""
@@ -171,12 +221,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--score-threshold", type=float, default=0.25)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-images", type=int, default=0, help="0: all")
+    ap.add_argument("--include-augmented", action="store_true",
+                    help="also the uploaders' augmented (rotated) copies of held-out images")
+    ap.add_argument("--sim-negatives", type=int, default=0,
+                    help="also N simulated pallet-free RGB-D frames per preset through the whole estimator")
+    ap.add_argument("--sim-presets", default="virtual-clean,virtual-occluded,indoor-noisy")
+    ap.add_argument("--sim-seed", type=int, default=9100, help="seed of the simulated pallet-free frames")
     ap.add_argument("--out", type=Path, help="write OUT.md and OUT.json")
     args = ap.parse_args(argv)
 
     from pallet6d.runtime.estimator import PalletEstimator
 
-    records = [r for r in json.loads((args.data / "labels.json").read_text()) if r["split"] == args.split]
+    records = [r for r in json.loads((args.data / "labels.json").read_text())
+               if r["split"] == args.split and (args.include_augmented or not r["augmented"])]
     if args.max_images:
         records = records[:args.max_images]
     if not records:
@@ -185,9 +242,19 @@ def main(argv: list[str] | None = None) -> int:
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
                                       score_threshold=args.score_threshold, max_pallets=300)
     report = evaluate(est, records, args.data, progress=True).to_dict()
+    if args.sim_negatives:
+        full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
+                                           precision="int8" if args.int8 else "fp32")
+        report["sim_negatives"] = sim_negatives(full, args.sim_presets.split(","), args.sim_negatives,
+                                                args.sim_seed)
     settings = {"bundle": str(args.bundle), "precision": "int8" if args.int8 else "fp32", "split": args.split,
-                "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data)}
+                "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data),
+                "augmented_copies": args.include_augmented}
     text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)
+    for preset, r in report.get("sim_negatives", {}).items():
+        text += (f"Simulated pallet-free {preset} (seed {args.sim_seed}): {r['frames']} frames, "
+                 f"{r['accepted_poses_per_frame']:.2f} accepted poses per frame (default options), "
+                 f"{r['detections_per_frame']:.2f} detections per frame.\n")
     print(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -3,7 +3,10 @@
     python -m pallet6d.export.real_data extract --mirrors /work/.mirror --out /work/data/real/raw
     python -m pallet6d.export.real_data import --raw /work/data/real/raw --out /work/data/real
 
+    python -m pallet6d.export.real_data card --data /work/data/real --bundle models/NAME
+
 `extract` copies each source's labelled folders out of its git snapshot (`git archive` at the pinned commit);
+`card` copies the data card beside a bundle trained on the data (`data_card.json`, `data_card.md`);
 `import` turns them into `OUT/images/<source>/<stem>.jpg`, `OUT/labels.json` (one record per image, boxes in
 pixels of the stored image, xyxy) and the data card `OUT/card.json` + `OUT/card.md`.
 
@@ -37,7 +40,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 __all__ = ["Source", "SOURCES", "ImageRecord", "parse_yolo_label", "file_stem", "unstretched_size",
-           "sequence_of", "appearance_sequences", "split_by_sequence", "import_sources", "write_card"]
+           "sequence_of", "appearance_sequences", "split_by_sequence", "import_sources", "write_card",
+           "load_records", "ship_card"]
 
 log = logging.getLogger(__name__)
 
@@ -514,6 +518,22 @@ def extract(mirrors: Path, out: Path, sources: Sequence[Source] = SOURCES) -> No
         log.info("extracted %s into %s", src.name, dest)
 
 
+def ship_card(data_root: str | Path, bundle_dir: str | Path) -> Path:
+    """Copy the data card of `data_root` into a bundle folder as `data_card.json` / `data_card.md`.
+
+    :raises ValueError: no card under `data_root`, or `bundle_dir` is not a bundle (no manifest.json).
+    """
+    data_root, bundle_dir = Path(data_root), Path(bundle_dir)
+    if not (bundle_dir / "manifest.json").exists():
+        raise ValueError(f"{bundle_dir} is not a model bundle (no manifest.json)")
+    card = data_root / "card.json"
+    if not card.exists():
+        raise ValueError(f"{card} not found: import the real data first")
+    (bundle_dir / "data_card.json").write_text(card.read_text())
+    (bundle_dir / "data_card.md").write_text((data_root / "card.md").read_text())
+    return bundle_dir / "data_card.json"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m pallet6d.export.real_data", description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -526,11 +546,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--heldout-fraction", type=float, default=0.2)
     i.add_argument("--clusters", type=int, default=24, help="appearance clusters per source without sequences")
     i.add_argument("--seed", type=int, default=0)
+    c = sub.add_parser("card", help="copy the data card beside a bundle trained on this data")
+    c.add_argument("--data", type=Path, required=True, help="the imported dataset (holds card.json)")
+    c.add_argument("--bundle", type=Path, required=True)
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         if args.cmd == "extract":
             extract(args.mirrors, args.out)
+        elif args.cmd == "card":
+            print(f"wrote {ship_card(args.data, args.bundle)}")
         else:
             recs = import_sources(args.raw, args.out, heldout_fraction=args.heldout_fraction,
                                   n_clusters=args.clusters, seed=args.seed)

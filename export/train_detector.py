@@ -133,6 +133,7 @@ class DetectorTrainer:
         loss, parts = self.loss([r.float() for r in raw], targets)
         return loss, {k: float(v) for k, v in parts.items() if k != "fg"}
 
+    @torch.no_grad()
     def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
         """Validation loss over all validation frames; precision/recall over the simulated ones, and (`_real`)
         over the real ones when there are any."""

@@ -192,3 +192,47 @@ def test_train_samples_never_read_the_heldout_split(raw_sources, tmp_path):
     held = next(r for r in recs if r.split == "heldout")
     with pytest.raises(ValueError, match="train split"):
         build_real_samples(out, [held], (64, 96))
+
+
+def test_detector_data_mixes_real_frames_as_untyped_boxes(raw_sources, sim_bop_dataset, tmp_path):
+    pytest.importorskip("torch")
+    from pallet6d.export.config import get_config
+    from pallet6d.export.train_data import NO_AUGMENT
+    from pallet6d.export.train_detector import DetectorTrainer, load_detector_data
+
+    raw, sources = raw_sources
+    out = tmp_path / "real"
+    recs = import_sources(raw, out, sources, heldout_fraction=0.3, n_clusters=3, seed=0)
+    cfg = get_config("tiny")
+    dd = load_detector_data(cfg, [sim_bop_dataset], seed=0, cache_dir=tmp_path / "cache", progress=False,
+                            real=out)
+    n_usable = sum(r.split == "train" and r.convention == "whole_pallet" for r in recs)
+    assert int(dd.real.sum()) == n_usable and len(dd.real) == 3 + n_usable
+    trainer = DetectorTrainer(cfg, dd, NO_AUGMENT)
+    real_idx = np.flatnonzero(dd.real)
+    _, targets = trainer.batch(np.concatenate([[0], real_idx]), None)
+    assert all(float(c) == 0.0 for c in targets[0][:, 0])
+    assert all(float(c) == -1.0 for t in targets[1:] for c in t[:, 0])
+    v = trainer.validate()
+    assert "recall" in v and ("recall_real" in v) == bool(dd.real[dd.val_idx].any())
+    # the cache is reused and gives the same frames
+    again = load_detector_data(cfg, [sim_bop_dataset], seed=0, cache_dir=tmp_path / "cache", progress=False,
+                               real=out)
+    np.testing.assert_array_equal(again.samples.images, dd.samples.images)
+
+
+def test_card_ships_beside_a_bundle(raw_sources, tmp_path):
+    from pallet6d.export.real_data import ship_card
+
+    raw, sources = raw_sources
+    out = tmp_path / "real"
+    import_sources(raw, out, sources, n_clusters=2)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    with pytest.raises(ValueError, match="manifest"):
+        ship_card(out, bundle)
+    (bundle / "manifest.json").write_text("{}")
+    assert json.loads(ship_card(out, bundle).read_text())["format"] == "pallet6d-data-card"
+    assert (bundle / "data_card.md").read_text() == (out / "card.md").read_text()
+    with pytest.raises(ValueError, match="import"):
+        ship_card(tmp_path / "nothing", bundle)
