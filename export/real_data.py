@@ -20,12 +20,14 @@ What `import` does, per source (`SOURCES`):
 - records the label convention (`whole_pallet`, the detector's convention, or `loaded_unit`: the box covers the load
   as well) and the pallet kinds shown; frames of a source with labels of other objects but no pallet are
   pallet-free negatives;
-- gives every image a capture sequence (video name, photo-timestamp run, or an appearance cluster where the
-  source keeps no sequence), then holds out whole sequences: a sequence is never in two splits.
+- gives every image a capture sequence: the capture day for LOCO (its file names start with the Unix time of the
+  frame; its five days are its five warehouses), a video's run of frames, or a run of photos by their file-name
+  timestamps; then holds out whole sequences: a sequence is never in two splits.
 """
 from __future__ import annotations
 
 import argparse
+import datetime
 import hashlib
 import json
 import logging
@@ -40,12 +42,13 @@ from typing import Iterable, Sequence
 import numpy as np
 
 __all__ = ["Source", "SOURCES", "ImageRecord", "parse_yolo_label", "file_stem", "unstretched_size",
-           "sequence_of", "appearance_sequences", "split_by_sequence", "import_sources", "write_card",
+           "sequence_of", "nearest_labels", "split_by_sequence", "import_sources", "write_card",
            "load_records", "ship_card"]
 
 log = logging.getLogger(__name__)
 
 CONVENTIONS = ("whole_pallet", "loaded_unit")
+SEQUENCE_RULES = ("capture-day", "video", "timestamp")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 
@@ -57,7 +60,9 @@ class Source:
     :ivar augmented_folders: folders whose images are the uploader's augmented copies (rotations etc.).
     :ivar pallet_classes: label class ids that are pallets; `other_classes`: labelled non-pallet objects.
     :ivar original_aspect: width / height of the photographs before the uploader stretched them square.
-    :ivar sequence_rule: "appearance", "video" (`..._mp4-NNNN`) or "timestamp" (`YYYYMMDD_HHMMSS`).
+    :ivar sequence_rule: "capture-day" (stem starts with Unix seconds or milliseconds: the day is the scene; an
+        image without one joins its nearest dated neighbour's day by appearance), "video" (`<name>-NNNN`) or
+        "timestamp" (`YYYYMMDD_HHMMSS`).
     """
 
     name: str
@@ -81,7 +86,7 @@ class Source:
     def __post_init__(self) -> None:
         if self.convention not in CONVENTIONS:
             raise ValueError(f"source {self.name}: convention must be one of {CONVENTIONS}, got {self.convention!r}")
-        if self.sequence_rule not in ("appearance", "video", "timestamp"):
+        if self.sequence_rule not in SEQUENCE_RULES:
             raise ValueError(f"source {self.name}: unknown sequence rule {self.sequence_rule!r}")
         if self.original_aspect <= 0:
             raise ValueError(f"source {self.name}: original_aspect must be > 0")
@@ -103,7 +108,7 @@ SOURCES: tuple[Source, ...] = (
                        "Objects in Context, Mayershofer et al., TUM fml, ICMLA 2020 (CC0)",
            url="https://universe.roboflow.com/robot-potk5/industry_dataset3/dataset/1 ; https://github.com/tum-fml/loco",
            pallet_classes=(1,), other_classes=(0, 2, 3, 4), original_aspect=16 / 9, aspect_known=False,
-           convention="whole_pallet", kinds=("wood",), sequence_rule="appearance",
+           convention="whole_pallet", kinds=("wood",), sequence_rule="capture-day",
            shows="European warehouses seen from walking height: wooden EUR pallets on floors and in racks, loaded "
                  "and empty, many small and far; about 24 pallets per image"),
     Source(name="agus-wooden", repo="AgusRaharja69/pallet-detection-distance-cal", commit="3780a9d001f30c4113a861d1f76b323f7d7fe7f4",
@@ -132,7 +137,7 @@ SOURCES: tuple[Source, ...] = (
            attribution="pallet-detecction v1 by Roboflow user dev-mdtnd (MIT), frames of TUM LOCO (CC0)",
            url="https://universe.roboflow.com/dev-mdtnd/pallet-detecction/dataset/1",
            pallet_classes=(1,), other_classes=(0,), original_aspect=16 / 9, aspect_known=False,
-           convention="whole_pallet", kinds=("wood",), sequence_rule="appearance",
+           convention="whole_pallet", kinds=("wood",), sequence_rule="capture-day",
            shows="the LOCO test frames again (segmentation polygons)"),
     Source(name="vybhavraghav-loco-copy", repo="vybhavraghav/Pallets-detection", commit="b1e6f52988ebc158519d1a6ce5d59d28483e9f52",
            folders=("src/Dataset/valid", "src/Dataset/test", "src/Dataset/train"), licence="CC BY 4.0",
@@ -140,7 +145,7 @@ SOURCES: tuple[Source, ...] = (
            attribution="Pallets v2 by Roboflow user spam-raghav (CC BY 4.0), frames of TUM LOCO (CC0)",
            url="https://universe.roboflow.com/spam-raghav/pallets-e5c5a/dataset/2",
            pallet_classes=(1,), other_classes=(0,), original_aspect=16 / 9, aspect_known=False,
-           convention="whole_pallet", kinds=("wood",), sequence_rule="appearance",
+           convention="whole_pallet", kinds=("wood",), sequence_rule="capture-day",
            shows="the LOCO test frames again (segmentation polygons)"),
 )
 
@@ -231,9 +236,16 @@ _STAMP = re.compile(r"(\d{8})_(\d{2})(\d{2})(\d{2})")
 
 
 def sequence_of(stem: str, rule: str) -> str | None:
-    """A stem's sequence key under `rule`: "video" (`<video><sep><frame number>`): the video name and the run of
+    """A stem's sequence key under `rule`: "capture-day": the UTC day of a stem that starts with Unix seconds (10
+    digits) or milliseconds (13); "video" (`<video><sep><frame number>`): the video name and the run of
     VIDEO_CHUNK consecutive frame numbers; "timestamp": the seconds of the day of the file name's timestamp, as a
     sortable string (grouped into runs by `timestamp_runs`). None when the stem has none."""
+    if rule == "capture-day":
+        head = stem.split("-")[0]
+        if not head.isdigit() or len(head) not in (10, 13):
+            return None
+        t = int(head) / (1000.0 if len(head) == 13 else 1.0)
+        return datetime.datetime.fromtimestamp(t, datetime.timezone.utc).strftime("%Y-%m-%d")
     if rule == "video":
         m = _VIDEO.match(stem)
         return f"{m.group(1)}-{int(m.group(2)) // VIDEO_CHUNK:03d}" if m else None
@@ -243,7 +255,7 @@ def sequence_of(stem: str, rule: str) -> str | None:
             return None
         day, hh, mm, ss = m.groups()
         return f"{day}_{int(hh) * 3600 + int(mm) * 60 + int(ss):05d}"
-    raise ValueError(f"sequence_of: rule must be 'video' or 'timestamp', got {rule!r}")
+    raise ValueError(f"sequence_of: rule must be one of {SEQUENCE_RULES}, got {rule!r}")
 
 
 def timestamp_runs(keys: Sequence[str], max_gap_s: int = 120) -> list[str]:
@@ -270,30 +282,18 @@ def thumbnail(rgb: np.ndarray, size: tuple[int, int] = (16, 12)) -> np.ndarray:
     return small / max(np.linalg.norm(small), 1e-9)
 
 
-def appearance_sequences(desc: np.ndarray, n_clusters: int, seed: int = 0, iters: int = 30) -> np.ndarray:
-    """k-means on appearance descriptors, a stand-in for capture sequences where a source keeps none (neighbouring
-    frames of one walk look alike and land in one cluster).
+def nearest_labels(query: np.ndarray, ref: np.ndarray, ref_labels: Sequence[str]) -> list[str]:
+    """The label of each query descriptor's nearest reference descriptor (Euclidean).
 
-    :param desc: (n, d) descriptors. :return: (n,) int cluster ids.
+    :param query: (n, d); :param ref: (m, d), m >= 1; :param ref_labels: m labels. :return: n labels.
     """
-    n = len(desc)
-    if n == 0:
-        return np.zeros(0, np.int64)
-    desc = np.asarray(desc, np.float64).reshape(n, -1)
-    k = max(1, min(n_clusters, n))
-    rng = np.random.default_rng(seed)
-    centres = desc[rng.choice(n, k, replace=False)].copy()
-    labels = np.zeros(n, np.int64)
-    for _ in range(iters):
-        d = ((desc[:, None, :] - centres[None]) ** 2).sum(-1)
-        new = d.argmin(1)
-        if _ > 0 and np.array_equal(new, labels):
-            break
-        labels = new
-        for j in range(k):
-            if (labels == j).any():
-                centres[j] = desc[labels == j].mean(0)
-    return labels
+    query, ref = np.asarray(query, np.float64), np.asarray(ref, np.float64)
+    if len(query) == 0:
+        return []
+    if len(ref) == 0 or len(ref) != len(ref_labels):
+        raise ValueError(f"nearest_labels: need m >= 1 references with m labels, got {len(ref)} and {len(ref_labels)}")
+    d = (query ** 2).sum(1)[:, None] - 2 * query @ ref.T + (ref ** 2).sum(1)[None]
+    return [ref_labels[j] for j in d.argmin(1)]
 
 
 def split_by_sequence(sequences: Sequence[str], heldout_fraction: float, salt: str = "") -> list[str]:
@@ -325,7 +325,7 @@ def _pairs(folder: Path) -> list[tuple[Path, Path | None]]:
 
 
 def import_sources(raw_root: str | Path, out_root: str | Path, sources: Sequence[Source] = SOURCES,
-                   heldout_fraction: float = 0.2, n_clusters: int = 24, seed: int = 0,
+                   heldout_fraction: float = 0.2, seed: int = 0,
                    jpeg_quality: int = 92) -> list[ImageRecord]:
     """Import every source found under `raw_root/<source.name>/` (as `extract` writes it) into `out_root`.
 
@@ -374,16 +374,23 @@ def import_sources(raw_root: str | Path, out_root: str | Path, sources: Sequence
                                         boxes_xyxy=np.round(boxes, 2).tolist(), convention=src.convention,
                                         kinds=list(src.kinds), sequence="", negative=negative,
                                         augmented=augmented, origin=str(img_path.relative_to(base))))
-                if src.sequence_rule == "appearance":
+                if src.sequence_rule == "capture-day":
                     descs.append(thumbnail(bgr[:, :, ::-1]))
         keep = [k for k, r in enumerate(recs) if r.boxes_xyxy or r.negative]
         for k in sorted(set(range(len(recs))) - set(keep)):
             (out_root / recs[k].image).unlink(missing_ok=True)
         recs = [recs[k] for k in keep]
-        if src.sequence_rule == "appearance":
-            ids = appearance_sequences(np.asarray([descs[k] for k in keep]), n_clusters, seed)
-            for r, c in zip(recs, ids):
-                r.sequence = f"{src.name}/cluster-{int(c):02d}"
+        if src.sequence_rule == "capture-day":
+            descs = [descs[k] for k in keep]
+            days = [sequence_of(r.stem, "capture-day") for r in recs]
+            dated = [k for k, d in enumerate(days) if d is not None]
+            undated = [k for k, d in enumerate(days) if d is None]
+            if dated:
+                for k, d in zip(undated, nearest_labels([descs[k] for k in undated], [descs[k] for k in dated],
+                                                        [days[k] for k in dated])):
+                    days[k] = d
+            for r, d in zip(recs, days):
+                r.sequence = f"{src.name}/{d or 'undated'}"
         else:
             keys = [sequence_of(r.stem, src.sequence_rule) or r.stem for r in recs]
             if src.sequence_rule == "timestamp":
@@ -398,7 +405,7 @@ def import_sources(raw_root: str | Path, out_root: str | Path, sources: Sequence
         records.extend(recs)
     out_root.mkdir(parents=True, exist_ok=True)
     (out_root / "labels.json").write_text(json.dumps([asdict(r) for r in records], indent=0))
-    write_card(out_root, records, sources, dropped, heldout_fraction, n_clusters, seed)
+    write_card(out_root, records, sources, dropped, heldout_fraction, seed)
     return records
 
 
@@ -440,12 +447,12 @@ def card_summary(records: Sequence[ImageRecord]) -> dict:
 
 
 def write_card(out_root: Path, records: Sequence[ImageRecord], sources: Sequence[Source],
-               dropped: dict[str, dict[str, int]], heldout_fraction: float, n_clusters: int, seed: int) -> dict:
+               dropped: dict[str, dict[str, int]], heldout_fraction: float, seed: int) -> dict:
     """`card.json` and `card.md` beside the dataset: what every source is, its licence, counts and split."""
     summary = card_summary(records)
-    split_rule = {"appearance": f"k-means appearance clusters ({n_clusters} per source) of the central image "
-                                "region stand in for capture sequences (the source keeps none); whole clusters "
-                                "are held out",
+    split_rule = {"capture-day": "the capture day (file names start with the frame's Unix time; an image without "
+                                 "one joins the day of its most similar dated image) is the sequence: whole days, "
+                                 "i.e. whole warehouses, are held out",
                   "video": f"runs of {VIDEO_CHUNK} consecutive frame numbers of one video are one sequence; whole "
                            "runs are held out",
                   "timestamp": "photos taken within 2 minutes of each other (file-name timestamps) are one "
@@ -544,7 +551,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     i.add_argument("--raw", type=Path, required=True, help="what `extract` wrote")
     i.add_argument("--out", type=Path, required=True)
     i.add_argument("--heldout-fraction", type=float, default=0.2)
-    i.add_argument("--clusters", type=int, default=24, help="appearance clusters per source without sequences")
     i.add_argument("--seed", type=int, default=0)
     c = sub.add_parser("card", help="copy the data card beside a bundle trained on this data")
     c.add_argument("--data", type=Path, required=True, help="the imported dataset (holds card.json)")
@@ -558,7 +564,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"wrote {ship_card(args.data, args.bundle)}")
         else:
             recs = import_sources(args.raw, args.out, heldout_fraction=args.heldout_fraction,
-                                  n_clusters=args.clusters, seed=args.seed)
+                                  seed=args.seed)
             print(f"wrote {len(recs)} images to {args.out}; card: {args.out / 'card.md'}")
     except ValueError as exc:
         print(f"real_data {args.cmd}: {exc}", file=sys.stderr)

@@ -17,12 +17,14 @@ import numpy as np
 
 from pallet6d.runtime.detector import letterbox
 
-from .real_data import ImageRecord, load_records, split_by_sequence
+from .real_data import ImageRecord, load_records, sequence_of, split_by_sequence
 from .train_data import DetectorSamples
 
 __all__ = ["real_train_val", "build_real_samples", "load_real_samples"]
 
 log = logging.getLogger(__name__)
+
+VAL_WINDOW_S = 600   # capture-time window kept together by the validation cut
 
 
 def real_train_val(records: Sequence[ImageRecord], val_fraction: float, conventions: Sequence[str] = ("whole_pallet",),
@@ -37,8 +39,18 @@ def real_train_val(records: Sequence[ImageRecord], val_fraction: float, conventi
         recs = [recs[i] for i in keep]
     if val_fraction <= 0 or len(recs) < 2:
         return recs, []
-    split = split_by_sequence([r.sequence for r in recs], val_fraction, salt=f"val{seed}")
+    split = split_by_sequence([validation_unit(r) for r in recs], val_fraction, salt=f"val{seed}")
     return ([r for r, s in zip(recs, split) if s == "train"], [r for r, s in zip(recs, split) if s == "heldout"])
+
+
+def validation_unit(rec: ImageRecord, window_s: int = VAL_WINDOW_S) -> str:
+    """What the validation cut keeps together: the record's sequence, narrowed to a `window_s` window of capture
+    time where the stem carries one (a whole LOCO capture day would take a third of the training images)."""
+    head = rec.stem.split("-")[0]
+    if sequence_of(rec.stem, "capture-day") is None:
+        return rec.sequence
+    t = int(head) / (1000.0 if len(head) == 13 else 1.0)
+    return f"{rec.sequence}/{int(t // window_s)}"
 
 
 def build_real_samples(root: str | Path, records: Sequence[ImageRecord], input_hw: tuple[int, int]) -> DetectorSamples:

@@ -8,7 +8,7 @@ import pytest
 
 cv2 = pytest.importorskip("cv2")
 
-from pallet6d.export.real_data import (Source, appearance_sequences, file_stem, import_sources, load_records,
+from pallet6d.export.real_data import (Source, file_stem, import_sources, load_records, nearest_labels,
                                        parse_yolo_label, sequence_of, split_by_sequence, timestamp_runs,
                                        unstretched_size)
 
@@ -59,13 +59,18 @@ def test_sequences_from_video_frames_and_timestamps():
     assert runs[0] == runs[1] != runs[2]
 
 
-def test_appearance_clusters_separate_distinct_looks():
-    rng = np.random.default_rng(0)
-    a, b = rng.normal(size=32), rng.normal(size=32)
-    desc = np.vstack([a + 0.01 * rng.normal(size=(10, 32)), b + 0.01 * rng.normal(size=(12, 32))])
-    ids = appearance_sequences(desc, n_clusters=2, seed=0)
-    assert len(set(ids[:10])) == 1 and len(set(ids[10:])) == 1 and ids[0] != ids[10]
-    assert appearance_sequences(np.zeros((0, 4)), 3).shape == (0,)
+@pytest.mark.parametrize("stem, day", [("1579163820-2578418", "2020-01-16"), ("1583416212270", "2020-03-05"),
+                                       ("1564564602344-34", "2019-07-31"), ("1000736-6303", None), ("abc", None)])
+def test_capture_day_from_unix_time_stems(stem, day):
+    assert sequence_of(stem, "capture-day") == day
+
+
+def test_nearest_labels():
+    ref = np.array([[0.0, 0.0], [10.0, 0.0]])
+    assert nearest_labels(np.array([[1.0, 1.0], [9.0, -1.0]]), ref, ["a", "b"]) == ["a", "b"]
+    assert nearest_labels(np.zeros((0, 2)), ref, ["a", "b"]) == []
+    with pytest.raises(ValueError):
+        nearest_labels(np.zeros((1, 2)), np.zeros((0, 2)), [])
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -109,24 +114,27 @@ def raw_sources(tmp_path):
     rng = np.random.default_rng(0)
     raw = tmp_path / "raw"
     loco = raw / "loco-like"
-    for k in range(6):
-        img = np.full((64, 64, 3), 40 * k, np.uint8) + rng.integers(0, 10, (64, 64, 3), dtype=np.uint8)
-        _write(loco / "valid", f"100{k}-7{k}_jpg.rf.{'a' * 32}", img, _rect(1, 0.25, 0.5, 0.75, 0.75) + _rect(0, 0, 0, .1, .1))
-    _write(loco / "valid", f"2000-1_jpg.rf.{'b' * 32}", np.zeros((64, 64, 3), np.uint8), _rect(0, 0.1, 0.1, 0.3, 0.3))
+    looks = {"2020-01-16": np.tile(np.linspace(0, 250, 64, dtype=np.uint8)[None, :, None], (64, 1, 3)),
+             "2020-03-05": np.tile(np.linspace(250, 0, 64, dtype=np.uint8)[:, None, None], (1, 64, 3))}
+    for k in range(6):   # three frames of each of two capture days (stems: Unix seconds, then milliseconds)
+        stem, look = (f"157916382{k}-{k}", looks["2020-01-16"]) if k < 3 else (f"158341621227{k}", looks["2020-03-05"])
+        img = look + rng.integers(0, 5, (64, 64, 3), dtype=np.uint8)
+        _write(loco / "valid", f"{stem}_jpg.rf.{'a' * 32}", img, _rect(1, 0.25, 0.5, 0.75, 0.75) + _rect(0, 0, 0, .1, .1))
+    _write(loco / "valid", f"2000-1_jpg.rf.{'b' * 32}", looks["2020-01-16"], _rect(0, 0.1, 0.1, 0.3, 0.3))
     _write(loco / "valid", f"2001-1_jpg.rf.{'c' * 32}", np.zeros((64, 64, 3), np.uint8), None)
-    _write(loco / "train", f"1000-70_jpg.rf.{'d' * 32}", np.zeros((64, 64, 3), np.uint8), _rect(1, 0.1, 0.1, 0.2, 0.2))
-    _write(loco / "train", f"3000-9_jpg.rf.{'e' * 32}", np.full((64, 64, 3), 200, np.uint8), _rect(1, 0.1, 0.1, 0.5, 0.5))
+    _write(loco / "train", f"1579163820-0_jpg.rf.{'d' * 32}", np.zeros((64, 64, 3), np.uint8), _rect(1, .1, .1, .2, .2))
+    _write(loco / "train", f"3000-9_jpg.rf.{'e' * 32}", looks["2020-03-05"], _rect(1, 0.1, 0.1, 0.5, 0.5))
     video = raw / "video-like"
     for k in range(0, 60, 5):
         _write(video / "test", f"clip_mp4-{k:04d}_jpg.rf.{'f' * 32}", np.full((48, 48, 3), k, np.uint8),
                "0 0.5 0.5 0.5 0.8\n")
-    _write(video / "test", f"1001-71_jpg.rf.{'0' * 32}", np.zeros((48, 48, 3), np.uint8), "0 0.5 0.5 0.5 0.5\n")
+    _write(video / "test", f"1579163821-1_jpg.rf.{'0' * 32}", np.zeros((48, 48, 3), np.uint8), "0 0.5 0.5 0.5 0.5\n")
     common = dict(repo="someone/repo", commit="0" * 40, licence="CC BY 4.0", attribution="someone",
                   url="https://example.invalid", shows="test")
     sources = (
         Source(name="loco-like", folders=("valid",), augmented_folders=("train",), pallet_classes=(1,),
                other_classes=(0, 2), original_aspect=16 / 9, aspect_known=False, convention="whole_pallet",
-               kinds=("wood",), sequence_rule="appearance", **common),
+               kinds=("wood",), sequence_rule="capture-day", **common),
         Source(name="video-like", folders=("test",), pallet_classes=(0,), original_aspect=2.0, aspect_known=True,
                convention="loaded_unit", kinds=("plastic", "loaded"), sequence_rule="video", **common),
         Source(name="missing", folders=("x",), pallet_classes=(0,), original_aspect=1.0, aspect_known=True,
@@ -138,15 +146,20 @@ def raw_sources(tmp_path):
 def test_import_unstretches_deduplicates_and_marks(raw_sources, tmp_path):
     raw, sources = raw_sources
     out = tmp_path / "real"
-    recs = import_sources(raw, out, sources, heldout_fraction=0.3, n_clusters=3, seed=0)
+    recs = import_sources(raw, out, sources, heldout_fraction=0.3, seed=0)
     by_stem = {r.stem: r for r in recs}
-    # duplicates: "1000-70" (augmented copy) and "1001-71" (other source) are kept once, from the first place seen
-    assert sorted(by_stem) == sorted([f"100{k}-7{k}" for k in range(6)] + ["2000-1", "3000-9"]
+    # duplicates: "1579163820-0" (augmented copy) and "1579163821-1" (other source) are kept once, where first seen
+    stems_a = [f"157916382{k}-{k}" for k in range(3)]
+    stems_b = [f"158341621227{k}" for k in range(3, 6)]
+    assert sorted(by_stem) == sorted(stems_a + stems_b + ["2000-1", "3000-9"]
                                      + [f"clip_mp4-{k:04d}" for k in range(0, 60, 5)])
-    assert by_stem["1000-70"].source == "loco-like" and not by_stem["1000-70"].augmented
+    assert by_stem["1579163820-0"].source == "loco-like" and not by_stem["1579163820-0"].augmented
     assert by_stem["3000-9"].augmented
+    # capture days are the sequences; undated frames join the day they look like
+    assert {by_stem[s].sequence for s in stems_a} == {"loco-like/2020-01-16"} == {by_stem["2000-1"].sequence}
+    assert {by_stem[s].sequence for s in stems_b} == {"loco-like/2020-03-05"} == {by_stem["3000-9"].sequence}
     # LOCO-like: 64x64 stretched from 16:9 -> 85x48, the box in unstretched pixels
-    r = by_stem["1002-72"]
+    r = by_stem["1579163822-2"]
     assert (r.width, r.height) == (85, 48)
     np.testing.assert_allclose(r.box_array(), [[0.25 * 85, 0.5 * 48, 0.75 * 85, 0.75 * 48]], atol=0.01)
     img = cv2.imread(str(out / r.image))
@@ -179,7 +192,7 @@ def test_train_samples_never_read_the_heldout_split(raw_sources, tmp_path):
 
     raw, sources = raw_sources
     out = tmp_path / "real"
-    recs = import_sources(raw, out, sources, heldout_fraction=0.3, n_clusters=3, seed=0)
+    recs = import_sources(raw, out, sources, heldout_fraction=0.3, seed=0)
     train, val = real_train_val(recs, val_fraction=0.3)
     assert train and all(r.split == "train" and r.convention == "whole_pallet" for r in train + val)
     assert not {r.sequence for r in train} & {r.sequence for r in val}
@@ -202,7 +215,7 @@ def test_detector_data_mixes_real_frames_as_untyped_boxes(raw_sources, sim_bop_d
 
     raw, sources = raw_sources
     out = tmp_path / "real"
-    recs = import_sources(raw, out, sources, heldout_fraction=0.3, n_clusters=3, seed=0)
+    recs = import_sources(raw, out, sources, heldout_fraction=0.3, seed=0)
     cfg = get_config("tiny")
     dd = load_detector_data(cfg, [sim_bop_dataset], seed=0, cache_dir=tmp_path / "cache", progress=False,
                             real=out)
@@ -226,7 +239,7 @@ def test_card_ships_beside_a_bundle(raw_sources, tmp_path):
 
     raw, sources = raw_sources
     out = tmp_path / "real"
-    import_sources(raw, out, sources, n_clusters=2)
+    import_sources(raw, out, sources)
     bundle = tmp_path / "bundle"
     bundle.mkdir()
     with pytest.raises(ValueError, match="manifest"):
@@ -236,3 +249,21 @@ def test_card_ships_beside_a_bundle(raw_sources, tmp_path):
     assert (bundle / "data_card.md").read_text() == (out / "card.md").read_text()
     with pytest.raises(ValueError, match="import"):
         ship_card(tmp_path / "nothing", bundle)
+
+
+def test_validation_cut_keeps_capture_time_windows_together():
+    from pallet6d.export.real_data import ImageRecord
+    from pallet6d.export.real_samples import real_train_val, validation_unit
+
+    def rec(stem, seq, split="train", conv="whole_pallet"):
+        return ImageRecord(image="x.jpg", source="s", stem=stem, width=10, height=10, boxes_xyxy=[[0, 0, 5, 5]],
+                           convention=conv, kinds=["wood"], sequence=seq, split=split)
+
+    same = [rec(f"15791638{k:02d}-1", "s/2020-01-16") for k in range(0, 60, 7)]     # one 10-minute window
+    later = [rec(f"15791650{k:02d}-1", "s/2020-01-16") for k in range(0, 60, 7)]
+    assert len({validation_unit(r) for r in same}) == 1 != len({validation_unit(r) for r in same + later})
+    assert validation_unit(rec("clip-0001", "s/clip-000")) == "s/clip-000"
+    others = [rec("1579163800-1", "s/d", split="heldout"), rec("1579163800-2", "s/d", conv="loaded_unit")]
+    train, val = real_train_val(same + later + others, val_fraction=0.3)
+    assert val and train and len(train) + len(val) == len(same + later)
+    assert {validation_unit(r) for r in train}.isdisjoint(validation_unit(r) for r in val)
