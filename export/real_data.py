@@ -96,29 +96,43 @@ class Source:
         return self.folders + self.augmented_folders
 
 
+def _loco_copy(name: str, repo: str, commit: str, root: str, licence: str, attribution: str, url: str) -> Source:
+    """Another upload of LOCO frames (segmentation labels: class 0 floor, class 1 pallet)."""
+    return Source(name=name, repo=repo, commit=commit, folders=tuple(f"{root}/{s}" for s in ("valid", "test", "train")),
+                  licence=licence, licence_file=f"{root}/README.dataset.txt",
+                  attribution=f"{attribution}, frames of TUM LOCO (CC0)", url=url, pallet_classes=(1,),
+                  other_classes=(0,), original_aspect=16 / 9, aspect_known=False, convention="whole_pallet",
+                  kinds=("wood",), sequence_rule="capture-day", shows="the LOCO test frames again (segmentation "
+                  "polygons)")
+
+
 _LOCO = "data/industry_dataset3.v1i.yolov8"
 _AGUS = "yolov5-lidar-fusion/datasets/pallet"
 
 SOURCES: tuple[Source, ...] = (
-    Source(name="loco", repo="alaahatoum/pallet-detection-ground-segmentation-ros2", commit="ae0ff1d7d56c4d9c92914cc78c31723263c03dc0",
+    Source(name="loco", repo="alaahatoum/pallet-detection-ground-segmentation-ros2",
+           commit="ae0ff1d7d56c4d9c92914cc78c31723263c03dc0",
            folders=(f"{_LOCO}/valid", f"{_LOCO}/test"), augmented_folders=(f"{_LOCO}/train",),
            licence="CC BY 4.0 (Roboflow export industry_dataset3 v1); photographs from TUM LOCO, CC0",
            licence_file=f"{_LOCO}/README.dataset.txt",
            attribution="industry_dataset3 by Roboflow user robot-potk5 (CC BY 4.0), frames of LOCO: Logistics "
                        "Objects in Context, Mayershofer et al., TUM fml, ICMLA 2020 (CC0)",
-           url="https://universe.roboflow.com/robot-potk5/industry_dataset3/dataset/1 ; https://github.com/tum-fml/loco",
+           url="https://universe.roboflow.com/robot-potk5/industry_dataset3/dataset/1 ; "
+               "https://github.com/tum-fml/loco",
            pallet_classes=(1,), other_classes=(0, 2, 3, 4), original_aspect=16 / 9, aspect_known=False,
            convention="whole_pallet", kinds=("wood",), sequence_rule="capture-day",
            shows="European warehouses seen from walking height: wooden EUR pallets on floors and in racks, loaded "
                  "and empty, many small and far; about 24 pallets per image"),
-    Source(name="agus-wooden", repo="AgusRaharja69/pallet-detection-distance-cal", commit="3780a9d001f30c4113a861d1f76b323f7d7fe7f4",
+    Source(name="agus-wooden", repo="AgusRaharja69/pallet-detection-distance-cal",
+           commit="3780a9d001f30c4113a861d1f76b323f7d7fe7f4",
            folders=(f"{_AGUS}/valid", f"{_AGUS}/test", f"{_AGUS}/train"),
            licence="CC BY 4.0", licence_file=f"{_AGUS}/README.dataset.txt",
            attribution="Palet dataset v5 by Roboflow user agus (CC BY 4.0)",
            url="https://universe.roboflow.com/agus/palet-zsfnn/dataset/5",
            pallet_classes=(0,), original_aspect=4 / 3, aspect_known=False, convention="whole_pallet",
            kinds=("wood",), sequence_rule="timestamp",
-           shows="single small wooden pallets, often stacked, front-on at floor level from close range (forklift-like)"),
+           shows="single small wooden pallets, often stacked, front-on at floor level from close range "
+                 "(forklift-like)"),
     Source(name="ranggarh-plastic", repo="ranggarh/pallet-counter", commit="981f761040ba340adbd2ee077e3e321cd7611292",
            folders=("valid", "test"), augmented_folders=("train",), licence="CC BY 4.0",
            licence_file="README.dataset.txt",
@@ -131,22 +145,12 @@ SOURCES: tuple[Source, ...] = (
                  "the box covers the whole loaded unit"),
     # The two below hold only copies of LOCO frames already imported above; listed so the card says why they add
     # no image (deduplicated by stem).
-    Source(name="phybhavya-loco-copy", repo="phybhavya/Pallet_detection", commit="399cba8d1174cc0c221808ef759a2f649a02a58c",
-           folders=("datasets/valid", "datasets/test", "datasets/train"), licence="MIT",
-           licence_file="datasets/README.dataset.txt",
-           attribution="pallet-detecction v1 by Roboflow user dev-mdtnd (MIT), frames of TUM LOCO (CC0)",
-           url="https://universe.roboflow.com/dev-mdtnd/pallet-detecction/dataset/1",
-           pallet_classes=(1,), other_classes=(0,), original_aspect=16 / 9, aspect_known=False,
-           convention="whole_pallet", kinds=("wood",), sequence_rule="capture-day",
-           shows="the LOCO test frames again (segmentation polygons)"),
-    Source(name="vybhavraghav-loco-copy", repo="vybhavraghav/Pallets-detection", commit="b1e6f52988ebc158519d1a6ce5d59d28483e9f52",
-           folders=("src/Dataset/valid", "src/Dataset/test", "src/Dataset/train"), licence="CC BY 4.0",
-           licence_file="src/Dataset/README.dataset.txt",
-           attribution="Pallets v2 by Roboflow user spam-raghav (CC BY 4.0), frames of TUM LOCO (CC0)",
-           url="https://universe.roboflow.com/spam-raghav/pallets-e5c5a/dataset/2",
-           pallet_classes=(1,), other_classes=(0,), original_aspect=16 / 9, aspect_known=False,
-           convention="whole_pallet", kinds=("wood",), sequence_rule="capture-day",
-           shows="the LOCO test frames again (segmentation polygons)"),
+    _loco_copy("phybhavya-loco-copy", "phybhavya/Pallet_detection", "399cba8d1174cc0c221808ef759a2f649a02a58c",
+               "datasets", "MIT", "pallet-detecction v1 by Roboflow user dev-mdtnd (MIT)",
+               "https://universe.roboflow.com/dev-mdtnd/pallet-detecction/dataset/1"),
+    _loco_copy("vybhavraghav-loco-copy", "vybhavraghav/Pallets-detection", "b1e6f52988ebc158519d1a6ce5d59d28483e9f52",
+               "src/Dataset", "CC BY 4.0", "Pallets v2 by Roboflow user spam-raghav (CC BY 4.0)",
+               "https://universe.roboflow.com/spam-raghav/pallets-e5c5a/dataset/2"),
 )
 
 

@@ -119,7 +119,8 @@ def raw_sources(tmp_path):
     for k in range(6):   # three frames of each of two capture days (stems: Unix seconds, then milliseconds)
         stem, look = (f"157916382{k}-{k}", looks["2020-01-16"]) if k < 3 else (f"158341621227{k}", looks["2020-03-05"])
         img = look + rng.integers(0, 5, (64, 64, 3), dtype=np.uint8)
-        _write(loco / "valid", f"{stem}_jpg.rf.{'a' * 32}", img, _rect(1, 0.25, 0.5, 0.75, 0.75) + _rect(0, 0, 0, .1, .1))
+        label = _rect(1, 0.25, 0.5, 0.75, 0.75) + _rect(0, 0, 0, .1, .1)
+        _write(loco / "valid", f"{stem}_jpg.rf.{'a' * 32}", img, label)
     _write(loco / "valid", f"2000-1_jpg.rf.{'b' * 32}", looks["2020-01-16"], _rect(0, 0.1, 0.1, 0.3, 0.3))
     _write(loco / "valid", f"2001-1_jpg.rf.{'c' * 32}", np.zeros((64, 64, 3), np.uint8), None)
     _write(loco / "train", f"1579163820-0_jpg.rf.{'d' * 32}", np.zeros((64, 64, 3), np.uint8), _rect(1, .1, .1, .2, .2))
@@ -188,14 +189,14 @@ def test_import_unstretches_deduplicates_and_marks(raw_sources, tmp_path):
 
 def test_train_samples_never_read_the_heldout_split(raw_sources, tmp_path):
     pytest.importorskip("torch")
-    from pallet6d.export.real_samples import build_real_samples, real_train_val
+    from pallet6d.export.real_samples import build_real_samples, real_train_val, validation_unit
 
     raw, sources = raw_sources
     out = tmp_path / "real"
     recs = import_sources(raw, out, sources, heldout_fraction=0.3, seed=0)
     train, val = real_train_val(recs, val_fraction=0.3)
     assert train and all(r.split == "train" and r.convention == "whole_pallet" for r in train + val)
-    assert not {r.sequence for r in train} & {r.sequence for r in val}
+    assert not {validation_unit(r) for r in train} & {validation_unit(r) for r in val}
     s = build_real_samples(out, train, (64, 96))
     assert s.images.shape == (len(train), 64, 96, 3)
     # 85x48 letterboxed into 96x64: scale 96/85, padded top and bottom
