@@ -169,7 +169,11 @@ def sim_negative_frame(preset: str, seed: int, index: int):
         except SceneError:
             continue
         sensor_rng = np.random.default_rng((int(seed), int(index), 1))
-        depth_model = StereoDepthModel() if cfg.sensor == "d435" else None
+        try:    # generators with `depth_sensors` model every sensor kind of a preset
+            from pallet6d.sim.depth_sensors import depth_model_for
+            depth_model = depth_model_for(cfg.sensor)
+        except ImportError:
+            depth_model = StereoDepthModel() if cfg.sensor == "d435" else None
         rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*cfg.exposure),
                                    noise_sigma=sensor_rng.uniform(*cfg.rgb_noise_sigma))
         f = render_scene(scene, depth_model, rgb_model, sensor_rng)
