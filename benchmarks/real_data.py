@@ -29,15 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-SIZE_BINS = ("small", "medium", "large")
-
-
-def size_bin(box_h_px: np.ndarray, image_h_px: float) -> np.ndarray:
-    """(n,) box heights -> (n,) bin names: < 8 % of the image height small, < 20 % medium, else large
-    (the importer's `box_size_bin`)."""
-    f = np.asarray(box_h_px, np.float64) / max(float(image_h_px), 1e-9)
-    return np.where(f < 0.08, "small", np.where(f < 0.2, "medium", "large"))
-
+from pallet6d.export.real_data import SIZE_BINS, box_size_bins   # numpy only: no torch
 
 def match_greedy(pred_xyxy: np.ndarray, scores: np.ndarray, gt_xyxy: np.ndarray,
                  iou_threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
@@ -112,8 +104,8 @@ class RealDataReport:
         self.overall.add(*counts)
         for kind in rec["kinds"]:
             self.by_kind.setdefault(kind, Tally()).add(*counts)
-        gt_bin = size_bin(gt[:, 3] - gt[:, 1], rec["height"])
-        pred_bin = size_bin(pred_xyxy[:, 3] - pred_xyxy[:, 1], rec["height"])
+        gt_bin = box_size_bins(gt[:, 3] - gt[:, 1], rec["height"])
+        pred_bin = box_size_bins(pred_xyxy[:, 3] - pred_xyxy[:, 1], rec["height"])
         for s in SIZE_BINS:
             g, p = gt_bin == s, pred_bin == s
             self.by_size[s].add(int(g.sum()), int(matched[g].sum()), int(p.sum()), int(tp[p].sum()))

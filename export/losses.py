@@ -166,8 +166,9 @@ class DetectorLoss:
             if len(t):
                 gt[i, :len(t)] = t
                 gt_mask[i, :len(t)] = True
-        t_boxes, t_scores, fg, cls_mask = self._assign(pred_logits.detach().sigmoid(), pred_boxes.detach() * strides,
-                                             anchors * strides, gt[..., 0], gt[..., 1:], gt_mask)
+        t_boxes, t_scores, fg, cls_mask = self._assign(pred_logits.detach().sigmoid(),
+                                                       pred_boxes.detach() * strides, anchors * strides,
+                                                       gt[..., 0], gt[..., 1:], gt_mask)
         t_sum = t_scores.sum().clamp(min=1.0)
         loss_cls = (F.binary_cross_entropy_with_logits(pred_logits, t_scores, reduction="none") * cls_mask).sum() \
             / t_sum

@@ -43,7 +43,7 @@ import numpy as np
 
 __all__ = ["Source", "SOURCES", "ImageRecord", "parse_yolo_label", "file_stem", "unstretched_size",
            "sequence_of", "nearest_labels", "split_by_sequence", "import_sources", "write_card",
-           "load_records", "ship_card"]
+           "load_records", "ship_card", "box_size_bins", "SIZE_BINS"]
 
 log = logging.getLogger(__name__)
 
@@ -424,11 +424,17 @@ def load_records(root: str | Path) -> list[ImageRecord]:
 # ---------------------------------------------------------------------------------------------------- card
 
 
-def box_size_bin(box_h_px: float, image_h_px: float) -> str:
-    """Box size class by box height as a fraction of the image height (the detector's letterbox scales by it):
-    small < 8 % (under ~15 px at a 192 px tall input), medium 8-20 %, large >= 20 %."""
-    f = box_h_px / max(image_h_px, 1e-9)
-    return "small" if f < 0.08 else ("medium" if f < 0.2 else "large")
+SIZE_BINS = ("small", "medium", "large")
+
+
+def box_size_bins(box_h_px: np.ndarray, image_h_px: float) -> np.ndarray:
+    """Box size classes by box height as a fraction of the image height (the detector's letterbox scales by it):
+    small < 8 % (under ~15 px at a 192 px tall input), medium 8-20 %, large >= 20 %.
+
+    :param box_h_px: (n,) box heights. :return: (n,) names from SIZE_BINS.
+    """
+    f = np.asarray(box_h_px, np.float64).reshape(-1) / max(float(image_h_px), 1e-9)
+    return np.where(f < 0.08, "small", np.where(f < 0.2, "medium", "large"))
 
 
 def card_summary(records: Sequence[ImageRecord]) -> dict:
@@ -442,8 +448,9 @@ def card_summary(records: Sequence[ImageRecord]) -> dict:
         s["negatives"] += int(r.negative)
         s["boxes"] += len(r.boxes_xyxy)
         s["sequences"].add(r.sequence)
-        for b in r.box_array():
-            s[box_size_bin(b[3] - b[1], r.height)] += 1
+        boxes = r.box_array()
+        for name in box_size_bins(boxes[:, 3] - boxes[:, 1], r.height):
+            s[str(name)] += 1
     for splits in out.values():
         for s in splits.values():
             s["sequences"] = len(s["sequences"])
