@@ -2,13 +2,12 @@
 
     python -m pallet6d.export.real_data extract --mirrors /work/.mirror --out /work/data/real/raw
     python -m pallet6d.export.real_data import --raw /work/data/real/raw --out /work/data/real
-
     python -m pallet6d.export.real_data card --data /work/data/real --bundle models/NAME
 
 `extract` copies each source's labelled folders out of its git snapshot (`git archive` at the pinned commit);
-`card` copies the data card beside a bundle trained on the data (`data_card.json`, `data_card.md`);
 `import` turns them into `OUT/images/<source>/<stem>.jpg`, `OUT/labels.json` (one record per image, boxes in
-pixels of the stored image, xyxy) and the data card `OUT/card.json` + `OUT/card.md`.
+pixels of the stored image, xyxy) and the data card `OUT/card.json` + `OUT/card.md`; `card` copies the data card
+beside a bundle trained on the data (`data_card.json`, `data_card.md`).
 
 What `import` does, per source (`SOURCES`):
 - pairs images and YOLO label files (a line is `class cx cy w h`, or `class x1 y1 x2 y2 ...`, a polygon whose
@@ -35,7 +34,7 @@ import re
 import subprocess
 import sys
 import tarfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
 
