@@ -31,6 +31,7 @@ import numpy as np
 
 from pallet6d.export.real_data import SIZE_BINS, box_size_bins   # numpy only: no torch
 
+
 def match_greedy(pred_xyxy: np.ndarray, scores: np.ndarray, gt_xyxy: np.ndarray,
                  iou_threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Greedy matching by descending score: each detection takes the unmatched box it overlaps most, if at IoU
@@ -69,8 +70,10 @@ class Tally:
     images: int = 0
 
     def add(self, gt: int, matched: int, pred: int, tp: int, images: int = 0) -> None:
-        self.gt, self.matched, self.pred, self.tp = self.gt + gt, self.matched + matched, self.pred + pred, \
-            self.tp + tp
+        self.gt += gt
+        self.matched += matched
+        self.pred += pred
+        self.tp += tp
         self.images += images
 
     def to_dict(self) -> dict:
@@ -81,6 +84,9 @@ class Tally:
 
 @dataclass
 class RealDataReport:
+    """Tallies of one benchmark run: whole-pallet sources overall, by size, kind and source; other conventions
+    apart; pallet-free photos."""
+
     overall: Tally = field(default_factory=Tally)
     by_size: dict[str, Tally] = field(default_factory=lambda: {s: Tally() for s in SIZE_BINS})
     by_kind: dict[str, Tally] = field(default_factory=dict)
