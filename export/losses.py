@@ -94,7 +94,13 @@ class DetectorLoss:
     """YOLOv8 detection loss: TAL assignment (top-k by score^alpha * IoU^beta among anchors inside the box),
     BCE on soft (alignment-normalised) class targets, CIoU and DFL on the assigned anchors.
 
-    :param targets (in `__call__`): list of B tensors (n_i, 5) = class, x1, y1, x2, y2 in input pixels.
+    A target of class -1 is a pallet of unknown type (real photographs carry no type): it supervises the box and
+    "is a pallet", the class-agnostic maximum over the type scores. Its anchors are assigned by that maximum, and
+    their class loss is taken on the highest-scoring type alone (the other types are left free); on anchors that
+    no box claims every type is pushed to 0, as for typed targets. With one class it is the same as class 0.
+
+    :param targets (in `__call__`): list of B tensors (n_i, 5) = class (-1: any pallet type), x1, y1, x2, y2 in
+        input pixels.
     """
 
     def __init__(self, model: YoloDetector, topk: int = 10, alpha: float = 0.5, beta: float = 6.0,
@@ -104,19 +110,22 @@ class DetectorLoss:
         self.gains = (box_gain, cls_gain, dfl_gain)
 
     def _assign(self, scores, pred_boxes, anchors, gt_labels, gt_boxes, gt_mask):
-        """All in pixels. scores (B, A, nc) sigmoid; gt_* padded to (B, G, ...). Returns targets and fg mask."""
+        """All in pixels. scores (B, A, nc) sigmoid; gt_* padded to (B, G, ...), label -1 = any type.
+        Returns target boxes, target scores, fg mask (B, A) and the class-loss mask (B, A, nc)."""
         b, a, _ = scores.shape
         g = gt_boxes.shape[1]
         if g == 0:
             return (torch.zeros_like(pred_boxes), torch.zeros_like(scores),
-                    torch.zeros(b, a, dtype=torch.bool, device=scores.device))
+                    torch.zeros(b, a, dtype=torch.bool, device=scores.device), torch.ones_like(scores))
         lt = anchors[None, None] - gt_boxes[:, :, None, :2]
         rb = gt_boxes[:, :, None, 2:] - anchors[None, None]
         in_gt = torch.cat((lt, rb), -1).amin(-1) > 1e-9                                   # (B, G, A)
         valid = in_gt & gt_mask[:, :, None]
         overlaps = _box_iou_pairwise(gt_boxes, pred_boxes) * valid
+        untyped = gt_labels < 0                                                           # (B, G)
         cls_idx = gt_labels.long().clamp(0, self.nc - 1)
-        box_scores = torch.gather(scores.transpose(1, 2), 1, cls_idx[:, :, None].expand(-1, -1, a)) * valid
+        box_scores = torch.gather(scores.transpose(1, 2), 1, cls_idx[:, :, None].expand(-1, -1, a))
+        box_scores = torch.where(untyped[:, :, None], scores.amax(-1)[:, None, :], box_scores) * valid
         metric = box_scores.pow(self.alpha) * overlaps.pow(self.beta)
         k = min(self.topk, a)
         top = metric.topk(k, dim=-1).indices
@@ -129,13 +138,16 @@ class DetectorLoss:
         fg = mask_pos.any(1)                                                              # (B, A)
         gt_idx = mask_pos.float().argmax(1)                                               # (B, A)
         t_boxes = torch.gather(gt_boxes, 1, gt_idx[..., None].expand(-1, -1, 4))
-        t_labels = torch.gather(cls_idx, 1, gt_idx)
+        t_untyped = torch.gather(untyped, 1, gt_idx) & fg                                 # (B, A)
+        t_labels = torch.where(t_untyped, scores.argmax(-1), torch.gather(cls_idx, 1, gt_idx))
+        cls_mask = torch.where(t_untyped[..., None], F.one_hot(t_labels, self.nc).to(scores.dtype),
+                               torch.ones_like(scores))
         metric = metric * mask_pos
         pos_metric = metric.amax(-1, keepdim=True)
         pos_overlap = (overlaps * mask_pos).amax(-1, keepdim=True)
         norm = (metric * pos_overlap / (pos_metric + 1e-9)).amax(1)                       # (B, A)
         t_scores = F.one_hot(t_labels, self.nc).float() * (norm * fg)[..., None]
-        return t_boxes, t_scores, fg
+        return t_boxes, t_scores, fg, cls_mask
 
     def __call__(self, raw: list[torch.Tensor], targets: list[torch.Tensor]) -> tuple[torch.Tensor, dict]:
         b = raw[0].shape[0]
@@ -154,10 +166,12 @@ class DetectorLoss:
             if len(t):
                 gt[i, :len(t)] = t
                 gt_mask[i, :len(t)] = True
-        t_boxes, t_scores, fg = self._assign(pred_logits.detach().sigmoid(), pred_boxes.detach() * strides,
-                                             anchors * strides, gt[..., 0], gt[..., 1:], gt_mask)
+        t_boxes, t_scores, fg, cls_mask = self._assign(pred_logits.detach().sigmoid(),
+                                                       pred_boxes.detach() * strides, anchors * strides,
+                                                       gt[..., 0], gt[..., 1:], gt_mask)
         t_sum = t_scores.sum().clamp(min=1.0)
-        loss_cls = F.binary_cross_entropy_with_logits(pred_logits, t_scores, reduction="sum") / t_sum
+        loss_cls = (F.binary_cross_entropy_with_logits(pred_logits, t_scores, reduction="none") * cls_mask).sum() \
+            / t_sum
         loss_box = loss_dfl = x.new_zeros(())
         if fg.any():
             weight = t_scores.sum(-1)[fg]

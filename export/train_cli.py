@@ -106,6 +106,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector-input", type=_hw, metavar="HxW",
                         help="detector: train at this letterboxed input size instead of the config's (multiples "
                              "of 32, e.g. 256x832 for small, far pallets); export uses the size it was trained at")
+    parser.add_argument("--real", type=Path,
+                        help="detector: also train on the train split of real photographs imported by "
+                             "`python -m pallet6d.export.real_data import` (this folder; docs/data.md)")
+    parser.add_argument("--real-max-images", type=int, help="detector: use at most N real photographs")
     parser.add_argument("--detector", type=Path,
                         help="merge: detector checkpoint, or a bundle folder to take its detector")
     parser.add_argument("--pose", type=Path, help="merge: pose checkpoint, or a bundle folder to take its pose stage")
@@ -190,6 +194,9 @@ def main(args: argparse.Namespace) -> int:
         common = dict(resume=args.resume, cache_dir=args.cache_dir, val_fraction=args.val_fraction,
                       max_frames=args.max_frames, command=command, progress=not args.no_progress,
                       init=args.init)
+        if args.real is not None and args.stage != "detector":
+            print("pallet6d train: --real is for the detector stage", file=sys.stderr)
+            return 2
         if args.resume and not (args.out / "last.pt").exists():
             print(f"pallet6d train: --resume but {args.out / 'last.pt'} does not exist", file=sys.stderr)
             return 2
@@ -199,7 +206,8 @@ def main(args: argparse.Namespace) -> int:
                                aug=AugmentConfig(), **common)
         else:
             from .train_detector import train_detector
-            entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), **common)
+            entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,
+                                   real_max_images=args.real_max_images, **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

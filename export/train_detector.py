@@ -5,6 +5,11 @@ cached; every epoch applies a random zoom and shift, HSV gains, blur, noise and 
 with the image) with an epoch-seeded generator. Targets are the visible boxes of pallets at least 10 % visible,
 the boxes the evaluation matches against. Validation: loss, and precision/recall at IoU 0.5 of the runtime's decoding
 (`runtime.detector.decode_yolov8`, score 0.25).
+
+Real photographs (`real=`: a dataset imported by `real_data.py`) join the simulated frames: their train split,
+cut again by capture sequence for validation (`real_samples.py`). They carry no pallet type, so their boxes are
+class -1 for `DetectorLoss` (box and "is a pallet" only) while simulated boxes also teach the type. Validation
+reports precision and recall on the simulated and the real validation frames apart.
 """
 from __future__ import annotations
 
@@ -34,16 +39,27 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class DetectorData:
+    """Frames and their split. `real` (F,) bool marks real photographs: boxes without a pallet type."""
+
     samples: DetectorSamples
     train_idx: np.ndarray
     val_idx: np.ndarray
     fingerprints: list[dict]
+    real: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.real is None:
+            self.real = np.zeros(len(self.samples), bool)
+        if len(self.real) != len(self.samples):
+            raise ValueError(f"DetectorData: {len(self.samples)} frames but {len(self.real)} real flags")
 
 
 def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, cache_dir: str | Path | None,
                        val_fraction: float = 0.1, max_frames: int | None = None,
-                       progress: bool = True) -> DetectorData:
-    """Letterboxed frames of every dataset (cached), split into train/val frames."""
+                       progress: bool = True, real: str | Path | None = None,
+                       real_max_images: int | None = None) -> DetectorData:
+    """Letterboxed frames of every dataset (cached), split into train/val frames; with `real`, the imported
+    real photographs' train split joins them (its own sequence-wise validation cut)."""
     from tqdm import tqdm
 
     parts, fps = [], []
@@ -64,8 +80,19 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     val_idx, train_idx = np.sort(perm[:n_val]), np.sort(perm[n_val:])
     if n_val == 0:   # tiny datasets: validate on the training frames
         val_idx = train_idx
-    log.info("detector frames: %d train, %d val", len(train_idx), n_val)
-    return DetectorData(samples, train_idx, val_idx, fps)
+    is_real = np.zeros(n, bool)
+    if real is not None:
+        from .real_samples import load_real_samples
+
+        r_train, r_val, r_fp = load_real_samples(real, cfg.detector.input_hw, val_fraction, cache_dir,
+                                                 real_max_images, seed)
+        samples = DetectorSamples.concat([samples, r_train, r_val])
+        train_idx = np.concatenate([train_idx, n + np.arange(len(r_train))])
+        val_idx = np.concatenate([val_idx, n + len(r_train) + np.arange(len(r_val))])
+        is_real = np.concatenate([is_real, np.ones(len(r_train) + len(r_val), bool)])
+        fps.append({"real": r_fp})
+    log.info("detector frames: %d train, %d val (%d real)", len(train_idx), len(val_idx), int(is_real.sum()))
+    return DetectorData(samples, train_idx, val_idx, fps, is_real)
 
 
 class DetectorTrainer:
@@ -92,7 +119,8 @@ class DetectorTrainer:
                 if rng.random() < self.aug.flip_prob:
                     img, boxes = flip_horizontal(img, boxes)
             images.append(img)
-            t = np.zeros((len(boxes), 5), np.float32)   # class 0: pallet
+            t = np.zeros((len(boxes), 5), np.float32)   # class 0: pallet; -1: a real box, type unknown
+            t[:, 0] = -1.0 if self.data.real[i] else 0.0
             t[:, 1:] = boxes
             targets.append(torch.from_numpy(t).to(self.device))
         x = torch.from_numpy(np.stack(images)).to(self.device).permute(0, 3, 1, 2).float().div_(255.0)
@@ -105,9 +133,13 @@ class DetectorTrainer:
         loss, parts = self.loss([r.float() for r in raw], targets)
         return loss, {k: float(v) for k, v in parts.items() if k != "fg"}
 
+    @torch.no_grad()
     def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
+        """Validation loss over all validation frames; precision/recall over the simulated ones, and (`_real`)
+        over the real ones when there are any."""
         idx_all = self.data.val_idx
-        total, tp, n_pred, n_gt = 0.0, 0, 0, 0
+        total = 0.0
+        counts = {False: [0, 0, 0], True: [0, 0, 0]}   # real? -> tp, n_pred, n_gt
         for i in range(0, len(idx_all), batch):
             idx = idx_all[i:i + batch]
             x, targets = self.batch(idx, None)
@@ -116,9 +148,10 @@ class DetectorTrainer:
             total += float(loss) * len(idx)
             decoded = self.detector.head.decode(raw).cpu().numpy()
             for k, t in enumerate(targets):
-                det = decode_yolov8(decoded[k], score_threshold, 0.5, (0,), 100)
+                det = decode_yolov8(decoded[k], score_threshold, 0.5, tuple(range(self.detector.head.nc)), 300)
                 gt = t[:, 1:].cpu().numpy()
-                n_pred, n_gt = n_pred + len(det.boxes_xyxy), n_gt + len(gt)
+                c = counts[bool(self.data.real[idx[k]])]
+                c[1], c[2] = c[1] + len(det.boxes_xyxy), c[2] + len(gt)
                 if len(det.boxes_xyxy) and len(gt):
                     m = box_iou(det.boxes_xyxy, gt) >= iou
                     used: set[int] = set()
@@ -126,22 +159,30 @@ class DetectorTrainer:
                         j = next((j for j in np.flatnonzero(row) if j not in used), None)
                         if j is not None:
                             used.add(int(j))
-                    tp += len(used)
+                    c[0] += len(used)
         loss = total / max(len(idx_all), 1)
-        return {"metric": loss, "loss": loss, "precision": tp / n_pred if n_pred else 0.0,
-                "recall": tp / n_gt if n_gt else 0.0, "n_gt": n_gt}
+        out = {"metric": loss, "loss": loss}
+        for is_real, suffix in ((False, ""), (True, "_real")):
+            tp, n_pred, n_gt = counts[is_real]
+            if is_real and n_gt == 0 and n_pred == 0:
+                continue
+            out.update({f"precision{suffix}": tp / n_pred if n_pred else 0.0,
+                        f"recall{suffix}": tp / n_gt if n_gt else 0.0, f"n_gt{suffix}": n_gt})
+        return out
 
 
 def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
                    aug: AugmentConfig | None = None, resume: bool = False, cache_dir: str | Path | None = None,
                    val_fraction: float = 0.1, max_frames: int | None = None, command: str = "",
-                   progress: bool = True, init: str | Path | None = None) -> dict:
-    """Train the detector on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry."""
+                   progress: bool = True, init: str | Path | None = None, real: str | Path | None = None,
+                   real_max_images: int | None = None) -> dict:
+    """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
+    checkpoints and the log go to `run_dir`. Returns the last log entry."""
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
-                            val_fraction, max_frames, progress)
+                            val_fraction, max_frames, progress, real, real_max_images)
     trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases
     decay = [p for n, p in trainer.detector.named_parameters() if p.ndim > 1]
@@ -152,7 +193,8 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                   "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,
-                  "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx))},
+                  "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx)),
+                              "real": int(dd.real.sum())},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}
     return train_epochs(run_dir, "detector", cfg.name, trainer.nets, optimizer, settings, len(dd.train_idx),
                         trainer.step, trainer.validate, provenance, resume=resume, progress=progress, init=init)

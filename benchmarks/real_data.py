@@ -1,0 +1,269 @@
+"""A bundle's detector on the held-out real photographs: recall and precision at IoU 0.5, false positives on
+pallet-free photos.
+
+    python benchmarks/real_data.py --bundle models/epal-default [--int8] --data /work/data/real \
+        --out benchmarks/results/real-data/epal-default
+
+The data is what `python -m pallet6d.export.real_data import` writes (`labels.json`, one record per image).
+A detection (score >= --score-threshold, any pallet class: the benchmark is class-agnostic) is a true positive
+when it is matched to a labelled box at IoU >= 0.5, greedily by descending score, each box matched at most once.
+Recall and precision are reported overall (sources labelled with the detector's whole-pallet convention), by box
+size (box height as a fraction of the image height, the real-data importer's bins: recall by the labelled box's
+size, precision by the detection's own size) and by pallet kind; sources whose boxes cover a loaded unit are
+reported on their own, since their boxes are not the convention the detector is trained for. Pallet-free
+photos (no depth) give detector false positives per frame. Only runtime code runs the bundle (onnxruntime).
+The uploaders' augmented copies (rotated by up to 15 degrees, boxes of the rotated rectangles) are left out
+unless --include-augmented.
+
+With --sim-negatives N, N simulated pallet-free RGB-D frames per preset (the preset's scenes with every pallet's
+boards and blocks removed; loads stay, hanging where their pallets were: hard negatives) go through the whole
+estimator at its default options: accepted poses per frame there are false accepts.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pallet6d.export.real_data import SIZE_BINS, box_size_bins   # numpy only: no torch
+
+
+def match_greedy(pred_xyxy: np.ndarray, scores: np.ndarray, gt_xyxy: np.ndarray,
+                 iou_threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy matching by descending score: each detection takes the unmatched box it overlaps most, if at IoU
+    >= iou_threshold.
+
+    :param pred_xyxy: (n, 4) detections; :param scores: (n,); :param gt_xyxy: (m, 4) labelled boxes.
+    :return: (n,) bool true positive per detection, (m,) bool matched per labelled box.
+    """
+    from pallet6d.runtime.evaluation import box_iou
+
+    pred = np.asarray(pred_xyxy, np.float64).reshape(-1, 4)
+    gt = np.asarray(gt_xyxy, np.float64).reshape(-1, 4)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if len(scores) != len(pred):
+        raise ValueError(f"match_greedy: {len(pred)} boxes but {len(scores)} scores")
+    tp, matched = np.zeros(len(pred), bool), np.zeros(len(gt), bool)
+    if len(pred) == 0 or len(gt) == 0:
+        return tp, matched
+    iou = box_iou(pred, gt)
+    for i in np.argsort(-scores, kind="stable"):
+        cand = np.where(matched, -1.0, iou[i])
+        j = int(np.argmax(cand))
+        if cand[j] >= iou_threshold:
+            tp[i], matched[j] = True, True
+    return tp, matched
+
+
+@dataclass
+class Tally:
+    """Counts for recall (labelled boxes, matched) and precision (detections, true positives)."""
+
+    gt: int = 0
+    matched: int = 0
+    pred: int = 0
+    tp: int = 0
+    images: int = 0
+
+    def add(self, gt: int, matched: int, pred: int, tp: int, images: int = 0) -> None:
+        self.gt += gt
+        self.matched += matched
+        self.pred += pred
+        self.tp += tp
+        self.images += images
+
+    def to_dict(self) -> dict:
+        return {"images": self.images, "boxes": self.gt, "detections": self.pred,
+                "recall": self.matched / self.gt if self.gt else None,
+                "precision": self.tp / self.pred if self.pred else None}
+
+
+@dataclass
+class RealDataReport:
+    """Tallies of one benchmark run: whole-pallet sources overall, by size, kind and source; other conventions
+    apart; pallet-free photos."""
+
+    overall: Tally = field(default_factory=Tally)
+    by_size: dict[str, Tally] = field(default_factory=lambda: {s: Tally() for s in SIZE_BINS})
+    by_kind: dict[str, Tally] = field(default_factory=dict)
+    by_source: dict[str, Tally] = field(default_factory=dict)
+    other_convention: dict[str, Tally] = field(default_factory=dict)
+    negatives: int = 0
+    negative_detections: int = 0
+
+    def add_image(self, rec: dict, pred_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> None:
+        gt = np.asarray(rec["boxes_xyxy"], np.float64).reshape(-1, 4)
+        if rec.get("negative"):
+            self.negatives += 1
+            self.negative_detections += len(pred_xyxy)
+            return
+        tp, matched = match_greedy(pred_xyxy, scores, gt, iou_threshold)
+        counts = (len(gt), int(matched.sum()), len(pred_xyxy), int(tp.sum()), 1)
+        self.by_source.setdefault(rec["source"], Tally()).add(*counts)
+        if rec["convention"] != "whole_pallet":
+            self.other_convention.setdefault(rec["source"], Tally()).add(*counts)
+            return
+        self.overall.add(*counts)
+        for kind in rec["kinds"]:
+            self.by_kind.setdefault(kind, Tally()).add(*counts)
+        gt_bin = box_size_bins(gt[:, 3] - gt[:, 1], rec["height"])
+        pred_bin = box_size_bins(pred_xyxy[:, 3] - pred_xyxy[:, 1], rec["height"])
+        for s in SIZE_BINS:
+            g, p = gt_bin == s, pred_bin == s
+            self.by_size[s].add(int(g.sum()), int(matched[g].sum()), int(p.sum()), int(tp[p].sum()))
+
+    def to_dict(self) -> dict:
+        return {"overall": self.overall.to_dict(), "by_size": {k: v.to_dict() for k, v in self.by_size.items()},
+                "by_kind": {k: v.to_dict() for k, v in self.by_kind.items()},
+                "by_source": {k: v.to_dict() for k, v in self.by_source.items()},
+                "other_convention": {k: v.to_dict() for k, v in self.other_convention.items()},
+                "negative_frames": self.negatives,
+                "false_positives_per_negative_frame":
+                    self.negative_detections / self.negatives if self.negatives else None}
+
+
+def markdown(title: str, d: dict, settings: dict) -> str:
+    def pct(v):
+        return "-" if v is None else f"{100 * v:.1f} %"
+
+    def row(name, t):
+        return f"| {name} | {t['images'] or ''} | {t['boxes']} | {t['detections']} | {pct(t['recall'])} | " \
+               f"{pct(t['precision'])} |"
+
+    lines = [f"# {title}", "", ", ".join(f"{k}: {v}" for k, v in settings.items()), "",
+             "| set | images | boxes | detections | recall | precision |", "|---|---|---|---|---|---|",
+             row("**overall (whole-pallet labels)**", d["overall"])]
+    lines += [row(f"size {k}", v) for k, v in d["by_size"].items()]
+    lines += [row(f"kind {k}", v) for k, v in d["by_kind"].items()]
+    lines += [row(f"source {k}", v) for k, v in d["by_source"].items()]
+    lines += ["", "Sources whose boxes cover the whole loaded unit (not the detector's convention): "
+              + (", ".join(f"{k} recall {pct(v['recall'])}, precision {pct(v['precision'])}"
+                           for k, v in d["other_convention"].items()) or "none"), "",
+              f"Pallet-free photos: {d['negative_frames']} frames, "
+              + ("-" if d["false_positives_per_negative_frame"] is None else
+                 f"{d['false_positives_per_negative_frame']:.2f}") + " detector false positives per frame.", ""]
+    return "\n".join(lines)
+
+
+def sim_negative_frame(preset: str, seed: int, index: int):
+    """(rgb, depth_m, K) of a simulated scene of `preset` without any pallet (its loads and racks stay)."""
+    from pallet6d.sim.generate import render_scene
+    from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel
+    from pallet6d.sim.presets import get_preset
+    from pallet6d.sim.warehouse import build_scene
+    from pallet6d.sim.scene import SceneError
+
+    cfg = get_preset(preset)
+    rng = np.random.default_rng((int(seed), int(index)))
+    for _ in range(cfg.max_attempts):
+        scene = build_scene(cfg, rng)
+        scene.boxes = [b for b in scene.boxes if b.instance_id == 0]   # pallet parts carry their instance id
+        try:
+            scene.validate()
+        except SceneError:
+            continue
+        sensor_rng = np.random.default_rng((int(seed), int(index), 1))
+        try:    # generators with `depth_sensors` model every sensor kind of a preset
+            from pallet6d.sim.depth_sensors import depth_model_for
+            depth_model = depth_model_for(cfg.sensor)
+        except ImportError:
+            depth_model = StereoDepthModel() if cfg.sensor == "d435" else None
+        rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*cfg.exposure),
+                                   noise_sigma=sensor_rng.uniform(*cfg.rgb_noise_sigma))
+        f = render_scene(scene, depth_model, rgb_model, sensor_rng)
+        return f.rgb, f.depth_m, f.K
+    raise SceneError(f"no valid pallet-free scene of {preset} (seed {seed}, frame {index})")
+
+
+def sim_negatives(est, presets: list[str], n_frames: int, seed: int) -> dict:
+    """Accepted poses and detections per frame on simulated pallet-free frames, per preset."""
+    out = {}
+    for preset in presets:
+        accepted = detections = 0
+        fits = []
+        for i in range(n_frames):
+            rgb, depth_m, K = sim_negative_frame(preset, seed, i)
+            res = est.estimate(rgb, depth_m.astype(np.float32), K)
+            accepted += len(res.poses)
+            detections += len(est.detect(rgb))
+            fits += [float(p.fit.score) for p in res.poses]
+        out[preset] = {"frames": n_frames, "accepted_poses_per_frame": accepted / n_frames,
+                       "detections_per_frame": detections / n_frames,
+                       "fit_scores_of_false_accepts": [round(f, 3) for f in fits]}
+    return out
+
+
+def evaluate(est, records: list[dict], root: Path, iou_threshold: float = 0.5,
+             progress: bool = False) -> RealDataReport:
+    """Run `est.detect` (a `PalletEstimator`) on every record's image and tally the report."""
+    import cv2
+
+    report = RealDataReport()
+    for k, rec in enumerate(records):
+        bgr = cv2.imread(str(root / rec["image"]), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError(f"cannot read {root / rec['image']}")
+        det = est.detect(np.ascontiguousarray(bgr[:, :, ::-1]))
+        report.add_image(rec, det.boxes_xyxy, det.scores, iou_threshold)
+        if progress and (k + 1) % 200 == 0:
+            print(f"{k + 1}/{len(records)} images", file=sys.stderr)
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bundle", type=Path, required=True)
+    ap.add_argument("--data", type=Path, default=Path("/work/data/real"), help="the imported real data")
+    ap.add_argument("--split", default="heldout", help="split to measure (default: the held-out one)")
+    ap.add_argument("--int8", action="store_true")
+    ap.add_argument("--score-threshold", type=float, default=0.25)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--max-images", type=int, default=0, help="0: all")
+    ap.add_argument("--include-augmented", action="store_true",
+                    help="also the uploaders' augmented (rotated) copies of held-out images")
+    ap.add_argument("--sim-negatives", type=int, default=0,
+                    help="also N simulated pallet-free RGB-D frames per preset through the whole estimator")
+    ap.add_argument("--sim-presets", default="virtual-clean,virtual-occluded,indoor-noisy")
+    ap.add_argument("--sim-seed", type=int, default=9100, help="seed of the simulated pallet-free frames")
+    ap.add_argument("--out", type=Path, help="write OUT.md and OUT.json")
+    args = ap.parse_args(argv)
+
+    from pallet6d.runtime.estimator import PalletEstimator
+
+    records = [r for r in json.loads((args.data / "labels.json").read_text())
+               if r["split"] == args.split and (args.include_augmented or not r["augmented"])]
+    if args.max_images:
+        records = records[:args.max_images]
+    if not records:
+        print(f"no images in split {args.split!r} of {args.data}", file=sys.stderr)
+        return 2
+    est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
+                                      score_threshold=args.score_threshold, max_pallets=300)
+    report = evaluate(est, records, args.data, progress=True).to_dict()
+    if args.sim_negatives:
+        full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
+                                           precision="int8" if args.int8 else "fp32")
+        report["sim_negatives"] = sim_negatives(full, args.sim_presets.split(","), args.sim_negatives,
+                                                args.sim_seed)
+    settings = {"bundle": str(args.bundle), "precision": "int8" if args.int8 else "fp32", "split": args.split,
+                "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data),
+                "augmented_copies": args.include_augmented}
+    text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)
+    for preset, r in report.get("sim_negatives", {}).items():
+        text += (f"Simulated pallet-free {preset} (seed {args.sim_seed}): {r['frames']} frames, "
+                 f"{r['accepted_poses_per_frame']:.2f} accepted poses per frame (default options), "
+                 f"{r['detections_per_frame']:.2f} detections per frame.\n")
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.with_suffix(".md").write_text(text)
+        args.out.with_suffix(".json").write_text(json.dumps({"settings": settings, **report}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
