@@ -227,11 +227,16 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     else:
         t = torch.from_numpy
         _warm_up_batchnorm(nets["detector"], [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)])
-        _warm_up_batchnorm(nets["fusion"], [(t(calib.rgb_crops[i:i + 8]), t(calib.depth_crops[i:i + 8]))
+        fusion_in = [calib.rgb_crops, calib.depth_crops, calib.choose][:3 if cfg.fusion.sampled else 2]
+        _warm_up_batchnorm(nets["fusion"], [tuple(t(a[i:i + 8]) for a in fusion_in)
                                             for i in range(0, len(calib.rgb_crops), 8)])
+    sampled = cfg.fusion.sampled   # the fusion graph takes `choose` and returns per-point features
     with torch.no_grad():
-        feats = nets["fusion"](torch.from_numpy(calib.rgb_crops), torch.from_numpy(calib.depth_crops)).numpy()
-    point_feats = gather_features(feats, calib.choose)
+        fusion_in = (torch.from_numpy(calib.rgb_crops), torch.from_numpy(calib.depth_crops))
+        if sampled:
+            point_feats = nets["fusion"](*fusion_in, torch.from_numpy(calib.choose)).numpy()
+        else:
+            point_feats = gather_features(nets["fusion"](*fusion_in).numpy(), calib.choose)
 
     files: dict[str, Path] = {}
     checks: dict = {"parity": {}, "gflops": {}, "params": {}}
@@ -247,10 +252,12 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         checks["parity"]["detector"] = "external graph, copied unchanged"
     det_sess = ort_session(files["detector"], threads=1)
     det_in, det_out = det_sess.get_inputs()[0].name, det_sess.get_outputs()[0].name
-    fusion_args = (torch.from_numpy(calib.rgb_crops[:2]), torch.from_numpy(calib.depth_crops[:2]))
-    files["fusion"] = export_graph(nets["fusion"], fusion_args, out / "fusion.onnx", ["rgb", "depth"], ["features"],
-                                   {"rgb": {0: "batch"}, "depth": {0: "batch"}, "features": {0: "batch"}})
-    checks["parity"]["fusion"] = check_parity(nets["fusion"], fusion_args, files["fusion"], ["rgb", "depth"],
+    fusion_names = ["rgb", "depth", "choose"] if sampled else ["rgb", "depth"]
+    fusion_arrays = [calib.rgb_crops, calib.depth_crops, calib.choose][:len(fusion_names)]
+    fusion_args = tuple(torch.from_numpy(a[:2]) for a in fusion_arrays)
+    files["fusion"] = export_graph(nets["fusion"], fusion_args, out / "fusion.onnx", fusion_names, ["features"],
+                                   {n: {0: "batch"} for n in [*fusion_names, "features"]})
+    checks["parity"]["fusion"] = check_parity(nets["fusion"], fusion_args, files["fusion"], fusion_names,
                                               ["features"])
     pose_args = (torch.from_numpy(calib.points[:2]), torch.from_numpy(point_feats[:2]))
     pose_names = ["quat", "trans", "conf"]
@@ -267,7 +274,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     n_cal = max(1, (3 * len(calib.rgb_crops)) // 4)   # calibrate on 3/4, report the difference on the rest
     n_img = max(1, (3 * len(calib.images)) // 4)
     det_feeds = [{det_in: calib.images[i:i + 1]} for i in range(len(calib.images))]
-    fus_feeds = [{"rgb": r, "depth": d} for r, d in _batches([calib.rgb_crops, calib.depth_crops], 4)]
+    fus_feeds = [dict(zip(fusion_names, b)) for b in _batches(fusion_arrays, 4)]
     pose_feeds = [{"points": p, "features": f} for p, f in _batches([calib.points, point_feats], 4)]
     split = {"detector": n_img, "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
     feeds = {"detector": det_feeds, "fusion": fus_feeds, "pose": pose_feeds}
@@ -329,7 +336,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                    "depth_encoding": {"type": "metres_minus_median", "clip_m": cfg.depth_clip_m, "invalid_value": 0.0,
                                       "interpolation": "nearest"},
                    "feature_dim": f.feature_dim, "attention": f.attention,
-                   "attention_stride": f.attention_stride if f.attention else None},
+                   "attention_stride": f.attention_stride if f.attention else None,
+                   "choose_input": "choose" if sampled else None},
         "pose": {"file": rel(files["pose"]), "file_int8": rel(int8_files["pose"]), "points_input": "points",
                  "features_input": "features", "quat_output": "quat", "trans_output": "trans", "conf_output": "conf",
                  "num_points": ps.num_points, "depth_range_m": list(cfg.depth_range_m), "points_centring": "mean",
