@@ -311,8 +311,9 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
             half.replace(files[stage])
             checks["weights_fp16"][stage] = {**storage.to_dict(), "vs_fp32_weights": diff}
 
-    from pallet6d.sim.pallets import get_pallet_model  # the pallet geometry lives with the simulator
-    pallet = get_pallet_model(cfg.pallet)
+    from .pallet_types import trained_pallet_models   # the pallet geometry lives with the simulator
+    # every type the pose stage was trained on (provenance); the manifest's `pallet_model` is the first
+    pallet = trained_pallet_models(training, cfg.pallet)[0]
     points_file = out / "pallet_points.npy"
     np.save(points_file, pallet.surface_points(2000, seed=0).astype(np.float32))
 

@@ -199,3 +199,16 @@ def test_export_writes_the_sampled_graph_and_its_choose_input(tmp_path):
     dense = export_bundle(TINY, tmp_path / "d", random_init=True, calib=make_calibration_set(
         TINY, frames=2, max_crops=8, seed=0, synthetic=True), command="test")
     assert dense["fusion"]["choose_input"] is None
+
+
+def test_trained_pallet_types_come_from_the_pose_provenance():
+    from pallet6d.export.pallet_types import trained_pallet_models, trained_pallet_types
+
+    pose = {"stage": "pose", "pallet_types": {"3": "eur3", "1": "epal", "2": "gma"}}
+    assert trained_pallet_types(pose, "epal") == ("epal", "gma", "eur3")
+    assert trained_pallet_types({"detector": {}, "pose": pose}, "epal") == ("epal", "gma", "eur3")
+    assert trained_pallet_types(None, "epal") == ("epal",)
+    assert trained_pallet_types({"stage": "pose"}, "gma") == ("gma",)
+    assert [m.name for m in trained_pallet_models(pose, "epal")] == ["epal", "gma", "eur3"]
+    with pytest.raises(ValueError, match="unknown pallet model"):
+        trained_pallet_types({"pallet_types": {"1": "crate"}}, "epal")
