@@ -8,7 +8,9 @@ Each variant is a `FusionConfig` change of a named config; `--only NAME` measure
     .venv/bin/python benchmarks/edge_net.py --repeats 30 --out benchmarks/results/edge-net
 
 Writes `costs.json` and `costs.md` to `--out`. Other jobs on the machine make the numbers noisy: compare
-variants within one run.
+variants within one run. `--cpu-time` measures instead the process CPU time per pallet of one thread at
+batch 4 (`cpu_costs.json` / `cpu_costs.md`): work done rather than wall time, so far less disturbed by other
+jobs on a shared machine (a 2-thread run takes a bit more than half of it).
 """
 from __future__ import annotations
 
@@ -61,12 +63,24 @@ def _time(sess, feeds: dict[str, np.ndarray], repeats: int) -> str:
     return f"{np.min(times) * 1e3:.1f} ({np.median(times) * 1e3:.1f})"
 
 
+def _cpu_time(sess, feeds: dict[str, np.ndarray], repeats: int) -> float:
+    """Median process CPU time of one run, ms (one intra-op thread: no spinning pool threads)."""
+    for _ in range(2):
+        sess.run(None, feeds)
+    times = []
+    for _ in range(repeats):
+        t = time.process_time()
+        sess.run(None, feeds)
+        times.append(time.process_time() - t)
+    return float(np.median(times) * 1e3)
+
+
 def _feeds(names: list[str], arrays: list[np.ndarray], b: int) -> dict[str, np.ndarray]:
     return {n: np.ascontiguousarray(np.resize(a, (b,) + a.shape[1:])) for n, a in zip(names, arrays)}
 
 
 def _measure(net: torch.nn.Module, names: list[str], arrays: list[np.ndarray], outputs: list[str], tmp: Path,
-             tag: str, repeats: int, exclude: tuple[str, ...]) -> dict:
+             tag: str, repeats: int, exclude: tuple[str, ...], cpu_time: bool = False) -> dict:
     net.eval()
     args = tuple(torch.from_numpy(a[:2]) for a in arrays)
     fp32 = export_graph(net, args, tmp / f"{tag}.onnx", names, outputs,
@@ -75,13 +89,18 @@ def _measure(net: torch.nn.Module, names: list[str], arrays: list[np.ndarray], o
     int8 = quantize_graph(fp32, tmp / f"{tag}.int8.onnx", calib, exclude)
     row = {"gflops": round(count_gflops(fp32), 3), "params_m": round(sum(p.numel() for p in net.parameters()) / 1e6, 2)}
     for prec, path in (("fp32", fp32), ("int8", int8)):
+        if cpu_time:
+            sess = ort_session(path, threads=1)
+            row[f"{prec}_cpu_ms_per_pallet"] = round(_cpu_time(sess, _feeds(names, arrays, 4), repeats) / 4, 2)
+            continue
         sess = ort_session(path, threads=2)
         for b in BATCHES:
             row[f"{prec}_b{b}_ms"] = _time(sess, _feeds(names, arrays, b), repeats)
     return row
 
 
-def fusion_row(base: str, changes: dict, tmp: Path, tag: str, repeats: int, rng: np.random.Generator) -> dict:
+def fusion_row(base: str, changes: dict, tmp: Path, tag: str, repeats: int, rng: np.random.Generator,
+               cpu_time: bool = False) -> dict:
     cfg = dataclasses.replace(get_config(base).fusion, **changes)
     torch.manual_seed(0)
     net = build_fusion(cfg)
@@ -92,11 +111,12 @@ def fusion_row(base: str, changes: dict, tmp: Path, tag: str, repeats: int, rng:
     if cfg.sampled:
         arrays.append(rng.integers(0, h * w, (16, n)).astype(np.int64))
         names.append("choose")
-    row = _measure(net, names, arrays, ["features"], tmp, tag, repeats, ("/*/final/Conv",))
+    row = _measure(net, names, arrays, ["features"], tmp, tag, repeats, ("/*/final/Conv",), cpu_time)
     return {"crop": f"{h}x{w}", "sample_stride": cfg.sample_stride or "dense", "dilated": cfg.dilated, **row}
 
 
-def pose_row(base: str, changes: dict, tmp: Path, tag: str, repeats: int, rng: np.random.Generator) -> dict:
+def pose_row(base: str, changes: dict, tmp: Path, tag: str, repeats: int, rng: np.random.Generator,
+             cpu_time: bool = False) -> dict:
     cfg = get_config(base)
     pcfg = dataclasses.replace(cfg.pose, **changes)
     torch.manual_seed(0)
@@ -105,11 +125,13 @@ def pose_row(base: str, changes: dict, tmp: Path, tag: str, repeats: int, rng: n
     arrays = [rng.normal(0, 0.3, (16, n, 3)).astype(np.float32),
               rng.normal(0, 1, (16, n, cfg.fusion.feature_dim)).astype(np.float32)]
     return {"points": n, **_measure(net, ["points", "features"], arrays, ["quat", "trans", "conf"], tmp, tag, repeats,
-                                    ("/conv1/Conv", "/head_[rtc]/head_[rtc].6/Conv"))}
+                                    ("/conv1/Conv", "/head_[rtc]/head_[rtc].6/Conv"), cpu_time)}
 
 
-def _table(rows: dict[str, dict], first: list[str]) -> list[str]:
-    cols = first + ["gflops", "params_m"] + [f"{p}_b{b}_ms" for p in ("fp32", "int8") for b in BATCHES]
+def _table(rows: dict[str, dict], first: list[str], cpu_time: bool = False) -> list[str]:
+    timed = ([f"{p}_cpu_ms_per_pallet" for p in ("fp32", "int8")] if cpu_time else
+             [f"{p}_b{b}_ms" for p in ("fp32", "int8") for b in BATCHES])
+    cols = first + ["gflops", "params_m"] + timed
     out = ["| variant | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for name, r in rows.items():
         out.append(f"| {name} | " + " | ".join(str(r.get(c, "")) for c in cols) + " |")
@@ -121,6 +143,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/edge-net"))
     ap.add_argument("--only", nargs="*", default=None, help="variant names (substrings) to measure")
+    ap.add_argument("--cpu-time", action="store_true", help="one-thread CPU time per pallet at batch 4 instead")
     args = ap.parse_args()
     torch.set_num_threads(2)
     rng = np.random.default_rng(0)
@@ -130,19 +153,21 @@ def main() -> None:
         tmp = Path(d)
         for i, name in enumerate(pick(VARIANTS)):
             base, changes, _ = VARIANTS[name]
-            fusion[name] = fusion_row(base, changes, tmp, f"f{i}", args.repeats, rng)
+            fusion[name] = fusion_row(base, changes, tmp, f"f{i}", args.repeats, rng, args.cpu_time)
             print(name, fusion[name], flush=True)
         for i, name in enumerate(pick(POSE_VARIANTS)):
             base, changes = POSE_VARIANTS[name]
-            pose[name] = pose_row(base, changes, tmp, f"p{i}", args.repeats, rng)
+            pose[name] = pose_row(base, changes, tmp, f"p{i}", args.repeats, rng, args.cpu_time)
             print(name, pose[name], flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "costs.json").write_text(json.dumps({"fusion": fusion, "pose": pose, "threads": 2,
-                                                     "repeats": args.repeats, "statistic": "min (median) ms"}, indent=2) + "\n")
-    lines = ["# Fusion and pose graph costs (random weights, onnxruntime 2 threads, ms: min (median))", "",
-             "Fusion graph per variant:", "", *_table(fusion, ["crop", "sample_stride", "dilated"]), "",
-             "Pose graph:", "", *_table(pose, ["points"]), ""]
-    (args.out / "costs.md").write_text("\n".join(lines))
+    stem, what = (("cpu_costs", "onnxruntime 1 thread, batch 4, median process CPU ms per pallet") if args.cpu_time
+                  else ("costs", "onnxruntime 2 threads, ms: min (median)"))
+    (args.out / f"{stem}.json").write_text(json.dumps({"fusion": fusion, "pose": pose, "repeats": args.repeats,
+                                                       "measure": what}, indent=2) + "\n")
+    lines = [f"# Fusion and pose graph costs (random weights, {what})", "",
+             "Fusion graph per variant:", "", *_table(fusion, ["crop", "sample_stride", "dilated"], args.cpu_time), "",
+             "Pose graph:", "", *_table(pose, ["points"], args.cpu_time), ""]
+    (args.out / f"{stem}.md").write_text("\n".join(lines))
     print("\n".join(lines))
 
 

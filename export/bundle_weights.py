@@ -216,13 +216,15 @@ def _stage_inputs(stage: str, calib: CalibrationSet, bundle: Bundle) -> tuple[tu
     if stage == "detector":
         images = [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)]
         return (t(calib.images[:1]),), images, [d.input_name], [d.output_name]
+    choose = bundle.manifest["fusion"].get("choose_input")    # a sampled fusion graph's third input
+    arrays = [calib.rgb_crops, calib.depth_crops] + ([calib.choose] if choose else [])
+    names = [f.rgb_input, f.depth_input] + ([choose] if choose else [])
     if stage == "fusion":
-        n = len(calib.rgb_crops)
-        crops = [(t(calib.rgb_crops[i:i + 8]), t(calib.depth_crops[i:i + 8])) for i in range(0, n, 8)]
-        return (t(calib.rgb_crops[:2]), t(calib.depth_crops[:2])), crops, [f.rgb_input, f.depth_input], [f.output_name]
+        crops = [tuple(t(a[i:i + 8]) for a in arrays) for i in range(0, len(calib.rgb_crops), 8)]
+        return tuple(t(a[:2]) for a in arrays), crops, names, [f.output_name]
     feats = run_session(ort_session(bundle.graph("fusion", "fp32"), threads=2),
-                        {f.rgb_input: calib.rgb_crops[:2], f.depth_input: calib.depth_crops[:2]})
-    example = (t(calib.points[:2]), t(gather_features(feats[f.output_name], calib.choose[:2])))
+                        {n: a[:2] for n, a in zip(names, arrays)})[f.output_name]
+    example = (t(calib.points[:2]), t(feats if choose else gather_features(feats, calib.choose[:2])))
     return example, [example], [q.points_input, q.features_input], [q.quat_output, q.trans_output, q.conf_output]
 
 

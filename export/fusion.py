@@ -131,7 +131,7 @@ class SampledFusionNet(nn.Module):
 
         def branch(c_in: int) -> PSPNet:
             return PSPNet(c_in, cfg.crop_hw, cfg.resnet_widths, cfg.psp_sizes, cfg.psp_out, (), cfg.branch_dim,
-                          cfg.dilated)
+                          cfg.dilated, with_stride4=cfg.sample_stride == 4)
 
         self.rgb = branch(3)
         self.depth = branch(1)
@@ -145,18 +145,12 @@ class SampledFusionNet(nn.Module):
             self.pos = nn.Parameter(torch.zeros(1, n_tokens, cfg.feature_dim))
             nn.init.trunc_normal_(self.pos, std=0.02)
 
-    def _branch(self, net: PSPNet, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """One modality: (B, branch_dim, h/8, w/8) features, and layer1's stride-4 map when the decoder needs it."""
-        if self.decoder is None:
-            return net.final(net.context(net.backbone(x))), None
-        s4, s8 = net.backbone.forward_with_stride4(x)
-        return net.final(net.context(s8)), s4
-
     def forward(self, rgb: torch.Tensor, depth: torch.Tensor, choose: torch.Tensor) -> torch.Tensor:
         """:param rgb: (B, 3, h, w). :param depth: (B, 1, h, w). :param choose: (B, N) int64 row * w + col.
         :return: (B, N, feature_dim)."""
-        f_rgb, s4_rgb = self._branch(self.rgb, rgb)
-        f_d, s4_d = self._branch(self.depth, depth)
+        f_rgb, f_d = self.rgb(rgb), self.depth(depth)     # (B, branch_dim, h/8, w/8), or with layer1's map
+        if self.decoder is not None:
+            (f_rgb, s4_rgb), (f_d, s4_d) = f_rgb, f_d
         fused = torch.cat((f_rgb, f_d), 1)                                  # eq. 1, per stride-8 location
         if self.attention is not None:
             fused = _attend(fused, self.attention, self.pos, 1, self.map_hw)

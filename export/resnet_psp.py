@@ -81,12 +81,14 @@ class PSPNet(nn.Module):
 
     :param in_hw: the crop size the network is built for (H, W multiples of 8).
     :param up_channels: one x2 upsampling stage per entry (three: back to the crop; none: stride 8).
+    :param with_stride4: also return layer1's (B, widths[0], H/4, W/4) map (for a stride-4 decoder).
     """
 
     def __init__(self, in_channels: int, in_hw: tuple[int, int], widths: tuple[int, int, int, int],
                  psp_sizes: tuple[int, ...], psp_out: int, up_channels: tuple[int, ...], out_dim: int,
-                 dilated: bool = True) -> None:
+                 dilated: bool = True, with_stride4: bool = False) -> None:
         super().__init__()
+        self.with_stride4 = with_stride4
         self.backbone = ResNet18Dilated(in_channels, widths, dilated)
         c = self.backbone.out_channels
         self.feat_hw = (in_hw[0] // 8, in_hw[1] // 8)
@@ -114,5 +116,8 @@ class PSPNet(nn.Module):
             priors.append(F.interpolate(stage(pooled), size=(h, w), mode="bilinear", align_corners=False))
         return self.bottleneck(torch.cat(priors, 1))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.final(self.up(self.context(self.backbone(x))))
+    def forward(self, x: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        if not self.with_stride4:
+            return self.final(self.up(self.context(self.backbone(x))))
+        s4, s8 = self.backbone.forward_with_stride4(x)
+        return self.final(self.up(self.context(s8))), s4

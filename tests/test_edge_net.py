@@ -212,3 +212,16 @@ def test_trained_pallet_types_come_from_the_pose_provenance():
     assert [m.name for m in trained_pallet_models(pose, "epal")] == ["epal", "gma", "eur3"]
     with pytest.raises(ValueError, match="unknown pallet model"):
         trained_pallet_types({"pallet_types": {"1": "crate"}}, "epal")
+
+
+def test_a_sampled_bundle_reads_back_into_torch(tmp_path, monkeypatch):
+    from pallet6d.export.bundle_weights import load_bundle_weights
+    from pallet6d.export.pose import build_pose
+
+    monkeypatch.setitem(CONFIGS, TINY_SAMPLED.name, TINY_SAMPLED)
+    calib = make_calibration_set(TINY_SAMPLED, frames=2, max_crops=8, seed=0, synthetic=True)
+    export_bundle(TINY_SAMPLED, tmp_path / "b", random_init=True, calib=calib, command="test")
+    torch.manual_seed(1)
+    nets = {"fusion": build_fusion(TINY_SAMPLED.fusion), "pose": build_pose(TINY_SAMPLED.pose, 16)}
+    record = load_bundle_weights(tmp_path / "b", nets, calib_frames=2)
+    assert set(record["parity"]) == {"fusion", "pose"}
