@@ -221,22 +221,20 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=hw))
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed)
     need = ("fusion", "pose") if detector_onnx is not None else ("detector", "fusion", "pose")
+    sampled = cfg.fusion.sampled   # the fusion graph takes `choose` and returns per-point features
+    fusion_names = ["rgb", "depth", "choose"] if sampled else ["rgb", "depth"]
+    fusion_arrays = [calib.rgb_crops, calib.depth_crops, calib.choose][:len(fusion_names)]
     training = None
     if checkpoint is not None:
         training = _load_checkpoint(Path(checkpoint), ckpt, nets, cfg, need)
     else:
         t = torch.from_numpy
         _warm_up_batchnorm(nets["detector"], [(t(calib.images[i:i + 4]),) for i in range(0, len(calib.images), 4)])
-        fusion_in = [calib.rgb_crops, calib.depth_crops, calib.choose][:3 if cfg.fusion.sampled else 2]
-        _warm_up_batchnorm(nets["fusion"], [tuple(t(a[i:i + 8]) for a in fusion_in)
+        _warm_up_batchnorm(nets["fusion"], [tuple(t(a[i:i + 8]) for a in fusion_arrays)
                                             for i in range(0, len(calib.rgb_crops), 8)])
-    sampled = cfg.fusion.sampled   # the fusion graph takes `choose` and returns per-point features
     with torch.no_grad():
-        fusion_in = (torch.from_numpy(calib.rgb_crops), torch.from_numpy(calib.depth_crops))
-        if sampled:
-            point_feats = nets["fusion"](*fusion_in, torch.from_numpy(calib.choose)).numpy()
-        else:
-            point_feats = gather_features(nets["fusion"](*fusion_in).numpy(), calib.choose)
+        fused = nets["fusion"](*(torch.from_numpy(a) for a in fusion_arrays)).numpy()
+    point_feats = fused if sampled else gather_features(fused, calib.choose)
 
     files: dict[str, Path] = {}
     checks: dict = {"parity": {}, "gflops": {}, "params": {}}
@@ -252,8 +250,6 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         checks["parity"]["detector"] = "external graph, copied unchanged"
     det_sess = ort_session(files["detector"], threads=1)
     det_in, det_out = det_sess.get_inputs()[0].name, det_sess.get_outputs()[0].name
-    fusion_names = ["rgb", "depth", "choose"] if sampled else ["rgb", "depth"]
-    fusion_arrays = [calib.rgb_crops, calib.depth_crops, calib.choose][:len(fusion_names)]
     fusion_args = tuple(torch.from_numpy(a[:2]) for a in fusion_arrays)
     files["fusion"] = export_graph(nets["fusion"], fusion_args, out / "fusion.onnx", fusion_names, ["features"],
                                    {n: {0: "batch"} for n in [*fusion_names, "features"]})
