@@ -51,28 +51,16 @@ POSE_VARIANTS: dict[str, tuple[str, dict]] = {
 }
 
 
-def _time(sess, feeds: dict[str, np.ndarray], repeats: int) -> str:
-    """"min (p50)" milliseconds: on a shared machine the minimum is the least disturbed run."""
+def _times(sess, feeds: dict[str, np.ndarray], repeats: int, clock) -> np.ndarray:
+    """Seconds per run by `clock` (time.perf_counter: wall; time.process_time: this process's CPU)."""
     for _ in range(3):
         sess.run(None, feeds)
     times = []
     for _ in range(repeats):
-        t = time.perf_counter()
+        t = clock()
         sess.run(None, feeds)
-        times.append(time.perf_counter() - t)
-    return f"{np.min(times) * 1e3:.1f} ({np.median(times) * 1e3:.1f})"
-
-
-def _cpu_time(sess, feeds: dict[str, np.ndarray], repeats: int) -> float:
-    """Median process CPU time of one run, ms (one intra-op thread: no spinning pool threads)."""
-    for _ in range(2):
-        sess.run(None, feeds)
-    times = []
-    for _ in range(repeats):
-        t = time.process_time()
-        sess.run(None, feeds)
-        times.append(time.process_time() - t)
-    return float(np.median(times) * 1e3)
+        times.append(clock() - t)
+    return np.array(times)
 
 
 def _feeds(names: list[str], arrays: list[np.ndarray], b: int) -> dict[str, np.ndarray]:
@@ -91,11 +79,15 @@ def _measure(net: torch.nn.Module, names: list[str], arrays: list[np.ndarray], o
     for prec, path in (("fp32", fp32), ("int8", int8)):
         if cpu_time:
             sess = ort_session(path, threads=1)
-            row[f"{prec}_cpu_ms_per_pallet"] = round(_cpu_time(sess, _feeds(names, arrays, 4), repeats) / 4, 2)
+            # one intra-op thread: no spinning pool threads in the CPU time
+            cpu = _times(sess, _feeds(names, arrays, 4), repeats, time.process_time)
+            row[f"{prec}_cpu_ms_per_pallet"] = round(float(np.median(cpu)) * 1e3 / 4, 2)
             continue
         sess = ort_session(path, threads=2)
         for b in BATCHES:
-            row[f"{prec}_b{b}_ms"] = _time(sess, _feeds(names, arrays, b), repeats)
+            # "min (median)": on a shared machine the minimum is the least disturbed run
+            wall = _times(sess, _feeds(names, arrays, b), repeats, time.perf_counter) * 1e3
+            row[f"{prec}_b{b}_ms"] = f"{wall.min():.1f} ({np.median(wall):.1f})"
     return row
 
 

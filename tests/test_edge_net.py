@@ -15,14 +15,14 @@ from pallet6d.export.bundle_export import export_bundle  # noqa: E402
 from pallet6d.export.calib_data import make_calibration_set  # noqa: E402
 from pallet6d.export.config import CONFIGS, FusionConfig, get_config  # noqa: E402
 from pallet6d.export.fusion import FusionNet, SampledFusionNet, build_fusion, sample_bilinear  # noqa: E402
-from pallet6d.export.losses import pad_symmetries, pose_loss, stack_model_points  # noqa: E402
+from pallet6d.export.losses import pad_symmetries, pose_loss, quat_to_rot, stack_model_points  # noqa: E402
 from pallet6d.export.onnx_io import check_parity, export_graph, ort_session  # noqa: E402
 from pallet6d.export.train_data import NO_AUGMENT  # noqa: E402
 from pallet6d.export.train_pose import PoseTrainer, gather_points, load_pose_data  # noqa: E402
 from pallet6d.export.warm_start import transfer_state  # noqa: E402
 from pallet6d.runtime.bundle import load_bundle  # noqa: E402
 from pallet6d.runtime.geometry import rot_to_quat  # noqa: E402
-from pallet6d.sim.pallets import get_pallet_model  # noqa: E402
+from pallet6d.sim.pallets import ROT_Z_180, get_pallet_model  # noqa: E402
 
 TINY = get_config("tiny")
 # the tiny widths with edge2's fusion structure: no upsampling, no dilation, sampled at stride 8
@@ -95,13 +95,6 @@ def test_sampled_fusion_exports_with_choose_and_matches_torch(tmp_path, stride):
         np.testing.assert_allclose(got, ref, atol=1e-4, rtol=1e-4)
 
 
-def _rz(deg: float) -> np.ndarray:
-    a = np.deg2rad(deg)
-    T = np.eye(4)
-    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-    return T
-
-
 def test_per_type_loss_uses_each_samples_own_symmetries():
     """Two samples predicted 180 degrees off about z: zero loss for the type with that symmetry only."""
     epal = get_pallet_model("epal")
@@ -109,9 +102,10 @@ def test_per_type_loss_uses_each_samples_own_symmetries():
     pm_other = pm_epal[:150] * torch.tensor([1.0, 1.2, 1.0], dtype=torch.float64)   # another size, fewer points
     sym_epal = torch.from_numpy(np.asarray(epal.symmetries)).double()            # identity, z 180
     sym_none = torch.eye(4, dtype=torch.float64)[None]                            # no symmetry
-    T_gt = torch.from_numpy(np.stack([_rz(20.0), _rz(-35.0)]))
+    T_gt = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    T_gt[:, :3, :3] = quat_to_rot(torch.tensor([[0.9, 0.1, -0.2, 0.3], [0.5, -0.4, 0.1, 0.6]], dtype=torch.float64))
     T_gt[:, :3, 3] = torch.tensor([[0.1, 0.0, 0.0], [-0.2, 0.1, 0.05]], dtype=torch.float64)
-    T_pred = T_gt @ torch.from_numpy(_rz(180.0))
+    T_pred = T_gt @ torch.from_numpy(ROT_Z_180)
     n = 6
     points = torch.randn(2, n, 3, dtype=torch.float64) * 0.2
     quat = torch.from_numpy(np.stack([rot_to_quat(T[:3, :3]) for T in T_pred.numpy()]))[:, None].expand(2, n, 4)
