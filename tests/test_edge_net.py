@@ -30,12 +30,7 @@ TINY_SAMPLED = TINY.replace(name="tiny-sampled", fusion=dataclasses.replace(
     TINY.fusion, up_channels=(), dilated=False, sample_stride=8, attention_stride=8))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _inputs(cfg, b: int, seed: int = 0):
