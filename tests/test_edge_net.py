@@ -57,6 +57,8 @@ def test_configs_pick_the_graph_and_validate_the_sampled_structure():
     assert e2.fusion.sampled and not e2.fusion.dilated and e2.fusion.up_channels == ()
     assert e2.pose == CONFIGS["edge"].pose and e2.fusion.resnet_widths == CONFIGS["edge"].fusion.resnet_widths
     assert not any(CONFIGS[n].fusion.sampled for n in ("paper", "edge", "densefusion", "edge-densefusion"))
+    e2d, e = CONFIGS["edge2-dilated"].fusion, CONFIGS["edge"].fusion
+    assert e2d.sampled and e2d.dilated and e2d.crop_hw == e.crop_hw and e2d.psp_out == e.psp_out
     with pytest.raises(ValueError, match="up_channels must be empty"):
         FusionConfig(crop_hw=(80, 80), sample_stride=8)
     with pytest.raises(ValueError, match="sample_stride must be"):
