@@ -1,12 +1,13 @@
 """ResNet18 + PSP feature extractor (paper 3.1.1, DenseFusion's PSPNet with a ResNet18 backend).
 
 ResNet18 to output stride 8: stem (7x7/2 conv, 3x3/2 max-pool), layer1, layer2 (stride 2), then layer3
-and layer4 at stride 8, dilated (2 and 4) as in DenseFusion or plain 3x3 (`dilated=False`: the same weights,
-FLOPs and measured speed; the plain ResNet18 layout, with the PSP pooling supplying the wide context). PSP: average pooling to 1x1, 2x2, 3x3, 6x6 bins, a 1x1 conv per bin, bilinear
-upsampling, concatenation with the input, a 1x1 bottleneck. Then x2 upsampling stages (bilinear, 3x3
-conv, PReLU; DenseFusion: three, back to the crop resolution; none when the features are sampled at
-stride 8), and a 1x1 conv to the branch's feature dimension. (DenseFusion ends with a log-softmax, a leftover of PSPNet's segmentation use;
-the features here stay linear.)
+and layer4 at stride 8, dilated (2 and 4) as in DenseFusion or plain 3x3 (`dilated=False`: the same
+weights, FLOPs and measured speed; the plain ResNet18 layout, with the PSP pooling supplying the wide
+context). PSP: average pooling to 1x1, 2x2, 3x3, 6x6 bins, a 1x1 conv per bin, bilinear upsampling,
+concatenation with the input, a 1x1 bottleneck. Then x2 upsampling stages (bilinear, 3x3 conv, PReLU;
+DenseFusion: three, back to the crop resolution; none when the features are sampled at stride 8), and a
+1x1 conv to the branch's feature dimension. (DenseFusion ends with a log-softmax, a leftover of PSPNet's
+segmentation use; the features here stay linear.)
 
 Adaptive average pooling is written as two fixed pooling matrices (for the crop size given at build
 time) so that the graph exports with any bin count, also when it does not divide the feature size.

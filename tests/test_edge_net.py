@@ -185,7 +185,8 @@ def test_export_writes_the_sampled_graph_and_its_choose_input(tmp_path):
     for name in ("fusion.onnx", "fusion.int8.onnx"):
         sess = ort_session(tmp_path / "b" / name, threads=1)
         assert [i.name for i in sess.get_inputs()] == ["rgb", "depth", "choose"]
-        out = sess.run(None, {"rgb": calib.rgb_crops[:3], "depth": calib.depth_crops[:3], "choose": calib.choose[:3]})[0]
+        feeds = {"rgb": calib.rgb_crops[:3], "depth": calib.depth_crops[:3], "choose": calib.choose[:3]}
+        out = sess.run(None, feeds)[0]
         assert out.shape == (3, n, c) and np.isfinite(out).all()
     dense = export_bundle(TINY, tmp_path / "d", random_init=True, calib=make_calibration_set(
         TINY, frames=2, max_crops=8, seed=0, synthetic=True), command="test")
