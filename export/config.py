@@ -232,14 +232,6 @@ CONFIGS: dict[str, ModelConfig] = {
         pose=PoseConfig(num_points=256, point_dims=(64, 128), global_dims=(256, 512), head_dims=(320, 128, 64),
                         attention=True),
     ),
-    "edge2-dilated": ModelConfig(
-        name="edge2-dilated",
-        detector=DetectorConfig(scale="n", input_hw=(192, 640)),
-        fusion=FusionConfig(crop_hw=(96, 96), resnet_widths=(32, 64, 128, 256), psp_out=512, up_channels=(),
-                            branch_dim=32, attention=True, attention_stride=8, dilated=True, sample_stride=8),
-        pose=PoseConfig(num_points=256, point_dims=(64, 128), global_dims=(256, 512), head_dims=(320, 128, 64),
-                        attention=True),
-    ),
     "densefusion": ModelConfig(
         name="densefusion",
         detector=DetectorConfig(scale="s", input_hw=(384, 1216)),
@@ -256,6 +248,10 @@ CONFIGS: dict[str, ModelConfig] = {
                         attention=True, attention_heads=2),
     ),
 }
+
+# edge2 with edge's crop and dilated layers: the backbone computes what edge's computes
+CONFIGS["edge2-dilated"] = CONFIGS["edge2"].replace(
+    name="edge2-dilated", fusion=dataclasses.replace(CONFIGS["edge2"].fusion, crop_hw=(96, 96), dilated=True))
 
 
 def get_config(name: str) -> ModelConfig:
