@@ -13,6 +13,13 @@ Variants (`CONFIGS`):
   stride 8 (12x12 tokens); pose MLPs at half width. The paper-sized pose stage is ~30 GFLOP/pallet
   (~150 ms fp32 on 2 cores); width/2 cuts conv cost ~4x and crop 96 vs 120 another ~1.56x, which puts
   fusion+pose at a few GFLOP per pallet (measured numbers in the export report / manifest `scores`).
+- ``edge2``: the edge network rebuilt for per-pallet latency: the fusion graph stops at stride 8 (no
+  upsampling stages, layer3/4 not dilated), samples the fused stride-8 map bilinearly at the N chosen
+  pixels inside the graph (third input `choose`, output (B, N, C)), on an 80x80 crop; attention over the
+  10x10 stride-8 tokens; the pose network as in ``edge``. Costs and accuracy in docs/experiments/edge-net.md.
+- ``edge2-dilated``: ``edge2`` with ``edge``'s crop (96) and dilated layer3/4: the backbone computes exactly what
+  the shipped ``edge`` backbone computes, so a warm start from it loses only the two output convs (0.7 ms more
+  per pallet at int8 than ``edge2``); the fallback if ``edge2`` does not reach ``edge``'s accuracy.
 - ``densefusion``: ``paper`` without any attention block (the paper's ablation baseline).
 - ``edge-densefusion``: ``edge`` without any attention block (the same ablation at the shipped size).
 - ``tiny``: minimal widths for fast tests (never for deployment).
@@ -91,17 +98,25 @@ class FusionConfig:
     :ivar attention: apply multi-head self-attention to the fused map.
     :ivar attention_stride: attention runs on the fused map average-pooled by this factor, then its
         output is upsampled and added back (residual), because full-resolution attention is too costly.
+    :ivar dilated: layer3/4 dilated (2, 4) as in DenseFusion; False: plain 3x3 convolutions at stride 8.
+    :ivar sample_stride: 0: the graph outputs the dense (B, C, h, w) map at crop resolution (three
+        upsampling stages, `up_channels`). 8 or 4: no upsampling stages (`up_channels` must be empty); the
+        graph takes `choose` (B, N) pixel indices and returns the fused features sampled bilinearly at
+        those pixels (B, N, C), from the stride-8 map, or from a light stride-4 decoder (the stride-8
+        features upsampled and added to a projection of layer1). Attention then runs at stride 8.
     """
 
     crop_hw: tuple[int, int] = (120, 120)
     resnet_widths: tuple[int, int, int, int] = (64, 128, 256, 512)
     psp_sizes: tuple[int, ...] = (1, 2, 3, 6)
     psp_out: int = 1024
-    up_channels: tuple[int, int, int] = (256, 64, 64)
+    up_channels: tuple[int, ...] = (256, 64, 64)
     branch_dim: int = 32
     attention: bool = True
     attention_heads: int = 4
     attention_stride: int = 4
+    dilated: bool = True
+    sample_stride: int = 0
 
     def __post_init__(self) -> None:
         h, w = self.crop_hw
@@ -109,6 +124,16 @@ class FusionConfig:
             raise ValueError(f"crop_hw must be positive multiples of 8 (backbone stride), got {self.crop_hw}")
         _check_positive("resnet_widths", self.resnet_widths)
         _check_positive("up_channels", self.up_channels)
+        if self.sample_stride not in (0, 4, 8):
+            raise ValueError(f"sample_stride must be 0 (dense output), 4 or 8, got {self.sample_stride}")
+        if self.sample_stride and self.up_channels:
+            raise ValueError(f"sample_stride {self.sample_stride} samples the stride-{self.sample_stride} map: "
+                             f"up_channels must be empty, got {self.up_channels}")
+        if not self.sample_stride and len(self.up_channels) != 3:
+            raise ValueError(f"a dense fusion output needs three upsampling stages, got up_channels {self.up_channels}")
+        if self.sample_stride and self.attention and self.attention_stride != 8:
+            raise ValueError(f"with sample_stride, attention runs on the stride-8 map: attention_stride must be 8, "
+                             f"got {self.attention_stride}")
         _check_positive("psp_sizes", self.psp_sizes)
         if self.attention:
             if h % self.attention_stride or w % self.attention_stride:
@@ -121,6 +146,11 @@ class FusionConfig:
     def feature_dim(self) -> int:
         """Channels of the fused per-pixel feature map (RGB + depth)."""
         return 2 * self.branch_dim
+
+    @property
+    def sampled(self) -> bool:
+        """The graph takes `choose` and returns per-point features (B, N, feature_dim)."""
+        return self.sample_stride > 0
 
 
 @dataclass(frozen=True)
@@ -194,6 +224,14 @@ CONFIGS: dict[str, ModelConfig] = {
         pose=PoseConfig(num_points=256, point_dims=(64, 128), global_dims=(256, 512), head_dims=(320, 128, 64),
                         attention=False),
     ),
+    "edge2": ModelConfig(
+        name="edge2",
+        detector=DetectorConfig(scale="n", input_hw=(192, 640)),
+        fusion=FusionConfig(crop_hw=(80, 80), resnet_widths=(32, 64, 128, 256), psp_out=512, up_channels=(),
+                            branch_dim=32, attention=True, attention_stride=8, dilated=False, sample_stride=8),
+        pose=PoseConfig(num_points=256, point_dims=(64, 128), global_dims=(256, 512), head_dims=(320, 128, 64),
+                        attention=True),
+    ),
     "densefusion": ModelConfig(
         name="densefusion",
         detector=DetectorConfig(scale="s", input_hw=(384, 1216)),
@@ -210,6 +248,10 @@ CONFIGS: dict[str, ModelConfig] = {
                         attention=True, attention_heads=2),
     ),
 }
+
+# edge2 with edge's crop and dilated layers: the backbone computes what edge's computes
+CONFIGS["edge2-dilated"] = CONFIGS["edge2"].replace(
+    name="edge2-dilated", fusion=dataclasses.replace(CONFIGS["edge2"].fusion, crop_hw=(96, 96), dilated=True))
 
 
 def get_config(name: str) -> ModelConfig:

@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from .detector import YoloDetector, make_anchors
 
-__all__ = ["quat_to_rot", "pose_loss", "bbox_ciou", "DetectorLoss"]
+__all__ = ["quat_to_rot", "pose_loss", "pad_symmetries", "stack_model_points", "bbox_ciou", "DetectorLoss"]
 
 
 # ----------------------------------------------------------------------------------------------- pose
@@ -33,13 +33,15 @@ def pose_loss(quat: torch.Tensor, trans: torch.Tensor, conf: torch.Tensor, point
 
     T_i = (R(quat_i), points_i + trans_i) is point i's pose prediction; with `symmetries` (S, 4, 4)
     d_i is the minimum over the ground truth composed with each symmetry, T_gt S_s, so a pallet turned
-    by one of its symmetries is not penalised.
+    by one of its symmetries is not penalised. A batch of several pallet types passes each sample's own
+    geometry: `model_points` (B, M, 3) and `symmetries` (B, S, 4, 4) (`stack_model_points`, `pad_symmetries`).
 
     :param quat: (B, N, 4) wxyz. :param trans: (B, N, 3) offsets from `points`. :param conf: (B, N) in (0, 1).
     :param points: (B, N, 3) centred camera-frame points (metres).
     :param model_points: (M, 3) or (B, M, 3) pallet-frame model points (metres).
     :param T_gt: (B, 4, 4) ground-truth pose in the same (centred) camera frame as `points`.
-    :param symmetries: (S, 4, 4) pallet-frame symmetry transforms, identity first, or None.
+    :param symmetries: (S, 4, 4) pallet-frame symmetry transforms, identity first, shared by the batch; or
+        (B, S, 4, 4) per sample (padded with identities); or None.
     :param w: confidence regulariser (DenseFusion: 0.015).
     :return: scalar loss, and (B, N) distances d_i (metres) for monitoring.
     """
@@ -52,12 +54,48 @@ def pose_loss(quat: torch.Tensor, trans: torch.Tensor, conf: torch.Tensor, point
     t = points + trans                                                         # (B, N, 3)
     pred = torch.einsum("bnij,bmj->bnmi", R, pm) + t[:, :, None, :]           # (B, N, M, 3)
     sym = torch.eye(4, dtype=T_gt.dtype, device=T_gt.device)[None] if symmetries is None else symmetries.to(T_gt)
-    T_sym = T_gt[:, None] @ sym[None]                                          # (B, S, 4, 4)
+    if sym.dim() == 3:
+        sym = sym[None]
+    if sym.dim() != 4 or sym.shape[0] not in (1, b) or sym.shape[-2:] != (4, 4):
+        raise ValueError(f"pose_loss: symmetries must be (S, 4, 4) or ({b}, S, 4, 4), got {tuple(sym.shape)}")
+    if pm.shape[0] != b or pm.shape[-1] != 3:
+        raise ValueError(f"pose_loss: model_points must be (M, 3) or ({b}, M, 3), got {tuple(model_points.shape)}")
+    T_sym = T_gt[:, None] @ sym                                                # (B, S, 4, 4)
     target = torch.einsum("bsij,bmj->bsmi", T_sym[..., :3, :3], pm) + T_sym[:, :, None, :3, 3]   # (B, S, M, 3)
     dist = (pred[:, :, None] - target[:, None]).norm(dim=-1).mean(-1)          # (B, N, S)
     d = dist.min(-1).values
     c = conf.clamp(1e-6, 1.0)
     return (d * c - w * torch.log(c)).mean(), d
+
+
+def pad_symmetries(symmetries: list[torch.Tensor]) -> torch.Tensor:
+    """Per-sample symmetry sets (S_i, 4, 4) -> (B, max S_i, 4, 4), each padded with identities.
+
+    A repeated identity changes nothing in `pose_loss`'s minimum over symmetries.
+    """
+    if not symmetries:
+        raise ValueError("pad_symmetries: no symmetry sets")
+    s_max = max(len(s) for s in symmetries)
+    out = torch.eye(4, dtype=symmetries[0].dtype, device=symmetries[0].device).repeat(len(symmetries), s_max, 1, 1)
+    for i, s in enumerate(symmetries):
+        if s.dim() != 3 or s.shape[1:] != (4, 4) or len(s) < 1:
+            raise ValueError(f"pad_symmetries: set {i} must be (S, 4, 4) with S >= 1, got {tuple(s.shape)}")
+        out[i, :len(s)] = s
+    return out
+
+
+def stack_model_points(points: list[torch.Tensor]) -> torch.Tensor:
+    """Per-sample model points (M_i, 3) -> (B, max M_i, 3); a shorter set repeats its points cyclically (its
+    mean distance in `pose_loss` stays that of its own surface, reweighted by at most one repeat)."""
+    if not points:
+        raise ValueError("stack_model_points: no point sets")
+    m = max(len(p) for p in points)
+    rows = []
+    for i, p in enumerate(points):
+        if p.dim() != 2 or p.shape[1] != 3 or len(p) < 1:
+            raise ValueError(f"stack_model_points: set {i} must be (M, 3) with M >= 1, got {tuple(p.shape)}")
+        rows.append(p[torch.arange(m, device=p.device) % len(p)])
+    return torch.stack(rows)
 
 
 # ------------------------------------------------------------------------------------------- detector

@@ -1,11 +1,13 @@
 """ResNet18 + PSP feature extractor (paper 3.1.1, DenseFusion's PSPNet with a ResNet18 backend).
 
 ResNet18 to output stride 8: stem (7x7/2 conv, 3x3/2 max-pool), layer1, layer2 (stride 2), then layer3
-and layer4 dilated (2 and 4) instead of strided. PSP: average pooling to 1x1, 2x2, 3x3, 6x6 bins, a 1x1
-conv per bin, bilinear upsampling, concatenation with the input, a 1x1 bottleneck. Three x2 upsampling
-stages (bilinear, 3x3 conv, PReLU) back to the crop resolution, then a 1x1 conv to the branch's
-feature dimension. (DenseFusion ends with a log-softmax, a leftover of PSPNet's segmentation use;
-the features here stay linear.)
+and layer4 at stride 8, dilated (2 and 4) as in DenseFusion or plain 3x3 (`dilated=False`: the same
+weights, FLOPs and measured speed; the plain ResNet18 layout, with the PSP pooling supplying the wide
+context). PSP: average pooling to 1x1, 2x2, 3x3, 6x6 bins, a 1x1 conv per bin, bilinear upsampling,
+concatenation with the input, a 1x1 bottleneck. Then x2 upsampling stages (bilinear, 3x3 conv, PReLU;
+DenseFusion: three, back to the crop resolution; none when the features are sampled at stride 8), and a
+1x1 conv to the branch's feature dimension. (DenseFusion ends with a log-softmax, a leftover of PSPNet's
+segmentation use; the features here stay linear.)
 
 Adaptive average pooling is written as two fixed pooling matrices (for the crop size given at build
 time) so that the graph exports with any bin count, also when it does not divide the feature size.
@@ -39,22 +41,29 @@ class BasicBlock(nn.Module):
 
 
 class ResNet18Dilated(nn.Module):
-    """ResNet18 with output stride 8 (layer3/4 dilated 2/4). :param in_channels: 3 for RGB, 1 for depth."""
+    """ResNet18 with output stride 8 (layer3/4 dilated 2/4, or not dilated). :param in_channels: 3 for RGB,
+    1 for depth."""
 
-    def __init__(self, in_channels: int, widths: tuple[int, int, int, int]) -> None:
+    def __init__(self, in_channels: int, widths: tuple[int, int, int, int], dilated: bool = True) -> None:
         super().__init__()
         w1, w2, w3, w4 = widths
         self.stem = nn.Sequential(nn.Conv2d(in_channels, w1, 7, 2, 3, bias=False), nn.BatchNorm2d(w1),
                                   nn.ReLU(inplace=True), nn.MaxPool2d(3, 2, 1))
         self.layer1 = nn.Sequential(BasicBlock(w1, w1), BasicBlock(w1, w1))
         self.layer2 = nn.Sequential(BasicBlock(w1, w2, stride=2), BasicBlock(w2, w2))
-        self.layer3 = nn.Sequential(BasicBlock(w2, w3, dilation=2), BasicBlock(w3, w3, dilation=2))
-        self.layer4 = nn.Sequential(BasicBlock(w3, w4, dilation=4), BasicBlock(w4, w4, dilation=4))
+        d3, d4 = (2, 4) if dilated else (1, 1)
+        self.layer3 = nn.Sequential(BasicBlock(w2, w3, dilation=d3), BasicBlock(w3, w3, dilation=d3))
+        self.layer4 = nn.Sequential(BasicBlock(w3, w4, dilation=d4), BasicBlock(w4, w4, dilation=d4))
         self.out_channels = w4
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(B, C_in, H, W) -> (B, widths[3], H/8, W/8)."""
         return self.layer4(self.layer3(self.layer2(self.layer1(self.stem(x)))))
+
+    def forward_with_stride4(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, C_in, H, W) -> layer1's (B, widths[0], H/4, W/4) and the (B, widths[3], H/8, W/8) output."""
+        s4 = self.layer1(self.stem(x))
+        return s4, self.layer4(self.layer3(self.layer2(s4)))
 
 
 def adaptive_pool_matrix(n_in: int, n_out: int) -> torch.Tensor:
@@ -68,15 +77,19 @@ def adaptive_pool_matrix(n_in: int, n_out: int) -> torch.Tensor:
 
 
 class PSPNet(nn.Module):
-    """ResNet18 + PSP + upsampling: (B, C_in, H, W) -> (B, out_dim, H, W).
+    """ResNet18 + PSP + upsampling: (B, C_in, H, W) -> (B, out_dim, H / 2^(3 - len(up_channels)), ...).
 
     :param in_hw: the crop size the network is built for (H, W multiples of 8).
+    :param up_channels: one x2 upsampling stage per entry (three: back to the crop; none: stride 8).
+    :param with_stride4: also return layer1's (B, widths[0], H/4, W/4) map (for a stride-4 decoder).
     """
 
     def __init__(self, in_channels: int, in_hw: tuple[int, int], widths: tuple[int, int, int, int],
-                 psp_sizes: tuple[int, ...], psp_out: int, up_channels: tuple[int, int, int], out_dim: int) -> None:
+                 psp_sizes: tuple[int, ...], psp_out: int, up_channels: tuple[int, ...], out_dim: int,
+                 dilated: bool = True, with_stride4: bool = False) -> None:
         super().__init__()
-        self.backbone = ResNet18Dilated(in_channels, widths)
+        self.with_stride4 = with_stride4
+        self.backbone = ResNet18Dilated(in_channels, widths, dilated)
         c = self.backbone.out_channels
         self.feat_hw = (in_hw[0] // 8, in_hw[1] // 8)
         for s in psp_sizes:
@@ -94,11 +107,17 @@ class PSPNet(nn.Module):
         self.up = nn.Sequential(*ups)
         self.final = nn.Conv2d(c_prev, out_dim, 1)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        f = self.backbone(x)
+    def context(self, f: torch.Tensor) -> torch.Tensor:
+        """PSP on the backbone's (B, C, H/8, W/8) output -> (B, psp_out, H/8, W/8) after the bottleneck."""
         h, w = self.feat_hw
         priors = [f]
         for s, stage in zip(self.psp_sizes, self.stages):
             pooled = getattr(self, f"pool_h{s}") @ f @ getattr(self, f"pool_w{s}")     # (B, C, s, s)
             priors.append(F.interpolate(stage(pooled), size=(h, w), mode="bilinear", align_corners=False))
-        return self.final(self.up(self.bottleneck(torch.cat(priors, 1))))
+        return self.bottleneck(torch.cat(priors, 1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        if not self.with_stride4:
+            return self.final(self.up(self.context(self.backbone(x))))
+        s4, s8 = self.backbone.forward_with_stride4(x)
+        return self.final(self.up(self.context(s8))), s4

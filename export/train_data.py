@@ -34,7 +34,7 @@ from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
            "augment_rgb", "augment_depth", "flip_horizontal", "zoom_and_shift", "build_pose_samples",
            "build_detector_samples",
-           "load_or_build", "model_points_for", "MIN_VISIB_FRACT", "CACHE_VERSION"]
+           "load_or_build", "model_points_for", "pallet_type_name", "MIN_VISIB_FRACT", "CACHE_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -210,18 +210,24 @@ def zoom_and_shift(image: np.ndarray, boxes_xyxy: np.ndarray, rng: np.random.Gen
 # ------------------------------------------------------------------------------------------- models
 
 
-def model_points_for(ds: BopDataset, obj_id: int, n: int, fallback: str) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 3) float32 pallet-frame surface points (metres) and (S, 4, 4) symmetries of a dataset's object.
-
-    The sim writes each model's name into models_info.json; other datasets fall back to `fallback`.
-    """
-    from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
+def pallet_type_name(ds: BopDataset, obj_id: int, fallback: str) -> str:
+    """The pallet type (`sim.pallets` model name) of a dataset's object: the name the sim writes into
+    models_info.json; `fallback` for other datasets."""
+    from pallet6d.sim.pallets import PALLET_MODELS
 
     name = ds.models_info.get(int(obj_id), {}).get("name")
     if name not in PALLET_MODELS:
         log.warning("%s: obj_id %s has no known pallet name; using the %r model", ds.root, obj_id, fallback)
-        name = fallback
-    model = get_pallet_model(name)
+        return fallback
+    return name
+
+
+def model_points_for(ds: BopDataset, obj_id: int, n: int, fallback: str) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) float32 pallet-frame surface points (metres) and (S, 4, 4) symmetries of a dataset's object
+    (its type: `pallet_type_name`)."""
+    from pallet6d.sim.pallets import get_pallet_model
+
+    model = get_pallet_model(pallet_type_name(ds, obj_id, fallback))
     return model.surface_points(n, seed=0).astype(np.float32), np.array(model.symmetries, np.float64)
 
 

@@ -3,8 +3,13 @@
 Inputs come from `train_data.build_pose_samples` (the runtime's `prepare_pose_inputs` on jittered ground-truth
 boxes, mask-free point selection), so the crops, depth encoding, sampled points and feature indices are those
 the runtime computes. The loss compares each per-point pose with the ground truth in the centred camera frame,
-over the pallet's symmetries (`losses.pose_loss`). Validation measures what the runtime will report: the
+over the pallet's symmetries (`losses.pose_loss`). Every ground-truth pallet's type comes from its BOP `obj_id`
+(the sim writes one obj_id and model per type), so a batch may mix types: each sample's loss uses its own
+type's model points and symmetries (padded per batch). Validation measures what the runtime will report: the
 symmetry-aware ADD of the most confident per-point hypothesis.
+
+A fusion network with `sample_stride` samples its features at `choose` inside the graph; the dense one's
+map is gathered at `choose` here, as the runtime does.
 """
 from __future__ import annotations
 
@@ -21,10 +26,12 @@ from pallet6d.runtime.bop import BopDataset
 from .calib_data import pose_input_spec
 from .config import ModelConfig
 from .fusion import build_fusion
-from .losses import pose_loss
+from .losses import pad_symmetries, pose_loss, stack_model_points
 from .pose import build_pose
-from .train_data import AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for
+from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for,
+                         pallet_type_name)
 from .train_loop import LoopSettings, autocast, train_epochs
+from .warm_start import init_config, warm_start
 
 __all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "train_pose"]
 
@@ -38,6 +45,7 @@ class PoseData:
     """Samples of several datasets, with a train/val split by frame and the models' points/symmetries.
 
     :ivar model_points: obj_id -> (M, 3) float32 metres. :ivar symmetries: obj_id -> (S, 4, 4).
+    :ivar type_names: obj_id -> pallet type name (`sim.pallets` name; the exporter writes these types).
     """
 
     samples: PoseSamples
@@ -46,6 +54,7 @@ class PoseData:
     model_points: dict[int, np.ndarray]
     symmetries: dict[int, np.ndarray]
     fingerprints: list[dict]
+    type_names: dict[int, str]
 
 
 def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, seed: int, aug: AugmentConfig,
@@ -58,7 +67,7 @@ def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, 
     from tqdm import tqdm
 
     spec = pose_input_spec(cfg)
-    parts, fps, model_points, syms = [], [], {}, {}
+    parts, fps, model_points, syms, names = [], [], {}, {}, {}
     frame_offset = 0
     for root in data:
         settings = {"spec": repr(spec), "variants": variants, "seed": seed, "aug": aug.to_dict(),
@@ -76,6 +85,10 @@ def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, 
         fps.append(fp)
         ds = BopDataset(root)
         for obj in np.unique(s.obj_id):
+            name = pallet_type_name(ds, int(obj), cfg.pallet)
+            if names.setdefault(int(obj), name) != name:
+                raise ValueError(f"{root}: obj_id {int(obj)} is {name!r} here but {names[int(obj)]!r} in another "
+                                 "dataset; datasets trained together must number their pallet types alike")
             if int(obj) not in model_points:
                 model_points[int(obj)], syms[int(obj)] = model_points_for(ds, int(obj), MODEL_POINTS, cfg.pallet)
     samples = PoseSamples.concat(parts)
@@ -89,7 +102,7 @@ def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, 
     if len(val_idx) == 0:   # tiny datasets: validate on the clean views of the training frames
         val_idx = np.flatnonzero(samples.variant == 0)
     log.info("pose samples: %d train, %d val (%d frames held out)", len(train_idx), len(val_idx), n_val)
-    return PoseData(samples, train_idx, val_idx, model_points, syms, fps)
+    return PoseData(samples, train_idx, val_idx, model_points, syms, fps, names)
 
 
 def gather_points(features: torch.Tensor, choose: torch.Tensor) -> torch.Tensor:
@@ -108,8 +121,12 @@ class PoseTrainer:
         self.cfg, self.data, self.device, self.w, self.amp = cfg, data, torch.device(device), w, amp
         self.fusion = build_fusion(cfg.fusion).to(self.device)
         self.pose = build_pose(cfg.pose, cfg.fusion.feature_dim).to(self.device)
-        self.model_points = {k: torch.from_numpy(v).to(self.device) for k, v in data.model_points.items()}
-        self.symmetries = {k: torch.from_numpy(v).float().to(self.device) for k, v in data.symmetries.items()}
+        # per-type geometry as tables indexed by a sample's row in `obj_ids`
+        self.obj_ids = np.array(sorted(data.model_points), np.int64)
+        self.type_points = stack_model_points([torch.from_numpy(data.model_points[int(o)]) for o in self.obj_ids]
+                                              ).float().to(self.device)
+        self.type_symmetries = pad_symmetries([torch.from_numpy(data.symmetries[int(o)]).float()
+                                               for o in self.obj_ids]).to(self.device)
 
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
@@ -123,18 +140,14 @@ class PoseTrainer:
         rgb, depth, pts, choose = t(s.rgb_crops[idx]), t(s.depth_crops[idx]), t(s.points[idx]), t(s.choose[idx])
         T_gt, obj = t(s.T_gt[idx]), s.obj_id[idx]
         with autocast(self.device.type, amp):
-            feats = self.fusion(rgb, depth)
-            out = self.pose(pts, gather_points(feats, choose))
+            if self.cfg.fusion.sampled:
+                point_feats = self.fusion(rgb, depth, choose)
+            else:
+                point_feats = gather_points(self.fusion(rgb, depth), choose)
+            out = self.pose(pts, point_feats)
         quat, trans, conf = (o.float() for o in out)
-        # one loss call per pallet model (symmetry sets may differ between models), weighted by count
-        loss = quat.new_zeros(())
-        d = quat.new_zeros(conf.shape)
-        for o in np.unique(obj):
-            g = torch.from_numpy(np.flatnonzero(obj == o)).to(self.device)
-            l_o, d_o = pose_loss(quat[g], trans[g], conf[g], pts[g], self.model_points[int(o)], T_gt[g],
-                                 self.symmetries[int(o)], self.w)
-            loss = loss + l_o * (len(g) / len(idx))
-            d = d.index_copy(0, g, d_o)
+        rows = torch.from_numpy(np.searchsorted(self.obj_ids, obj)).to(self.device)
+        loss, d = pose_loss(quat, trans, conf, pts, self.type_points[rows], T_gt, self.type_symmetries[rows], self.w)
         return loss, d, conf
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
@@ -176,7 +189,12 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                   "data": pd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "variants": variants, "augment": aug.to_dict(), "val_fraction": val_fraction,
                   "samples": {"train": int(len(pd.train_idx)), "val": int(len(pd.val_idx))},
-                  "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}
+                  "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__),
+                  "pallet_types": {str(k): v for k, v in sorted(pd.type_names.items())}}
+    if init is not None and not resume and init_config(init) != cfg.name:
+        # another config's weights (e.g. edge2 from the edge bundle): copy what fits
+        provenance["init"] = warm_start(init, trainer.nets)
+        init = None
     return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
                         lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
                         resume=resume, progress=progress, init=init)

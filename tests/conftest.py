@@ -42,3 +42,14 @@ def bundle_dir(tmp_path_factory):
                "--out", str(out)])
     assert rc == 0, "pallet6d export --config tiny --random-init failed"
     return out
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Tiny tensors: one thread is faster, and far faster on a busy 2-core machine (no spin-waiting)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

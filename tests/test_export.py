@@ -18,13 +18,7 @@ from pallet6d.runtime.bundle import BundleError, check_bundle, load_bundle
 from pallet6d.sim.pallets import get_pallet_model
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Tiny tensors: one thread is faster, and far faster on a busy 2-core machine (no spin-waiting)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def shrink(cfg):
