@@ -190,7 +190,7 @@ def test_export_writes_the_sampled_graph_and_its_choose_input(tmp_path):
         assert out.shape == (3, n, c) and np.isfinite(out).all()
     dense = export_bundle(TINY, tmp_path / "d", random_init=True, calib=make_calibration_set(
         TINY, frames=2, max_crops=8, seed=0, synthetic=True), command="test")
-    assert dense["fusion"]["choose_input"] is None
+    assert dense.manifest.fusion.choose_input is None
 
 
 def test_trained_pallet_types_come_from_the_pose_provenance():
@@ -217,3 +217,19 @@ def test_a_sampled_bundle_reads_back_into_torch(tmp_path, monkeypatch):
     nets = {"fusion": build_fusion(TINY_SAMPLED.fusion), "pose": build_pose(TINY_SAMPLED.pose, 16)}
     record = load_bundle_weights(tmp_path / "b", nets, calib_frames=2)
     assert set(record["parity"]) == {"fusion", "pose"}
+
+
+def test_the_estimator_runs_a_sampled_bundle(tmp_path):
+    """The runtime feeds `choose` to a fusion graph that samples its own features (`fusion.choose_input`)."""
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    calib = make_calibration_set(TINY_SAMPLED, frames=2, max_crops=8, seed=0, synthetic=True)
+    export_bundle(TINY_SAMPLED, tmp_path / "b", random_init=True, calib=calib, command="test")
+    frame = generate_frame(get_preset("virtual-clean").with_image_size(320, 120), seed=0)
+    est = PalletEstimator.from_bundle(tmp_path / "b", threads=1, score_threshold=0.0, min_fit=0.0, structure=None)
+    x, y, w, h = frame.pallet(frame.target_instance).bbox_visib_xywh
+    result = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=[[x, y, x + w, y + h]])
+    assert len(result.poses) + len(result.rejected) == 1
+    assert all(np.all(np.isfinite(p.T_cam_pallet)) for p in result.poses)
