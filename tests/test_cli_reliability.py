@@ -34,7 +34,7 @@ def _lines(text: str) -> list[dict]:
 
 
 def _run(args, capsys):
-    rc = main(["run", *args])
+    rc = main(["run", "--frame", "camera", *args])
     out = capsys.readouterr()
     return rc, _lines(out.out), out.err
 
@@ -169,7 +169,7 @@ def test_record_stops_on_a_signal_with_every_frame_on_disk_in_the_index(tmp_path
 
 
 def test_run_stops_on_sigterm_with_the_summary_and_only_json_on_stdout(bundle_dir):
-    child = _start_child(["run", "--source", "replay:x", "--bundle", str(bundle_dir), "--threads", "1"])
+    child = _start_child(["run", "--frame", "camera", "--source", "replay:x", "--bundle", str(bundle_dir), "--threads", "1"])
     first = child.stdout.readline()
     assert json.loads(first)["frame"] == 101   # box_frame(i) is frame 100 + i
     child.send_signal(signal.SIGTERM)

@@ -99,7 +99,7 @@ def test_installed_models_package_without_its_bundle_is_an_error(nowhere, instal
 
 
 def test_run_without_a_bundle_exits_2_with_the_hint(nowhere, capsys):
-    assert cli.main(["run", "--source", "bop:does-not-matter"]) == 2
+    assert cli.main(["run", "--frame", "camera", "--source", "bop:does-not-matter"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("pallet6d run: no model bundle given") and "pip install pallet6d_models" in err
 
@@ -122,7 +122,7 @@ def test_bundle_check_without_a_path_checks_the_default(nowhere, monkeypatch, ca
 
 def test_run_uses_the_default_bundle(nowhere, monkeypatch, bundle_dir, sim_bop_dataset, capsys):
     monkeypatch.setenv(BUNDLE_ENV, str(bundle_dir))
-    assert cli.main(["run", "--source", f"bop:{sim_bop_dataset}", "--max-frames", "1", "--max-failures", "1"]) == 0
+    assert cli.main(["run", "--frame", "camera", "--source", f"bop:{sim_bop_dataset}", "--max-frames", "1", "--max-failures", "1"]) == 0
     lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
     assert [x["frame"] for x in lines if "frame" in x] == [0]
     assert all("error" not in x for x in lines)

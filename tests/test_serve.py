@@ -131,9 +131,11 @@ def test_snapshot_is_a_replay_that_run_plays(daemon, bundle_dir, capsys):
     snap = r.json()
     assert 1 <= snap["frames"] <= 2 and snap["source"] == f"replay:{snap['path']}"
     capsys.readouterr()
-    assert main(["run", "--source", snap["source"], "--bundle", str(bundle_dir), "--threads", "1"]) == 0
+    assert main(["run", "--frame", "camera", "--source", snap["source"], "--bundle", str(bundle_dir), "--threads", "1"]) == 0
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
-    assert len(lines) == snap["frames"] and all("poses" in x for x in lines)
+    frames, summary = lines[:-1], lines[-1]          # one line per recorded frame, then the run's summary
+    assert len(frames) == snap["frames"] and all("poses" in x for x in frames)
+    assert summary["summary"]["frames"] == snap["frames"]
 
 
 def test_a_client_that_never_reads_does_not_stall_the_loop(daemon):

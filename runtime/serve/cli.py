@@ -53,7 +53,7 @@ def main(args: argparse.Namespace) -> int:
     log.info("bundle: %s (%s, %d threads)", bundle, config.model.precision, config.model.threads)
     try:
         estimator = EstimatorProcess(bundle, config.model.threads, config.model.precision,
-                                     dataclasses.asdict(config.estimator))
+                                     _options(config.estimator))
     except ValueError as exc:
         print(f"pallet6d serve: cannot load the bundle {bundle}: {exc}", file=sys.stderr)
         return 2
@@ -83,7 +83,7 @@ def _load_estimator(config):
         return None
     try:
         return PalletEstimator.from_bundle(bundle, threads=config.model.threads, precision=config.model.precision,
-                                           **dataclasses.asdict(config.estimator))
+                                           **_options(config.estimator))
     except (BundleError, FileNotFoundError, ValueError) as exc:
         print(f"pallet6d serve: cannot load the bundle {bundle}: {exc}", file=sys.stderr)
         return None
@@ -184,3 +184,9 @@ def _version() -> str:
         return version("pallet6d")
     except PackageNotFoundError:
         return ""
+
+
+def _options(options) -> dict:
+    """`EstimatorOptions` as keyword arguments, its nested settings (structure thresholds, region of interest) kept
+    as the objects they are (`dataclasses.asdict` would turn them into dicts)."""
+    return {f.name: getattr(options, f.name) for f in dataclasses.fields(options)}
