@@ -11,6 +11,8 @@ import onnx
 import onnxruntime as ort
 import torch
 
+from pallet6d.runtime.sessions import session_options
+
 __all__ = ["OPSET", "PARITY_TOLERANCE", "ParityError", "export_graph", "check_parity", "compare_outputs", "ort_session",
            "run_session"]
 
@@ -41,11 +43,8 @@ def export_graph(model: torch.nn.Module, args: tuple[torch.Tensor, ...], path: P
 
 
 def ort_session(path: Path, threads: int = 2) -> ort.InferenceSession:
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.log_severity_level = 3
-    return ort.InferenceSession(str(path), sess_options=so, providers=["CPUExecutionProvider"])
+    """An onnxruntime session with the runtime's own options, so parity and int8 checks see what the runtime runs."""
+    return ort.InferenceSession(str(path), sess_options=session_options(threads), providers=["CPUExecutionProvider"])
 
 
 def run_session(sess: ort.InferenceSession, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
