@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["FACES", "check_rigid", "asymmetric", "default_refine_starts", "derive_pockets_m", "start_offsets_from_rows"]
+__all__ = ["FACES", "check_rigid", "asymmetric", "default_refine_starts", "derive_pockets_m"]
 
 # the faces forks can enter through: the face whose outward normal is that axis
 FACES = ("+x", "-x", "+y", "-y")
@@ -53,33 +53,17 @@ def asymmetric(T: np.ndarray, boxes_m: np.ndarray, atol: float = 1e-5) -> list[i
     return bad
 
 
-def start_offsets_from_rows(rows: np.ndarray) -> np.ndarray:
-    """ICP start offsets from rows of (yaw_deg, dx_m, dy_m).
-
-    :param rows: (S, 3) yaw about z in degrees, slide along x and along y in metres.
-    :return: (S, 4, 4) pallet-frame transforms (right-multiply a pose to start from it).
-    """
-    rows = np.asarray(rows, dtype=np.float64).reshape(-1, 3)
-    a = np.deg2rad(rows[:, 0])
-    out = np.tile(np.eye(4), (len(rows), 1, 1))
-    out[:, 0, 0], out[:, 0, 1] = np.cos(a), -np.sin(a)
-    out[:, 1, 0], out[:, 1, 1] = np.sin(a), np.cos(a)
-    out[:, :2, 3] = rows[:, 1:]
-    return out
-
-
 def default_refine_starts(size_m) -> np.ndarray:
     """The runtime's default ICP starts (`refine.start_offsets`, tuned on EUR/EPAL 1200 x 800) with the
     slides scaled to a pallet of `size_m` (length, width, height).
 
     :return: (S, 3) rows of (yaw_deg, dx_m, dy_m).
     """
-    from .refine import MAX_STARTS, start_offsets
+    from .refine import MAX_STARTS, default_starts
 
-    T = start_offsets(MAX_STARTS)
-    yaw = np.round(np.rad2deg(np.arctan2(T[:, 1, 0], T[:, 0, 0])), 9)
-    scale = np.asarray(size_m, dtype=np.float64)[:2] / np.asarray(_STARTS_TUNED_FOR_M)
-    return np.column_stack([yaw, np.round(T[:, :2, 3] * scale, 9)])
+    rows = default_starts(MAX_STARTS)
+    rows[:, 1:] *= np.asarray(size_m, dtype=np.float64)[:2] / np.asarray(_STARTS_TUNED_FOR_M)
+    return rows
 
 
 def _free_runs(occupied: np.ndarray) -> list[tuple[int, int]]:

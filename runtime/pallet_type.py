@@ -9,7 +9,8 @@ from typing import Mapping
 import numpy as np
 
 from .manifest_fields import BundleError, FieldError, Fields, frozen_array, nonempty_name, positive, relative_name
-from .pallet_geometry import FACES, asymmetric, check_rigid, start_offsets_from_rows
+from .pallet_geometry import FACES, asymmetric, check_rigid
+from .refine import offsets_from_starts
 
 __all__ = ["PalletType"]
 
@@ -121,7 +122,7 @@ class PalletType:
         """The first `n` (default all) of `refine_starts` as (n, 4, 4) pallet-frame offsets (a yaw about z, then
         a slide along x and y), to right-multiply a pose."""
         rows = self.refine_starts if n is None else self.refine_starts[:int(n)]
-        return start_offsets_from_rows(rows)
+        return offsets_from_starts(rows)
 
     @classmethod
     def from_fields(cls, t: Fields) -> "PalletType":

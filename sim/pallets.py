@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pallet6d.runtime.pallet_geometry import default_refine_starts
+
 __all__ = ["PalletModel", "PALLET_MODELS", "FACES", "get_pallet_model", "box_corners", "face_normal",
            "refine_starts_for", "ROT_Z_180"]
 
@@ -343,18 +345,10 @@ class PalletModel:
 
 _SYM_Z180 = np.stack([np.eye(4), ROT_Z_180])
 
-# EPAL's extra ICP starts (runtime/refine.py), slides in metres for a 1200 x 800 pallet: other types scale
-# the slides along x with their length and along y with their width.
-_EPAL_STARTS = np.array([(15.0, 0.0, 0.0), (-15.0, 0.0, 0.0), (0.0, 0.1, 0.0), (0.0, -0.1, 0.0),
-                         (0.0, 0.0, 0.1), (0.0, 0.0, -0.1),
-                         (0.0, 0.05, 0.0), (0.0, -0.05, 0.0), (0.0, 0.0, 0.05), (0.0, 0.0, -0.05),
-                         (30.0, 0.0, 0.0), (-30.0, 0.0, 0.0), (0.0, 0.2, 0.0), (0.0, -0.2, 0.0)])
-
-
 def refine_starts_for(size_m) -> np.ndarray:
-    """(14, 3) extra ICP starts (yaw_deg, dx_m, dy_m) for a pallet of this (3,) size: EPAL's, slides scaled."""
-    scale = np.array([1.0, float(size_m[0]) / 1.2, float(size_m[1]) / 0.8])
-    return _EPAL_STARTS * scale
+    """(14, 3) extra ICP starts (yaw_deg, dx_m, dy_m) for a pallet of this (3,) size: the runtime's EPAL starts,
+    slides scaled with the length and width."""
+    return default_refine_starts(size_m)
 
 
 def _wood_block(length, width, top, block_h=78.0, t=22.0, block_x=145.0, block_y=(100.0, 145.0), bottom="boards",

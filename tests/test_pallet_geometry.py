@@ -2,9 +2,8 @@
 import numpy as np
 import pytest
 
-from pallet6d.runtime.pallet_geometry import (FACES, asymmetric, check_rigid, default_refine_starts, derive_pockets_m,
-                                              start_offsets_from_rows)
-from pallet6d.runtime.refine import MAX_STARTS, start_offsets
+from pallet6d.runtime.pallet_geometry import FACES, asymmetric, check_rigid, default_refine_starts, derive_pockets_m
+from pallet6d.runtime.refine import MAX_STARTS, offsets_from_starts, start_offsets
 from pallet6d.sim.pallets import PALLET_MODELS, ROT_Z_180, get_pallet_model
 
 
@@ -58,11 +57,11 @@ def test_bad_boxes_are_refused():
         derive_pockets_m(np.zeros((2, 3)))
 
 
-def test_start_offsets_from_rows_match_the_refiner():
+def test_default_starts_of_an_epal_are_the_refiners():
     rows = default_refine_starts((1.2, 0.8, 0.144))
     assert rows.shape == (MAX_STARTS, 3)
-    np.testing.assert_allclose(start_offsets_from_rows(rows), start_offsets(MAX_STARTS), atol=1e-12)
-    assert start_offsets_from_rows(np.zeros((0, 3))).shape == (0, 4, 4)
+    np.testing.assert_allclose(offsets_from_starts(rows), start_offsets(MAX_STARTS), atol=1e-12)
+    assert offsets_from_starts(np.zeros((0, 3))).shape == (0, 4, 4)
 
 
 @pytest.mark.parametrize("name", PALLET_MODELS)
