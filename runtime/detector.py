@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Letterbox", "letterbox", "to_nchw", "decode_yolov8", "nms", "undo_letterbox", "Detections"]
+__all__ = ["Letterbox", "choose_input_hw", "letterbox", "to_nchw", "decode_yolov8", "nms", "undo_letterbox", "Detections"]
 
 
 @dataclass(frozen=True)
@@ -27,6 +27,24 @@ class Letterbox:
     pad_y: int
     image_hw: tuple[int, int]
     input_hw: tuple[int, int]
+
+
+def choose_input_hw(image_hw: tuple[int, int], input_sizes) -> tuple[int, int]:
+    """The detector input size (H_in, W_in) of `input_sizes` that draws an image of `image_hw` largest when
+    letterboxed (the largest min(H_in / H, W_in / W)); ties go to the smaller input, then to the earlier size.
+
+    One fully convolutional detector serves cameras of every aspect ratio at about the same cost: a 1224x370 frame
+    gets a wide input, a 640x480 frame a squarer one, each filled instead of padded.
+
+    :param image_hw: (H, W) of the image, both >= 1. :param input_sizes: non-empty sequence of (H_in, W_in).
+    """
+    h, w = int(image_hw[0]), int(image_hw[1])
+    if h < 1 or w < 1:
+        raise ValueError(f"image size must be positive, got {image_hw}")
+    sizes = [(int(s[0]), int(s[1])) for s in input_sizes]
+    if not sizes:
+        raise ValueError("input_sizes is empty: the detector needs at least one input size")
+    return min(sizes, key=lambda s: (-round(min(s[0] / h, s[1] / w), 9), s[0] * s[1]))
 
 
 def letterbox(rgb: np.ndarray, input_hw: tuple[int, int], pad_value: int = 114,

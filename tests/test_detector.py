@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from pallet6d.runtime.detector import Detections, decode_yolov8, letterbox, nms, to_nchw, undo_letterbox
+from pallet6d.runtime.detector import Detections, choose_input_hw, decode_yolov8, letterbox, nms, to_nchw, undo_letterbox
 
 
 def _yolo_output(boxes_cxcywh, class_scores, n_anchors=50, nc=2):
@@ -107,3 +107,24 @@ def test_detections_validate_lengths():
     with pytest.raises(ValueError, match="2 boxes, 1 scores"):
         Detections(np.zeros((2, 4)), np.zeros(1), np.zeros(2))
     assert len(Detections.empty()) == 0
+
+
+SIZES = [(192, 640), (256, 480), (288, 416), (320, 384)]
+
+
+@pytest.mark.parametrize("image_hw, sizes, expected", [
+    ((370, 1224), SIZES, (192, 640)),      # wide paper frames: the wide input
+    ((480, 848), SIZES, (256, 480)),       # 16:9 stereo camera
+    ((480, 640), SIZES, (288, 416)),       # 4:3: 288x416 and 320x384 draw it alike; the smaller input wins
+    ((400, 640), SIZES, (288, 416)),
+    ((480, 640), [(192, 640)], (192, 640)),
+    ((480, 640), [(320, 384), (384, 320)], (320, 384)),   # scale 0.6 vs 0.667: the larger drawing wins
+])
+def test_choose_input_hw(image_hw, sizes, expected):
+    assert choose_input_hw(image_hw, sizes) == expected
+
+
+@pytest.mark.parametrize("image_hw, sizes", [((0, 640), SIZES), ((480, 640), [])])
+def test_choose_input_hw_rejects(image_hw, sizes):
+    with pytest.raises(ValueError):
+        choose_input_hw(image_hw, sizes)
