@@ -106,6 +106,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector-input", type=_hw, metavar="HxW",
                         help="detector: train at this letterboxed input size instead of the config's (multiples "
                              "of 32, e.g. 256x832 for small, far pallets); export uses the size it was trained at")
+    parser.add_argument("--detector-input-sizes", type=_hw_list, metavar="HxW,HxW,...",
+                        help="detector: the input sizes it runs at, each frame at the one that draws it largest (e.g. "
+                             "192x640,256x480,288x416,320x384: wide paper frames, 16:9 and 4:3 cameras at one "
+                             "cost); the first is the reference size unless --detector-input names another of them")
     parser.add_argument("--real", type=Path,
                         help="detector: also train on the train split of real photographs imported by "
                              "`python -m pallet6d.export.real_data import` (this folder; docs/data.md)")
@@ -121,6 +125,10 @@ def _hw(text: str) -> tuple[int, int]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected HxW, e.g. 256x832, got {text!r}") from None
     return h, w
+
+
+def _hw_list(text: str) -> list[tuple[int, int]]:
+    return [_hw(t) for t in text.split(",") if t.strip()]
 
 
 def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path) -> dict:
@@ -191,6 +199,17 @@ def main(args: argparse.Namespace) -> int:
                 print("pallet6d train: --detector-input is for the detector stage", file=sys.stderr)
                 return 2
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=args.detector_input))
+        sizes = args.detector_input_sizes
+        if sizes is not None:
+            if args.stage != "detector" or not sizes:
+                print("pallet6d train: --detector-input-sizes is for the detector stage and needs a size",
+                      file=sys.stderr)
+                return 2
+            if tuple(cfg.detector.input_hw) not in sizes:
+                if args.detector_input is not None:
+                    print("pallet6d train: --detector-input must be one of --detector-input-sizes", file=sys.stderr)
+                    return 2
+                cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=sizes[0]))
         common = dict(resume=args.resume, cache_dir=args.cache_dir, val_fraction=args.val_fraction,
                       max_frames=args.max_frames, command=command, progress=not args.no_progress,
                       init=args.init)
@@ -207,7 +226,7 @@ def main(args: argparse.Namespace) -> int:
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,
-                                   real_max_images=args.real_max_images, **common)
+                                   real_max_images=args.real_max_images, input_sizes=sizes, **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

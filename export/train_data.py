@@ -11,14 +11,16 @@ Targets: the network predicts, per centred point p_i, a rotation and an offset; 
 ``t = centre + p_i + trans_i``. The loss therefore compares against the ground truth expressed in the
 centred frame: ``T_gt_centred = T_cam_pallet`` with ``centre`` subtracted from its translation.
 
-Detector samples are letterboxed to the config's input size once (cached as uint8 with the boxes in input
-pixels); zoom/shift, flips, HSV jitter, blur and noise are applied per epoch.
+Detector samples are the source frames (cached as uint8, longest side capped, boxes in frame pixels); each
+training batch draws one of the detector's input sizes and places every frame in it with a random zoom and
+position (`place_in_window`), then flips, HSV jitter, blur and noise.
 """
 from __future__ import annotations
 
 import hashlib
 import json
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
@@ -32,13 +34,13 @@ from pallet6d.runtime.evaluation import MIN_VISIB_FRACT
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
-           "augment_rgb", "augment_depth", "flip_horizontal", "zoom_and_shift", "build_pose_samples",
+           "augment_rgb", "augment_depth", "flip_horizontal", "place_in_window", "build_pose_samples",
            "build_detector_samples",
            "load_or_build", "model_points_for", "pallet_type_name", "MIN_VISIB_FRACT", "CACHE_VERSION"]
 
 log = logging.getLogger(__name__)
 
-CACHE_VERSION = 2         # bump when the cached arrays' meaning changes
+CACHE_VERSION = 3         # bump when the cached arrays' meaning changes
 
 
 @dataclass(frozen=True)
@@ -52,9 +54,12 @@ class AugmentConfig:
     :ivar depth_dropout_prob: probability of dropping random rectangles of depth (stereo holes).
     :ivar depth_noise_sigma_m: depth noise std at 1 m; grows with z^2 like stereo depth.
     :ivar flip_prob: probability of a horizontal flip (detector only: the pose stage needs true geometry).
-    :ivar zoom_range: detector only: the frame is scaled about its centre by a factor drawn from [1 - r, 1 + r]
-        (YOLOv8's `scale`); zooming out shows far, small pallets more often than the sim's camera paths do.
-    :ivar shift_fraction: detector only: random shift of that zoomed frame, as a fraction of its size.
+    :ivar zoom_range, zoom_in_max: detector only: the frame is drawn at its letterbox scale times a factor
+        log-uniform in [1 - zoom_range, zoom_in_max] (YOLOv8's `scale`): zooming out shows far, small pallets more
+        often than the sim's camera paths do; zooming in shows the pallets of far-away photographs at the size a
+        forklift sees them from a few metres.
+    :ivar shift_fraction: detector only: the zoomed frame lands anywhere its slack in the input allows (or is cut
+        anywhere, when larger), plus up to this fraction of the input size beyond.
     """
 
     box_scale_sigma: float = 0.08
@@ -67,12 +72,13 @@ class AugmentConfig:
     flip_prob: float = 0.5
     zoom_range: float = 0.4
     shift_fraction: float = 0.1
+    zoom_in_max: float = 2.0
 
     def to_dict(self) -> dict:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
 
 
-NO_AUGMENT = AugmentConfig(0.0, 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+NO_AUGMENT = AugmentConfig(0.0, 0.0, (0.0, 0.0, 0.0), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------------------- fingerprints
@@ -174,33 +180,37 @@ def flip_horizontal(image: np.ndarray, boxes_xyxy: np.ndarray) -> tuple[np.ndarr
     return np.ascontiguousarray(image[:, ::-1]), boxes
 
 
-def zoom_and_shift(image: np.ndarray, boxes_xyxy: np.ndarray, rng: np.random.Generator, zoom_range: float,
-                   shift_fraction: float, fill: int = 114, min_area_kept: float = 0.2,
-                   min_side_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
-    """Scale an image about its centre by s ~ U[1 - zoom_range, 1 + zoom_range], shift it by up to
-    `shift_fraction` of its size, and move the boxes with it (YOLOv8's random scale/translate).
+def place_in_window(image: np.ndarray, boxes_xyxy: np.ndarray, window_hw: tuple[int, int], rng: np.random.Generator,
+                    zoom_range: float, zoom_in_max: float, shift_fraction: float, fill: int = 114,
+                    min_area_kept: float = 0.2, min_side_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
+    """Draw a frame into a detector input of `window_hw`: at its letterbox scale times a random zoom
+    (log-uniform in [1 - zoom_range, zoom_in_max]), at a random position (see `AugmentConfig.shift_fraction`),
+    the uncovered area filled with `fill` (the letterbox grey), the boxes moved with it. Without zoom and shift
+    it is the letterbox.
 
-    Boxes are clipped to the image; one keeps when at least `min_area_kept` of its area stays inside and both
+    Boxes are clipped to the window; one keeps when at least `min_area_kept` of its area stays inside and both
     sides stay `min_side_px` or longer (a pallet cut by the image border is still a pallet).
 
-    :param image: (H, W, 3) uint8. :param boxes_xyxy: (n, 4) pixels.
-    :return: the new (H, W, 3) image (uncovered area filled with `fill`, the letterbox grey) and (m, 4) boxes.
+    :param image: (h, w, 3) uint8. :param boxes_xyxy: (n, 4) frame pixels. :param window_hw: (H, W).
+    :return: the (H, W, 3) uint8 input and (m, 4) float32 boxes in its pixels.
     """
     h, w = image.shape[:2]
+    H, W = int(window_hw[0]), int(window_hw[1])
     boxes = np.asarray(boxes_xyxy, dtype=np.float32).reshape(-1, 4)
-    s = float(rng.uniform(1.0 - zoom_range, 1.0 + zoom_range))
-    tx = float(rng.uniform(-shift_fraction, shift_fraction)) * w
-    ty = float(rng.uniform(-shift_fraction, shift_fraction)) * h
-    # x' = s (x - cx) + cx + tx
-    A = np.array([[s, 0.0, (1.0 - s) * w / 2 + tx], [0.0, s, (1.0 - s) * h / 2 + ty]], dtype=np.float64)
-    out = cv2.warpAffine(image, A, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+    lo, hi = math.log(max(1.0 - zoom_range, 1e-3)), math.log(max(zoom_in_max, 1e-3))
+    s = min(H / h, W / w) * (math.exp(rng.uniform(lo, hi)) if hi > lo else 1.0)
+    new_w, new_h = w * s, h * s
+    tx = (W - new_w) / 2 + float(rng.uniform(-1.0, 1.0)) * (abs(W - new_w) / 2 + shift_fraction * W) \
+        if shift_fraction > 0 else (W - new_w) / 2
+    ty = (H - new_h) / 2 + float(rng.uniform(-1.0, 1.0)) * (abs(H - new_h) / 2 + shift_fraction * H) \
+        if shift_fraction > 0 else (H - new_h) / 2
+    A = np.array([[s, 0.0, tx], [0.0, s, ty]], dtype=np.float64)
+    out = cv2.warpAffine(image, A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=(fill, fill, fill))
-    moved = boxes.copy()
-    moved[:, [0, 2]] = boxes[:, [0, 2]] * s + A[0, 2]
-    moved[:, [1, 3]] = boxes[:, [1, 3]] * s + A[1, 2]
+    moved = boxes * np.float32(s) + np.array([tx, ty, tx, ty], np.float32)
     clipped = moved.copy()
-    clipped[:, [0, 2]] = np.clip(moved[:, [0, 2]], 0, w)
-    clipped[:, [1, 3]] = np.clip(moved[:, [1, 3]], 0, h)
+    clipped[:, [0, 2]] = np.clip(moved[:, [0, 2]], 0, W)
+    clipped[:, [1, 3]] = np.clip(moved[:, [1, 3]], 0, H)
     side_w, side_h = clipped[:, 2] - clipped[:, 0], clipped[:, 3] - clipped[:, 1]
     area_moved = np.maximum((moved[:, 2] - moved[:, 0]) * (moved[:, 3] - moved[:, 1]), 1e-9)
     keep = (side_w >= min_side_px) & (side_h >= min_side_px) & (side_w * side_h >= min_area_kept * area_moved)
@@ -329,12 +339,12 @@ def build_pose_samples(root: str | Path, spec: PoseInputSpec, variants: int, see
 # ----------------------------------------------------------------------------------- detector samples
 
 
-@dataclass(frozen=True)
+@dataclass
 class DetectorSamples:
-    """F letterboxed frames.
+    """F source frames of any sizes.
 
-    :ivar images: (F, H, W, 3) uint8 letterboxed RGB.
-    :ivar boxes: (F,) object array of (n_i, 4) float32 xyxy boxes in input pixels.
+    :ivar images: (F,) object array of (h_i, w_i, 3) uint8 RGB frames (or one (F, H, W, 3) array).
+    :ivar boxes: (F,) object array of (n_i, 4) float32 xyxy boxes in frame pixels.
     :ivar frame: (F,) int64 frame index in its dataset.
     """
 
@@ -344,60 +354,94 @@ class DetectorSamples:
 
     def __post_init__(self) -> None:
         f = len(self.frame)
-        if self.images.ndim != 4 or self.images.shape[0] != f or self.images.shape[3] != 3 or len(self.boxes) != f:
-            raise ValueError(f"DetectorSamples: expected images (F, H, W, 3), boxes (F,), frame (F,), got "
-                             f"{self.images.shape}, {self.boxes.shape}, {self.frame.shape}")
+        if len(self.images) != f or len(self.boxes) != f:
+            raise ValueError(f"DetectorSamples: expected images (F,), boxes (F,), frame (F,), got "
+                             f"{len(self.images)}, {len(self.boxes)}, {f}")
+        for img in self.images:
+            if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+                raise ValueError(f"DetectorSamples: each image must be (h, w, 3) uint8, got {img.shape} {img.dtype}")
 
     def __len__(self) -> int:
         return len(self.frame)
 
     def take(self, idx: np.ndarray) -> "DetectorSamples":
-        return DetectorSamples(self.images[idx], self.boxes[idx], self.frame[idx])
+        return DetectorSamples(_objects([self.images[i] for i in idx]), self.boxes[idx], self.frame[idx])
 
     @staticmethod
     def concat(parts: Sequence["DetectorSamples"]) -> "DetectorSamples":
         if not parts:
             raise ValueError("no detector samples to concatenate")
-        boxes = np.empty(sum(len(p) for p in parts), dtype=object)
-        boxes[:] = [b for p in parts for b in p.boxes]
-        return DetectorSamples(np.concatenate([p.images for p in parts]), boxes,
+        return DetectorSamples(_objects([im for p in parts for im in p.images]),
+                               _objects([b for p in parts for b in p.boxes]),
                                np.concatenate([p.frame for p in parts]))
 
 
-def build_detector_samples(root: str | Path, input_hw: tuple[int, int], max_frames: int | None = None,
+def _objects(items: Sequence[np.ndarray]) -> np.ndarray:
+    """A (len,) object array holding the arrays one by one (a list of equal-shape arrays would become one block)."""
+    out = np.empty(len(items), dtype=object)
+    for i, a in enumerate(items):
+        out[i] = a
+    return out
+
+
+def cap_image(rgb: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
+    """The image scaled down so that its longer side is at most `max_side` (unchanged when it already is), and
+    the scale applied."""
+    h, w = rgb.shape[:2]
+    s = min(1.0, max_side / max(h, w))
+    if s == 1.0:
+        return np.ascontiguousarray(rgb), 1.0
+    size = (max(1, int(round(w * s))), max(1, int(round(h * s))))
+    return cv2.resize(rgb, size, interpolation=cv2.INTER_AREA), s
+
+
+def build_detector_samples(root: str | Path, max_side: int, max_frames: int | None = None,
                            progress: Callable[[int], None] | None = None) -> DetectorSamples:
-    """Letterbox every frame; boxes = visible boxes of pallets visible >= 10 %, in input pixels."""
+    """Every frame, longest side capped at `max_side`; boxes = visible boxes of pallets visible >= 10 %."""
     ds = BopDataset(root)
     n_frames = len(ds) if max_frames is None else min(len(ds), max_frames)
-    images = np.empty((n_frames, *input_hw, 3), np.uint8)
-    boxes = np.empty(n_frames, dtype=object)
+    images, boxes = [], []
     for i in range(n_frames):
         f = ds[i]
-        img, lb = letterbox(f.rgb, input_hw)
-        images[i] = img
+        img, scale = cap_image(f.rgb, max_side)
+        images.append(img)
         bs = [g.bbox_visib_xywh.astype(np.float64) for g in f.gts if g.bbox_visib_xywh is not None
               and not np.isnan(g.visib_fract) and g.visib_fract >= MIN_VISIB_FRACT
               and g.bbox_visib_xywh[2] > 0 and g.bbox_visib_xywh[3] > 0]
         b = np.array([[x, y, x + w, y + h] for x, y, w, h in bs], np.float64).reshape(-1, 4)
-        b[:, [0, 2]] = b[:, [0, 2]] * lb.scale_x + lb.pad_x
-        b[:, [1, 3]] = b[:, [1, 3]] * lb.scale_y + lb.pad_y
-        boxes[i] = b.astype(np.float32)
+        boxes.append((b * scale).astype(np.float32))
         if progress is not None:
             progress(1)
-    return DetectorSamples(images, boxes, np.arange(n_frames, dtype=np.int64))
+    return DetectorSamples(_objects(images), _objects(boxes), np.arange(n_frames, dtype=np.int64))
 
 
 # --------------------------------------------------------------------------------------------- cache
 
 
+def _ragged(arrays: Sequence[np.ndarray], tail: tuple[int, ...], dtype) -> tuple[np.ndarray, np.ndarray]:
+    """One flat array of `arrays` (each (n_i, *tail) after reshaping) and their (F, ndim) shapes."""
+    flat = [np.asarray(a, dtype).reshape(-1, *tail) for a in arrays]
+    shapes = np.array([np.shape(a) for a in arrays], np.int64).reshape(len(arrays), -1)
+    return (np.concatenate(flat) if flat else np.zeros((0, *tail), dtype)), shapes
+
+
+def _unragged(flat: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+    """The (F,) object array `_ragged` flattened."""
+    counts = np.prod(shapes, axis=1) // int(np.prod(flat.shape[1:]))
+    if counts.sum() != len(flat):
+        raise ValueError(f"cached arrays {flat.shape} disagree with their shapes (sum {counts.sum()})")
+    parts = np.split(flat, np.cumsum(counts)[:-1]) if len(counts) else []
+    return _objects([p.reshape(tuple(sh)) for p, sh in zip(parts, shapes)])
+
+
 def _to_cache(samples: PoseSamples | DetectorSamples) -> dict[str, np.ndarray]:
     """Plain numeric arrays (no object arrays, so the cache loads without pickle): a detector's ragged
-    per-frame boxes become one (sum n_i, 4) array and the (F,) counts n_i."""
+    per-frame images and boxes become flat arrays and their shapes."""
     arrays = {f: getattr(samples, f) for f in type(samples).__dataclass_fields__}
     if isinstance(samples, DetectorSamples):
+        arrays["images"], arrays["images_shape"] = _ragged(samples.images, (3,), np.uint8)
         boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in samples.boxes]
-        arrays["boxes"] = np.concatenate(boxes) if boxes else np.zeros((0, 4), np.float32)
-        arrays["boxes_count"] = np.array([len(b) for b in boxes], np.int64)
+        arrays["boxes"], arrays["boxes_shape"] = _ragged(boxes, (4,), np.float32)
     return arrays
 
 
@@ -405,13 +449,8 @@ def _from_cache(cls: type, z) -> PoseSamples | DetectorSamples:
     """The samples `_to_cache` stored."""
     fields = {f: z[f] for f in cls.__dataclass_fields__}
     if cls is DetectorSamples:
-        flat, counts = fields["boxes"], z["boxes_count"]
-        if flat.ndim != 2 or flat.shape[1] != 4 or counts.sum() != len(flat):
-            raise ValueError(f"detector cache boxes {flat.shape} disagree with their counts (sum {counts.sum()})")
-        boxes = np.empty(len(counts), dtype=object)
-        for i, b in enumerate(np.split(flat, np.cumsum(counts)[:-1]) if len(counts) else []):
-            boxes[i] = b   # one by one: a list of equal-shape arrays would be broadcast as one block
-        fields["boxes"] = boxes
+        fields["images"] = _unragged(fields["images"], z["images_shape"])
+        fields["boxes"] = _unragged(fields["boxes"], z["boxes_shape"])
     return cls(**fields)
 
 

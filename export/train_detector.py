@@ -1,8 +1,11 @@
 """Detector training: the YOLOv8-style detector on letterboxed frames with YOLOv8's loss (`losses.DetectorLoss`).
 
-Frames are letterboxed to the config's input size once (the runtime's `letterbox`, grey 114 padding) and
-cached; every epoch applies a random zoom and shift, HSV gains, blur, noise and horizontal flips (boxes moved
-with the image) with an epoch-seeded generator. Targets are the visible boxes of pallets at least 10 % visible,
+The detector is fully convolutional and runs at one of several inputs of about the same pixel count, the one
+that draws a camera's frame largest (`runtime.detector.choose_input_hw`): wide for the paper's 1224x370 frames,
+squarer for 4:3 and 16:9 cameras. Frames are kept at their own size (longest side capped, cached); each
+training batch takes one input size (mostly the one its first frame would run at, sometimes another) and draws
+every frame into it with a random zoom and position (`place_in_window`), HSV gains, blur, noise and horizontal
+flips, from an epoch-seeded generator. Validation letterboxes each frame exactly as the runtime does. Targets are the visible boxes of pallets at least 10 % visible,
 the boxes the evaluation matches against. Validation: loss, and precision/recall at IoU 0.5 of the runtime's decoding
 (`runtime.detector.decode_yolov8`, score 0.25).
 
@@ -22,19 +25,22 @@ import numpy as np
 import torch
 
 from pallet6d.runtime.bop import BopDataset
-from pallet6d.runtime.detector import decode_yolov8
+from pallet6d.runtime.detector import choose_input_hw, decode_yolov8, letterbox
 from pallet6d.runtime.evaluation import box_iou
 
 from .config import ModelConfig
 from .detector import build_detector
 from .losses import DetectorLoss
 from .train_data import AugmentConfig, DetectorSamples, augment_rgb, build_detector_samples, flip_horizontal, \
-    load_or_build, zoom_and_shift
+    load_or_build, place_in_window
 from .train_loop import LoopSettings, autocast, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
 
 log = logging.getLogger(__name__)
+
+MAX_SIDE = 1280          # frames are kept at most this large: a 640-wide input zoomed 2x stays sharp
+OWN_SIZE_PROB = 0.75     # share of batches at the input size their first frame runs at; the rest at any size
 
 
 @dataclass
@@ -65,11 +71,11 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     parts, fps = [], []
     for root in data:
         n = len(BopDataset(root))
-        settings = {"input_hw": list(cfg.detector.input_hw), "max_frames": max_frames}
+        settings = {"max_side": MAX_SIDE, "max_frames": max_frames}
         with tqdm(total=n if max_frames is None else min(n, max_frames), desc=f"letterbox {Path(root).name}",
                   unit="frame", disable=not progress, leave=False) as bar:
             s, fp = load_or_build("detector", root, settings, cache_dir,
-                                  lambda: build_detector_samples(root, cfg.detector.input_hw, max_frames, bar.update))
+                                  lambda: build_detector_samples(root, MAX_SIDE, max_frames, bar.update))
         parts.append(s)
         fps.append(fp)
     samples = DetectorSamples.concat(parts)
@@ -84,8 +90,7 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     if real is not None:
         from .real_samples import load_real_samples
 
-        r_train, r_val, r_fp = load_real_samples(real, cfg.detector.input_hw, val_fraction, cache_dir,
-                                                 real_max_images, seed)
+        r_train, r_val, r_fp = load_real_samples(real, MAX_SIDE, val_fraction, real_max_images, seed)
         samples = DetectorSamples.concat([samples, r_train, r_val])
         train_idx = np.concatenate([train_idx, n + np.arange(len(r_train))])
         val_idx = np.concatenate([val_idx, n + len(r_train) + np.arange(len(r_val))])
@@ -96,9 +101,15 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
 
 
 class DetectorTrainer:
+    """:param input_sizes: the detector's input sizes (H, W), multiples of 32; default: the config's one size."""
+
     def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu",
-                 amp: bool = False) -> None:
+                 amp: bool = False, input_sizes: Sequence[tuple[int, int]] | None = None) -> None:
         self.cfg, self.data, self.aug, self.device, self.amp = cfg, data, aug, torch.device(device), amp
+        self.input_sizes = [tuple(int(v) for v in hw) for hw in (input_sizes or [cfg.detector.input_hw])]
+        for h, w in self.input_sizes:
+            if h <= 0 or w <= 0 or h % 32 or w % 32:
+                raise ValueError(f"detector input sizes must be positive multiples of 32, got {h}x{w}")
         self.detector = build_detector(cfg.detector).to(self.device)
         self.loss = DetectorLoss(self.detector)
 
@@ -106,18 +117,30 @@ class DetectorTrainer:
     def nets(self) -> dict[str, torch.nn.Module]:
         return {"detector": self.detector}
 
-    def batch(self, idx: np.ndarray, rng: np.random.Generator | None) -> tuple[torch.Tensor, list[torch.Tensor]]:
-        """Augmented (rng given) or clean inputs: (B, 3, H, W) float in [0, 1], B targets (n_i, 5) cls+xyxy."""
+    def input_hw_of(self, i: int) -> tuple[int, int]:
+        """The input size the runtime runs frame `i` at."""
+        return choose_input_hw(self.data.samples.images[i].shape[:2], self.input_sizes)
+
+    def batch(self, idx: np.ndarray, rng: np.random.Generator | None,
+              input_hw: tuple[int, int] | None = None) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Frames `idx` drawn into one input size (default: the first frame's), augmented (rng given) or
+        letterboxed as the runtime does: (B, 3, H, W) float in [0, 1], B targets (n_i, 5) cls+xyxy."""
         s = self.data.samples
+        hw = input_hw or self.input_hw_of(int(idx[0]))
         images, targets = [], []
         for i in idx:
             img, boxes = s.images[i], np.asarray(s.boxes[i], np.float32).reshape(-1, 4)
             if rng is not None:
-                if self.aug.zoom_range or self.aug.shift_fraction:
-                    img, boxes = zoom_and_shift(img, boxes, rng, self.aug.zoom_range, self.aug.shift_fraction)
-                img = augment_rgb(img, rng, self.aug)
-                if rng.random() < self.aug.flip_prob:
+                a = self.aug
+                img, boxes = place_in_window(img, boxes, hw, rng, a.zoom_range, a.zoom_in_max, a.shift_fraction)
+                img = augment_rgb(img, rng, a)
+                if rng.random() < a.flip_prob:
                     img, boxes = flip_horizontal(img, boxes)
+            else:
+                img, lb = letterbox(img, hw)
+                boxes = boxes.copy()
+                boxes[:, [0, 2]] = boxes[:, [0, 2]] * lb.scale_x + lb.pad_x
+                boxes[:, [1, 3]] = boxes[:, [1, 3]] * lb.scale_y + lb.pad_y
             images.append(img)
             t = np.zeros((len(boxes), 5), np.float32)   # class 0: pallet; -1: a real box, type unknown
             t[:, 0] = -1.0 if self.data.real[i] else 0.0
@@ -127,7 +150,10 @@ class DetectorTrainer:
         return x.contiguous(), targets
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
-        x, targets = self.batch(self.data.train_idx[idx], rng)
+        frames = self.data.train_idx[idx]
+        hw = self.input_hw_of(int(frames[0])) if rng.random() < OWN_SIZE_PROB else \
+            self.input_sizes[int(rng.integers(len(self.input_sizes)))]
+        x, targets = self.batch(frames, rng, hw)
         with autocast(self.device.type, self.amp):
             raw = self.detector.forward_raw(x)
         loss, parts = self.loss([r.float() for r in raw], targets)
@@ -138,10 +164,12 @@ class DetectorTrainer:
         """Validation loss over all validation frames; precision/recall over the simulated ones, and (`_real`)
         over the real ones when there are any."""
         idx_all = self.data.val_idx
+        sizes = [self.input_hw_of(int(i)) for i in idx_all]
+        groups = [idx_all[[k for k, hw in enumerate(sizes) if hw == size]] for size in dict.fromkeys(sizes)]
+        chunks = [g[i:i + batch] for g in groups for i in range(0, len(g), batch)]   # one input size per batch
         total = 0.0
         counts = {False: [0, 0, 0], True: [0, 0, 0]}   # real? -> tp, n_pred, n_gt
-        for i in range(0, len(idx_all), batch):
-            idx = idx_all[i:i + batch]
+        for idx in chunks:
             x, targets = self.batch(idx, None)
             raw = self.detector.forward_raw(x)
             loss, _ = self.loss(raw, targets)
@@ -175,7 +203,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                    aug: AugmentConfig | None = None, resume: bool = False, cache_dir: str | Path | None = None,
                    val_fraction: float = 0.1, max_frames: int | None = None, command: str = "",
                    progress: bool = True, init: str | Path | None = None, real: str | Path | None = None,
-                   real_max_images: int | None = None) -> dict:
+                   real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None) -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry."""
     run_dir = Path(run_dir)
@@ -183,13 +211,14 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     torch.manual_seed(settings.seed)
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
                             val_fraction, max_frames, progress, real, real_max_images)
-    trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp)
+    trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases
     decay = [p for n, p in trainer.detector.named_parameters() if p.ndim > 1]
     no_decay = [p for n, p in trainer.detector.named_parameters() if p.ndim <= 1]
     optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": 5e-4}, {"params": no_decay, "weight_decay": 0.0}],
                                   lr=settings.lr, betas=(0.937, 0.999))
     provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
+                  "input_sizes": [list(hw) for hw in trainer.input_sizes],
                   "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,

@@ -161,6 +161,9 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
         if before.get("input_hw", provenance.get("input_hw")) != provenance.get("input_hw"):
             raise ValueError(f"{run_dir / LAST} was trained at input {before['input_hw']}, not "
                              f"{provenance.get('input_hw')}: resume with the same --detector-input")
+        if before.get("input_sizes", provenance.get("input_sizes")) != provenance.get("input_sizes"):
+            raise ValueError(f"{run_dir / LAST} was trained at input sizes {before['input_sizes']}, not "
+                             f"{provenance.get('input_sizes')}: resume with the same --detector-input-sizes")
         for k, net in nets.items():
             net.load_state_dict(ckpt[k])
         optimizer.load_state_dict(ckpt["optimizer"])

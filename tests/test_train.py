@@ -13,7 +13,7 @@ from pallet6d.export.calib_data import make_calibration_set, pose_input_spec  # 
 from pallet6d.export.config import get_config  # noqa: E402
 from pallet6d.export.train_data import (NO_AUGMENT, AugmentConfig, augment_depth, build_pose_samples,  # noqa: E402
                                         dataset_fingerprint, flip_horizontal, jitter_box, load_or_build,
-                                        zoom_and_shift)
+                                        place_in_window)
 from pallet6d.export.train_detector import DetectorTrainer, load_detector_data  # noqa: E402
 from pallet6d.export.train_loop import LoopSettings, load_checkpoint, load_init_weights, lr_at  # noqa: E402
 from pallet6d.export.train_pose import PoseTrainer, load_pose_data, train_pose  # noqa: E402
@@ -114,36 +114,72 @@ def test_flip_keeps_boxes_on_the_object():
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_zoom_and_shift_moves_boxes_with_the_image(seed):
+@pytest.mark.parametrize("window_hw", [(64, 160), (96, 96), (32, 64)])
+def test_place_in_window_moves_boxes_with_the_image(seed, window_hw):
     img = np.full((64, 160, 3), 114, np.uint8)
     img[20:40, 50:100] = 255
-    out, boxes = zoom_and_shift(img, np.array([[50, 20, 100, 40]]), np.random.default_rng(seed), 0.4, 0.1)
-    assert out.shape == img.shape and boxes.shape == (1, 4)
+    out, boxes = place_in_window(img, np.array([[50, 20, 100, 40]]), window_hw, np.random.default_rng(seed),
+                                 0.4, 2.0, 0.1)
+    assert out.shape == (*window_hw, 3)
     ys, xs = np.nonzero(out[..., 0] > 200)
-    # the white block's pixel extent is the moved box (to a pixel of interpolation)
-    np.testing.assert_allclose([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], boxes[0], atol=1.5)
+    if len(boxes):   # the white block's pixel extent is the moved box (to a pixel of interpolation)
+        np.testing.assert_allclose([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], boxes[0], atol=1.5)
+    else:            # dropped: less than a fifth of it is left in the window
+        assert len(xs) < 0.2 * 50 * 20 * (out.shape[1] / 160) ** 2 * 4
 
 
-def test_zoom_and_shift_clips_and_drops_boxes_pushed_out():
+def test_place_in_window_without_zoom_or_shift_is_the_letterbox():
+    img = np.random.default_rng(0).integers(0, 255, (50, 100, 3), dtype=np.uint8)
+    boxes = np.array([[0, 10, 30, 40], [40, 10, 60, 30]], np.float32)
+    from pallet6d.runtime.detector import letterbox
+    for hw in [(50, 100), (64, 64), (32, 96)]:
+        out, moved = place_in_window(img, boxes, hw, np.random.default_rng(0), 0.0, 1.0, 0.0)
+        ref, lb = letterbox(img, hw)
+        s = min(hw[0] / 50, hw[1] / 100)
+        np.testing.assert_allclose(moved[:, [0, 2]], boxes[:, [0, 2]] * s + (hw[1] - 100 * s) / 2, atol=1e-4)
+        np.testing.assert_allclose(moved[:, [1, 3]], boxes[:, [1, 3]] * s + (hw[0] - 50 * s) / 2, atol=1e-4)
+        if hw == (50, 100):
+            np.testing.assert_array_equal(out, img)
+        assert abs(lb.scale_x - s) < 0.02
+
+
+def test_place_in_window_clips_and_drops_boxes_pushed_out():
     img = np.full((50, 100, 3), 114, np.uint8)
     boxes = np.array([[0, 10, 30, 40], [90, 10, 100, 20], [40, 10, 60, 30]], np.float32)
 
-    class Draws:  # rng stand-in: zoom 1, shift +0.2 of the width, +0.5 of the height
+    class Draws:  # rng stand-in: shift +0.2 of the width beyond the centre... as draws of uniform(-1, 1)
         def __init__(self):
-            self.values = [1.0, 0.2, 0.5]
+            self.values = [0.4, 1.0]   # tx = 0.4 * 0.5 * 100 = 20 px, ty = 1.0 * 0.5 * 50 = 25 px
 
         def uniform(self, lo, hi):
             return self.values.pop(0)
 
-    out, moved = zoom_and_shift(img, boxes, Draws(), 0.0, 0.5)
+    out, moved = place_in_window(img, boxes, (50, 100), Draws(), 0.0, 1.0, 0.5)
     # +20 px right, +25 px down: the first and third boxes are cut at the bottom (half or more stays: kept),
     # the second leaves the image
     np.testing.assert_allclose(moved, [[20, 35, 50, 50], [60, 35, 80, 50]])
     assert out[:25].max() == 114
-    out, same = zoom_and_shift(img, boxes, np.random.default_rng(0), 0.0, 0.0)
-    np.testing.assert_allclose(same, boxes)
-    np.testing.assert_array_equal(out, img)
-    assert zoom_and_shift(img, np.zeros((0, 4)), np.random.default_rng(0), 0.4, 0.1)[1].shape == (0, 4)
+    assert place_in_window(img, np.zeros((0, 4)), (64, 64), np.random.default_rng(0), 0.4, 2.0, 0.1)[1].shape == (0, 4)
+
+
+def test_detector_batches_take_one_input_size_and_validation_letterboxes_like_the_runtime(sim_bop_dataset, tmp_path):
+    dd = load_detector_data(CFG, [sim_bop_dataset], seed=0, cache_dir=tmp_path, progress=False)
+    sizes = [tuple(CFG.detector.input_hw), (96, 96)]
+    trainer = DetectorTrainer(CFG, dd, AugmentConfig(), input_sizes=sizes)
+    seen = set()
+    for seed in range(12):
+        x, _ = trainer.batch(dd.train_idx[:2], np.random.default_rng(seed), sizes[seed % 2])
+        seen.add(tuple(x.shape[2:]))
+        assert torch.isfinite(trainer.step(np.arange(min(2, len(dd.train_idx))), np.random.default_rng(seed))[0])
+    assert seen == set(sizes)
+    from pallet6d.runtime.detector import choose_input_hw, letterbox
+    i = int(dd.val_idx[0])
+    hw = choose_input_hw(dd.samples.images[i].shape[:2], sizes)
+    x, _ = trainer.batch(np.array([i]), None)
+    ref, _ = letterbox(dd.samples.images[i], hw)
+    np.testing.assert_allclose(x[0].permute(1, 2, 0).numpy() * 255.0, ref, atol=1e-3)
+    with pytest.raises(ValueError, match="multiples of 32"):
+        DetectorTrainer(CFG, dd, AugmentConfig(), input_sizes=[(100, 96)])
 
 
 def test_init_starts_from_a_checkpoints_weights(pose_run, sim_bop_dataset, tmp_path):

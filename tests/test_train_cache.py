@@ -16,20 +16,21 @@ def _roundtrip(samples, tmp_path):
 def test_detector_cache_roundtrip(tmp_path, counts):
     rng = np.random.default_rng(0)
     boxes = np.empty(len(counts), dtype=object)
+    images = np.empty(len(counts), dtype=object)
     for i, n in enumerate(counts):
         boxes[i] = rng.uniform(0, 100, (n, 4)).astype(np.float32)
-    s = DetectorSamples(rng.integers(0, 255, (len(counts), 8, 8, 3), dtype=np.uint8), boxes,
-                        np.arange(len(counts), dtype=np.int64))
+        images[i] = rng.integers(0, 255, (8 + i, 12 - i, 3), dtype=np.uint8)   # frames of different sizes
+    s = DetectorSamples(images, boxes, np.arange(len(counts), dtype=np.int64))
     back = _roundtrip(s, tmp_path)
-    assert np.array_equal(back.images, s.images) and np.array_equal(back.frame, s.frame)
-    assert back.boxes.dtype == object and len(back.boxes) == len(counts)
-    for a, b in zip(back.boxes, s.boxes):
-        assert a.shape == b.shape and np.array_equal(a, b)
+    assert np.array_equal(back.frame, s.frame)
+    assert back.boxes.dtype == object and len(back.boxes) == len(counts) and len(back.images) == len(counts)
+    for a, b in zip([*back.boxes, *back.images], [*s.boxes, *s.images]):
+        assert a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)
 
 
 def test_detector_cache_with_mismatched_counts_is_refused(tmp_path):
     path = tmp_path / "c.npz"
-    np.savez(path, images=np.zeros((1, 8, 8, 3), np.uint8), boxes=np.zeros((2, 4), np.float32),
-             boxes_count=np.array([3]), frame=np.zeros(1, np.int64))
+    np.savez(path, images=np.zeros((64, 3), np.uint8), images_shape=np.array([[8, 8, 3]]),
+             boxes=np.zeros((2, 4), np.float32), boxes_shape=np.array([[3, 4]]), frame=np.zeros(1, np.int64))
     with np.load(path, allow_pickle=False) as z, pytest.raises(ValueError, match="disagree"):
         _from_cache(DetectorSamples, z)
