@@ -28,7 +28,7 @@ import numpy as np
 
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.detector import letterbox
-from pallet6d.runtime.evaluation import MIN_VISIB_FRACT
+from pallet6d.runtime.evaluation import MIN_VISIB_FRACT, counted_pallets
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
@@ -293,8 +293,9 @@ def build_pose_samples(root: str | Path, spec: PoseInputSpec, variants: int, see
     rows: list[tuple] = []
     for i in range(n_frames):
         f = ds[i]
-        gts = [g for g in f.gts if g.bbox_visib_xywh is not None and not np.isnan(g.visib_fract)
-               and g.visib_fract >= MIN_VISIB_FRACT and g.bbox_visib_xywh[2] >= 2 and g.bbox_visib_xywh[3] >= 2]
+        # training's own rule: a crop at least 2 x 2 pixels, and no pallet of unknown visibility (it may be hidden)
+        counted = counted_pallets(f.gts, min_box_side_px=2, unknown_visib_counts=False)
+        gts = [g for g, c in zip(f.gts, counted) if c]
         for v in range(variants):
             if not gts:
                 break
@@ -375,9 +376,9 @@ def build_detector_samples(root: str | Path, input_hw: tuple[int, int], max_fram
         f = ds[i]
         img, lb = letterbox(f.rgb, input_hw)
         images[i] = img
-        bs = [g.bbox_visib_xywh.astype(np.float64) for g in f.gts if g.bbox_visib_xywh is not None
-              and not np.isnan(g.visib_fract) and g.visib_fract >= MIN_VISIB_FRACT
-              and g.bbox_visib_xywh[2] > 0 and g.bbox_visib_xywh[3] > 0]
+        # training's own rule: a target box of at least one pixel each way, no pallet of unknown visibility
+        counted = counted_pallets(f.gts, min_box_side_px=1, unknown_visib_counts=False)
+        bs = [g.bbox_visib_xywh.astype(np.float64) for g, c in zip(f.gts, counted) if c]
         b = np.array([[x, y, x + w, y + h] for x, y, w, h in bs], np.float64).reshape(-1, 4)
         b[:, [0, 2]] = b[:, [0, 2]] * lb.scale_x + lb.pad_x
         b[:, [1, 3]] = b[:, [1, 3]] * lb.scale_y + lb.pad_y
