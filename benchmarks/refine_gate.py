@@ -19,7 +19,7 @@ import numpy as np
 from pallet6d.runtime import metrics
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.estimator import PalletEstimator
-from pallet6d.runtime.evaluation import box_iou, ground_truths_from_bop
+from pallet6d.runtime.evaluation import box_iou, counted_pallets, ground_truths_from_bop
 from pallet6d.runtime.refine import refine_pose
 
 THRESHOLDS_M = (0.02, 0.05, 0.1)
@@ -59,13 +59,14 @@ def pallet_rows(bundle: str, data: Path, precision: str, threads: int) -> np.nda
     for i in range(len(ds)):
         f = ds[i]
         gts, _ = ground_truths_from_bop(f.gts)
+        counted = counted_pallets(gts)
         cands, T_icp, fit_rms = icp_rows(plain, f)
         if not gts or not len(cands):
             continue
         iou = box_iou(cands.boxes_xyxy, np.array([g.box_visib_xyxy for g in gts]))
         for k in range(len(cands)):
             j = int(iou[k].argmax())
-            if iou[k, j] < 0.5 or gts[j].visib_fract < 0.1:
+            if iou[k, j] < 0.5 or not counted[j]:
                 continue
             g = plain.pallet_types[int(cands.type_index[k])]
             R_gt, t_gt = gts[j].T_cam_model[:3, :3], gts[j].T_cam_model[:3, 3]

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-MIN_VISIB = 0.1
+from pallet6d.runtime.evaluation import counted_pallets
 
 
 def _record(est, frame, n_pallets: int):
@@ -34,8 +34,8 @@ def _record(est, frame, n_pallets: int):
     """
     from pallet6d.runtime.detector import Detections
 
-    gts = sorted((g for g in frame.gts if g.bbox_visib_xywh is not None and g.visib_fract >= MIN_VISIB),
-                 key=lambda g: -g.visib_fract)[:n_pallets]
+    counted = counted_pallets(frame.gts, unknown_visib_counts=False)   # a known visible fraction to sort by
+    gts = sorted((g for g, c in zip(frame.gts, counted) if c), key=lambda g: -g.visib_fract)[:n_pallets]
     if len(gts) < min(n_pallets, 8):
         return None
     gts = [gts[i % len(gts)] for i in range(n_pallets)]

@@ -17,7 +17,7 @@ import numpy as np
 
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.estimator import PalletEstimator
-from pallet6d.runtime.evaluation import Estimate, evaluate_frame, ground_truths_from_bop, summarize
+from pallet6d.runtime.evaluation import ScoreTally, evaluate_poses, ground_truths_from_bop
 from pallet6d.runtime.structure import StructureParams, structure_check
 
 
@@ -27,7 +27,7 @@ def run(bundle: str, data: list[str], frames: int, int8: bool) -> dict:
     out = {}
     for root in data:
         ds = BopDataset(root)
-        acc = {"without": ([], 0, 0), "with": ([], 0, 0)}
+        tallies = {"without": ScoreTally(), "with": ScoreTally()}
         for i in range(min(frames, len(ds))):
             f = ds[i]
             gts, _ = ground_truths_from_bop(f.gts, f.rgb.shape[:2])
@@ -38,15 +38,12 @@ def run(bundle: str, data: list[str], frames: int, int8: bool) -> dict:
                                          np.stack([p.box_xyxy for p in poses]), StructureParams())
                 keep = [s.ok for s in scores]
             for name, sel in (("without", poses), ("with", [p for p, k in zip(poses, keep) if k])):
-                recs, tp, fp = evaluate_frame(i, [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in sel],
-                                              gts, geom.points_m, geom.symmetries)
-                r, t, q = acc[name]
-                acc[name] = (r + recs, t + tp, q + fp)
+                tallies[name].add(evaluate_poses(i, sel, gts, geom.points_m, geom.symmetries))
         res = {}
-        for name, (recs, tp, fp) in acc.items():
-            s = summarize(recs, tp, fp)
+        for name, tally in tallies.items():
+            s = tally.summary()
             res[name] = {k: s[k] for k in ("n_gt", "precision", "recall", "add_sym_acc", "add_acc")}
-            res[name]["false_positives"] = fp
+            res[name]["false_positives"] = tally.false_positives
         out[Path(root).name] = res
         print(Path(root).name, json.dumps(res), flush=True)
     return out

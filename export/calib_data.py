@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pallet6d.runtime.detector import letterbox
+from pallet6d.runtime.evaluation import counted_pallets
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 from .config import ModelConfig
@@ -61,10 +62,12 @@ def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets:
         frame = generate_frame(get_preset(preset), seed, i)
         images.append(_to_chw01(letterbox(frame.rgb, cfg.detector.input_hw)[0]))
         boxes = []
-        for gt in frame.pallets:
-            x, y, w, h = (float(v) for v in gt.bbox_visib_xywh)
-            if gt.visib_fract < 0.25 or gt.px_count_valid < 50 or w < 8 or h < 8:
+        # calibration's own rule: clearly visible pallets (>= 25 %, a box >= 8 px each way, >= 50 depth pixels)
+        counted = counted_pallets(frame.pallets, min_visib_fract=0.25, min_box_side_px=8)
+        for gt, c in zip(frame.pallets, counted):
+            if not c or gt.px_count_valid < 50:
                 continue
+            x, y, w, h = (float(v) for v in gt.bbox_visib_xywh)
             jitter = rng.normal(0.0, 0.05, 4) * np.array([w, h, w, h])   # detector-like box noise
             boxes.append(np.array([x, y, x + w, y + h]) + jitter)
         if boxes:

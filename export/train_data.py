@@ -30,7 +30,7 @@ import numpy as np
 
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.detector import letterbox
-from pallet6d.runtime.evaluation import MIN_VISIB_FRACT
+from pallet6d.runtime.evaluation import MIN_VISIB_FRACT, counted_pallets
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
@@ -303,8 +303,9 @@ def build_pose_samples(root: str | Path, spec: PoseInputSpec, variants: int, see
     rows: list[tuple] = []
     for i in range(n_frames):
         f = ds[i]
-        gts = [g for g in f.gts if g.bbox_visib_xywh is not None and not np.isnan(g.visib_fract)
-               and g.visib_fract >= MIN_VISIB_FRACT and g.bbox_visib_xywh[2] >= 2 and g.bbox_visib_xywh[3] >= 2]
+        # training's own rule: a crop at least 2 x 2 pixels, and no pallet of unknown visibility (it may be hidden)
+        counted = counted_pallets(f.gts, min_box_side_px=2, unknown_visib_counts=False)
+        gts = [g for g, c in zip(f.gts, counted) if c]
         for v in range(variants):
             if not gts:
                 break

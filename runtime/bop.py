@@ -71,7 +71,11 @@ class BopGT:
 
 @dataclass
 class BopFrame:
-    """One image: rgb (H, W, 3) uint8 RGB, depth_m (H, W) float32 metres (0 = none), K (3, 3)."""
+    """One image: rgb (H, W, 3) uint8 RGB, depth_m (H, W) float32 metres (0 = none), K (3, 3).
+
+    depth_units: (H, W) uint16, the depth image as stored, in units of `depth_scale_mm` millimetres (a camera
+    source hands these out unchanged); None when the frame was not read from a dataset.
+    """
 
     scene_id: int
     im_id: int
@@ -81,6 +85,7 @@ class BopFrame:
     depth_scale_mm: float
     gts: list[BopGT]
     T_cam_world: np.ndarray | None = None
+    depth_units: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         h, w = self.depth_m.shape
@@ -88,6 +93,9 @@ class BopFrame:
             raise ValueError(f"BopFrame: rgb {self.rgb.shape} does not match depth ({h}, {w})")
         if self.K.shape != (3, 3):
             raise ValueError(f"BopFrame: K must be (3, 3), got {self.K.shape}")
+        if self.depth_units is not None and (self.depth_units.shape != (h, w) or self.depth_units.dtype != np.uint16):
+            raise ValueError(f"BopFrame: depth_units must be ({h}, {w}) uint16, got {self.depth_units.shape} "
+                             f"{self.depth_units.dtype}")
 
 
 # --- JSON helpers -------------------------------------------------------------------------------------
@@ -448,14 +456,8 @@ class BopDataset:
         if img is None:
             raise BopFormatError(f"{rgb_path}: unreadable image")
         rgb = np.ascontiguousarray(img[:, :, ::-1])
-        depth_path = _find_image(d / "depth", name)
-        if depth_path is None:
-            depth_m = np.zeros(rgb.shape[:2], dtype=np.float32)
-        else:
-            raw = cv2.imread(str(depth_path), cv2.IMREAD_ANYDEPTH)
-            if raw is None or raw.shape != rgb.shape[:2]:
-                raise BopFormatError(f"{depth_path}: unreadable or not the size of the rgb image")
-            depth_m = raw.astype(np.float32) * np.float32(scale / 1000.0)
+        depth_units = _read_depth_units(d / "depth", name, rgb.shape[:2])
+        depth_m = depth_units.astype(np.float32) * np.float32(scale / 1000.0)
         gts = []
         infos = s["info"].get(im_id)
         for j, (obj_id, T) in enumerate(s["gt"].get(im_id, [])):
@@ -468,7 +470,8 @@ class BopDataset:
                 px_count_all=info.get("px_count_all"), px_count_visib=info.get("px_count_visib"),
                 px_count_valid=info.get("px_count_valid")))
         return BopFrame(scene_id=scene_id, im_id=im_id, rgb=rgb, depth_m=depth_m, K=K.copy(), depth_scale_mm=scale,
-                        gts=gts, T_cam_world=None if T_cam_world is None else T_cam_world.copy())
+                        gts=gts, T_cam_world=None if T_cam_world is None else T_cam_world.copy(),
+                        depth_units=depth_units)
 
     def model_symmetries(self, obj_id: int) -> np.ndarray:
         """(S, 4, 4) symmetry transforms of a model in metres, identity first."""
@@ -484,6 +487,19 @@ class BopDataset:
 
 def _scene_dirs(split_dir: Path) -> list[Path]:
     return sorted(p for p in split_dir.iterdir() if p.is_dir() and p.name.isdigit() and len(p.name) == 6)
+
+
+def _read_depth_units(folder: Path, name: str, hw: tuple[int, int]) -> np.ndarray:
+    """(H, W) uint16 depth image `name` of `folder` as stored (BOP: a 16-bit PNG); zeros when there is none."""
+    path = _find_image(folder, name)
+    if path is None:
+        return np.zeros(hw, dtype=np.uint16)
+    raw = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+    if raw is None or raw.shape != hw:
+        raise BopFormatError(f"{path}: unreadable or not the size of the rgb image")
+    if raw.dtype not in (np.uint8, np.uint16):
+        raise BopFormatError(f"{path}: depth must be an 8- or 16-bit integer image, got {raw.dtype}")
+    return raw.astype(np.uint16, copy=False)
 
 
 def _read_mask(path: Path, hw: tuple[int, int]) -> np.ndarray | None:

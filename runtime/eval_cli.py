@@ -38,18 +38,17 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
                      progress: bool = False, gt_boxes: bool = False) -> dict:
     """Run `estimator` on a BOP dataset and score it.
 
-    :param gt_boxes: give the pose stage the visible boxes of the pallets >= 10 % visible instead of detections.
+    :param gt_boxes: give the pose stage the visible boxes of the counted pallets instead of detections.
 
     :return: {"summary": summarize(...) + frames/seconds, "records": per-pallet dicts}.
     :raises ValueError: not a BOP dataset, or a frame the estimator rejects.
     """
     from .bop import BopDataset
-    from .evaluation import (MIN_VISIB_FRACT, Estimate, evaluate_frame, ground_truths_from_bop, records_to_dicts,
-                             summarize)
+    from .evaluation import ScoreTally, counted_pallets, evaluate_poses, ground_truths_from_bop, records_to_dicts
 
     ds = BopDataset(data, split)
     n = len(ds) if not max_frames else min(len(ds), max_frames)
-    records, tp, fp = [], 0, 0
+    tally = ScoreTally()
     n_no_box = 0
     t0 = time.perf_counter()
     frames = range(n)
@@ -61,20 +60,60 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
         gts, skipped = ground_truths_from_bop(f.gts, f.rgb.shape[:2])
         n_no_box += skipped
         if gt_boxes:
-            boxes = np.array([g.box_visib_xyxy for g in gts if g.visib_fract >= MIN_VISIB_FRACT]).reshape(-1, 4)
+            boxes = np.array([g.box_visib_xyxy for g, c in zip(gts, counted_pallets(gts)) if c]).reshape(-1, 4)
             result = estimator.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
         else:
             result = estimator.estimate(f.rgb, f.depth_m, f.K)
-        estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in result.poses]
-        recs, f_tp, f_fp = evaluate_frame(i, estimates, gts, estimator.model_points_m, estimator.symmetries)
-        records.extend(recs)
-        tp, fp = tp + f_tp, fp + f_fp
+        tally.add(evaluate_poses(i, result.poses, gts, estimator.model_points_m, estimator.symmetries))
     if n_no_box:
         log.warning("%s: %d annotations without a visible box (no scene_gt_info.json entry) were not scored",
                     data, n_no_box)
-    summary = {"frames": n, "detector": "ground-truth boxes" if gt_boxes else "bundle", "seconds": round(time.perf_counter() - t0, 2), **summarize(records, tp, fp),
-               "true_positives": tp, "false_positives": fp}
-    return {"summary": summary, "records": records_to_dicts(records)}
+    summary = {"frames": n, "detector": "ground-truth boxes" if gt_boxes else "bundle",
+               "seconds": round(time.perf_counter() - t0, 2), **tally.summary(),
+               "true_positives": tally.true_positives, "false_positives": tally.false_positives}
+    return {"summary": summary, "records": records_to_dicts(tally.records)}
+
+
+RESCORED_ERROR_KEYS = ("add_m", "add_sym_m", "adds_m", "rot_err_sym_deg", "trans_err_m")
+
+
+def rescore(results: dict, data: str | Path, split: str | None = None, tol_m: float = 1e-6) -> dict:
+    """The summary of `results` (an `evaluate_dataset` / `pallet6d eval --json` document with its records and
+    true / false positives) under `data`'s annotations, without running a model again.
+
+    Each pallet's error does not depend on which pallets count, so re-annotated frames whose visible fractions are
+    never larger than before are re-scored exactly: a pallet that no longer counts is dropped and its detection
+    becomes ignored, not a true positive. Pallets are matched to the annotations by frame and camera distance.
+    :raises ValueError: a record has no pallet at its distance in that frame (not the same dataset).
+    """
+    import math
+
+    from .bop import BopDataset
+    from .evaluation import PalletRecord, counted_pallets, ground_truths_from_bop, summarize
+
+    ds = BopDataset(data, split)
+    gts_of: dict[int, tuple] = {}
+    records, dropped_detected = [], 0
+    for r in results["records"]:
+        frame = int(r["frame"])
+        if frame not in gts_of:
+            f = ds[frame]
+            gts = ground_truths_from_bop(f.gts, f.rgb.shape[:2])[0]
+            gts_of[frame] = (gts, counted_pallets(gts))
+        gts, counted = gts_of[frame]
+        dist = np.array([np.linalg.norm(g.T_cam_model[:3, 3]) for g in gts])
+        j = int(np.argmin(np.abs(dist - r["distance_m"]))) if len(dist) else -1
+        if j < 0 or abs(dist[j] - r["distance_m"]) > tol_m:
+            raise ValueError(f"frame {frame}: no pallet at {r['distance_m']:.6f} m in {data}; "
+                             "the results were made on another dataset")
+        if not counted[j]:
+            dropped_detected += bool(r["detected"])
+            continue
+        g = gts[j]
+        errors = {k: math.inf if r[k] is None else float(r[k]) for k in RESCORED_ERROR_KEYS}
+        records.append(PalletRecord(frame=frame, distance_m=float(r["distance_m"]), visib_fract=float(g.visib_fract),
+                                    detected=bool(r["detected"]), truncated=bool(g.truncated), **errors))
+    return summarize(records, results["true_positives"] - dropped_detected, results["false_positives"])
 
 
 def format_table(summary: dict) -> str:

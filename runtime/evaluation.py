@@ -1,10 +1,11 @@
 """Dataset-level accuracy of pose estimates against ground truth (numpy only).
 
-Protocol (used by `pallet6d eval` and `benchmarks/accuracy.py`):
-- A ground-truth pallet counts when at least `min_visib_fract` (10 %, the BOP convention) of it is visible.
+Protocol (used by `pallet6d eval`, `pallet6d run` on a BOP source and `benchmarks/accuracy.py`):
+- A ground-truth pallet counts when `counted_pallets` says so: it has a visible box and at least `MIN_VISIB_FRACT`
+  (10 %, the BOP convention) of it is visible. Training asks the same function, with its own box-size rule.
 - Estimates are matched to ground truth greedily, highest detector score first, by IoU of the estimate's box
-  with the ground truth's visible box (>= `iou_threshold`). An estimate matched to a pallet that does not count
-  (too hidden) is ignored: it is neither a true nor a false positive.
+  with the ground truth's visible box (>= `iou_threshold`; `match_greedy`). An estimate matched to a pallet that
+  does not count (too hidden) is ignored: it is neither a true nor a false positive.
 - Precision = matched estimates / all estimates that are not ignored; recall = matched / counted pallets.
 - Pose accuracy at a threshold = fraction of counted pallets whose error is below it; a missed pallet is a
   failure (its error is infinite).
@@ -12,17 +13,20 @@ Protocol (used by `pallet6d eval` and `benchmarks/accuracy.py`):
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Iterable, Sequence
+from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 
 from . import metrics
 
-__all__ = ["GroundTruth", "Estimate", "PalletRecord", "box_iou", "ground_truths_from_bop", "evaluate_frame",
-           "summarize", "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M",
-           "DEFAULT_VISIBILITY_BINS", "MIN_VISIB_FRACT"]
+__all__ = ["GroundTruth", "Estimate", "PalletRecord", "FrameScore", "ScoreTally", "counted_pallets", "box_iou",
+           "match_greedy", "ground_truths_from_bop", "evaluate_frame", "evaluate_poses", "summarize",
+           "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M", "DEFAULT_VISIBILITY_BINS",
+           "MIN_VISIB_FRACT"]
 
-MIN_VISIB_FRACT = 0.1   # the BOP convention: a pallet counts (is trained on, scored) when >= 10 % visible
+# The BOP convention (bop_toolkit's `visib_gt_min`): a pallet less visible is too hidden to be found or posed, so
+# it is neither scored nor trained on.
+MIN_VISIB_FRACT = 0.1
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.1)
 DEFAULT_DISTANCE_BINS_M = (0.0, 2.0, 3.0, 4.0, 5.0, 8.0, np.inf)
 DEFAULT_VISIBILITY_BINS = (0.1, 0.3, 0.6, 1.0)
@@ -38,6 +42,12 @@ class GroundTruth:
     box_visib_xyxy: np.ndarray
     visib_fract: float
     truncated: bool = False
+
+    @property
+    def bbox_visib_xywh(self) -> np.ndarray:
+        """(4,) the visible box as x, y, width, height (the BOP annotations' form, for `counted_pallets`)."""
+        x1, y1, x2, y2 = (float(v) for v in self.box_visib_xyxy)
+        return np.array([x1, y1, x2 - x1, y2 - y1])
 
 
 @dataclass(frozen=True)
@@ -63,6 +73,45 @@ class PalletRecord:
     rot_err_sym_deg: float
     trans_err_m: float
     truncated: bool = False
+
+
+class FrameScore(NamedTuple):
+    """One frame's evaluation: a record per counted pallet, and the frame's true and false positives."""
+
+    records: list[PalletRecord]
+    true_positives: int
+    false_positives: int
+
+
+def counted_pallets(gts: Sequence, min_visib_fract: float = MIN_VISIB_FRACT, min_box_side_px: float = 0.0,
+                    unknown_visib_counts: bool = True) -> np.ndarray:
+    """Which ground-truth pallets count: are scored by the evaluation, or trained on. The one definition of it.
+
+    :param gts: n annotations, each with `visib_fract` (float; NaN: unknown) and `bbox_visib_xywh` ((4,) visible
+        box x, y, width, height in pixels, or None): `pallet6d.runtime.bop.BopGT`, the simulator's pallets, or
+        `GroundTruth`. A pallet without a visible box never counts: nothing can be matched to it or cropped of it.
+    :param min_visib_fract: the least visible fraction that counts (`MIN_VISIB_FRACT`, the BOP convention).
+    :param min_box_side_px: the least width and height of the visible box (0: not checked). The evaluation
+        checks none (a tiny box is a pallet to find); training asks for a box a target or a crop can be made of.
+    :param unknown_visib_counts: whether a pallet of unknown visible fraction counts. The evaluation counts it (a
+        set annotated without visible fractions is scored on every pallet with a box); training does not (the
+        pallet could be hidden entirely).
+    :return: (n,) bool.
+    """
+    out = np.zeros(len(gts), dtype=bool)
+    for k, g in enumerate(gts):
+        box = g.bbox_visib_xywh
+        if box is None:
+            continue
+        visib = float(g.visib_fract)
+        if np.isnan(visib):
+            ok = unknown_visib_counts
+        else:
+            ok = visib >= min_visib_fract
+        if min_box_side_px > 0:
+            ok = ok and float(box[2]) >= min_box_side_px and float(box[3]) >= min_box_side_px
+        out[k] = ok
+    return out
 
 
 def ground_truths_from_bop(bop_gts: Sequence, image_hw: tuple[int, int] | None = None
@@ -107,29 +156,47 @@ def box_iou(a_xyxy: np.ndarray, b_xyxy: np.ndarray) -> np.ndarray:
     return np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
 
 
+def match_greedy(pred_xyxy: np.ndarray, scores: np.ndarray, gt_xyxy: np.ndarray,
+                 iou_threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Greedy matching by descending score (ties: the earlier box first): each prediction takes the unmatched
+    ground-truth box it overlaps most (the first of equal ones), if at IoU >= `iou_threshold`.
+
+    :param pred_xyxy: (n, 4) predicted boxes; :param scores: (n,); :param gt_xyxy: (m, 4) ground-truth boxes.
+    :return: (n,) int index of the matched ground-truth box per prediction (-1: none), (m,) bool matched.
+    :raises ValueError: scores and boxes disagree in number.
+    """
+    pred = np.asarray(pred_xyxy, np.float64).reshape(-1, 4)
+    gt = np.asarray(gt_xyxy, np.float64).reshape(-1, 4)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if len(scores) != len(pred):
+        raise ValueError(f"match_greedy: {len(pred)} boxes but {len(scores)} scores")
+    match, matched = np.full(len(pred), -1, np.int64), np.zeros(len(gt), bool)
+    if len(pred) == 0 or len(gt) == 0:
+        return match, matched
+    iou = box_iou(pred, gt)
+    for i in np.argsort(-scores, kind="stable"):
+        cand = np.where(matched, -1.0, iou[i])
+        j = int(np.argmax(cand))
+        if cand[j] >= iou_threshold:
+            match[i], matched[j] = j, True
+    return match, matched
+
+
 def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[GroundTruth], model_pts: np.ndarray,
                    symmetries: np.ndarray, iou_threshold: float = 0.5,
-                   min_visib_fract: float = MIN_VISIB_FRACT) -> tuple[list[PalletRecord], int, int]:
+                   min_visib_fract: float = MIN_VISIB_FRACT) -> FrameScore:
     """Match one frame's estimates to its ground truth and measure the pose errors.
 
     :param model_pts: (n, 3) model points, metres; :param symmetries: (S, 4, 4).
-    :return: (records for counted pallets, true positives, false positives).
+    :return: records for counted pallets, true positives, false positives.
     """
-    order = sorted(range(len(estimates)), key=lambda i: -estimates[i].score)
-    counted = [g.visib_fract >= min_visib_fract for g in gts]
-    iou = box_iou(np.array([estimates[i].box_xyxy for i in order]).reshape(-1, 4),
-                  np.array([g.box_visib_xyxy for g in gts]).reshape(-1, 4))
-    matched_est: dict[int, int] = {}  # gt index -> estimate index
-    tp = fp = 0
-    for row, i in enumerate(order):
-        candidates = [j for j in np.argsort(-iou[row]) if iou[row, j] >= iou_threshold and j not in matched_est]
-        if not candidates:
-            fp += 1
-            continue
-        j = int(candidates[0])
-        matched_est[j] = i
-        if counted[j]:
-            tp += 1
+    counted = counted_pallets(gts, min_visib_fract)
+    match, _ = match_greedy(np.array([e.box_xyxy for e in estimates]).reshape(-1, 4),
+                            np.array([e.score for e in estimates]),
+                            np.array([g.box_visib_xyxy for g in gts]).reshape(-1, 4), iou_threshold)
+    matched_est = {int(j): i for i, j in enumerate(match) if j >= 0}  # gt index -> estimate index
+    fp = int(np.sum(match < 0))
+    tp = sum(1 for j in matched_est if counted[j])
     records = []
     for j, g in enumerate(gts):
         if not counted[j]:
@@ -147,7 +214,42 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
         records.append(PalletRecord(frame=frame, distance_m=float(np.linalg.norm(t_gt)),
                                     visib_fract=float(g.visib_fract), detected=j in matched_est,
                                     truncated=bool(g.truncated), **errs))
-    return records, tp, fp
+    return FrameScore(records, tp, fp)
+
+
+def evaluate_poses(frame: int, poses: Sequence, gts: Sequence[GroundTruth], model_pts: np.ndarray,
+                   symmetries: np.ndarray) -> FrameScore:
+    """The per-frame evaluation of the estimator's output (`pallet6d eval`, `pallet6d run` on a BOP source).
+
+    :param poses: the frame's `PalletPose`s (their `T_cam_pallet`, `box_xyxy`, `detector_score`); empty when
+        the estimation failed (its counted pallets are then missed).
+    :param gts: its ground truth (`ground_truths_from_bop`); :param model_pts: (n, 3) metres;
+    :param symmetries: (S, 4, 4).
+    """
+    estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in poses]
+    return evaluate_frame(frame, estimates, gts, model_pts, symmetries)
+
+
+class ScoreTally:
+    """The running evaluation of a sequence of frames: `add` each frame's `FrameScore`, then `summary()`."""
+
+    def __init__(self) -> None:
+        self.records: list[PalletRecord] = []
+        self.true_positives = self.false_positives = 0
+
+    def add(self, score: FrameScore) -> FrameScore:
+        self.records.extend(score.records)
+        self.true_positives += score.true_positives
+        self.false_positives += score.false_positives
+        return score
+
+    def __bool__(self) -> bool:
+        """Whether anything was scored: a pallet, or an estimate."""
+        return bool(self.records or self.true_positives or self.false_positives)
+
+    def summary(self, **kwargs) -> dict:
+        """`summarize` of everything added (kwargs: its bins and thresholds)."""
+        return summarize(self.records, self.true_positives, self.false_positives, **kwargs)
 
 
 def summarize(records: Iterable[PalletRecord], true_positives: int, false_positives: int,

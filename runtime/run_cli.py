@@ -118,9 +118,10 @@ class _Tally:
     """What a run has done so far: input frames, estimated ones, errors (and the current run of them)."""
 
     def __init__(self) -> None:
+        from .evaluation import ScoreTally
+
         self.frames = self.estimated = self.errors = self.in_a_row = self.poses = self.overlay_errors = 0
-        self.records: list = []
-        self.tp = self.fp = 0
+        self.scores = ScoreTally()
 
     def summary(self, stopped_by: str | None) -> dict:
         out = {"frames": self.frames, "estimated": self.estimated, "errors": self.errors, "poses": self.poses}
@@ -128,9 +129,8 @@ class _Tally:
             out["overlay_errors"] = self.overlay_errors
         if stopped_by:
             out["stopped_by"] = stopped_by
-        if self.records or self.tp or self.fp:
-            from .evaluation import summarize
-            out.update(summarize(self.records, self.tp, self.fp))
+        if self.scores:
+            out.update(self.scores.summary())
         return out
 
 
@@ -207,7 +207,7 @@ def _run(args: argparse.Namespace, est, forklift: ForkliftOutput, source, stop: 
                 line = {"frame": int(number), "timestamp_s": None if frame is None else frame.timestamp_s,
                         "error": error}
                 if gts is not None:  # its pallets count as missed
-                    line["gt"], _, _ = _evaluate(est, number, None, gts, tally.records)
+                    line["gt"] = _evaluate(est, number, None, gts, tally)
                 print(json.dumps(line) if args.format == "json" else f"frame {number}: error: {error}", file=out,
                       flush=True)
                 if tally.in_a_row >= args.max_failures:
@@ -220,8 +220,7 @@ def _run(args: argparse.Namespace, est, forklift: ForkliftOutput, source, stop: 
             tally.poses += len(result.poses)
             line = {"frame": int(number), "timestamp_s": frame.timestamp_s, **result.to_dict()}
             if gts is not None:
-                line["gt"], f_tp, f_fp = _evaluate(est, number, result, gts, tally.records)
-                tally.tp, tally.fp = tally.tp + f_tp, tally.fp + f_fp
+                line["gt"] = _evaluate(est, number, result, gts, tally)
             if args.out:
                 why = _write_overlay(args.out / f"{int(number):06d}.png", frame, result, est, gts)
                 if why:
@@ -274,20 +273,19 @@ def _text(line: dict) -> str:
     return "\n".join(out)
 
 
-def _evaluate(est, frame_number: int, result, gts: list, records: list) -> tuple[list[dict], int, int]:
-    """Per-pallet ADD / ADD-sym of one frame (evaluation protocol); appends to `records`."""
-    from .evaluation import Estimate, evaluate_frame
+def _evaluate(est, frame_number: int, result, gts: list, tally: _Tally) -> list[dict]:
+    """The frame's line entry per counted ground-truth pallet (ADD / ADD-sym, evaluation protocol); the frame's
+    score joins the run's."""
+    from .evaluation import evaluate_poses
 
     poses = result.poses if result is not None else []   # None: the frame's estimation failed
-    estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in poses]
-    recs, tp, fp = evaluate_frame(frame_number, estimates, gts, est.model_points_m, est.symmetries)
-    records.extend(recs)
+    score = tally.scores.add(evaluate_poses(frame_number, poses, gts, est.model_points_m, est.symmetries))
 
     def m(v: float):
         return None if not np.isfinite(v) else round(float(v), 4)
 
     return [{"detected": r.detected, "distance_m": round(r.distance_m, 3), "visib_fract": round(r.visib_fract, 3),
-             "add_m": m(r.add_m), "add_sym_m": m(r.add_sym_m)} for r in recs], tp, fp
+             "add_m": m(r.add_m), "add_sym_m": m(r.add_sym_m)} for r in score.records]
 
 
 def _write_overlay(path: Path, frame, result, est, gts) -> str | None:

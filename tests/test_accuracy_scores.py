@@ -1,14 +1,10 @@
-"""benchmarks/accuracy.py --write-scores: the summary lands in the report, the manifest is untouched."""
-import importlib.util
+"""export/accuracy_report.py (benchmarks/accuracy.py): --write-scores puts the summary in the report and leaves
+the manifest untouched; the markdown page; the test sets made again when annotated by an older generator."""
 import json
 import shutil
-from pathlib import Path
 
+from pallet6d.export import accuracy_report as accuracy
 from pallet6d.runtime.bundle import check_bundle, load_bundle, sha256_file
-
-_spec = importlib.util.spec_from_file_location("accuracy", Path(__file__).parents[1] / "benchmarks" / "accuracy.py")
-accuracy = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(accuracy)
 
 
 def test_write_scores_records_each_preset_per_precision(bundle_dir, tmp_path, capsys):

@@ -155,3 +155,33 @@ def test_writer_rejects_bad_input(tmp_path):
         BopWriter(tmp_path, depth_scale_mm=0)
     with pytest.raises(ValueError, match="T_cam_model"):
         BopGT(obj_id=1, T_cam_model=np.eye(3))
+
+
+def test_depth_units_as_stored_and_the_bop_source_hands_them_out_unchanged(tmp_path):
+    from pallet6d.runtime.cameras import open_source
+
+    rgb = np.zeros((8, 10, 3), np.uint8)
+    depth = np.random.default_rng(0).uniform(0.2, 6.0, (8, 10)).astype(np.float32)
+    K = np.diag([100.0, 100.0, 1.0])
+    K[:2, 2] = (5.0, 4.0)
+    with BopWriter(tmp_path, "val", depth_scale_mm=0.1) as w:
+        w.write_frame(0, 0, rgb, depth, K, [])
+    stored = cv2.imread(str(tmp_path / "val" / "000000" / "depth" / "000000.png"), cv2.IMREAD_ANYDEPTH)
+    frame = BopDataset(tmp_path)[0]
+    assert frame.depth_units.dtype == np.uint16
+    np.testing.assert_array_equal(frame.depth_units, stored)
+    np.testing.assert_array_equal(frame.depth_m, stored.astype(np.float32) * np.float32(0.0001))
+    with open_source(f"bop:{tmp_path}") as src:
+        f = src.read()
+    np.testing.assert_array_equal(f.depth, stored)
+    assert f.depth_scale_m == pytest.approx(1e-4) and np.array_equal(f.K, K)
+
+
+def test_depth_missing_gives_zeros_and_a_float_depth_image_is_refused(bop_copy):
+    scene = bop_copy / "train" / "000000"
+    (scene / "depth" / "000000.png").unlink()
+    frame = BopDataset(bop_copy)[0]
+    assert frame.depth_units.dtype == np.uint16 and not frame.depth_units.any() and not frame.depth_m.any()
+    cv2.imwrite(str(scene / "depth" / "000000.tif"), np.ones(frame.depth_m.shape, np.float32))
+    with pytest.raises(BopFormatError, match="000000.tif.*integer"):
+        BopDataset(bop_copy)[0]

@@ -1,13 +1,7 @@
-"""benchmarks/detector_recall.py: one row per counted pallet, and misses told apart by their nearest detection."""
-import importlib.util
-from pathlib import Path
-
+"""runtime/detector_recall.py: one row per counted pallet, and misses told apart by their nearest detection."""
 import numpy as np
 
-_spec = importlib.util.spec_from_file_location("detector_recall",
-                                               Path(__file__).parents[1] / "benchmarks" / "detector_recall.py")
-detector_recall = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(detector_recall)
+from pallet6d.runtime.detector_recall import recall_report, recall_rows
 
 
 def test_rows_count_every_pallet_at_least_10_percent_visible(bundle_dir, sim_bop_dataset):
@@ -15,7 +9,7 @@ def test_rows_count_every_pallet_at_least_10_percent_visible(bundle_dir, sim_bop
     from pallet6d.runtime.estimator import PalletEstimator
 
     est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.02, max_pallets=1000)
-    rows = detector_recall.rows_for(est, sim_bop_dataset, 0)
+    rows = recall_rows(est, sim_bop_dataset, 0)
     ds = BopDataset(sim_bop_dataset)
     n = sum(1 for i in range(len(ds)) for g in ds[i].gts if g.bbox_visib_xywh is not None and g.visib_fract >= 0.1)
     assert rows.shape == (n, 4) and n > 0
@@ -28,7 +22,7 @@ def test_report_splits_the_misses():
                      [0.9, 50, 0.8, 0.1],     # overlapping box, low score
                      [0.5, 20, 0.4, 0.9],     # loose box
                      [0.2, 10, 0.0, 0.0]])    # nothing near
-    text = detector_recall.report("x", rows, 0.25)
+    text = recall_report("x", rows, 0.25)
     assert "4 pallets, recall 0.250" in text
     assert "1 found with a score below 0.25, 1 with a loose box (IoU 0.3-0.5), 1 with nothing near" in text
     assert "| >= 40 px | 2 | 0.50 |" in text and "| 0-15 px | 1 | 0.00 |" in text

@@ -102,3 +102,79 @@ def test_one_estimate_matches_one_pallet():
     gts = [gt(0.0, [0, 0, 100, 50]), gt(0.0, [0, 0, 100, 52])]
     records, tp, fp = evaluate_frame(0, [est(0.0, [0, 0, 100, 50])], gts, PTS, SYMS)
     assert tp == 1 and sum(r.detected for r in records) == 1
+
+
+# -- which ground-truth pallets count ------------------------------------------------------------------------
+def _ann(visib, box):
+    from pallet6d.runtime.bop import BopGT
+
+    return BopGT(1, np.eye(4), bbox_visib_xywh=None if box is None else np.array(box), visib_fract=visib)
+
+
+@pytest.mark.parametrize("visib, box, rule, counts", [
+    (0.1, [0, 0, 5, 5], {}, True),                                   # exactly the threshold counts
+    (0.0999, [0, 0, 5, 5], {}, False),
+    (0.5, None, {}, False),                                          # no visible box: nothing to match or crop
+    (np.nan, [0, 0, 5, 5], {}, True),                                # evaluation: unknown visibility counts
+    (np.nan, [0, 0, 5, 5], {"unknown_visib_counts": False}, False),  # training: it may be hidden entirely
+    (0.5, [0, 0, 0, 5], {}, True),                                   # box size not checked by default
+    (0.5, [0, 0, 1, 5], {"min_box_side_px": 2}, False),
+    (0.5, [0, 0, 2, 1], {"min_box_side_px": 2}, False),
+    (0.5, [0, 0, 2, 2], {"min_box_side_px": 2}, True),
+    (0.2, [0, 0, 9, 9], {"min_visib_fract": 0.25}, False),
+])
+def test_counted_pallets_rule(visib, box, rule, counts):
+    from pallet6d.runtime.evaluation import counted_pallets
+
+    mask = counted_pallets([_ann(visib, box)], **rule)
+    assert mask.dtype == bool and mask.tolist() == [counts]
+
+
+def test_counted_pallets_of_none_and_of_evaluation_ground_truth():
+    from pallet6d.runtime.evaluation import counted_pallets
+
+    assert counted_pallets([]).shape == (0,)
+    gts = [gt(0.0, [10, 20, 40, 30], visib=0.05), gt(0.0, [10, 20, 40, 30], visib=0.5)]
+    assert counted_pallets(gts).tolist() == [False, True]
+    np.testing.assert_array_equal(gts[0].bbox_visib_xywh, [10, 20, 30, 10])
+
+
+def test_evaluate_poses_scores_the_estimator_output_like_evaluate_frame():
+    from types import SimpleNamespace
+
+    from pallet6d.runtime.evaluation import ScoreTally, evaluate_poses
+
+    gts = [gt(0.0, [0, 0, 100, 50]), gt(2.0, [200, 0, 300, 50], visib=0.05)]
+    poses = [SimpleNamespace(T_cam_pallet=make_T(np.eye(3), [0.01, 0, 3.0]), box_xyxy=np.array([0, 0, 100, 50.]),
+                             detector_score=0.9),
+             SimpleNamespace(T_cam_pallet=make_T(np.eye(3), [2.0, 0, 3.0]), box_xyxy=np.array([200, 0, 300, 50.]),
+                             detector_score=0.8)]
+    score = evaluate_poses(3, poses, gts, PTS, SYMS)
+    records, tp, fp = score                                     # a hidden pallet's detection is ignored
+    assert (len(records), tp, fp) == (1, 1, 0) and records[0].frame == 3 and records[0].detected
+    tally = ScoreTally()
+    assert not tally
+    tally.add(score)
+    tally.add(evaluate_poses(4, [], gts, PTS, SYMS))            # a failed frame: its pallet is missed
+    s = tally.summary()
+    assert tally and s["n_gt"] == 2 and s["recall"] == 0.5 and s["precision"] == 1.0
+
+
+def test_match_greedy_takes_the_best_free_overlap_by_score():
+    from pallet6d.runtime.evaluation import match_greedy
+
+    gt_boxes = np.array([[0, 0, 10, 10], [20, 0, 30, 10]], float)
+    pred = np.array([[0, 0, 10, 10], [1, 0, 11, 10], [20, 0, 30, 10], [50, 50, 60, 60]], float)
+    match, matched = match_greedy(pred, np.array([0.5, 0.9, 0.3, 0.99]), gt_boxes)
+    # the 0.9 box comes first and takes box 0; the exact 0.5 box then finds it taken; the far one matches nothing
+    assert match.tolist() == [-1, 0, 1, -1] and matched.tolist() == [True, True]
+    overlap = np.array([[0, 0, 10, 10], [2, 0, 12, 10]], float)
+    assert match_greedy(overlap[1:], [0.8], overlap)[0].tolist() == [1]   # its best overlap, not the first box
+    half = np.array([[0, 0, 10, 20]], float)                   # IoU exactly 0.5: inclusive
+    assert match_greedy(half, [1.0], gt_boxes[:1])[0].tolist() == [0]
+    assert match_greedy(np.array([[0, 0, 10, 21]], float), [1.0], gt_boxes[:1])[0].tolist() == [-1]
+    for p, g in ((np.zeros((0, 4)), gt_boxes), (gt_boxes, np.zeros((0, 4))), (np.zeros((0, 4)), np.zeros((0, 4)))):
+        m, mm = match_greedy(p, np.ones(len(p)), g)
+        assert m.shape == (len(p),) and mm.shape == (len(g),) and not mm.any() and (m < 0).all()
+    with pytest.raises(ValueError, match="scores"):
+        match_greedy(gt_boxes, np.ones(3), gt_boxes)

@@ -1,14 +1,11 @@
-"""benchmarks/rescore.py: saved per-pallet results re-scored against re-annotated ground truth."""
-import importlib.util
+"""`eval_cli.rescore` (benchmarks/rescore.py): saved per-pallet results re-scored against re-annotated ground
+truth."""
 import json
 import shutil
-from pathlib import Path
 
 import pytest
 
-_spec = importlib.util.spec_from_file_location("rescore", Path(__file__).parents[1] / "benchmarks" / "rescore.py")
-rescore = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(rescore)
+from pallet6d.runtime.eval_cli import rescore
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +19,7 @@ def results(bundle_dir, sim_bop_dataset):
 
 
 def test_same_annotations_give_the_same_scores(results, sim_bop_dataset):
-    after = rescore.rescore(results, sim_bop_dataset)
+    after = rescore(results, sim_bop_dataset)
     for key in ("n_gt", "n_detected", "recall", "precision", "add_acc", "add_sym_acc"):
         assert after[key] == pytest.approx(results[key]), key
 
@@ -40,7 +37,7 @@ def test_a_pallet_now_under_10_percent_visible_no_longer_counts(results, sim_bop
     j = min(range(len(dists)), key=lambda i: abs(dists[i] - first["distance_m"]))
     info[frame_key][j]["visib_fract"] = 0.05
     info_path.write_text(json.dumps(info))
-    after = rescore.rescore(results, data)
+    after = rescore(results, data)
     assert after["n_gt"] == results["n_gt"] - 1
     assert after["n_detected"] == results["n_detected"] - int(first["detected"])
 
@@ -48,4 +45,4 @@ def test_a_pallet_now_under_10_percent_visible_no_longer_counts(results, sim_bop
 def test_results_of_another_dataset_are_refused(results, sim_bop_dataset):
     moved = {**results, "records": [{**results["records"][0], "distance_m": 99.0}]}
     with pytest.raises(ValueError, match="another dataset"):
-        rescore.rescore(moved, sim_bop_dataset)
+        rescore(moved, sim_bop_dataset)

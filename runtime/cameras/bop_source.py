@@ -4,12 +4,10 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from .base import FrameSource
 from .errors import CameraError, CameraNotFound, FrameReadError
 from .frame import RGBDFrame
-from .replay import ON_ERROR_MODES
+from .replay import check_on_error
 
 __all__ = ["BopSource"]
 
@@ -19,7 +17,8 @@ log = logging.getLogger(__name__)
 class BopSource(FrameSource):
     """Frames of a BOP dataset in order, as fast as read.
 
-    Depth is handed out in the dataset's own units (`depth_scale_mm` mm per unit), so no value changes.
+    Frames are read by `pallet6d.runtime.bop.BopDataset` (paths, K, depth scale, ground truth); depth is handed
+    out as stored, in the dataset's own units (`depth_scale_mm` mm per unit), so no value changes.
     BOP frames carry no capture time: `timestamp_s` is `frame_number / fps`, and `frame_number` is the frame's
     index in the dataset (plus its length per earlier pass when looping). The ground truth of the frame just
     read is `last_gts` (a list of `BopGT`; None after an unreadable frame).
@@ -31,8 +30,7 @@ class BopSource(FrameSource):
     """
 
     def __init__(self, root: str | Path, fps: float = 30.0, on_error: str = "skip", loop: bool = False) -> None:
-        if on_error not in ON_ERROR_MODES:
-            raise ValueError(f"on_error must be one of {ON_ERROR_MODES}, got {on_error!r}")
+        check_on_error(on_error)
         if not fps > 0:
             raise ValueError(f"fps must be positive, got {fps}")
         self.root = Path(root)
@@ -78,9 +76,8 @@ class BopSource(FrameSource):
         self.last_gts = None
         try:
             f = self._ds[i]
-            frame = RGBDFrame.from_depth_m(np.asarray(f.rgb), np.asarray(f.depth_m), np.asarray(f.K),
-                                           timestamp_s=number / self.fps, frame_number=number, source=self.name,
-                                           depth_scale_m=float(f.depth_scale_mm) * 1e-3)
+            frame = RGBDFrame(f.rgb, f.depth_units, f.K, float(f.depth_scale_mm) * 1e-3, number / self.fps, number,
+                              self.name)
         except (OSError, ValueError, TypeError, KeyError) as exc:
             raise FrameReadError(f"{self.name}: frame {i}: {exc}", number) from exc
         self.last_gts = f.gts

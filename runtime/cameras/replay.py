@@ -42,13 +42,20 @@ from .base import FrameSource
 from .errors import CameraError, CameraNotFound, FrameReadError
 from .frame import RGBDFrame
 
-__all__ = ["REPLAY_FORMAT", "ReplayWriter", "ReplaySource", "read_frame_files", "ON_ERROR_MODES"]
+__all__ = ["REPLAY_FORMAT", "ReplayWriter", "ReplaySource", "read_frame_files", "ON_ERROR_MODES", "check_on_error"]
 
 log = logging.getLogger(__name__)
 
 REPLAY_FORMAT = "pallet6d-replay"
 REPLAY_VERSION = 1
 ON_ERROR_MODES = ("skip", "raise")
+
+
+def check_on_error(on_error: str) -> str:
+    """A recording player's `on_error`, checked: one of `ON_ERROR_MODES`. :raises ValueError: another value."""
+    if on_error not in ON_ERROR_MODES:
+        raise ValueError(f"on_error must be one of {ON_ERROR_MODES}, got {on_error!r}")
+    return on_error
 
 
 class ReplayWriter:
@@ -234,8 +241,7 @@ class ReplaySource(FrameSource):
     def __init__(self, root: str | Path, realtime: bool = False, loop: bool = False, on_error: str = "skip",
                  speed: float = 1.0, _clock: Callable[[], float] = time.monotonic,
                  _sleep: Callable[[float], None] = time.sleep) -> None:
-        if on_error not in ON_ERROR_MODES:
-            raise ValueError(f"on_error must be one of {ON_ERROR_MODES}, got {on_error!r}")
+        check_on_error(on_error)
         if not speed > 0:
             raise ValueError(f"speed must be positive, got {speed}")
         self.root = Path(root)

@@ -1,0 +1,64 @@
+"""The detector stage alone on a BOP dataset: recall by the visible box's height, and what the misses are.
+
+A counted pallet (`evaluation.counted_pallets`) is found when a detection at or above the score threshold overlaps
+its visible box with IoU >= 0.5 (the evaluation's rule). A miss is told apart by its best detection among those the
+estimator kept (run it at a low score threshold, e.g. 0.02): one at IoU >= 0.5 but a low score, one at IoU 0.3-0.5
+(a loose box), or none near it. Unlike `pallet6d eval`, no pallet is lost to `max_pallets`, the fit check or
+missing depth, so the two differ by what the pose stage drops.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["HEIGHT_BINS_PX", "recall_rows", "recall_report"]
+
+HEIGHT_BINS_PX = ((0, 15), (15, 25), (25, 40), (40, 100000))
+
+
+def recall_rows(est, data: str | Path, max_frames: int = 0) -> np.ndarray:
+    """One row per counted pallet of the dataset's frames (`max_frames` 0: all), with `est.detect`'s detections.
+
+    :param est: a `PalletEstimator`.
+    :return: (n, 4) visible fraction, visible box height px, best IoU, that detection's score.
+    """
+    from .bop import BopDataset
+    from .evaluation import box_iou, counted_pallets
+
+    ds = BopDataset(data)
+    rows = []
+    for i in range(min(len(ds), max_frames) if max_frames else len(ds)):
+        f = ds[i]
+        det = est.detect(f.rgb)
+        for g, counted in zip(f.gts, counted_pallets(f.gts)):
+            if not counted:
+                continue
+            x, y, w, h = g.bbox_visib_xywh
+            if len(det) == 0:
+                rows.append((g.visib_fract, h, 0.0, 0.0))
+                continue
+            iou = box_iou(det.boxes_xyxy, np.array([[x, y, x + w, y + h]], float))[:, 0]
+            # the highest-scoring overlapping detection, else the best-overlapping one
+            j = int(np.argmax(np.where(iou >= 0.5, det.scores, -1.0))) if (iou >= 0.5).any() else int(np.argmax(iou))
+            rows.append((g.visib_fract, h, iou[j], det.scores[j]))
+    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+
+def recall_report(name: str, rows: np.ndarray, score_threshold: float) -> str:
+    """Markdown: recall at `score_threshold` overall and by visible box height, and the misses split by kind.
+
+    :param rows: (n, 4) `recall_rows`.
+    """
+    found = (rows[:, 2] >= 0.5) & (rows[:, 3] >= score_threshold)
+    miss = rows[~found]
+    lines = [f"## {name}", "", f"{len(rows)} pallets, recall {found.mean():.3f} at score {score_threshold}", "",
+             "| visible box height | pallets | recall |", "|---|---|---|"]
+    for lo, hi in HEIGHT_BINS_PX:
+        sel = (rows[:, 1] >= lo) & (rows[:, 1] < hi)
+        label = f"{lo}-{hi} px" if hi < 100000 else f">= {lo} px"
+        lines.append(f"| {label} | {sel.sum()} | {found[sel].mean():.2f} |" if sel.any() else f"| {label} | 0 | - |")
+    lines += ["", f"misses: {np.sum(miss[:, 2] >= 0.5)} found with a score below {score_threshold}, "
+              f"{np.sum((miss[:, 2] >= 0.3) & (miss[:, 2] < 0.5))} with a loose box (IoU 0.3-0.5), "
+              f"{np.sum(miss[:, 2] < 0.3)} with nothing near", ""]
+    return "\n".join(lines)
