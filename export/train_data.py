@@ -406,9 +406,9 @@ def build_detector_samples(root: str | Path, max_side: int, max_frames: int | No
         f = ds[i]
         img, scale = cap_image(f.rgb, max_side)
         images.append(img)
-        bs = [g.bbox_visib_xywh.astype(np.float64) for g in f.gts if g.bbox_visib_xywh is not None
-              and not np.isnan(g.visib_fract) and g.visib_fract >= MIN_VISIB_FRACT
-              and g.bbox_visib_xywh[2] > 0 and g.bbox_visib_xywh[3] > 0]
+        # training's own rule: a target box of at least one pixel each way, no pallet of unknown visibility
+        counted = counted_pallets(f.gts, min_box_side_px=1, unknown_visib_counts=False)
+        bs = [g.bbox_visib_xywh.astype(np.float64) for g, c in zip(f.gts, counted) if c]
         b = np.array([[x, y, x + w, y + h] for x, y, w, h in bs], np.float64).reshape(-1, 4)
         boxes.append((b * scale).astype(np.float32))
         if progress is not None:
