@@ -229,7 +229,8 @@ def export_graphs(n: Networks, out: Path) -> Graphs:
     checks: dict = {"parity": {}, "gflops": {}, "params": {}}
     sizes, multi = n.detector_sizes, len(n.detector_sizes) > 1
     if n.detector_onnx is None:   # static batch 1, like ultralytics exports; height and width as the sizes need
-        files["detector"] = export_graph(nets["detector"], (t(calib.images[:1]),), out / "detector.onnx",
+        example = (t(calib.images_at(n.cfg.detector.input_hw)[:1]),)
+        files["detector"] = export_graph(nets["detector"], example, out / "detector.onnx",
                                          [DET_IN], [DET_OUT], DET_DYNAMIC_AXES if multi else None)
         parity = {_hw_name(hw): check_parity(nets["detector"], (t(calib.images_at(hw)[:1]),), files["detector"],
                                              [DET_IN], [DET_OUT]) for hw in sizes}
@@ -254,7 +255,7 @@ def export_graphs(n: Networks, out: Path) -> Graphs:
     det_gflops = {_hw_name(hw): round(count_gflops(files["detector"], {"height": hw[0], "width": hw[1]}), 3)
                   for hw in sizes}
     checks["gflops"] = {"detector_per_frame": det_gflops[_hw_name(n.cfg.detector.input_hw)],
-                        **({"detector_per_frame_by_size": det_gflops} if multi else {}),
+                        **({f"detector_per_frame_{k}": v for k, v in det_gflops.items()} if multi else {}),
                         "fusion_per_pallet": round(count_gflops(files["fusion"]), 3),
                         "pose_per_pallet": round(count_gflops(files["pose"]), 3)}
     n_cal = max(1, (3 * len(calib.rgb_crops)) // 4)   # calibrate on 3/4, report the difference on the rest
@@ -342,9 +343,9 @@ def write_bundle(out: Path, n: Networks, g: Graphs, int8: Int8Graphs | None, pal
     try:
         detector = DetectorSpec(
             file=rel(g.files["detector"]), file_int8=rel(i8["detector"]), input_name=g.det_in, output_name=g.det_out,
-            input_hw=tuple(cfg.detector.input_hw), input_sizes=n.detector_sizes, letterbox_pad_value=114, pixel_scale=1.0 / 255.0,
-            rgb_mean=(0.0, 0.0, 0.0), rgb_std=(1.0, 1.0, 1.0), channel_order="RGB", classes=tuple(cfg.detector.classes),
-            source="external" if external else "pallet6d")
+            input_hw=tuple(cfg.detector.input_hw), input_sizes=n.detector_sizes, letterbox_pad_value=114,
+            pixel_scale=1.0 / 255.0, rgb_mean=(0.0, 0.0, 0.0), rgb_std=(1.0, 1.0, 1.0), channel_order="RGB",
+            classes=tuple(cfg.detector.classes), source="external" if external else "pallet6d")
         fusion = FusionSpec(
             file=rel(g.files["fusion"]), file_int8=rel(i8["fusion"]), rgb_input="rgb", depth_input="depth",
             choose_input=n.fusion_inputs[2] if len(n.fusion_inputs) > 2 else None, output_name="features", crop_hw=tuple(cfg.fusion.crop_hw), pixel_scale=1.0 / 255.0,
