@@ -176,11 +176,6 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
         net.eval()
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed,
                                           detector_sizes=sizes)
-    for hw in sizes:
-        try:
-            calib.images_at(hw)
-        except ValueError as exc:
-            raise ExportError(str(exc)) from None
     sampled = bool(getattr(cfg.fusion, "sampled", False))   # the fusion graph takes `choose`, gives (B, N, C)
     fusion_in = [calib.rgb_crops, calib.depth_crops, calib.choose][:3 if sampled else 2]
     training = None

@@ -41,14 +41,17 @@ class CalibrationSet:
     other_images: dict = field(default_factory=dict)
 
     def images_at(self, input_hw: tuple[int, int]) -> np.ndarray:
-        """(F, 3, H, W) detector inputs letterboxed at `input_hw`. :raises ValueError: not a size of this set."""
+        """(F, 3, H, W) detector inputs letterboxed at `input_hw`. A size the set was not made for
+        (`make_calibration_set(detector_sizes=...)`) is made, once, by letterboxing `images` again: their own
+        padding then stays in the picture, so it serves checks better than calibration (a warning says so)."""
         hw = (int(input_hw[0]), int(input_hw[1]))
         if hw == tuple(self.images.shape[2:]):
             return self.images
         if hw not in self.other_images:
-            raise ValueError(f"the calibration set has no detector inputs at {hw[0]}x{hw[1]} (it has "
-                             f"{[tuple(self.images.shape[2:]), *self.other_images]}): make it with "
-                             "detector_sizes listing every size")
+            log.warning("the calibration set has no detector inputs at %dx%d: letterboxing its %dx%d inputs to it "
+                        "(make it with detector_sizes listing every size)", *hw, *self.images.shape[2:])
+            rgb = (self.images.transpose(0, 2, 3, 1) * 255.0).round().clip(0, 255).astype(np.uint8)
+            self.other_images[hw] = np.stack([_to_chw01(letterbox(im, hw)[0]) for im in rgb])
         return self.other_images[hw]
 
 

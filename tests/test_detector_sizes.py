@@ -187,12 +187,25 @@ def test_export_takes_the_sizes_the_checkpoint_was_trained_on(multi, tmp_path):
     assert b.detector.input_sizes == SIZES and b.detector.input_hw == (96, 96)   # the trained reference size
     with pytest.raises(ExportError, match="multiples of 32"):
         export_bundle(cfg, tmp_path / "c", random_init=True, detector_input_sizes=((64, 128), (100, 96)))
-    with pytest.raises(ExportError, match="no detector inputs at 96x96"):
-        export_bundle(cfg, tmp_path / "d", random_init=True, detector_input_sizes=SIZES,
-                      calib=make_calibration_set(cfg, frames=2, max_crops=4, seed=0, synthetic=True))
     with pytest.raises(ExportError, match="takes one input size"):
         export_bundle(cfg, tmp_path / "e", random_init=True, detector_onnx=SHIPPED / "detector.onnx",
                       classes=("epal",), detector_input_sizes=((192, 640), (256, 480)))
+
+
+def test_calibration_set_made_for_one_size_letterboxes_its_inputs_to_another(caplog):
+    from pallet6d.export.calib_data import make_calibration_set
+    from pallet6d.export.config import get_config
+
+    cfg = get_config("tiny")
+    both = make_calibration_set(cfg, frames=2, max_crops=4, seed=0, detector_sizes=SIZES)
+    assert both.images_at((96, 96)).shape == (2, 3, 96, 96) and both.images_at((64, 128)) is both.images
+    # each size letterboxes the frame itself: the sim's frames are wider than 96x96, so grey bands above and below
+    assert np.all(both.images_at((96, 96))[:, :, 0] == np.float32(114 / 255))
+    one = make_calibration_set(cfg, frames=2, max_crops=4, seed=0)
+    with caplog.at_level("WARNING"):
+        again = one.images_at((96, 96))
+    assert again.shape == (2, 3, 96, 96) and "no detector inputs at 96x96" in caplog.text
+    assert np.abs(again - both.images_at((96, 96))).mean() < 0.05     # the same frames, resampled twice
 
 
 def test_export_cli_parses_input_sizes(capsys):
