@@ -216,3 +216,14 @@ def test_export_cli_parses_input_sizes(capsys):
         cli.main(["export", "--config", "tiny", "--random-init", "--detector-input-sizes", "192x640,256", "--out",
                   "unused"])
     assert "expected HxW" in capsys.readouterr().err
+
+
+def test_weights_read_back_from_a_multi_size_bundle_keep_its_sizes(multi):
+    """Training can start from a multi-size bundle (`--init`, `train merge`): its detector graph gives the weights
+    back, and the checkpoint records the sizes, so a re-export takes them again."""
+    from pallet6d.export.bundle_weights import bundle_checkpoint
+    from pallet6d.export.export_inputs import trained_input_sizes
+
+    ckpt = bundle_checkpoint(multi.root, "detector")
+    assert ckpt["provenance"]["input_sizes"] == [[64, 128], [96, 96]] and trained_input_sizes(ckpt) == SIZES
+    assert ckpt["provenance"]["read_back_from_bundle"]["parity"]["detector"]
