@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import json
 import time
 from pathlib import Path
@@ -137,12 +138,17 @@ def main() -> None:
     args = ap.parse_args()
     paths, calib, n_cal = build(args.bundle, args.sizes, args.out, args.calib_frames)
     ref = tuple(calib.images.shape[2:])
-    result = {"bundle": str(args.bundle), "sizes": [list(hw) for hw in args.sizes], "threads": args.threads,
+    from pallet6d.export.export_inputs import git_commit
+
+    when = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes")
+    result = {"bundle": str(args.bundle), "git_commit": git_commit(), "date": when, "sizes": [list(hw) for hw in args.sizes], "threads": args.threads,
               "runs": args.runs, "calibration": calib.source, "held_out_frames": args.calib_frames - n_cal,
               "int8_vs_fp32": int8_vs_fp32(paths, calib, n_cal, args.sizes, args.score),
               "latency_ms": time_graphs(paths, calib, args.sizes, ref, args.threads, args.runs)}
     (args.out / "detector-sizes.json").write_text(json.dumps(result, indent=1) + "\n")
     lines = [f"# Detector latency per input size ({args.bundle}, {args.threads} threads, {args.runs} runs)", "",
+             f"`benchmarks/detector_sizes.py`, commit {result['git_commit']}, {when}; on a shared machine compare "
+             "within one run only.", "",
              "| graph | input | p10 ms | p50 ms | p95 ms |", "|---|---|---|---|---|"]
     for key, v in result["latency_ms"].items():
         kind, hw = key.split(" ")
