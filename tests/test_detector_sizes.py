@@ -85,7 +85,7 @@ def multi(tmp_path_factory, one_torch_thread):
                          detector_input_sizes=SIZES)
 
 
-def test_multi_size_export_passes_bundle_check(multi, capsys):
+def test_multi_size_export_passes_bundle_check(multi):
     m = multi.manifest
     assert m.detector.input_sizes == SIZES and m.detector.input_hw == SIZES[0]
     assert json.loads((multi.root / "manifest.json").read_text())["detector"]["input_sizes"] == [[64, 128], [96, 96]]
