@@ -33,7 +33,7 @@ from .calib_data import CalibrationSet, make_calibration_set
 from .config import ModelConfig
 from .detector import build_detector
 from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git_commit, load_checkpoint,
-                            read_checkpoint, trained_input_hw, warm_up_batchnorm)
+                            read_checkpoint, trained_input_hw, trained_input_sizes, warm_up_batchnorm)
 from .flops import count_gflops
 from .fusion import build_fusion
 from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
@@ -56,18 +56,35 @@ STAGES = ("detector", "fusion", "pose")
 # and saved only 2 ms per pallet on 2 cores (0.7 of a pallet's 5.6 GFLOP).
 INT8_STAGES = ("detector", "fusion")
 POSE_OUTPUTS = ("quat", "trans", "conf")
+# a detector that takes several input sizes: its graph's height and width axes (and the anchors) are dynamic
+DET_DYNAMIC_AXES = {DET_IN: {2: "height", 3: "width"}, DET_OUT: {2: "anchors"}}
 
 
 def _graph_diff(ref_path: Path, test_path: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
-    """Per output: how `test_path`'s outputs differ from `ref_path`'s on `feeds` (compare_outputs)."""
+    """Per output: how `test_path`'s outputs differ from `ref_path`'s on `feeds` (compare_outputs); the feeds
+    may differ in shape (a detector's input sizes)."""
     ref_sess, test_sess = ort_session(ref_path), ort_session(test_path)
     ref, got = {}, {}
     for f in feeds:
         for k, v in run_session(ref_sess, f).items():
-            ref.setdefault(k, []).append(v)
+            ref.setdefault(k, []).append(v.ravel())
         for k, v in run_session(test_sess, f).items():
-            got.setdefault(k, []).append(v)
+            got.setdefault(k, []).append(v.ravel())
     return {k: compare_outputs(np.concatenate(ref[k]), np.concatenate(got[k])).to_dict() for k in ref}
+
+
+def _hw_name(hw: tuple[int, int]) -> str:
+    return f"{hw[0]}x{hw[1]}"
+
+
+def _detector_sizes(sizes, what: str) -> tuple[tuple[int, int], ...]:
+    """`sizes` as distinct (H, W) tuples, each a positive multiple of 32. :raises ExportError:"""
+    out = tuple(dict.fromkeys((int(h), int(w)) for h, w in sizes))
+    bad = [hw for hw in out if min(hw) <= 0 or hw[0] % 32 or hw[1] % 32]
+    if not out or bad:
+        raise ExportError(f"{what}: detector input sizes must be positive multiples of 32 (YOLOv8 stride), got "
+                          f"{[list(hw) for hw in (bad or out)]}")
+    return out
 
 
 def _batches(arrays: list[np.ndarray], size: int) -> list[list[np.ndarray]]:
@@ -85,6 +102,8 @@ class Networks:
     :ivar fusion_inputs: the fusion graph's input names: rgb, depth, and choose for a fusion network that
         samples its features at the chosen pixels itself (`cfg.fusion.sampled`).
     :ivar training: the checkpoint's training provenance, if any.
+    :ivar detector_sizes: the detector input sizes (H, W) the graph takes; `cfg.detector.input_hw` (the
+        reference size) is one of them.
     """
 
     cfg: ModelConfig
@@ -94,6 +113,11 @@ class Networks:
     detector_onnx: Path | None
     training: dict | None
     fusion_inputs: tuple[str, ...] = ("rgb", "depth")
+    detector_sizes: tuple[tuple[int, int], ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.detector_sizes:
+            object.__setattr__(self, "detector_sizes", (tuple(self.cfg.detector.input_hw),))
 
     def fusion_arrays(self) -> list[np.ndarray]:
         """The calibration arrays fed to the fusion graph's inputs, in order."""
@@ -104,16 +128,26 @@ class Networks:
 def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | None = None,
                    random_init: bool = False, detector_onnx: str | Path | None = None,
                    classes: tuple[str, ...] | None = None, calib: CalibrationSet | None = None,
-                   calib_frames: int = 8, calib_crops: int = 96) -> Networks:
+                   calib_frames: int = 8, calib_crops: int = 96,
+                   detector_input_sizes: tuple[tuple[int, int], ...] | None = None) -> Networks:
     """The networks to export: a checkpoint's weights, or fresh ones with BatchNorm warmed up on calibration
     inputs. `classes` (our own detector) renames its classes; the count must stay the config's unless the
-    networks are fresh. :raises ExportError:"""
+    networks are fresh.
+
+    :param detector_input_sizes: the input sizes (H, W) our detector's graph takes (default: those the
+        checkpoint's detector was trained on, `input_sizes` of its provenance, else its one `input_hw`). The
+        reference size `input_hw` stays the trained one when listed, else becomes the first listed.
+    :raises ExportError:"""
     if (checkpoint is None) == (not random_init):
         raise ExportError("give exactly one of --checkpoint FILE or --random-init")
     ckpt = read_checkpoint(Path(checkpoint)) if checkpoint is not None else None
     if detector_onnx is not None:
         det_hw, det_classes = external_detector(Path(detector_onnx), classes)
         cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=det_hw, classes=det_classes))
+        if detector_input_sizes and set(_detector_sizes(detector_input_sizes, "--detector-input-sizes")) != {det_hw}:
+            raise ExportError(f"--detector-onnx {detector_onnx} takes one input size, {_hw_name(det_hw)}; "
+                              "--detector-input-sizes is for our own detector")
+        sizes = (det_hw,)
     else:
         if classes is not None:
             if ckpt is not None and len(classes) != len(cfg.detector.classes):
@@ -124,6 +158,15 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
             # the detector is fully convolutional: export it at the size it was trained at
             log.info("detector input %s, as trained (config %s: %s)", hw, cfg.name, cfg.detector.input_hw)
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=hw))
+        if detector_input_sizes:
+            sizes = _detector_sizes(detector_input_sizes, "--detector-input-sizes")
+        else:
+            trained = trained_input_sizes(ckpt) if ckpt is not None else None
+            sizes = _detector_sizes(trained, "the checkpoint's input_sizes") if trained else (cfg.detector.input_hw,)
+        if tuple(cfg.detector.input_hw) not in sizes:
+            log.info("detector reference input %s (the first input size; %s is not among %s)",
+                     _hw_name(sizes[0]), _hw_name(cfg.detector.input_hw), [_hw_name(hw) for hw in sizes])
+            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=sizes[0]))
     torch.manual_seed(seed)
     nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
             "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
@@ -131,7 +174,8 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
         del nets["detector"]
     for net in nets.values():
         net.eval()
-    calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed)
+    calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed,
+                                          detector_sizes=sizes)
     sampled = bool(getattr(cfg.fusion, "sampled", False))   # the fusion graph takes `choose`, gives (B, N, C)
     fusion_in = [calib.rgb_crops, calib.depth_crops, calib.choose][:3 if sampled else 2]
     training = None
@@ -147,7 +191,7 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
         feats = nets["fusion"](*(t(a) for a in fusion_in)).numpy()
     return Networks(cfg, nets, calib, feats if sampled else gather_features(feats, calib.choose),
                     None if detector_onnx is None else Path(detector_onnx), training,
-                    ("rgb", "depth", "choose") if sampled else ("rgb", "depth"))
+                    ("rgb", "depth", "choose") if sampled else ("rgb", "depth"), tuple(sizes))
 
 
 @dataclass(frozen=True)
@@ -164,6 +208,7 @@ class Graphs:
     checks: dict
     feeds: dict
     split: dict
+    detector_sizes: tuple[tuple[int, int], ...] = ()
 
     def held_out(self, stage: str) -> list:
         return self.feeds[stage][self.split[stage]:] or self.feeds[stage][-1:]
@@ -177,11 +222,14 @@ def export_graphs(n: Networks, out: Path) -> Graphs:
     calib, nets, t = n.calib, n.nets, torch.from_numpy
     files: dict[str, Path] = {}
     checks: dict = {"parity": {}, "gflops": {}, "params": {}}
-    if n.detector_onnx is None:   # static batch 1, like ultralytics exports
-        files["detector"] = export_graph(nets["detector"], (t(calib.images[:1]),), out / "detector.onnx",
-                                         [DET_IN], [DET_OUT])
-        checks["parity"]["detector"] = check_parity(nets["detector"], (t(calib.images[:1]),), files["detector"],
-                                                    [DET_IN], [DET_OUT])
+    sizes, multi = n.detector_sizes, len(n.detector_sizes) > 1
+    if n.detector_onnx is None:   # static batch 1, like ultralytics exports; height and width as the sizes need
+        example = (t(calib.images_at(n.cfg.detector.input_hw)[:1]),)
+        files["detector"] = export_graph(nets["detector"], example, out / "detector.onnx",
+                                         [DET_IN], [DET_OUT], DET_DYNAMIC_AXES if multi else None)
+        parity = {_hw_name(hw): check_parity(nets["detector"], (t(calib.images_at(hw)[:1]),), files["detector"],
+                                             [DET_IN], [DET_OUT]) for hw in sizes}
+        checks["parity"]["detector"] = parity if multi else parity[_hw_name(sizes[0])]
     else:
         files["detector"] = Path(shutil.copyfile(n.detector_onnx, out / "detector.onnx"))
         checks["parity"]["detector"] = "external graph, copied unchanged"
@@ -199,15 +247,21 @@ def export_graphs(n: Networks, out: Path) -> Graphs:
     checks["parity"]["pose"] = check_parity(nets["pose"], pose_args, files["pose"], ["points", "features"],
                                             list(POSE_OUTPUTS))
     checks["params"] = {stage: sum(p.numel() for p in net.parameters()) for stage, net in nets.items()}
-    checks["gflops"] = {"detector_per_frame": round(count_gflops(files["detector"]), 3),
+    det_gflops = {_hw_name(hw): round(count_gflops(files["detector"], {"height": hw[0], "width": hw[1]}), 3)
+                  for hw in sizes}
+    checks["gflops"] = {"detector_per_frame": det_gflops[_hw_name(n.cfg.detector.input_hw)],
+                        **({f"detector_per_frame_{k}": v for k, v in det_gflops.items()} if multi else {}),
                         "fusion_per_pallet": round(count_gflops(files["fusion"]), 3),
                         "pose_per_pallet": round(count_gflops(files["pose"]), 3)}
     n_cal = max(1, (3 * len(calib.rgb_crops)) // 4)   # calibrate on 3/4, report the difference on the rest
-    feeds = {"detector": [{det_in: calib.images[i:i + 1]} for i in range(len(calib.images))],
+    # the detector calibrates on the first 3/4 of the frames at every input size, and is checked on the rest
+    n_det = max(1, (3 * len(calib.images)) // 4)
+    det_feeds = [[{det_in: calib.images_at(hw)[i:i + 1]} for hw in sizes] for i in range(len(calib.images))]
+    feeds = {"detector": [f for frame in det_feeds for f in frame],
              "fusion": [dict(zip(fusion_names, b)) for b in _batches(n.fusion_arrays(), 4)],
              "pose": [{"points": p, "features": f} for p, f in _batches([calib.points, n.point_feats], 4)]}
-    split = {"detector": max(1, (3 * len(calib.images)) // 4), "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
-    return Graphs(files, det_in, det_out, checks, feeds, split)
+    split = {"detector": n_det * len(sizes), "fusion": -(-n_cal // 4), "pose": -(-n_cal // 4)}
+    return Graphs(files, det_in, det_out, checks, feeds, split, sizes)
 
 
 @dataclass(frozen=True)
@@ -232,6 +286,11 @@ def quantize_graphs(g: Graphs, out: Path, stages: tuple[str, ...] = INT8_STAGES)
         files[stage] = quantize_graph(g.files[stage], out / f"{stage}.int8.onnx", g.feeds[stage][:g.split[stage]],
                                       **INT8_RECIPES[stage])
         checks[stage] = _graph_diff(g.files[stage], files[stage], g.held_out(stage))
+        if stage == "detector" and len(g.detector_sizes) > 1:
+            checks["detector_by_size"] = {
+                _hw_name(hw): _graph_diff(g.files[stage], files[stage],
+                                          [f for f in g.held_out(stage) if f[g.det_in].shape[2:] == hw])
+                for hw in g.detector_sizes}
     checks["note"] = "int8 vs fp32 on calibration inputs held out from calibration"
     return Int8Graphs(files, checks)
 
@@ -279,9 +338,9 @@ def write_bundle(out: Path, n: Networks, g: Graphs, int8: Int8Graphs | None, pal
     try:
         detector = DetectorSpec(
             file=rel(g.files["detector"]), file_int8=rel(i8["detector"]), input_name=g.det_in, output_name=g.det_out,
-            input_hw=tuple(cfg.detector.input_hw), letterbox_pad_value=114, pixel_scale=1.0 / 255.0,
-            rgb_mean=(0.0, 0.0, 0.0), rgb_std=(1.0, 1.0, 1.0), channel_order="RGB", classes=tuple(cfg.detector.classes),
-            source="external" if external else "pallet6d")
+            input_hw=tuple(cfg.detector.input_hw), input_sizes=n.detector_sizes, letterbox_pad_value=114,
+            pixel_scale=1.0 / 255.0, rgb_mean=(0.0, 0.0, 0.0), rgb_std=(1.0, 1.0, 1.0), channel_order="RGB",
+            classes=tuple(cfg.detector.classes), source="external" if external else "pallet6d")
         fusion = FusionSpec(
             file=rel(g.files["fusion"]), file_int8=rel(i8["fusion"]), rgb_input="rgb", depth_input="depth",
             choose_input=n.fusion_inputs[2] if len(n.fusion_inputs) > 2 else None, output_name="features", crop_hw=tuple(cfg.fusion.crop_hw), pixel_scale=1.0 / 255.0,
@@ -325,7 +384,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
                   calib: CalibrationSet | None = None, calib_frames: int = 8, calib_crops: int = 96,
                   fp16_weights: bool = True, int8_stages: tuple[str, ...] = INT8_STAGES,
-                  pallet_types: tuple[str, ...] | None = None) -> ExportedBundle:
+                  pallet_types: tuple[str, ...] | None = None,
+                  detector_input_sizes: tuple[tuple[int, int], ...] | None = None) -> ExportedBundle:
     """Export `cfg`'s networks to a new bundle folder `out` (the steps of the module docstring).
 
     :param classes: the external detector's class names (default: its metadata), or our detector's.
@@ -334,6 +394,9 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         more than one, our own detector gets one class per type, named after it; an external detector's
         classes are matched to the types by name.
     :param int8: also write int8 graphs: the stages in `int8_stages` quantized, the others' float graph.
+    :param detector_input_sizes: the input sizes (H, W) our detector's graph takes, one chosen per frame by
+        the runtime (default: those its checkpoint was trained on; `build_networks`). With more than one, the
+        graph's height and width axes are dynamic, and parity and int8 calibration cover every size.
     :param fp16_weights: the float graphs keep their weights as float16 on disk (half the size, float32
         arithmetic); int8 graphs are quantized from the full float32 weights before that.
     :raises ExportError: bad arguments, checkpoint or external detector.
@@ -347,7 +410,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     if out.exists() and any(out.iterdir()):
         raise ExportError(f"output folder {out} is not empty; choose a new folder")
     n = build_networks(cfg, seed=seed, checkpoint=checkpoint, random_init=random_init, detector_onnx=detector_onnx,
-                       classes=classes, calib=calib, calib_frames=calib_frames, calib_crops=calib_crops)
+                       classes=classes, calib=calib, calib_frames=calib_frames, calib_crops=calib_crops,
+                       detector_input_sizes=detector_input_sizes)
     types = tuple(pallet_types) if pallet_types else _default_types(n)
     class_ids_for_types(types, n.cfg.detector.classes, detector_onnx is not None)   # fail before the work
     out.mkdir(parents=True, exist_ok=True)

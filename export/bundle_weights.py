@@ -295,6 +295,7 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
     provenance = {**before, "stage": stage, "config": bundle.config, "read_back_from_bundle": record}
     if stage == "detector":
         provenance["input_hw"] = list(bundle.detector.input_hw)
+        provenance["input_sizes"] = [list(hw) for hw in bundle.detector.input_sizes]
     return {"format": CKPT_FORMAT, "format_version": 1, "stage": stage, "config": bundle.config,
             "epoch": before.get("epoch"), "val": before.get("val"), "provenance": provenance,
             **{k: net.state_dict() for k, net in nets.items()}}

@@ -8,7 +8,7 @@ not installed: smooth random images and a box-shaped point cloud, recorded as su
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -28,7 +28,9 @@ class CalibrationSet:
     """:ivar images: (F, 3, H, W) float32 in [0, 1], letterboxed detector inputs.
     :ivar rgb_crops: (P, 3, h, w). :ivar depth_crops: (P, 1, h, w). :ivar points: (P, N, 3). :ivar choose: (P, N).
     :ivar source: where the data came from (recorded in the manifest).
-    :ivar crop_sources: (P,) the preset each crop was taken from."""
+    :ivar crop_sources: (P,) the preset each crop was taken from.
+    :ivar other_images: per further detector input size (H', W'), the same frames letterboxed at that size,
+        (F, 3, H', W') (a detector that takes several sizes is calibrated and checked at each)."""
 
     images: np.ndarray
     rgb_crops: np.ndarray
@@ -37,6 +39,21 @@ class CalibrationSet:
     choose: np.ndarray
     source: str
     crop_sources: tuple[str, ...] = ()
+    other_images: dict = field(default_factory=dict)
+
+    def images_at(self, input_hw: tuple[int, int]) -> np.ndarray:
+        """(F, 3, H, W) detector inputs letterboxed at `input_hw`. A size the set was not made for
+        (`make_calibration_set(detector_sizes=...)`) is made, once, by letterboxing `images` again: their own
+        padding then stays in the picture, so it serves checks better than calibration (a warning says so)."""
+        hw = (int(input_hw[0]), int(input_hw[1]))
+        if hw == tuple(self.images.shape[2:]):
+            return self.images
+        if hw not in self.other_images:
+            log.warning("the calibration set has no detector inputs at %dx%d: letterboxing its %dx%d inputs to it "
+                        "(make it with detector_sizes listing every size)", *hw, *self.images.shape[2:])
+            rgb = (self.images.transpose(0, 2, 3, 1) * 255.0).round().clip(0, 255).astype(np.uint8)
+            self.other_images[hw] = np.stack([_to_chw01(letterbox(im, hw)[0]) for im in rgb])
+        return self.other_images[hw]
 
 
 def pose_input_spec(cfg: ModelConfig) -> PoseInputSpec:
@@ -50,17 +67,21 @@ def _to_chw01(img: np.ndarray) -> np.ndarray:
     return img.transpose(2, 0, 1).astype(np.float32) / 255.0
 
 
-def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets: tuple[str, ...]) -> CalibrationSet:
+def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets: tuple[str, ...],
+              other_sizes: tuple[tuple[int, int], ...]) -> CalibrationSet:
     from pallet6d.sim.generate import generate_frame
     from pallet6d.sim.presets import get_preset
 
     rng = np.random.default_rng(seed)
     spec = pose_input_spec(cfg)
     images, batches = [], {p: [] for p in presets}
+    others: dict = {hw: [] for hw in other_sizes}
     for i in range(frames):
         preset = presets[i % len(presets)]
         frame = generate_frame(get_preset(preset), seed, i)
         images.append(_to_chw01(letterbox(frame.rgb, cfg.detector.input_hw)[0]))
+        for hw, imgs in others.items():
+            imgs.append(_to_chw01(letterbox(frame.rgb, hw)[0]))
         boxes = []
         # calibration's own rule: clearly visible pallets (>= 25 %, a box >= 8 px each way, >= 50 depth pixels)
         counted = counted_pallets(frame.pallets, min_visib_fract=0.25, min_box_side_px=8)
@@ -89,11 +110,13 @@ def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets:
     crop_sources = tuple(names[j] for j, _ in order)
     counts = {name: crop_sources.count(name) for name in names}
     return CalibrationSet(np.stack(images), **cat, crop_sources=crop_sources,
+                          other_images={hw: np.stack(imgs) for hw, imgs in others.items()},
                           source=f"pallet6d.sim presets {list(presets)}, {frames} frames, seed {seed}, "
                                  f"{len(order)} ground-truth crops with 5% box jitter {counts}")
 
 
-def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int) -> CalibrationSet:
+def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int,
+               other_sizes: tuple[tuple[int, int], ...]) -> CalibrationSet:
     """Smooth random images and box-surface points (used only when pallet6d.sim is missing)."""
     import cv2
 
@@ -106,6 +129,8 @@ def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int) -> Cali
         return cv2.resize(small, (shape_hw[1], shape_hw[0]), interpolation=cv2.INTER_CUBIC).reshape(*shape_hw, c)
 
     images = np.stack([np.clip(smooth((H, W), 3), 0, 1).transpose(2, 0, 1) for _ in range(frames)])
+    others = {hw: np.stack([np.clip(smooth(hw, 3), 0, 1).transpose(2, 0, 1) for _ in range(frames)]).astype(np.float32)
+              for hw in other_sizes}
     p = max_crops
     mean = np.asarray(spec.rgb_mean, np.float32).reshape(3, 1, 1)
     std = np.asarray(spec.rgb_std, np.float32).reshape(3, 1, 1)
@@ -118,19 +143,26 @@ def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int) -> Cali
     choose = rng.integers(0, h * w, (p, n))
     return CalibrationSet(images.astype(np.float32), rgb.astype(np.float32), depth.astype(np.float32),
                           pts.astype(np.float32), choose.astype(np.int64), crop_sources=("synthetic",) * p,
+                          other_images=others,
                           source=f"synthetic: smooth random images/crops and box-surface points (seed {seed}); "
                                  "pallet6d.sim was not available")
 
 
 def make_calibration_set(cfg: ModelConfig, frames: int = 8, max_crops: int = 96, seed: int = 0,
                          presets: tuple[str, ...] = ("virtual-occluded", "indoor-noisy", "virtual-clean"),
-                         synthetic: bool = False) -> CalibrationSet:
-    """Calibration inputs from the simulator, or synthetic ones when it is not installed or `synthetic`."""
+                         synthetic: bool = False, detector_sizes=()) -> CalibrationSet:
+    """Calibration inputs from the simulator, or synthetic ones when it is not installed or `synthetic`.
+
+    :param detector_sizes: detector input sizes (H, W) to letterbox the frames at besides the config's
+        `input_hw` (`CalibrationSet.images_at`).
+    """
+    ref = tuple(cfg.detector.input_hw)
+    other_sizes = tuple(dict.fromkeys(hw for hw in ((int(h), int(w)) for h, w in detector_sizes) if hw != ref))
     if synthetic:
-        return _synthetic(cfg, frames, max_crops, seed)
+        return _synthetic(cfg, frames, max_crops, seed, other_sizes)
     try:
         import pallet6d.sim.generate  # noqa: F401
     except ImportError:
         log.warning("pallet6d.sim is not available: calibrating on synthetic inputs")
-        return _synthetic(cfg, frames, max_crops, seed)
-    return _from_sim(cfg, frames, max_crops, seed, presets)
+        return _synthetic(cfg, frames, max_crops, seed, other_sizes)
+    return _from_sim(cfg, frames, max_crops, seed, presets, other_sizes)

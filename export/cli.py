@@ -26,6 +26,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --int8: comma-separated stages to quantize (default detector,fusion: the pose "
                              "net loses accuracy when quantized); the others run their float graph at int8 too")
     parser.add_argument("--detector-onnx", help="use this YOLOv8 ONNX graph (ultralytics export layout) as detector")
+    parser.add_argument("--detector-input-sizes", type=_sizes, metavar="HxW,HxW,...",
+                        help="detector input sizes, one chosen per frame by its aspect (default: those the "
+                             "checkpoint's detector was trained on); several give a graph with dynamic height/width")
     parser.add_argument("--classes", help="comma-separated class names of --detector-onnx (default: its metadata)")
     parser.add_argument("--fp32-weights", action="store_true",
                         help="keep the float graphs' weights float32 on disk (default: float16 on disk, half the size; "
@@ -41,6 +44,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "config's one, epal); with several, the detector gets one class per type")
     parser.add_argument("--name", help="bundle name (default: the output folder's name)")
     parser.add_argument("--out", required=True, help="output folder (new or empty), e.g. models/edge")
+
+
+def _sizes(text: str) -> tuple[tuple[int, int], ...]:
+    """'192x640,256x480' -> ((192, 640), (256, 480))."""
+    try:
+        sizes = tuple(tuple(int(v) for v in part.lower().split("x")) for part in text.split(","))
+    except ValueError:
+        sizes = ()
+    if not sizes or any(len(hw) != 2 for hw in sizes):
+        raise argparse.ArgumentTypeError(f"expected HxW[,HxW...], e.g. 192x640,256x480, got {text!r}")
+    return sizes
 
 
 def main(args: argparse.Namespace) -> int:
@@ -62,7 +76,7 @@ def main(args: argparse.Namespace) -> int:
                                  fp16_weights=not args.fp32_weights,
                                  int8_stages=INT8_STAGES if args.int8_stages is None else
                                  tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()),
-                                 pallet_types=types)
+                                 pallet_types=types, detector_input_sizes=args.detector_input_sizes)
     except (ExportError, ParityError) as exc:
         print(f"pallet6d export: {exc}", file=sys.stderr)
         return 1

@@ -25,7 +25,7 @@ from .config import ModelConfig
 from .onnx_io import ort_session
 
 __all__ = ["ExportError", "DET_IN", "DET_OUT", "git_commit", "warm_up_batchnorm", "read_checkpoint",
-           "trained_input_hw", "load_checkpoint", "external_detector"]
+           "trained_input_hw", "trained_input_sizes", "load_checkpoint", "external_detector"]
 
 log = logging.getLogger(__name__)
 
@@ -70,15 +70,37 @@ def read_checkpoint(path: Path) -> dict:
     return ckpt
 
 
+def _detector_provenance(ckpt: dict) -> dict:
+    """The detector stage's provenance: a detector checkpoint's own, or a merged one's "detector" entry."""
+    prov = ckpt.get("provenance")
+    if not isinstance(prov, dict):
+        return {}
+    det = prov if prov.get("stage") == "detector" else prov.get("detector")
+    return det if isinstance(det, dict) else {}
+
+
 def trained_input_hw(ckpt: dict) -> tuple[int, int] | None:
     """The detector input (H, W) a checkpoint's detector was trained at (`pallet6d train detector
     --detector-input`), from its provenance; None when not recorded (then the config's size applies)."""
-    prov = ckpt.get("provenance")
-    if not isinstance(prov, dict):
-        return None
-    det = prov if prov.get("stage") == "detector" else prov.get("detector")
-    hw = det.get("input_hw") if isinstance(det, dict) else None
+    hw = _detector_provenance(ckpt).get("input_hw")
     return (int(hw[0]), int(hw[1])) if hw is not None else None
+
+
+def trained_input_sizes(ckpt: dict) -> tuple[tuple[int, int], ...] | None:
+    """The detector input sizes [[H, W], ...] a checkpoint's detector was trained on (provenance key
+    `input_sizes`); None when not recorded (then it was trained at `input_hw` alone).
+
+    :raises ExportError: the record is not a list of [H, W].
+    """
+    sizes = _detector_provenance(ckpt).get("input_sizes")
+    if sizes is None:
+        return None
+    try:
+        out = tuple((int(h), int(w)) for h, w in sizes)
+    except (TypeError, ValueError):
+        raise ExportError(f"the checkpoint's detector provenance has input_sizes {sizes!r}, not a list of "
+                          "[H, W]") from None
+    return out or None
 
 
 def load_checkpoint(path: Path, ckpt: dict, nets: dict[str, torch.nn.Module], cfg: ModelConfig,

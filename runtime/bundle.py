@@ -296,7 +296,6 @@ def check_bundle(path: str | Path, run: bool = True) -> list[str]:
         return [str(exc)]
     problems: list[str] = []
     d, f, p = b.detector, b.fusion, b.pose
-    h, w = d.input_hw
     ch, cw = f.crop_hw
     n, c = p.num_points, f.feature_dim
     fusion_in = {f.rgb_input: [None, 3, ch, cw], f.depth_input: [None, 1, ch, cw]}
@@ -309,9 +308,13 @@ def check_bundle(path: str | Path, run: bool = True) -> list[str]:
         fusion_out = [None, n, c]
     for prec in b.precision:
         suffix = "" if prec == "fp32" else " int8"
+        for h, w in d.input_sizes:   # a multi-size graph must take (and run at) every size
+            graph = b.graph("detector", prec)
+            at = f" at {h}x{w}" if d.multi_size else ""
+            problems += _check_graph(graph, f"detector{suffix} ({graph.name}){at}", {d.input_name: [None, 3, h, w]},
+                                     {d.output_name: [None, 4 + d.num_classes, None]}, run,
+                                     {d.input_name: _zeros([1, 3, h, w])})
         for stage, inputs, outputs, feeds in (
-                ("detector", {d.input_name: [None, 3, h, w]}, {d.output_name: [None, 4 + d.num_classes, None]},
-                 {d.input_name: _zeros([1, 3, h, w])}),
                 ("fusion", fusion_in, {f.output_name: fusion_out}, fusion_feeds),
                 ("pose", {p.points_input: [None, n, 3], p.features_input: [None, n, c]},
                  {p.quat_output: [None, n, 4], p.trans_output: [None, n, 3], p.conf_output: [None, n]},

@@ -36,6 +36,7 @@ def main(args: argparse.Namespace) -> int:
             return 1
         print(json.dumps({"name": b.name, "config": b.config, "classes": list(b.classes),
                           "precision": list(b.precision), "detector_input_hw": list(b.detector.input_hw),
+                          "detector_input_sizes": [list(hw) for hw in b.detector.input_sizes],
                           "crop_hw": list(b.fusion.crop_hw), "num_points": b.pose.num_points,
                           "format_version": b.manifest.format_version,
                           "pallet_types": [{"name": t.name, "class_id": t.class_id, "size_m": list(t.size_m),

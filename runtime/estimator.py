@@ -246,8 +246,10 @@ class PalletEstimator:
                                 f"{what} is {value}")
 
         det, fusion, pose = self.detector.model, self.pose_network.fusion, self.pose_network.pose
-        expect(det, d.input_name, 2, d.input_hw[0], "detector.input_hw[0]")
-        expect(det, d.input_name, 3, d.input_hw[1], "detector.input_hw[1]")
+        for i, (h, w) in enumerate(d.input_sizes):
+            where = "detector.input_hw" if not d.multi_size else f"detector.input_sizes[{i}]"
+            expect(det, d.input_name, 2, h, f"{where}[0]")
+            expect(det, d.input_name, 3, w, f"{where}[1]")
         expect(fusion, f.rgb_input, 2, f.crop_hw[0], "fusion.crop_hw[0]")
         expect(fusion, f.rgb_input, 3, f.crop_hw[1], "fusion.crop_hw[1]")
         expect(pose, q.points_input, 1, q.num_points, "pose.num_points")

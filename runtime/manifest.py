@@ -11,7 +11,9 @@ every file. How the bundle was made and what it scored live in `report.json` bes
       "detector": {
         "file": "detector.onnx", "file_int8": "detector.int8.onnx" | null,
         "input_name": "images", "output_name": "output0",
-        "input_hw": [192, 640],                        # letterboxed input, multiples of 32
+        "input_hw": [192, 640],                        # letterboxed input, multiples of 32 (the reference size)
+        "input_sizes": [[192, 640], [256, 480]],       # optional: inputs the graph takes, one chosen per frame
+                                                       # (`detector.choose_input_hw`); absent = [input_hw]
         "letterbox_pad_value": 114, "pixel_scale": 0.00392156862745098,   # 1/255; then (x - mean) / std
         "rgb_mean": [0, 0, 0], "rgb_std": [1, 1, 1], "channel_order": "RGB",
         "layout": "yolov8",                            # output (B, 4 + nc, A): cx, cy, w, h (input px), scores
@@ -94,12 +96,28 @@ class DetectorSpec:
     classes: tuple[str, ...]
     source: str = "pallet6d"
     layout: str = "yolov8"
+    input_sizes: tuple[tuple[int, int], ...] | None = None   # None: (input_hw,)
 
     def __post_init__(self) -> None:
         graph_file("file", self.file)
         graph_file("file_int8", self.file_int8)
-        if min(self.input_hw) <= 0 or any(v % 32 for v in self.input_hw):
-            raise FieldError("input_hw", f"must be positive multiples of 32 (YOLOv8 stride), got {list(self.input_hw)}")
+        _check_input_hw("input_hw", self.input_hw)
+        sizes = (tuple(self.input_hw),) if self.input_sizes is None else \
+            tuple(tuple(int(v) for v in hw) for hw in self.input_sizes)
+        if not sizes:
+            raise FieldError("input_sizes", "must list at least one [H, W] (leave it out for input_hw alone)")
+        for i, hw in enumerate(sizes):
+            if len(hw) != 2:
+                raise FieldError(f"input_sizes[{i}]", f"must be [H, W], got {list(hw)}")
+            _check_input_hw(f"input_sizes[{i}]", hw)
+        dup = next((hw for i, hw in enumerate(sizes) if hw in sizes[:i]), None)
+        if dup is not None:
+            raise FieldError("input_sizes", f"lists {list(dup)} twice")
+        if tuple(self.input_hw) not in sizes:
+            raise FieldError("input_hw", f"{list(self.input_hw)} must be one of input_sizes "
+                                         f"{[list(hw) for hw in sizes]} (it is the reference size)")
+        object.__setattr__(self, "input_hw", tuple(self.input_hw))
+        object.__setattr__(self, "input_sizes", sizes)
         if not 0 <= self.letterbox_pad_value <= 255:
             raise FieldError("letterbox_pad_value", f"must be in [0, 255], got {self.letterbox_pad_value}")
         rgb_norm(self.pixel_scale, self.rgb_std)
@@ -118,6 +136,11 @@ class DetectorSpec:
     def num_classes(self) -> int:
         return len(self.classes)
 
+    @property
+    def multi_size(self) -> bool:
+        """Whether the graph takes more than one input size (then its height and width axes are dynamic)."""
+        return len(self.input_sizes) > 1
+
     @classmethod
     def from_fields(cls, d: Fields) -> "DetectorSpec":
         return d.build(cls, file=d.str("file"), file_int8=d.str("file_int8", None), input_name=d.str("input_name"),
@@ -125,14 +148,24 @@ class DetectorSpec:
                        letterbox_pad_value=d.int("letterbox_pad_value"), pixel_scale=d.num("pixel_scale"),
                        rgb_mean=d.nums("rgb_mean", 3), rgb_std=d.nums("rgb_std", 3),
                        channel_order=d.str("channel_order"), classes=d.names("classes"), source=d.str("source"),
-                       layout=d.str("layout"))
+                       layout=d.str("layout"), input_sizes=d.int_rows("input_sizes", 2, None))
 
     def to_dict(self) -> dict:
-        return {"file": self.file, "file_int8": self.file_int8, "input_name": self.input_name,
-                "output_name": self.output_name, "input_hw": list(self.input_hw),
-                "letterbox_pad_value": self.letterbox_pad_value, "pixel_scale": self.pixel_scale,
-                "rgb_mean": list(self.rgb_mean), "rgb_std": list(self.rgb_std), "channel_order": self.channel_order,
-                "layout": self.layout, "classes": list(self.classes), "source": self.source}
+        """The section as written; `input_sizes` only when it lists more than `input_hw`, so a single-size
+        bundle's manifest stays readable by runtimes that do not know the field (they refuse unknown keys)."""
+        out = {"file": self.file, "file_int8": self.file_int8, "input_name": self.input_name,
+               "output_name": self.output_name, "input_hw": list(self.input_hw),
+               "letterbox_pad_value": self.letterbox_pad_value, "pixel_scale": self.pixel_scale,
+               "rgb_mean": list(self.rgb_mean), "rgb_std": list(self.rgb_std), "channel_order": self.channel_order,
+               "layout": self.layout, "classes": list(self.classes), "source": self.source}
+        if self.multi_size:
+            out["input_sizes"] = [list(hw) for hw in self.input_sizes]
+        return out
+
+
+def _check_input_hw(key: str, hw: tuple[int, ...]) -> None:
+    if min(hw) <= 0 or any(v % 32 for v in hw):
+        raise FieldError(key, f"must be positive multiples of 32 (YOLOv8 stride), got {list(hw)}")
 
 
 @dataclass(frozen=True)

@@ -124,6 +124,16 @@ class Fields:
             raise self.fail(key, f"must be a list of {n} integers, got {value!r}")
         return tuple(value)
 
+    def int_rows(self, key: str, n: int, default: Any = ...) -> tuple[tuple[int, ...], ...] | None:
+        """A list of lists of `n` integers each (e.g. [[H, W], ...]); `default` when absent or null."""
+        value = self.get(key, list, default)
+        if value is None:
+            return None
+        if not all(isinstance(row, list) and len(row) == n and all(isinstance(v, int) and not isinstance(v, bool)
+                                                                   for v in row) for row in value):
+            raise self.fail(key, f"must be a list of lists of {n} integers, got {value!r}")
+        return tuple(tuple(row) for row in value)
+
     def array(self, key: str, default: Any = ...) -> np.ndarray | None:
         value = self.get(key, list, default)
         if value is None:

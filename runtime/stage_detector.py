@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .detector import Detections, Letterbox, decode_yolov8, letterbox, to_nchw, undo_letterbox
+from .detector import Detections, Letterbox, choose_input_hw, decode_yolov8, letterbox, to_nchw, undo_letterbox
 from .sessions import OnnxModel
 
 __all__ = ["DetectorStage"]
@@ -12,6 +12,9 @@ __all__ = ["DetectorStage"]
 class DetectorStage:
     """The bundle's detector graph with its pre- and post-processing.
 
+    Each frame is letterboxed to the manifest's input size that draws it largest (`choose_input_hw` over
+    `detector.input_sizes`; a single-size bundle always uses `input_hw`).
+
     :param bundle: a loaded `Bundle`. :param precision: "fp32" or "int8". :param threads: onnxruntime threads.
     :param class_ids: the detector classes that are pallets (the others are dropped in `postprocess`).
     :param score_threshold, iou_threshold, max_detections: decoding and NMS (`decode_yolov8`).
@@ -19,22 +22,30 @@ class DetectorStage:
 
     def __init__(self, bundle, precision: str, threads: int, class_ids: tuple[int, ...], score_threshold: float,
                  iou_threshold: float, max_detections: int) -> None:
-        self.spec = d = bundle.detector
-        self.model = OnnxModel(bundle.graph("detector", precision), threads, (d.input_name,), (d.output_name,))
+        self.spec = bundle.detector
+        self.model = OnnxModel(bundle.graph("detector", precision), threads, (self.spec.input_name,),
+                               (self.spec.output_name,))
         self.class_ids = tuple(int(c) for c in class_ids)
         self.score_threshold, self.iou_threshold = float(score_threshold), float(iou_threshold)
         self.max_detections = int(max_detections)
-        # reused across frames: the letterboxed image and the graph's input tensor
-        self._lb_buf = np.empty((*d.input_hw, 3), np.uint8)
-        self._input = np.empty((1, 3, *d.input_hw), np.float32)
+        # reused across frames, per input size: the letterboxed image and the graph's input tensor
+        self._buffers: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+
+    def input_hw_for(self, image_hw: tuple[int, int]) -> tuple[int, int]:
+        """The detector input (H_in, W_in) a frame of `image_hw` (H, W) is letterboxed to."""
+        return choose_input_hw(image_hw, self.spec.input_sizes)
 
     def preprocess(self, rgb: np.ndarray) -> tuple[np.ndarray, Letterbox]:
-        """(H, W, 3) uint8 RGB -> the graph's (1, 3, h, w) float32 input (a buffer reused by the next call)
-        and the letterbox to undo."""
+        """(H, W, 3) uint8 RGB -> the graph's (1, 3, h, w) float32 input (a buffer reused by the next call of
+        the same input size) and the letterbox to undo."""
         d = self.spec
-        img, lb = letterbox(rgb, d.input_hw, d.letterbox_pad_value, out=self._lb_buf)
-        to_nchw(img, d.rgb_mean, d.rgb_std, d.pixel_scale, d.channel_order == "BGR", out=self._input)
-        return self._input, lb
+        hw = self.input_hw_for(rgb.shape[:2])
+        if hw not in self._buffers:
+            self._buffers[hw] = (np.empty((*hw, 3), np.uint8), np.empty((1, 3, *hw), np.float32))
+        lb_buf, x = self._buffers[hw]
+        img, lb = letterbox(rgb, hw, d.letterbox_pad_value, out=lb_buf)
+        to_nchw(img, d.rgb_mean, d.rgb_std, d.pixel_scale, d.channel_order == "BGR", out=x)
+        return x, lb
 
     def infer(self, x: np.ndarray) -> np.ndarray:
         """The graph's raw YOLOv8 output (1, 4 + nc, A)."""
