@@ -32,6 +32,9 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     assert cfg.camera.source == f"replay:{tmp_path / 'rec'}"
     assert cfg.model.bundle == str(tmp_path / "b") and cfg.snapshot.dir == str(tmp_path / "snaps")
     assert cfg.estimator.depth_range_m == (0.3, 6.0) and cfg.estimator.max_pallets == 4
+    assert load(tmp_path, "[estimator]\nstructure = false\n" + CAMERA_FRAME).estimator.structure is None
+    relaxed = load(tmp_path, "[estimator]\nstructure = {min_agreement = 0.5}\n" + CAMERA_FRAME).estimator.structure
+    assert relaxed.min_agreement == 0.5 and relaxed.grid == 32
     assert load(tmp_path, '[camera]\nsource = "realsense:123"\n' + CAMERA_FRAME).camera.source == "realsense:123"
 
 
@@ -52,6 +55,9 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     ("[estimator]\nscore_threshold = 2.0\n", "score_threshold must be in [0, 1]"),
     ("[estimator]\nthreshold = 0.5\n", "[estimator] unknown key(s) ['threshold']"),
     ("[estimator]\ndepth_range_m = [1]\n", "estimator.depth_range_m"),
+    ("[estimator]\nstructure = 3\n", "estimator.structure: expected true, false or a table"),
+    ("[estimator]\nstructure = {grid = 'x'}\n", "estimator.structure.grid: expected int"),
+    ("[estimator]\nstructure = {gird = 32}\n", "estimator.structure: unknown key(s) ['gird']"),
     ("[output]\nframe = 'world'\n", "output.frame: must be one of ('vehicle', 'camera')"),
     ("[output]\n", "output.frame: vehicle-frame output (the default) needs output.calibration"),
     ("[output]\nframe = 'vehicle'\n", "output.calibration: frame = \"vehicle\" needs the camera's calibration"),

@@ -276,7 +276,9 @@ def _estimator(values: Any, name: str) -> EstimatorOptions:
     out = {}
     for key, value in values.items():
         default = fields[key].default
-        if key == "depth_range_m" or isinstance(value, list) or isinstance(default, tuple):
+        if dataclasses.is_dataclass(default):       # a group of settings (structure): false = off, a table = set
+            out[key] = _settings(value, type(default), f"estimator.{key}", name)
+        elif key == "depth_range_m" or isinstance(value, list) or isinstance(default, tuple):
             size = 2 if key == "depth_range_m" else len(default) if isinstance(default, tuple) else None
             if not (isinstance(value, list) and (size is None or len(value) == size)
                     and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
@@ -291,6 +293,23 @@ def _estimator(values: Any, name: str) -> EstimatorOptions:
         return EstimatorOptions(**out)
     except (TypeError, ValueError, IndexError) as exc:
         raise ConfigError(f"{name}: [estimator]: {exc}") from None
+
+
+def _settings(value: Any, kind: type, key: str, name: str):
+    """An estimator option that is a group of settings: `false` (off: None), `true` (its defaults) or a table of
+    its fields."""
+    if isinstance(value, bool):
+        return kind() if value else None
+    if not isinstance(value, dict):
+        raise ConfigError(f"{name}: {key}: expected true, false or a table, got {type(value).__name__} {value!r}")
+    fields = {f.name: f for f in dataclasses.fields(kind)}
+    unknown = set(value) - set(fields)
+    if unknown:
+        raise ConfigError(f"{name}: {key}: unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    try:
+        return kind(**{k: _typed(v, type(fields[k].default), f"{key}.{k}", name) for k, v in value.items()})
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name}: {key}: {exc}") from None
 
 
 def _resolve(path: str, base_dir: Path) -> str:
