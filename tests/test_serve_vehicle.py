@@ -11,6 +11,7 @@ import pytest
 from serve_fixtures import Daemon, free_port, write_config
 from pallet6d.runtime.calibration import Calibration, save_calibration
 from pallet6d.runtime.floor import FloorPlane
+from pallet6d.runtime.serve.schema import ReadyResponse
 
 FRAME = 2          # of the generated views, the one (camera 0.4 m up) that shows enough floor at 424x240
 
@@ -102,6 +103,15 @@ def test_vehicle_frame_response_equals_the_forklift_module(daemons, forklift_vie
     assert event["output_frame"] == "vehicle" and event["pallets"] and "forklift" in event["pallets"][0]
 
 
+def test_openapi_describes_the_vehicle_frame_response(daemons):
+    (d, _), _ = daemons
+    schemas = d.client.get("/openapi.json").json()["components"]["schemas"]
+    assert {"PalletsResponse", "Pallet", "Forklift", "Pocket", "ReadyResponse"} <= set(schemas)
+    assert {"t_vehicle_m", "forklift"} <= set(schemas["Pallet"]["properties"])
+    assert {"centre_m", "state"} <= set(schemas["Pocket"]["properties"])
+    assert "pick_safe" in schemas["Forklift"]["properties"]
+
+
 def test_a_matching_calibration_is_ready(daemons):
     (d, _), _ = daemons
     d.wait(lambda: d.client.get("/readyz").status_code == 200, "readyz")
@@ -110,6 +120,7 @@ def test_a_matching_calibration_is_ready(daemons):
     assert ready["checks"]["calibration"] and ready["reasons"] == [] and floor["state"] == "ok"
     assert abs(floor["camera_height_m"]["measured"] - floor["camera_height_m"]["expected"]) < 0.03
     assert floor["floor_tilt_deg"]["measured"] < 2.0 and ready["output_frame"] == "vehicle"
+    ReadyResponse.model_validate(ready)
     assert d.metric('pallet6d_floor_checks_total{result="agrees"}') >= 1
     assert d.metric("pallet6d_calibration_ok") == 1
 
@@ -121,6 +132,7 @@ def test_a_calibration_20cm_off_fails_readyz_and_withholds_vehicle_output(daemon
     floor = ready["calibration"]
     assert r.status_code == 503 and not ready["ready"] and ready["checks"]["calibration"] is False
     assert ready["checks"]["camera"] and ready["checks"]["model"]            # only the calibration fails
+    ReadyResponse.model_validate(ready)
     assert floor["state"] == "failed" and "camera height off by -20.0 cm" in floor["detail"]
     assert floor["camera_height_m"]["expected"] - floor["camera_height_m"]["measured"] == pytest.approx(0.2, abs=0.02)
     assert floor["camera_height_m"]["tolerance"] == 0.03 and floor["floor_tilt_deg"]["tolerance"] == 2.0
