@@ -247,14 +247,20 @@ class ServeConfig:
 def _section(values: Any, kind: type, section: str, name: str):
     if not isinstance(values, dict):
         raise ConfigError(f"{name}: [{section}] must be a table, got {type(values).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(kind) if f.name not in INTERNAL_FIELDS}
-    unknown = set(values) - set(fields)
-    if unknown:
-        raise ConfigError(f"{name}: [{section}] unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    fields = _fields(values, kind, f"[{section}]", name)
     out = {}
     for key, value in values.items():
         out[key] = _typed(value, type(fields[key].default), f"{section}.{key}", name)
     return kind(**out)
+
+
+def _fields(values: dict, kind: type, where: str, name: str) -> dict:
+    """`kind`'s fields that a file may set, by name; a `ConfigError` names the keys of `values` that are none."""
+    fields = {f.name: f for f in dataclasses.fields(kind) if f.name not in INTERNAL_FIELDS}
+    unknown = set(values) - set(fields)
+    if unknown:
+        raise ConfigError(f"{name}: {where} unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    return fields
 
 
 def _typed(value: Any, want: type, key: str, name: str):
@@ -269,10 +275,7 @@ def _typed(value: Any, want: type, key: str, name: str):
 def _estimator(values: Any, name: str) -> EstimatorOptions:
     if not isinstance(values, dict):
         raise ConfigError(f"{name}: [estimator] must be a table, got {type(values).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(EstimatorOptions)}
-    unknown = set(values) - set(fields)
-    if unknown:
-        raise ConfigError(f"{name}: [estimator] unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    fields = _fields(values, EstimatorOptions, "[estimator]", name)
     out = {}
     for key, value in values.items():
         default = fields[key].default
@@ -302,10 +305,7 @@ def _settings(value: Any, kind: type, key: str, name: str):
         return kind() if value else None
     if not isinstance(value, dict):
         raise ConfigError(f"{name}: {key}: expected true, false or a table, got {type(value).__name__} {value!r}")
-    fields = {f.name: f for f in dataclasses.fields(kind)}
-    unknown = set(value) - set(fields)
-    if unknown:
-        raise ConfigError(f"{name}: {key}: unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    fields = _fields(value, kind, f"{key}:", name)
     try:
         return kind(**{k: _typed(v, type(fields[k].default), f"{key}.{k}", name) for k, v in value.items()})
     except (TypeError, ValueError) as exc:
