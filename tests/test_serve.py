@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from serve_fixtures import Daemon, free_port, make_replay, write_config
+from pallet6d.runtime.serve.schema import PalletsResponse, ReadyResponse
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +36,10 @@ def test_latest_result_health_and_metrics(daemon):
     assert c.get("/healthz").json() == {"status": "ok"}
     ready = c.get("/readyz").json()
     assert ready["ready"] and all(ready["checks"].values()) and ready["camera_error"] is None
+    assert ready["calibration"]["state"] == "not_configured" and ready["reasons"] == []
     first = c.get("/v1/pallets").json()
+    ReadyResponse.model_validate(ready)      # what is sent is what the OpenAPI description says
+    PalletsResponse.model_validate(first)
     assert {"seq", "frame", "capture_timestamp_s", "age_s", "latency_ms", "pallets", "rejected", "image_hw",
             "output_frame"} <= set(first)
     assert first["output_frame"] == "camera" and first["image_hw"] == [120, 320] and first["age_s"] >= 0

@@ -101,7 +101,8 @@ def test_a_tilted_camera_fails_and_the_tolerance_is_the_configs(seen):
     T[:3, :3] = T[:3, :3] @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
     cal = Calibration("sim", "2026-11-23", W, H, K, T, FloorPlane(T[2, :3].copy(), float(T[2, 3])))
     strict = checked(FloorWatch(cal, cfg(), Metrics()), seen)
-    assert strict.status.state == "failed" and strict.to_dict()["floor_tilt_deg"]["measured"] == pytest.approx(3, abs=0.3)
+    assert strict.status.state == "failed"
+    assert strict.to_dict()["floor_tilt_deg"]["measured"] == pytest.approx(3, abs=0.3)
     lenient = checked(FloorWatch(cal, cfg(max_tilt_deg=5.0, max_height_diff_m=0.1), Metrics()), seen)
     assert lenient.status.state == "ok"
 

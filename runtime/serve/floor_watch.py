@@ -78,9 +78,6 @@ class FloorWatch:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._next_due = -math.inf
-        metrics.calibration_ok.set(1)
-        metrics.floor_tilt.set(math.nan)
-        metrics.floor_height_diff.set(math.nan)
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def start(self) -> "FloorWatch":

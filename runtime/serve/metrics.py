@@ -62,12 +62,16 @@ class Metrics:
                                     ["result"], registry=r)
         for result in FLOOR_CHECK_RESULTS:
             self.floor_checks.labels(result)
-        self.calibration_ok = Gauge("pallet6d_calibration_ok", "1 while the floor agrees with the calibration (or "
-                                    "was not seen), 0 while it does not; absent without a calibration", registry=r)
+        self.calibration_ok = Gauge("pallet6d_calibration_ok", "0 while the floor check says the camera moved since "
+                                    "calibration (or is another camera), else 1 (also without a calibration)",
+                                    registry=r)
+        self.calibration_ok.set(1)
         self.floor_tilt = Gauge("pallet6d_floor_tilt_degrees", "Angle between the seen and the calibrated floor "
-                                "at the last check that saw it", registry=r)
+                                "at the last check that saw it (NaN before)", registry=r)
         self.floor_height_diff = Gauge("pallet6d_floor_height_diff_meters", "Seen minus calibrated camera height "
-                                       "above the floor at the last check that saw it", registry=r)
+                                       "above the floor at the last check that saw it (NaN before)", registry=r)
+        self.floor_tilt.set(float("nan"))
+        self.floor_height_diff.set(float("nan"))
 
     def observe_result(self, timings_ms: dict[str, float], n_pallets: int) -> None:
         self.frames.inc()
