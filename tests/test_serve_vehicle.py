@@ -148,15 +148,19 @@ def test_a_calibration_20cm_off_fails_readyz_and_withholds_vehicle_output(daemon
     assert d.metric('pallet6d_failures_total{reason="calibration"}') >= 1
 
 
-def test_refuses_vehicle_output_without_a_calibration(tmp_path, forklift_view, bundle_dir):
-    import subprocess
-    import sys
+def test_check_names_the_calibration_and_refuses_vehicle_output_without_one(daemons, tmp_path, forklift_view,
+                                                                            bundle_dir, capsys):
+    from pallet6d.runtime.cli import main
 
+    (_, good_cfg), _ = daemons
+    assert main(["serve", "--config", str(good_cfg), "--check"]) == 0
+    out = capsys.readouterr().out
+    assert "vehicle-frame output, calibration" in out and "camera sim" in out
     rec, _, _ = forklift_view
-    cfg = write_config(tmp_path / "serve.toml", f"replay:{rec}", bundle_dir, free_port(), output="")
-    r = subprocess.run([sys.executable, "-m", "pallet6d.runtime.cli", "serve", "--config", str(cfg), "--check"],
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2 and "needs output.calibration" in r.stderr and 'frame = "camera"' in r.stderr
+    bare = write_config(tmp_path / "serve.toml", f"replay:{rec}", bundle_dir, free_port(), output="")
+    assert main(["serve", "--config", str(bare), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "needs output.calibration" in err and 'frame = "camera"' in err
 
 
 def _same(got, want) -> bool:

@@ -43,7 +43,11 @@ def main(args: argparse.Namespace) -> int:
         estimator = _load_estimator(config)
         if estimator is None:
             return 2
-        print(f"pallet6d serve: {args.config}: configuration valid, bundle {estimator.bundle.name} loaded")
+        cal = config.output.loaded
+        where = "" if cal is None else (f", calibration {config.output.calibration} (camera {cal.serial or '?'}, "
+                                        f"{cal.T_vehicle_cam[2, 3]:.3f} m above the floor)")
+        print(f"pallet6d serve: {args.config}: configuration valid, bundle {estimator.bundle.name} loaded, "
+              f"{config.output.frame}-frame output{where}")
         return 0
     from .worker import EstimatorProcess
 
