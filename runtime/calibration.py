@@ -122,6 +122,12 @@ class Calibration:
         object.__setattr__(self, "height", int(self.height))
         object.__setattr__(self, "date", str(self.date))
 
+    @property
+    def vehicle_floor(self) -> FloorPlane:
+        """The floor `T_vehicle_cam` implies (the vehicle's z = 0), camera frame: normal = the vehicle's z axis in
+        camera coordinates, d = the camera's height."""
+        return FloorPlane(self.T_vehicle_cam[2, :3].copy(), float(self.T_vehicle_cam[2, 3]))
+
     def check_camera(self, K: np.ndarray, image_hw: tuple[int, int], rtol: float = 0.01) -> None:
         """Raise `CalibrationError` when a frame's intrinsics or size are not the calibrated ones."""
         h, w = image_hw
@@ -216,10 +222,12 @@ class CalibrationMonitor:
     """
 
     def __init__(self, calibration: Calibration, every_n: int = 30, n_bad: int = 2, n_good: int = 3,
-                 max_tilt_deg: float = 1.0, max_height_diff_m: float = 0.03) -> None:
+                 max_tilt_deg: float = 1.0, max_height_diff_m: float = 0.03, floor: FloorPlane | None = None) -> None:
+        """:param floor: the floor to compare with (default the calibration's stored floor)."""
         if every_n < 1 or n_bad < 1 or n_good < 1:
             raise ValueError("every_n, n_bad and n_good must be >= 1")
         self.calibration = calibration
+        self.floor = calibration.floor if floor is None else floor
         self.every_n, self.n_bad, self.n_good = int(every_n), int(n_bad), int(n_good)
         self.max_tilt_deg, self.max_height_diff_m = float(max_tilt_deg), float(max_height_diff_m)
         self.ok = True
@@ -235,7 +243,7 @@ class CalibrationMonitor:
         self._frames += 1
         if not due:
             return None
-        check = check_floor(self.calibration.floor, depth_m, K, self.max_tilt_deg, self.max_height_diff_m)
+        check = check_floor(self.floor, depth_m, K, self.max_tilt_deg, self.max_height_diff_m)
         self.last = check
         if check.agrees is None:
             return check

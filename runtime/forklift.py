@@ -20,7 +20,8 @@ Per pallet, from its type's geometry (`size_m`, `boxes_m`, `pockets_m`):
 - `pick_safe`: false with the reason when the face is seen too obliquely, or a pocket is blocked or hidden.
 
 `forklift_info` does one pallet; `attach_forklift` adds `T_vehicle_pallet` and the forklift outputs to every
-pose of a `FrameResult` (the run loop calls it after the estimator).
+pose of a `FrameResult`; `vehicle_frame_result` does that for an estimator's result of one frame (what
+`pallet6d run --calibration` and the daemon give).
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ from .structure import cast_rays_boxes
 
 __all__ = ["ForkliftParams", "Pocket", "ForkliftInfo", "FACE_NORMALS", "front_face", "face_frame_points",
            "face_yaw_deg", "pocket_evidence", "forklift_info", "attach_forklift",
-           "pallet_types_by_name", "PICK_REASONS"]
+           "pallet_types_by_name", "vehicle_frame_result", "PICK_REASONS"]
 
 log = logging.getLogger(__name__)
 
@@ -391,3 +392,14 @@ def attach_forklift(result, T_vehicle_cam: np.ndarray, pallet_types: Mapping[str
                                  params)
         poses.append(replace(p, T_vehicle_pallet=T_vc @ p.T_cam_pallet, forklift=info))
     return replace(result, poses=poses)
+
+
+def vehicle_frame_result(result, T_vehicle_cam: np.ndarray, bundle, frame,
+                         params: ForkliftParams = ForkliftParams()):
+    """The estimator's `FrameResult` of `frame` in the vehicle frame: every pose with `T_vehicle_pallet` and its
+    front face, pockets and `pick_safe`, from the bundle's pallet types and the frame's depth.
+
+    :param T_vehicle_cam: (4, 4) from a valid calibration. :param bundle: the estimator's bundle (its
+        `pallet_types` and `classes`). :param frame: the `RGBDFrame` the result is of (`depth_m`, `K`).
+    """
+    return attach_forklift(result, T_vehicle_cam, pallet_types_by_name(bundle), frame.depth_m, frame.K, params)

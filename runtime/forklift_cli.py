@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from .calibration import NO_CALIBRATION_HINT, Calibration, CalibrationError, CalibrationMonitor, load_calibration
-from .forklift import attach_forklift, pallet_types_by_name
+from .forklift import vehicle_frame_result
 from .roi import RegionOfInterest, estimate_in_roi
 
 __all__ = ["add_forklift_arguments", "ForkliftOutput"]
@@ -70,5 +70,4 @@ class ForkliftOutput:
         result = estimator.estimate(frame) if self.roi is None else estimate_in_roi(estimator, frame, self.roi)
         if self.calibration is None:
             return result
-        types = pallet_types_by_name(estimator.bundle)
-        return attach_forklift(result, self.calibration.T_vehicle_cam, types, frame.depth_m, frame.K)
+        return vehicle_frame_result(result, self.calibration.T_vehicle_cam, estimator.bundle, frame)

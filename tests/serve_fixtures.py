@@ -32,7 +32,8 @@ def free_port() -> int:
 
 
 def write_config(path: Path, source: str, bundle: Path, port: int, mode: str = "continuous",
-                 extra: str = "") -> Path:
+                 extra: str = "", output: str = 'frame = "camera"') -> Path:
+    """A daemon config for the tests; `output`: the [output] section's lines."""
     path.write_text(f"""
 [camera]
 source = "{source}"
@@ -50,6 +51,9 @@ threads = 1
 score_threshold = 0.0
 min_fit = 0.0
 refine = false
+
+[output]
+{output}
 
 [api]
 port = {port}

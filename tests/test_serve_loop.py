@@ -59,7 +59,8 @@ class FakeEstimator:
 
 def make_loop(estimator, sources, mode="continuous"):
     cfg = ServeConfig.from_dict({"camera": {"source": "realsense", "mode": mode, "reconnect_min_s": 0.05,
-                                            "reconnect_max_s": 0.1, "frame_timeout_s": 1.0}}, environ={})
+                                            "reconnect_max_s": 0.1, "frame_timeout_s": 1.0},
+                                 "output": {"frame": "camera"}}, environ={})
     it = iter(sources)
     return CameraLoop(cfg, estimator, Metrics(), FrameRing(3), source_factory=lambda _spec: next(it))
 

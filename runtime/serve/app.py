@@ -19,7 +19,7 @@ import math
 import threading
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import anyio
 import cv2
@@ -32,6 +32,7 @@ from .config import ServeConfig
 from .limits import RequestLimits
 from .loop import CameraLoop, NoFrameError, Published, RegionHint
 from .metrics import CONTENT_TYPE_LATEST, Metrics, RequestTimer
+from .schema import PalletsResponse, ReadyResponse
 from .snapshots import FrameRing
 
 __all__ = ["create_app", "result_payload"]
@@ -72,40 +73,20 @@ class SnapshotRequest(BaseModel):
                                description="how many of the most recent frames (default: all the ring holds)")
 
 
-class PalletsResponse(BaseModel):
-    """The latest result (`GET /v1/pallets`, `POST /v1/detect`, each event of `GET /v1/stream`)."""
-
-    seq: int = Field(description="increases by one per published result")
-    frame: int = Field(description="the source's frame number")
-    capture_timestamp_s: float = Field(description="capture time (device clock; recording time for replays)")
-    received_unix_s: float = Field(description="wall-clock time the daemon took the frame")
-    age_s: float = Field(description="seconds since the daemon took the frame")
-    trigger: str = Field(description="continuous or detect")
-    output_frame: str = Field(description="frame of the poses: camera (OpenCV axes) or vehicle")
-    source: str
-    image_hw: list[int]
-    latency_ms: dict[str, float] = Field(description="milliseconds per estimator stage, and total")
-    pallets: list[dict[str, Any]] = Field(description="accepted pallets, highest detector score first: class, "
-                                                      "t_m, quat_wxyz, confidence, detector_score, box_xyxy, "
-                                                      "n_valid_points, fit (and vehicle-frame fields when "
-                                                      "calibrated)")
-    rejected: list[dict[str, Any]] = Field(description="detections that did not become poses, with reasons")
-    n_outside_hint: int = Field(0, description="accepted poses dropped by the request's region hint")
-
-
 class Problem(BaseModel):
     detail: str
 
 
 def result_payload(pub: Published, output_frame: str = "camera") -> dict:
-    """The JSON body of a published result, without `age_s` (added per request). Fields the result's
-    `to_dict()` gains later pass through."""
+    """The JSON body of a published result, without `age_s` (added per request): the pallets as
+    `FrameResult.to_dict()` gives them (in the vehicle frame: with `t_vehicle_m`, `forklift`, ...)."""
     d = pub.result.to_dict() if pub.result is not None else FrameResult.empty(pub.frame.rgb.shape[:2]).to_dict()
     rest = {k: v for k, v in d.items() if k not in ("poses", "rejected", "timings_ms", "image_hw")}
     return {"seq": pub.seq, "frame": pub.frame.frame_number, "capture_timestamp_s": pub.frame.timestamp_s,
             "received_unix_s": round(pub.received_unix_s, 4), "trigger": pub.trigger, "output_frame": output_frame,
             "source": pub.frame.source, "image_hw": d["image_hw"], "latency_ms": d["timings_ms"],
-            "pallets": d["poses"], "rejected": d["rejected"], "n_outside_hint": pub.n_outside_hint, **rest}
+            "pallets": d["poses"], "rejected": d["rejected"], "n_outside_hint": pub.n_outside_hint,
+            "error": pub.error or None, **rest}
 
 
 class _Hub:
@@ -225,20 +206,12 @@ def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: Fr
     async def healthz() -> dict:
         return {"status": "ok"}
 
-    @app.get("/readyz", tags=["health"], summary="model loaded, camera streaming, results fresh",
-             responses={503: {"description": "not ready; `checks` says which part"}})
+    @app.get("/readyz", tags=["health"],
+             summary="model loaded, camera streaming, results fresh, calibration consistent with the floor",
+             responses={200: {"model": ReadyResponse},
+                        503: {"model": ReadyResponse, "description": "not ready; `checks` and `reasons` say why"}})
     async def readyz() -> JSONResponse:
-        c = config.camera
-        camera_age, result_age = loop.camera_age_s(), loop.result_age_s()
-        checks = {"model": bool(getattr(loop.estimator, "alive", loop.estimator is not None)),
-                  "camera": loop.camera_fresh(),
-                  "results": (c.mode == "triggered") or (math.isfinite(result_age)
-                                                         and result_age <= 2 * c.frame_timeout_s),
-                  "calibration": True}
-        body = {"ready": all(checks.values()), "checks": checks, "mode": c.mode,
-                "calibration": config.output.calibration or "not configured (camera-frame output)",
-                "camera_frame_age_s": _finite(camera_age), "result_age_s": _finite(result_age),
-                "camera_error": loop.last_error or None}
+        body = _readiness(config, loop)
         return JSONResponse(body, status_code=200 if body["ready"] else 503)
 
     @app.get("/metrics", tags=["health"], dependencies=auth, responses=unauthorized,
@@ -350,6 +323,30 @@ def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: Fr
         return {"path": str(out), "frames": written, "source": f"replay:{out}"}
 
     return app
+
+
+def _readiness(config: ServeConfig, loop: CameraLoop) -> dict:
+    """The body of `GET /readyz`: each check, a sentence per failing one, the floor check's numbers."""
+    c = config.camera
+    camera_age, result_age = loop.camera_age_s(), loop.result_age_s()
+    watch = loop.floor_watch
+    checks = {"model": bool(getattr(loop.estimator, "alive", loop.estimator is not None)),
+              "camera": loop.camera_fresh(),
+              "results": (c.mode == "triggered") or (math.isfinite(result_age) and result_age <= 2 * c.frame_timeout_s),
+              "calibration": watch is None or watch.ready()}
+    if watch is None:
+        floor = {"state": "not_configured", "detail": "no calibration: camera-frame output"}
+    else:
+        floor = {**watch.to_dict(), "file": config.output.calibration}
+    why = {"model": "the estimator process is not running",
+           "camera": f"no camera frame within {c.frame_timeout_s} s" + (f": {loop.last_error}" if loop.last_error
+                                                                        else ""),
+           "results": f"no result within {2 * c.frame_timeout_s} s",
+           "calibration": f"calibration {floor['state']}: {floor['detail']}"}
+    return {"ready": all(checks.values()), "checks": checks, "reasons": [why[k] for k, ok in checks.items() if not ok],
+            "mode": c.mode, "output_frame": config.output.frame, "calibration": floor,
+            "camera_frame_age_s": _finite(camera_age), "result_age_s": _finite(result_age),
+            "camera_error": loop.last_error or None}
 
 
 def _finite(x: float) -> float | None:

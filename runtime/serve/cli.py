@@ -43,7 +43,11 @@ def main(args: argparse.Namespace) -> int:
         estimator = _load_estimator(config)
         if estimator is None:
             return 2
-        print(f"pallet6d serve: {args.config}: configuration valid, bundle {estimator.bundle.name} loaded")
+        cal = config.output.loaded
+        where = "" if cal is None else (f", calibration {config.output.calibration} (camera {cal.serial or '?'}, "
+                                        f"{cal.T_vehicle_cam[2, 3]:.3f} m above the floor)")
+        print(f"pallet6d serve: {args.config}: configuration valid, bundle {estimator.bundle.name} loaded, "
+              f"{config.output.frame}-frame output{where}")
         return 0
     from .worker import EstimatorProcess
 
@@ -51,9 +55,13 @@ def main(args: argparse.Namespace) -> int:
     if bundle is None:
         return 2
     log.info("bundle: %s (%s, %d threads)", bundle, config.model.precision, config.model.threads)
+    calibration = config.output.loaded
+    vehicle = config.output.frame == "vehicle"
+    log.info("output: %s frame%s", config.output.frame,
+             f", calibration {config.output.calibration}" if calibration is not None else "")
     try:
         estimator = EstimatorProcess(bundle, config.model.threads, config.model.precision,
-                                     _options(config.estimator))
+                                     _options(config.estimator), calibration.T_vehicle_cam if vehicle else None)
     except ValueError as exc:
         print(f"pallet6d serve: cannot load the bundle {bundle}: {exc}", file=sys.stderr)
         return 2
@@ -92,13 +100,16 @@ def _load_estimator(config):
 def serve(config, estimator) -> int:
     """Run the daemon until SIGTERM/SIGINT."""
     from .app import create_app
+    from .floor_watch import FloorWatch
     from .loop import CameraLoop
     from .metrics import Metrics
     from .snapshots import FrameRing
 
     metrics = Metrics()
     ring = FrameRing(config.snapshot.frames)
-    loop = CameraLoop(config, estimator, metrics, ring)
+    calibration = config.output.loaded
+    floor_watch = None if calibration is None else FloorWatch(calibration, config.floor_check, metrics)
+    loop = CameraLoop(config, estimator, metrics, ring, floor_watch=floor_watch)
     app = create_app(config, loop, metrics, ring, {"version": _version()})
     server = uvicorn.Server(uvicorn.Config(
         app, host=config.api.host, port=config.api.port, log_config=None, access_log=False, lifespan="on",

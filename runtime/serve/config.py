@@ -18,8 +18,14 @@ the file, the key and what is allowed, before any model or camera is opened.
     score_threshold = 0.25
 
     [output]
-    frame = "camera"              # "vehicle" needs a calibration file
-    calibration = ""
+    calibration = ""              # the camera's calibration file (pallet6d calib): poses in the vehicle frame
+    frame = ""                    # "" = "vehicle" with a calibration; without one, "camera" must be asked for
+
+    [floor_check]                 # with a calibration: does the floor still lie where it says? (GET /readyz)
+    interval_s = 2.0              # seconds between checks (on the newest frame, beside the camera loop)
+    max_tilt_deg = 2.0            # the seen floor may tilt this much from the calibrated one ...
+    max_height_diff_m = 0.03      # ... and the camera's height above it differ this much
+    when_unseen = "ready"         # no floor in view: "ready" or "not_ready"
 
     [api]
     host = "127.0.0.1"            # any other address needs a bearer token
@@ -43,6 +49,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..calibration import Calibration, CalibrationError, load_calibration
 from ..cameras import parse_source_spec
 from ..estimator import EstimatorOptions
 
@@ -51,11 +58,13 @@ if sys.version_info >= (3, 11):
 else:  # the serve extra installs tomli on 3.10
     import tomli as tomllib
 
-__all__ = ["ConfigError", "ServeConfig", "CameraConfig", "ModelConfig", "OutputConfig", "ApiConfig",
-           "SnapshotConfig", "TOKEN_ENV", "MODES"]
+__all__ = ["ConfigError", "ServeConfig", "CameraConfig", "ModelConfig", "OutputConfig", "FloorCheckConfig",
+           "ApiConfig", "SnapshotConfig", "TOKEN_ENV", "MODES", "FRAMES", "WHEN_UNSEEN"]
 
 TOKEN_ENV = "PALLET6D_API_TOKEN"
 MODES = ("continuous", "triggered")
+FRAMES = ("vehicle", "camera")
+WHEN_UNSEEN = ("ready", "not_ready")
 MAX_SNAPSHOT_FRAMES = 300   # about 2 MB per 848x480 frame in memory
 MIN_TOKEN_CHARS = 16
 
@@ -83,8 +92,22 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class OutputConfig:
-    frame: str = "camera"
+    """:ivar frame: "vehicle" or "camera" after validation ("" in the file: vehicle with a calibration).
+    :ivar loaded: the validated calibration (read at start, never from the TOML)."""
+
+    frame: str = ""
     calibration: str = ""
+    loaded: Calibration | None = field(default=None, repr=False, compare=False)
+
+
+@dataclass(frozen=True)
+class FloorCheckConfig:
+    """The floor-consistency check of a calibrated daemon (`GET /readyz`, `pallet6d_floor_checks_total`)."""
+
+    interval_s: float = 2.0
+    max_tilt_deg: float = 2.0
+    max_height_diff_m: float = 0.03
+    when_unseen: str = "ready"
 
 
 @dataclass(frozen=True)
@@ -102,8 +125,9 @@ class SnapshotConfig:
     dir: str = "/var/lib/pallet6d/snapshots"
 
 
-SECTIONS = {"camera": CameraConfig, "model": ModelConfig, "output": OutputConfig, "api": ApiConfig,
-            "snapshot": SnapshotConfig}
+SECTIONS = {"camera": CameraConfig, "model": ModelConfig, "output": OutputConfig, "floor_check": FloorCheckConfig,
+            "api": ApiConfig, "snapshot": SnapshotConfig}
+INTERNAL_FIELDS = ("token", "loaded")   # filled in at start, never read from the TOML
 
 
 @dataclass(frozen=True)
@@ -112,6 +136,7 @@ class ServeConfig:
     model: ModelConfig = ModelConfig()
     estimator: EstimatorOptions = EstimatorOptions()
     output: OutputConfig = OutputConfig()
+    floor_check: FloorCheckConfig = FloorCheckConfig()
     api: ApiConfig = ApiConfig()
     snapshot: SnapshotConfig = SnapshotConfig()
     path: str = ""
@@ -144,7 +169,7 @@ class ServeConfig:
         return cfg._checked(base_dir, name, environ)
 
     def _checked(self, base_dir: Path, name: str, environ) -> "ServeConfig":
-        c, m, o, a, s = self.camera, self.model, self.output, self.api, self.snapshot
+        c, m, o, f, a, s = self.camera, self.model, self.output, self.floor_check, self.api, self.snapshot
 
         def bad(key: str, msg: str) -> ConfigError:
             return ConfigError(f"{name}: {key}: {msg}")
@@ -164,14 +189,33 @@ class ServeConfig:
             raise bad("model.precision", f"must be 'fp32' or 'int8', got {m.precision!r}")
         if not 1 <= m.threads <= 64:
             raise bad("model.threads", f"must be in 1..64, got {m.threads}")
-        if o.frame not in ("camera", "vehicle"):
-            raise bad("output.frame", f"must be 'camera' or 'vehicle', got {o.frame!r}")
         calibration = _resolve(o.calibration, base_dir)
-        if calibration and not Path(calibration).is_file():
-            raise bad("output.calibration", f"no such file: {calibration}")
-        if o.frame == "vehicle":
-            raise bad("output.frame", "vehicle-frame output is not available in this version of pallet6d; "
-                                      "use frame = \"camera\"")
+        frame = o.frame or ("vehicle" if calibration else "")
+        if frame not in FRAMES:
+            raise bad("output.frame", (f"must be one of {FRAMES}, got {o.frame!r}" if o.frame else
+                                       "vehicle-frame output (the default) needs output.calibration, the camera's "
+                                       "calibration file (pallet6d calib floor ... --out cam.toml, see "
+                                       "docs/forklift.md); for camera-frame poses set frame = \"camera\""))
+        if frame == "vehicle" and not calibration:
+            raise bad("output.calibration", "frame = \"vehicle\" needs the camera's calibration file (pallet6d "
+                                            "calib floor ... --out cam.toml, see docs/forklift.md)")
+        loaded = None
+        if calibration:
+            try:
+                loaded = load_calibration(calibration)
+            except CalibrationError as exc:
+                raise bad("output.calibration", str(exc)) from None
+            kind, serial = parse_source_spec(c.source)
+            if kind in ("realsense", "oakd") and serial and loaded.serial and serial != loaded.serial:
+                raise bad("output.calibration", f"is of camera {loaded.serial!r}, camera.source names {serial!r}")
+        if not 0.1 <= f.interval_s <= 3600:
+            raise bad("floor_check.interval_s", f"must be in 0.1..3600, got {f.interval_s}")
+        if not 0 < f.max_tilt_deg <= 45:
+            raise bad("floor_check.max_tilt_deg", f"must be in (0, 45], got {f.max_tilt_deg}")
+        if not 0 < f.max_height_diff_m <= 1:
+            raise bad("floor_check.max_height_diff_m", f"must be in (0, 1], got {f.max_height_diff_m}")
+        if f.when_unseen not in WHEN_UNSEEN:
+            raise bad("floor_check.when_unseen", f"must be one of {WHEN_UNSEEN}, got {f.when_unseen!r}")
         try:
             ip = ipaddress.ip_address(a.host)
         except ValueError:
@@ -195,7 +239,7 @@ class ServeConfig:
         return dataclasses.replace(
             self, camera=dataclasses.replace(c, source=source),
             model=dataclasses.replace(m, bundle=_resolve(m.bundle, base_dir)),
-            output=dataclasses.replace(o, calibration=calibration),
+            output=dataclasses.replace(o, frame=frame, calibration=calibration, loaded=loaded),
             api=dataclasses.replace(a, token=token, token_file=_resolve(a.token_file, base_dir)),
             snapshot=dataclasses.replace(s, dir=_resolve(s.dir, base_dir)))
 
@@ -203,14 +247,20 @@ class ServeConfig:
 def _section(values: Any, kind: type, section: str, name: str):
     if not isinstance(values, dict):
         raise ConfigError(f"{name}: [{section}] must be a table, got {type(values).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(kind) if f.name != "token"}
-    unknown = set(values) - set(fields)
-    if unknown:
-        raise ConfigError(f"{name}: [{section}] unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    fields = _fields(values, kind, f"[{section}]", name)
     out = {}
     for key, value in values.items():
         out[key] = _typed(value, type(fields[key].default), f"{section}.{key}", name)
     return kind(**out)
+
+
+def _fields(values: dict, kind: type, where: str, name: str) -> dict:
+    """`kind`'s fields that a file may set, by name; a `ConfigError` names the keys of `values` that are none."""
+    fields = {f.name: f for f in dataclasses.fields(kind) if f.name not in INTERNAL_FIELDS}
+    unknown = set(values) - set(fields)
+    if unknown:
+        raise ConfigError(f"{name}: {where} unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    return fields
 
 
 def _typed(value: Any, want: type, key: str, name: str):
@@ -225,14 +275,13 @@ def _typed(value: Any, want: type, key: str, name: str):
 def _estimator(values: Any, name: str) -> EstimatorOptions:
     if not isinstance(values, dict):
         raise ConfigError(f"{name}: [estimator] must be a table, got {type(values).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(EstimatorOptions)}
-    unknown = set(values) - set(fields)
-    if unknown:
-        raise ConfigError(f"{name}: [estimator] unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    fields = _fields(values, EstimatorOptions, "[estimator]", name)
     out = {}
     for key, value in values.items():
         default = fields[key].default
-        if key == "depth_range_m" or isinstance(value, list) or isinstance(default, tuple):
+        if dataclasses.is_dataclass(default):       # a group of settings (structure): false = off, a table = set
+            out[key] = _settings(value, type(default), f"estimator.{key}", name)
+        elif key == "depth_range_m" or isinstance(value, list) or isinstance(default, tuple):
             size = 2 if key == "depth_range_m" else len(default) if isinstance(default, tuple) else None
             if not (isinstance(value, list) and (size is None or len(value) == size)
                     and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
@@ -247,6 +296,20 @@ def _estimator(values: Any, name: str) -> EstimatorOptions:
         return EstimatorOptions(**out)
     except (TypeError, ValueError, IndexError) as exc:
         raise ConfigError(f"{name}: [estimator]: {exc}") from None
+
+
+def _settings(value: Any, kind: type, key: str, name: str):
+    """An estimator option that is a group of settings: `false` (off: None), `true` (its defaults) or a table of
+    its fields."""
+    if isinstance(value, bool):
+        return kind() if value else None
+    if not isinstance(value, dict):
+        raise ConfigError(f"{name}: {key}: expected true, false or a table, got {type(value).__name__} {value!r}")
+    fields = _fields(value, kind, f"{key}:", name)
+    try:
+        return kind(**{k: _typed(v, type(fields[k].default), f"{key}.{k}", name) for k, v in value.items()})
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name}: {key}: {exc}") from None
 
 
 def _resolve(path: str, base_dir: Path) -> str:

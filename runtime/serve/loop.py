@@ -8,6 +8,10 @@ Faults never end the loop: a frame the estimator rejects or an estimator error i
 that fails, times out or ends is stopped and reopened with a growing wait (`reconnect_min_s` doubling up to
 `reconnect_max_s`), and meanwhile `camera_up` is False (`GET /readyz` fails).
 
+With a calibration, the loop hands a frame to its `FloorWatch` every few seconds (never waiting for the check)
+and withholds vehicle-frame output while the watch says the camera moved: such a frame is published with no
+pallets and the reason in `error` (counted as a `calibration` failure), and `detect()` refuses.
+
 Modes: "continuous" estimates every frame it takes; "triggered" only keeps the newest frame, and `detect()`
 estimates on it when asked. `detect()` works in both modes (the estimator is not thread-safe: a lock
 serialises it with the loop).
@@ -23,6 +27,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..calibration import CalibrationError
 from ..cameras import CameraError, CameraTimeout, LatestFrame, RGBDFrame, open_source, parse_source_spec
 from ..results import FrameResult
 from .config import ServeConfig
@@ -73,6 +78,7 @@ class Published:
     :ivar trigger: "continuous" or "detect".
     :ivar hint: the region hint of a `detect()`, else None.
     :ivar n_outside_hint: accepted poses that the hint dropped.
+    :ivar error: why the frame has no result to give ("" when it has one), e.g. vehicle-frame output withheld.
     """
 
     seq: int
@@ -83,6 +89,7 @@ class Published:
     trigger: str = "continuous"
     hint: RegionHint | None = None
     n_outside_hint: int = 0
+    error: str = ""
 
 
 class _StampedSource:
@@ -107,11 +114,15 @@ class CameraLoop:
     """The camera thread. :param config: the daemon's configuration. :param estimator: anything with
     `estimate(frame) -> FrameResult` and `model_size_m` (`EstimatorProcess`, `PalletEstimator`; called only under
     this loop's lock). :param metrics: where counts go. :param ring: recent frames for snapshots.
-    :param source_factory: spec -> `FrameSource` (default `open_source` with the config's replay options)."""
+    :param source_factory: spec -> `FrameSource` (default `open_source` with the config's replay options).
+    :param floor_watch: the calibration's floor check (None without a calibration); started and stopped with the
+        loop."""
 
     def __init__(self, config: ServeConfig, estimator, metrics: Metrics, ring: FrameRing,
-                 source_factory: Callable[[str], object] | None = None) -> None:
+                 source_factory: Callable[[str], object] | None = None, floor_watch=None) -> None:
         self.config = config
+        self.floor_watch = floor_watch
+        self._vehicle = config.output.frame == "vehicle" and floor_watch is not None
         self.estimator = estimator
         self.metrics = metrics
         self.ring = ring
@@ -135,6 +146,8 @@ class CameraLoop:
     # -- lifecycle ----------------------------------------------------------------------------------
     def start(self) -> "CameraLoop":
         if self._thread is None:
+            if self.floor_watch is not None:
+                self.floor_watch.start()
             self._thread = threading.Thread(target=self._run, name="camera-loop", daemon=True)
             self._thread.start()
         return self
@@ -146,6 +159,8 @@ class CameraLoop:
             thread.join(timeout_s)
             if thread.is_alive():
                 log.warning("camera loop did not stop within %.1f s", timeout_s)
+        if self.floor_watch is not None:
+            self.floor_watch.stop()
 
     def alive(self, max_silence_s: float) -> bool:
         """The thread runs and has ticked within `max_silence_s` (neither the estimator nor the source hangs)."""
@@ -174,10 +189,14 @@ class CameraLoop:
         """Estimate on the newest frame now (any mode), keeping only poses inside `hint`.
 
         :raises NoFrameError: no frame, or the newest is older than the camera's `frame_timeout_s`.
+        :raises CalibrationError: vehicle-frame output is withheld (the camera moved since calibration).
         """
         frame_pub = self.latest_frame
         if frame_pub is None or not self.camera_fresh():
             raise NoFrameError("no recent camera frame" + (f" ({self.last_error})" if self.last_error else ""))
+        blocked = self._blocked(frame_pub.frame)
+        if blocked:
+            raise CalibrationError(blocked)
         result = self._estimate(frame_pub.frame)
         if result is None:
             raise ValueError("estimation failed on the newest frame (see the daemon's log)")
@@ -267,7 +286,15 @@ class CameraLoop:
         now = time.monotonic()
         frame_pub = Published(0, frame, None, now, time.time())
         self.latest_frame = frame_pub
+        if self.floor_watch is not None:
+            self.floor_watch.offer(frame)
         if self.config.camera.mode != "continuous":
+            return
+        blocked = self._blocked(frame)
+        if blocked:
+            self._failed("calibration", f"frame {frame.frame_number}: no vehicle-frame output: {blocked}")
+            empty = FrameResult.empty(frame.rgb.shape[:2])
+            self._publish(self._record(frame_pub, empty, "continuous", error=f"CalibrationError: {blocked}"))
             return
         result = self._estimate(frame)
         if result is not None:
@@ -292,12 +319,16 @@ class CameraLoop:
         self.metrics.observe_result(result.timings_ms, len(result.poses))
         return result
 
+    def _blocked(self, frame: RGBDFrame) -> str:
+        """Why vehicle-frame output must not be given for this frame ("" when it may, or in the camera frame)."""
+        return self.floor_watch.blocked_reason(frame) if self._vehicle else ""
+
     def _record(self, frame_pub: Published, result: FrameResult, trigger: str, hint: RegionHint | None = None,
-                n_out: int = 0) -> Published:
+                n_out: int = 0, error: str = "") -> Published:
         with self._pub_lock:
             self._seq += 1
             return dataclasses.replace(frame_pub, seq=self._seq, result=result, trigger=trigger, hint=hint,
-                                       n_outside_hint=n_out)
+                                       n_outside_hint=n_out, error=error)
 
     def _publish(self, pub: Published) -> None:
         self.latest = pub

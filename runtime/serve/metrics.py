@@ -8,7 +8,7 @@ from typing import Callable
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from prometheus_client import CONTENT_TYPE_LATEST
 
-__all__ = ["Metrics", "RequestTimer", "CONTENT_TYPE_LATEST", "FAILURE_REASONS"]
+__all__ = ["Metrics", "RequestTimer", "CONTENT_TYPE_LATEST", "FAILURE_REASONS", "FLOOR_CHECK_RESULTS"]
 
 # Why a frame produced no result: stable label values.
 FAILURE_REASONS = (
@@ -16,6 +16,14 @@ FAILURE_REASONS = (
     "estimator",        # any other error inside the estimator
     "read_error",       # the source skipped an unreadable recorded frame
     "camera",           # the source failed (disconnect, timeout); the loop reconnects
+    "calibration",      # vehicle-frame output withheld: the camera moved since calibration, or is another camera
+)
+# Outcomes of the floor-consistency check: stable label values.
+FLOOR_CHECK_RESULTS = (
+    "agrees",           # the floor lies where the calibration says
+    "disagrees",        # it does not (tilt or camera height beyond the tolerance)
+    "unseen",           # too little floor in view to tell
+    "wrong_camera",     # the frame's intrinsics or size are not the calibrated ones
 )
 
 # seconds: a stage of a few ms up to a whole frame of a few hundred ms on two cores
@@ -50,6 +58,20 @@ class Metrics:
                                       "Time from a request's arrival to the end of its response, by route",
                                       ["route"], buckets=HTTP_BUCKETS_S, registry=r)
         self.snapshots = Counter("pallet6d_snapshots", "Snapshot recordings written", registry=r)
+        self.floor_checks = Counter("pallet6d_floor_checks", "Floor-consistency checks of the calibration, by result",
+                                    ["result"], registry=r)
+        for result in FLOOR_CHECK_RESULTS:
+            self.floor_checks.labels(result)
+        self.calibration_ok = Gauge("pallet6d_calibration_ok", "0 while the floor check says the camera moved since "
+                                    "calibration (or is another camera), else 1 (also without a calibration)",
+                                    registry=r)
+        self.calibration_ok.set(1)
+        self.floor_tilt = Gauge("pallet6d_floor_tilt_degrees", "Angle between the seen and the calibrated floor "
+                                "at the last check that saw it (NaN before)", registry=r)
+        self.floor_height_diff = Gauge("pallet6d_floor_height_diff_meters", "Seen minus calibrated camera height "
+                                       "above the floor at the last check that saw it (NaN before)", registry=r)
+        self.floor_tilt.set(float("nan"))
+        self.floor_height_diff.set(float("nan"))
 
     def observe_result(self, timings_ms: dict[str, float], n_pallets: int) -> None:
         self.frames.inc()

@@ -25,12 +25,14 @@ class EstimatorCrashed(RuntimeError):
     """The estimator process ended (it is restarted for the next frame)."""
 
 
-def _child(conn, bundle: str, threads: int, precision: str, options: dict) -> None:
-    """The child's loop: load the bundle, then answer frames until the pipe closes. Signals are the parent's
-    business (systemd signals the whole service): the child ends when the parent closes the pipe or dies."""
+def _child(conn, bundle: str, threads: int, precision: str, options: dict, T_vehicle_cam: np.ndarray | None) -> None:
+    """The child's loop: load the bundle, then answer frames until the pipe closes (in the vehicle frame when
+    `T_vehicle_cam` is given). Signals are the parent's business (systemd signals the whole service): the child
+    ends when the parent closes the pipe or dies."""
     import signal
 
     from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.runtime.forklift import vehicle_frame_result
 
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -47,7 +49,10 @@ def _child(conn, bundle: str, threads: int, precision: str, options: dict) -> No
         except (EOFError, OSError):
             return
         try:
-            conn.send(("ok", est.estimate(frame)))
+            result = est.estimate(frame)
+            if T_vehicle_cam is not None:
+                result = vehicle_frame_result(result, T_vehicle_cam, est.bundle, frame)
+            conn.send(("ok", result))
         except (ValueError, TypeError) as exc:
             conn.send(("input", f"{type(exc).__name__}: {exc}"))
         except Exception as exc:  # noqa: BLE001 - one frame's failure goes back to the parent
@@ -55,7 +60,8 @@ def _child(conn, bundle: str, threads: int, precision: str, options: dict) -> No
 
 
 class EstimatorProcess:
-    """`PalletEstimator.from_bundle(bundle, threads, precision, **options)` in a child process.
+    """`PalletEstimator.from_bundle(bundle, threads, precision, **options)` in a child process; with
+    `T_vehicle_cam` (4, 4) its results are in the vehicle frame (`forklift.vehicle_frame_result`).
 
     `estimate(frame)` raises `ValueError` for frames the estimator rejects, `RuntimeError` for its other errors
     and `EstimatorCrashed` when the child died (a new one is started on the next call). Not thread-safe, like
@@ -64,8 +70,10 @@ class EstimatorProcess:
     :raises ValueError: the bundle cannot be loaded (the child's message).
     """
 
-    def __init__(self, bundle: str, threads: int = 2, precision: str = "fp32", options: dict | None = None) -> None:
-        self._args = (str(bundle), int(threads), precision, dict(options or {}))
+    def __init__(self, bundle: str, threads: int = 2, precision: str = "fp32", options: dict | None = None,
+                 T_vehicle_cam: np.ndarray | None = None) -> None:
+        T = None if T_vehicle_cam is None else np.array(T_vehicle_cam, dtype=np.float64)
+        self._args = (str(bundle), int(threads), precision, dict(options or {}), T)
         self._ctx = multiprocessing.get_context("spawn")   # no fork of a process with threads
         self._lock = threading.Lock()
         self._proc = None
