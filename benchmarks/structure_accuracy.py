@@ -35,7 +35,7 @@ def run(bundle: str, data: list[str], frames: int, int8: bool) -> dict:
             keep = [True] * len(poses)
             if poses:
                 scores = structure_check(np.stack([p.T_cam_pallet for p in poses]), geom.boxes_m, f.depth_m, f.K,
-                                         np.stack([p.box_xyxy for p in poses]), StructureParams())
+                                         np.stack([p.box_xyxy for p in poses]), StructureParams(), rgb=f.rgb)
                 keep = [s.ok for s in scores]
             for name, sel in (("without", poses), ("with", [p for p, k in zip(poses, keep) if k])):
                 recs, tp, fp = evaluate_frame(i, [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in sel],
