@@ -35,7 +35,7 @@ def run(bundle: str, data: list[str], frames: int, int8: bool) -> dict:
             keep = [True] * len(poses)
             if poses:
                 scores = structure_check(np.stack([p.T_cam_pallet for p in poses]), geom.boxes_m, f.depth_m, f.K,
-                                         np.stack([p.box_xyxy for p in poses]), StructureParams())
+                                         np.stack([p.box_xyxy for p in poses]), StructureParams(), rgb=f.rgb)
                 keep = [s.ok for s in scores]
             for name, sel in (("without", poses), ("with", [p for p, k in zip(poses, keep) if k])):
                 tallies[name].add(evaluate_poses(i, sel, gts, geom.points_m, geom.symmetries))

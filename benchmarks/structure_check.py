@@ -2,7 +2,8 @@
 
 For each frame of BOP datasets, runs the estimator on the frame as recorded and on inputs that do not belong
 together (a flat wall's depth under the image, another frame's depth, depth 10x too near, a focal length 2x too
-long), and scores every pose the estimator accepts with its fit check alone (`structure=None`) with
+long, a transposed K, fx = fy = 1e9; frames the estimator refuses count as `refused_frames`), and scores every
+pose the estimator accepts with its fit check alone (`structure=None`) with
 `runtime/structure.py`. Reports, per dataset and variant: those poses, how many are within 5 cm (ADD-sym) of a
 ground-truth pallet, and how many of each the structure check keeps. The estimator's poses are cached per dataset and
 variant (`--cache DIR`), so re-scoring with other thresholds takes seconds. Measures only.
@@ -25,7 +26,7 @@ from pallet6d.runtime.estimator import PalletEstimator
 from pallet6d.runtime.metrics import add_sym
 from pallet6d.runtime.structure import StructureParams, structure_check
 
-VARIANTS = ("as_recorded", "flat_wall", "other_frame", "depth_x0.1", "focal_x2")
+VARIANTS = ("as_recorded", "flat_wall", "other_frame", "depth_x0.1", "focal_x2", "K_transposed", "focal_1e9")
 
 
 def mismatch(name: str, frame, other=None) -> tuple[np.ndarray, np.ndarray]:
@@ -47,6 +48,11 @@ def mismatch(name: str, frame, other=None) -> tuple[np.ndarray, np.ndarray]:
         K[0, 0] *= 2.0
         K[1, 1] *= 2.0
         return d, K
+    if name == "K_transposed":
+        return d, K.T.copy()
+    if name == "focal_1e9":
+        K[0, 0] = K[1, 1] = 1e9
+        return d, K
     raise ValueError(f"unknown variant {name!r}; known: {', '.join(VARIANTS)}")
 
 
@@ -56,34 +62,44 @@ def _other(ds: BopDataset, i: int, n: int):
 
 def estimate(est: PalletEstimator, ds: BopDataset, variant: str, n: int) -> dict[str, np.ndarray]:
     """The poses the estimator accepts without the structure check, with each one's ADD-sym error (inf on a
-    mismatched input)."""
+    mismatched input), and how many frames it refused with a ValueError (`refused`)."""
     rows = {"frame": [], "T": [], "box": [], "err": [], "fit": []}
     pts, sym = est.model_points_m, est.symmetries
+    refused = 0
     for i in range(n):
         f = ds[i]
         depth_m, K = mismatch(variant, f, _other(ds, i, n) if variant == "other_frame" else None)
-        for p in est.estimate(f.rgb, depth_m, K).poses:
+        try:
+            poses = est.estimate(f.rgb, depth_m, K).poses
+        except ValueError:
+            refused += 1
+            continue
+        for p in poses:
             T = p.T_cam_pallet
             err = min((add_sym(T[:3, :3], T[:3, 3], g.T_cam_model[:3, :3], g.T_cam_model[:3, 3], pts, sym)
                        for g in f.gts), default=np.inf) if variant == "as_recorded" else np.inf
             for k, v in (("frame", i), ("T", T), ("box", p.box_xyxy), ("err", err), ("fit", p.fit.score)):
                 rows[k].append(v)
     return {"frame": np.array(rows["frame"], int), "T": np.array(rows["T"]).reshape(-1, 4, 4),
-            "box": np.array(rows["box"]).reshape(-1, 4), "err": np.array(rows["err"]), "fit": np.array(rows["fit"])}
+            "box": np.array(rows["box"]).reshape(-1, 4), "err": np.array(rows["err"]), "fit": np.array(rows["fit"]),
+            "refused": np.array(refused)}
 
 
-def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray, params: StructureParams) -> list:
-    """Structure scores of cached poses, in their order."""
+def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray, params: StructureParams,
+          no_rgb: bool = False) -> list:
+    """Structure scores of cached poses, in their order (`no_rgb`: without the colour image's edge test)."""
     out = []
     for i in np.unique(poses["frame"]):
         sel = poses["frame"] == i
         f = ds[int(i)]
         depth_m, K = mismatch(variant, f, _other(ds, int(i), n) if variant == "other_frame" else None)
-        out.extend(structure_check(poses["T"][sel], boxes_m, depth_m, K, poses["box"][sel], params))
+        out.extend(structure_check(poses["T"][sel], boxes_m, depth_m, K, poses["box"][sel], params,
+                                   rgb=None if no_rgb else f.rgb))
     return out
 
 
-def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8: bool, cache: Path | None) -> dict:
+def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8: bool, cache: Path | None,
+        no_rgb: bool = False) -> dict:
     est = None
     out, rows = {}, []
     for root in data:
@@ -101,10 +117,11 @@ def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8
                     path.parent.mkdir(parents=True, exist_ok=True)
                     np.savez(path, **poses)
             boxes_m = np.asarray((est.model_boxes_m if est else _boxes(bundle)))
-            scores = score(ds, variant, n, poses, boxes_m, params)
+            scores = score(ds, variant, n, poses, boxes_m, params, no_rgb)
             good = poses["err"] < 0.05
             kept = np.array([s.ok for s in scores], bool)
-            c = {"frames": n, "accepted": len(good), "within_5cm": int(good.sum()), "kept": int(kept.sum()),
+            c = {"frames": n, "refused_frames": int(poses.get("refused", 0)), "accepted": len(good),
+                 "within_5cm": int(good.sum()), "kept": int(kept.sum()),
                  "kept_within_5cm": int((kept & good).sum()),
                  "reasons": dict(Counter(s.reason or "ok" for s in scores))}
             out[f"{Path(root).name}/{variant}"] = c
@@ -129,13 +146,14 @@ def main() -> None:
     ap.add_argument("--int8", action="store_true")
     ap.add_argument("--cache", type=Path, help="folder for the estimator's poses per dataset and variant")
     ap.add_argument("--params", default="{}", help="StructureParams overrides as JSON, e.g. '{\"min_agreement\": 0.7}'")
+    ap.add_argument("--no-rgb", action="store_true", help="score without the colour image (no edge test)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     overrides = json.loads(args.params)
     unknown = set(overrides) - {f.name for f in fields(StructureParams)}
     if unknown:
         ap.error(f"unknown StructureParams fields: {sorted(unknown)}")
-    res = run(args.bundle, args.data, args.frames, StructureParams(**overrides), args.int8, args.cache)
+    res = run(args.bundle, args.data, args.frames, StructureParams(**overrides), args.int8, args.cache, args.no_rgb)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(res, indent=1) + "\n", encoding="utf-8")

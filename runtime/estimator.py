@@ -97,9 +97,10 @@ class EstimatorOptions:
     :ivar seed: seed of the per-detection point sampling.
     :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's
         boards and fork openings where the pose puts them, and the detector's box must match it; a pose that
-        fails is rejected ("no_pallet_structure"). None turns the check off. It costs 0-0.2 points of ADD-sym at
-        5 cm on the test sets and refuses 93 % of the poses the fit check alone accepts on inputs that do not
-        belong together (flat-wall depth, depth 10x off, focal length 2x off; `docs/structure-check.md`).
+        fails is rejected ("no_pallet_structure"). It also asks whether the depth belongs to the image: the
+        detector's box must have a pallet's metric size at the depth inside it ("size_mismatch": depth scale or
+        focal length off) and the depth's edges must coincide with the colour image's ("depth_image_mismatch":
+        another frame's depth). None turns the check off. What it keeps and refuses: `docs/structure-check.md`.
     :ivar roi: where pallets are expected (an image box and/or a depth hint, `roi.py`); detections outside are
         rejected ("outside_roi") before the pose network. None: everywhere.
     :ivar time_budget_ms: the frame's time budget from the start of `estimate`, milliseconds (None: no limit).
@@ -365,7 +366,7 @@ class PalletEstimator:
         if len(cands):
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
             self.refiner(cands, depth_m, K, timings, deadline)
-            self.fit_check(cands, depth_m, K, timings)
+            self.fit_check(cands, depth_m, K, timings, rgb)
         return cands
 
     def _result(self, cands: Candidates, image_hw: tuple[int, int], timings: dict[str, float],

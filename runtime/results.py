@@ -28,6 +28,10 @@ REJECT_REASONS = (
     "poor_fit",             # the posed pallet model disagrees with the observed depth (fit.py)
     "no_pallet_structure",  # the depth does not show the pallet's boards and openings where the pose puts them,
                             # or the detector's box does not match the posed pallet (structure.py)
+    "size_mismatch",        # the detector's box has no pallet's metric size at the depth inside it: depth scale or
+                            # focal length off (structure.py)
+    "depth_image_mismatch",  # the depth's edges do not coincide with the colour image's: another frame's depth,
+                             # or depth not registered to the image (structure.py)
     "time_budget",          # skipped: the frame's time budget was spent before this detection was posed
     "outside_roi",          # outside the region of interest or the depth hint (roi.py), dropped before posing
 )

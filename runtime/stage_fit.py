@@ -24,7 +24,9 @@ class FitCheckStage:
     :param min_fit: a pose whose fit score is below this is rejected ("poor_fit").
     :param min_confidence: a pose whose network confidence is below this is rejected ("low_confidence").
     :param structure: thresholds of the structure check, or None to skip it; a pose that fails it is rejected
-        ("no_pallet_structure"). Types without boxes are not structure-checked.
+        with the check's own reason where the inputs do not belong together ("size_mismatch": the detector's box
+        has the wrong metric size at the depth; "depth_image_mismatch": the depth's edges are not the image's),
+        else "no_pallet_structure". Types without boxes are not structure-checked.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], tol_m: float, min_fit: float,
@@ -33,16 +35,19 @@ class FitCheckStage:
         self.tol_m, self.min_fit, self.min_confidence = float(tol_m), float(min_fit), float(min_confidence)
         self.structure = structure
 
-    def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
-        """The structure check on `rows` of `cands`, one batched call per pallet type; failures are rejected."""
+    def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                        rgb: np.ndarray | None = None) -> None:
+        """The structure check on `rows` of `cands`, one batched call per pallet type; failures are rejected.
+        :param rgb: the colour image registered to `depth_m`, for the edge test (None skips it)."""
         for j, geom in enumerate(self.geometries):
             mine = rows[cands.type_index[rows] == j]
             if len(mine) == 0 or geom.boxes_m is None:
                 continue
             scores = structure_check(cands.T_cam_pallet[mine], geom.boxes_m, depth_m, K, cands.boxes_xyxy[mine],
-                                     self.structure)
-            bad = [k for k, sc in enumerate(scores) if not sc.ok]
-            cands.reject(mine[bad], "no_pallet_structure", [_structure_detail(scores[k]) for k in bad])
+                                     self.structure, rgb=rgb)
+            for reason in ("size_mismatch", "depth_image_mismatch", "no_pallet_structure"):
+                bad = [k for k, sc in enumerate(scores) if not sc.ok and _rejection_reason(sc.reason) == reason]
+                cands.reject(mine[bad], reason, [_structure_detail(scores[k]) for k in bad])
 
     def score(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
               K: np.ndarray) -> np.ndarray:
@@ -53,8 +58,10 @@ class FitCheckStage:
             out[k] = fit_array(fit_score(T, obs, self.geometries[int(j)].points_m, depth_m, K, self.tol_m))
         return out
 
-    def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float]) -> None:
-        """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates."""
+    def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
+                 rgb: np.ndarray | None = None) -> None:
+        """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates.
+        :param rgb: the frame's colour image, for the structure check's edge test (None skips that test)."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
         todo = rows[np.isnan(cands.fit[rows, 2])]
@@ -67,10 +74,22 @@ class FitCheckStage:
         cands.reject(rows[poor], "poor_fit", [f"fit {s:.3f} < {self.min_fit} (inliers {i:.2f}, free-space violation "
                                               f"{v:.2f})" for i, v, s in fit[poor]])
         if self.structure is not None:
-            self.check_structure(cands, rows[~low & ~poor], depth_m, K)
+            self.check_structure(cands, rows[~low & ~poor], depth_m, K, rgb)
         timings["fit"] = elapsed_ms(t)
 
 
+def _rejection_reason(structure_reason: str) -> str:
+    """The candidates' rejection reason of a failed structure test: the tests that say the inputs do not belong
+    together keep their own, the others are "no_pallet_structure"."""
+    return structure_reason if structure_reason in ("size_mismatch", "depth_image_mismatch") else "no_pallet_structure"
+
+
 def _structure_detail(s) -> str:
+    if s.reason == "size_mismatch":
+        return (f"size_mismatch: the detector's box spans {s.box_size_m[0]:.2f} x {s.box_size_m[1]:.2f} m at the depth "
+                "inside it, not a pallet of this type (depth scale or focal length off?)")
+    if s.reason == "depth_image_mismatch":
+        return (f"depth_image_mismatch: depth edges agree with the image's at AUC {s.edge_auc:.2f} (0.5 = chance; "
+                "depth of another frame, or not registered to the colour image?)")
     return (f"{s.reason}: agreement {s.agreement:.2f}, openings open {s.open_fraction:.2f} ({s.open + s.closed} rays), "
             f"box cover {s.box_cover:.2f}, box solid {s.box_solid:.2f}, seen IoU {s.seen_iou:.2f}")

@@ -17,9 +17,21 @@ A pose is accepted when the evidence agrees with the model (solid + open against
 openings it can see are mostly open, the detector's box lies inside the posed model's silhouette, and, when the
 caller knows which way is up (a calibrated camera), the pallet stands upright.
 
-Mismatched inputs fail it: depth of a flat wall (openings closed), another frame's depth (nothing agrees), a
-depth scale or a focal length that is off (the posed model's boards project where the image has none).
-The tolerance grows with range like stereo depth noise: `tol_m + tol_quad_per_m * z**2`.
+Two tests ask whether the depth belongs to the image at all (they fail as "size_mismatch" and
+"depth_image_mismatch", which the fit-check stage reports as rejection reasons of their own):
+
+- metric size: the detector's box, at the median depth inside it and the focal length, spans a metric height and
+  width; a pallet's visible face is at least about its own height tall and at most its diameter across. A depth
+  scale 10x too small (or a focal length far too long) shrinks that size by the same factor, 10x too large grows it;
+- edge agreement: where the observed depth jumps between neighbouring rays of the grid, the colour image should
+  change too (a surface ends there). The rank statistic (AUC) of the colour differences across depth jumps against
+  those elsewhere is about 0.5 when the depth comes from another frame or is not registered to the image, and
+  0.6-0.99 (median 0.86) on the validation frames, whose depth belongs to the image.
+
+Mismatched inputs fail it: depth of a flat wall (openings closed), another frame's depth (nothing agrees, edges
+elsewhere), a depth scale or a focal length that is off (the box's metric size, or the posed model's boards
+project where the image has none). The tolerance grows with range like stereo depth noise:
+`tol_m + tol_quad_per_m * z**2`.
 """
 from __future__ import annotations
 
@@ -29,7 +41,8 @@ import numpy as np
 
 from .geometry import check_K
 
-__all__ = ["StructureParams", "StructureScore", "structure_check", "cast_rays_boxes"]
+__all__ = ["StructureParams", "StructureScore", "structure_check", "cast_rays_boxes", "box_metric_size",
+           "edge_agreement"]
 
 _BIG = 1e12
 
@@ -53,6 +66,16 @@ class StructureParams:
     :ivar min_seen_iou: IoU of the detector's box with the box around the rays that found the pallet's surface;
         below -> "box_mismatch" (the pose explains depth elsewhere than where the detector saw the pallet).
     :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
+    :ivar min_box_height_of_type: the detector's box height times the median depth inside it over fy (its metric
+        height) below this fraction of the type's height (its smallest side) -> "size_mismatch" (depth scale too
+        small, focal length too long). A pallet seen from the front shows its full height; 0 turns it off.
+    :ivar max_box_size_of_diameter: the box's metric width or height above this multiple of the type's diameter
+        -> "size_mismatch" (depth scale too large, focal length too short).
+    :ivar min_edge_auc: with the colour image, the AUC of colour differences across depth jumps of the grid against
+        colour differences elsewhere, below this -> "depth_image_mismatch" (the depth is not this image's); 0 turns
+        it off.
+    :ivar min_edge_pairs: the edge test needs at least this many neighbour pairs with a depth jump and as many
+        without (else no evidence either way).
     """
 
     grid: int = 32
@@ -66,6 +89,10 @@ class StructureParams:
     min_box_solid: float = 0.3
     min_seen_iou: float = 0.1
     max_tilt_deg: float = 25.0
+    min_box_height_of_type: float = 0.4
+    max_box_size_of_diameter: float = 3.0
+    min_edge_auc: float = 0.58
+    min_edge_pairs: int = 5
 
     def __post_init__(self) -> None:
         if int(self.grid) < 4:
@@ -76,11 +103,15 @@ class StructureParams:
         if not self.tol_m > 0:
             raise ValueError(f"tol_m must be positive, got {self.tol_m}")
         for name in ("min_agreement", "min_open_fraction", "min_box_cover", "min_box_solid",
-                     "min_seen_iou"):
+                     "min_seen_iou", "min_edge_auc", "min_box_height_of_type"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if int(self.min_evidence) < 1 or int(self.min_opening_evidence) < 1:
             raise ValueError("min_evidence and min_opening_evidence must be >= 1")
+        if not self.max_box_size_of_diameter > 0:
+            raise ValueError(f"max_box_size_of_diameter must be positive, got {self.max_box_size_of_diameter}")
+        if int(self.min_edge_pairs) < 1:
+            raise ValueError(f"min_edge_pairs must be >= 1, got {self.min_edge_pairs}")
         if not 0.0 < self.max_tilt_deg <= 180.0:
             raise ValueError(f"max_tilt_deg must be in (0, 180], got {self.max_tilt_deg}")
 
@@ -101,8 +132,12 @@ class StructureScore:
     :ivar seen_iou: IoU of the detector's box with the box around the rays that found the pallet's surface (NaN
         when none did).
     :ivar tilt_deg: angle between the pallet's z axis and the up vector (NaN without one).
-    :ivar reason: "" when accepted, else one of "structure_unseen", "structure_mismatch", "openings_closed",
-        "box_mismatch", "tilted".
+    :ivar box_size_m: (width, height) of the detector's box in metres at the median depth inside it (NaN without
+        depth there).
+    :ivar edge_auc: AUC of colour differences across depth jumps against those elsewhere (NaN without a colour image
+        or too few pairs).
+    :ivar reason: "" when accepted, else one of "size_mismatch", "depth_image_mismatch", "structure_unseen",
+        "structure_mismatch", "openings_closed", "box_mismatch", "tilted".
     """
 
     solid: int
@@ -115,6 +150,8 @@ class StructureScore:
     box_solid: float
     seen_iou: float
     tilt_deg: float
+    box_size_m: tuple[float, float]
+    edge_auc: float
     reason: str
 
     @property
@@ -166,9 +203,69 @@ def _projected_boxes(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, K: np.ndarra
     return out
 
 
+def box_metric_size(boxes_xyxy: np.ndarray, depth_m: np.ndarray, K: np.ndarray, samples: int = 16) -> np.ndarray:
+    """Metric (width, height) of detector boxes at the median depth inside each (a grid of samples x samples pixels).
+
+    :param boxes_xyxy: (n, 4) image pixels. :param depth_m: (H, W) metres, 0 = no data. :param K: 3x3.
+    :return: (n, 2) metres; NaN where the box holds no valid depth.
+    """
+    h, w = depth_m.shape
+    det = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+    g = (np.arange(samples) + 0.5) / samples
+    u = np.clip(np.round(det[:, 0:1] + g[None] * (det[:, 2:3] - det[:, 0:1])), 0, w - 1).astype(np.int64)
+    v = np.clip(np.round(det[:, 1:2] + g[None] * (det[:, 3:4] - det[:, 1:2])), 0, h - 1).astype(np.int64)
+    z = depth_m[v[:, :, None], u[:, None, :]].reshape(len(det), -1).astype(np.float64)   # (n, samples**2)
+    z_med = np.full(len(det), np.nan)
+    for i, zi in enumerate(z):
+        zi = zi[zi > 0]
+        if len(zi):
+            z_med[i] = np.median(zi)
+    return np.stack([(det[:, 2] - det[:, 0]) * z_med / K[0, 0], (det[:, 3] - det[:, 1]) * z_med / K[1, 1]], 1)
+
+
+def _auc(values: np.ndarray, positive: np.ndarray) -> float:
+    """Probability that a positive's value exceeds a negative's (ties count half): the Mann-Whitney AUC."""
+    n_pos, n_neg = int(positive.sum()), int((~positive).sum())
+    _, inverse, counts = np.unique(values, return_inverse=True, return_counts=True)
+    midrank = np.cumsum(counts) - (counts - 1) / 2.0                  # 1-based mean rank of each distinct value
+    return float((midrank[inverse][positive].sum() - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))
+
+
+def edge_agreement(z_obs: np.ndarray, colour: np.ndarray, tol: np.ndarray, min_pairs: int) -> np.ndarray:
+    """Do the depth's jumps coincide with the colour image's edges? One AUC per pose over a grid of rays.
+
+    Neighbouring rays (along rows and columns of the grid) with valid depth form pairs; a pair *jumps* when the
+    depths differ by more than twice the larger tolerance. The AUC compares the colour differences (sum of absolute
+    RGB differences) of jumping pairs with those of the other pairs. Where the grid is finer than the image's pixels
+    (a small or far pallet), neighbours read the same pixel: such pairs never jump and differ by 0, which lifts the
+    AUC above 0.5 even on unrelated images, so the test is less strict on small pallets.
+
+    :param z_obs: (n, G, G) observed depth at the rays, metres, 0 = no data.
+    :param colour: (n, G, G, 3) colour at the same pixels.
+    :param tol: (n, G, G) depth tolerance per ray, metres.
+    :param min_pairs: fewer jumping or fewer other pairs -> NaN (no evidence).
+    :return: (n,) AUC in [0, 1] or NaN.
+    """
+    colour = colour.astype(np.float64)
+    out = np.full(len(z_obs), np.nan)
+    pairs = []
+    for a, b in (((slice(None), slice(None), slice(1, None)), (slice(None), slice(None), slice(None, -1))),
+                 ((slice(None), slice(1, None)), (slice(None), slice(None, -1)))):
+        valid = (z_obs[a] > 0) & (z_obs[b] > 0)
+        jump = np.abs(z_obs[a] - z_obs[b]) > 2.0 * np.maximum(tol[a], tol[b])
+        diff = np.abs(colour[a] - colour[b]).sum(-1)
+        pairs.append((valid.reshape(len(z_obs), -1), jump.reshape(len(z_obs), -1), diff.reshape(len(z_obs), -1)))
+    valid, jump, diff = (np.concatenate(x, 1) for x in zip(*pairs))
+    for i in range(len(z_obs)):
+        d, j = diff[i][valid[i]], jump[i][valid[i]]
+        if j.sum() >= min_pairs and (~j).sum() >= min_pairs:
+            out[i] = _auc(d, j)
+    return out
+
+
 def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
                     boxes_xyxy: np.ndarray, params: StructureParams = StructureParams(),
-                    up_cam: np.ndarray | None = None) -> list[StructureScore]:
+                    up_cam: np.ndarray | None = None, rgb: np.ndarray | None = None) -> list[StructureScore]:
     """Structure evidence for posed pallets of one type in one frame.
 
     :param T_cam_pallet: (n, 4, 4) poses, metres.
@@ -178,6 +275,7 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     :param boxes_xyxy: (n, 4) the detector's boxes, image pixels.
     :param params: thresholds.
     :param up_cam: optional (3,) unit up direction in the camera frame (from a calibration); None skips the tilt test.
+    :param rgb: optional (H, W, 3) colour image registered to `depth_m`; None skips the edge test.
     :return: one `StructureScore` per pose.
     """
     K = check_K(K)
@@ -193,6 +291,8 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         raise ValueError(f"{len(T)} poses but {len(det)} boxes")
     if not np.all(np.isfinite(T)):
         raise ValueError("T_cam_pallet must be finite")
+    if rgb is not None and (np.ndim(rgb) != 3 or np.shape(rgb)[:2] != depth.shape or np.shape(rgb)[2] != 3):
+        raise ValueError(f"rgb must be (H, W, 3) like depth_m {depth.shape}, got shape {np.shape(rgb)}")
     if len(T) == 0:
         return []
     h, w = depth.shape
@@ -231,6 +331,20 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     opened = gap & (z_obs > t_bbox + tol)
     closed = gap & (np.abs(z_obs - t_bbox) <= tol)
 
+    # does the depth belong to the image? the box's metric size, the depth's edges against the colour's
+    extent = boxes[:, 1].max(0) - boxes[:, 0].min(0)
+    size_m = box_metric_size(det, depth, K)
+    with np.errstate(invalid="ignore"):
+        wrong_size = (size_m[:, 1] < params.min_box_height_of_type * extent.min()) \
+            | (size_m.max(1) > params.max_box_size_of_diameter * np.linalg.norm(extent))
+    g2 = (len(T), params.grid, params.grid)
+    if rgb is None:
+        edge_auc = np.full(len(T), np.nan)
+    else:
+        tol_obs = params.tol_m + params.tol_quad_per_m * z_obs ** 2
+        edge_auc = edge_agreement(z_obs.reshape(g2), np.asarray(rgb)[vi, ui].reshape(*g2, 3), tol_obs.reshape(g2),
+                                  int(params.min_edge_pairs))
+
     in_box = (u >= det[:, 0:1]) & (u <= det[:, 2:3]) & (v >= det[:, 1:2]) & (v <= det[:, 3:4])
     box_hits = ((solid | see_through) & in_box).sum(1)       # an occluder in front is no evidence either way
     box_solid = np.where(box_hits > 0, (solid & in_box).sum(1) / np.maximum(box_hits, 1), np.nan)
@@ -268,7 +382,11 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         evidence = s + st + op + cl
         agreement = (s + op) / evidence if evidence else 0.0
         open_fraction = op / (op + cl) if op + cl else 1.0
-        if not valid_proj[i] or cover[i] < params.min_box_cover or box_solid[i] < params.min_box_solid \
+        if wrong_size[i]:
+            reason = "size_mismatch"
+        elif edge_auc[i] < params.min_edge_auc:     # NaN (no colour, too few pairs) compares False
+            reason = "depth_image_mismatch"
+        elif not valid_proj[i] or cover[i] < params.min_box_cover or box_solid[i] < params.min_box_solid \
                 or seen_iou[i] < params.min_seen_iou:
             # NaN (no depth on the pallet at all) compares False: then the evidence count below decides
             reason = "box_mismatch"
@@ -284,5 +402,6 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
             reason = ""
         out.append(StructureScore(s, st, op, cl, float(agreement), float(open_fraction), float(cover[i]),
                                   float(box_solid[i]), float(seen_iou[i]),
-                                  float(tilt[i]), reason))
+                                  float(tilt[i]), (float(size_m[i, 0]), float(size_m[i, 1])),
+                                  float(edge_auc[i]), reason))
     return out

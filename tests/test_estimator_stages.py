@@ -262,3 +262,13 @@ def test_roi_option_rejects_detections_outside_before_posing(bundle_dir, frame, 
     r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
     assert r.poses == [] and len(r.rejected) == len(boxes)
     assert all(x.reason == "outside_roi" and x.pose is None for x in r.rejected)
+
+
+def test_depth_that_does_not_belong_to_the_image_gets_its_own_reason(bundle_dir, frame, boxes):
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, min_confidence=0.0)
+    shrunk = est.estimate_boxes(frame.rgb, frame.depth_m * np.float32(0.1), frame.K, boxes_xyxy=boxes)
+    assert shrunk.poses == [] and {r.reason for r in shrunk.rejected} == {"size_mismatch"}
+    assert all("depth scale or focal length" in r.detail for r in shrunk.rejected)
+    c = est.candidates(frame.rgb, frame.depth_m, frame.K, detections=Detections(boxes, np.ones(len(boxes)),
+                                                                                  np.zeros(len(boxes), np.int64)))
+    assert "size_mismatch" not in set(c.reason) and "depth_image_mismatch" not in set(c.reason)

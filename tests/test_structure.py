@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from pallet6d.runtime.geometry import make_T, quat_to_rot
-from pallet6d.runtime.structure import StructureParams, cast_rays_boxes, structure_check
+from pallet6d.runtime.structure import (StructureParams, box_metric_size, cast_rays_boxes, edge_agreement,
+                                        structure_check)
 from pallet6d.sim.pallets import get_pallet_model
 
 EPAL = get_pallet_model("epal")
@@ -43,6 +44,18 @@ DEPTH = _render(T_TRUE)
 BOX = _box(T_TRUE)
 
 
+def _colour(depth: np.ndarray, seed: int = 0) -> np.ndarray:
+    """An image of a depth rendering: wood where the pallet is, a grey wall behind, shading by range, sensor noise."""
+    rng = np.random.default_rng(seed)
+    wood = depth < BACK_WALL_M
+    rgb = np.where(wood[..., None], np.array([170.0, 125.0, 80.0]), np.array([90.0, 95.0, 105.0]))
+    rgb = rgb * (1.0 - 0.03 * np.minimum(depth, BACK_WALL_M))[..., None] + rng.normal(0, 3.0, rgb.shape)
+    return np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+RGB = _colour(DEPTH)
+
+
 def _check(T=T_TRUE, depth=DEPTH, K_=K, box=BOX, **kw):
     return structure_check(T[None], EPAL.boxes_m, depth, K_, box, **kw)[0]
 
@@ -66,7 +79,8 @@ def test_cast_rays_boxes_hits_the_face_at_its_depth():
 @pytest.mark.parametrize("name, make_input, reasons", [
     ("flat wall at the face", lambda: (np.full((H, W), 3.0, np.float32) - 0.4, K),
      {"openings_closed", "structure_mismatch", "box_mismatch"}),
-    ("depth 10x too near", lambda: (DEPTH * np.float32(0.1), K), {"box_mismatch", "structure_unseen"}),
+    ("depth 10x too near", lambda: (DEPTH * np.float32(0.1), K), {"size_mismatch"}),
+    ("depth 10x too far", lambda: (DEPTH * np.float32(10.0), K), {"size_mismatch"}),
     ("focal length 2x too long", lambda: (DEPTH, K * np.array([[2.0], [2.0], [1.0]])),
      {"box_mismatch", "structure_mismatch"}),
     ("another frame's depth", lambda: (_render(make_T(R_CAM_PALLET, np.array([-1.2, 0.6, 4.5]))), K),
@@ -149,7 +163,78 @@ def test_bad_boxes_raise():
 
 
 @pytest.mark.parametrize("kwargs", [dict(grid=2), dict(tol_m=0.0), dict(min_agreement=1.5), dict(max_tilt_deg=0.0),
-                                    dict(min_evidence=0)])
+                                    dict(min_evidence=0), dict(min_edge_auc=1.2), dict(min_box_height_of_type=-0.1),
+                                    dict(max_box_size_of_diameter=0.0), dict(min_edge_pairs=0)])
 def test_bad_params_raise(kwargs):
     with pytest.raises(ValueError):
         StructureParams(**kwargs)
+
+
+def test_true_pose_passes_with_its_image():
+    s = _check(rgb=RGB)
+    assert s.ok, s
+    assert s.edge_auc > 0.7
+    assert _check(rgb=RGB, params=StructureParams(grid=16)).ok
+    width_m, height_m = s.box_size_m
+    assert 0.6 < width_m < 1.0 and 0.1 < height_m < 0.3       # the 800 mm face, 144 mm tall, seen a little from above
+
+
+def test_depth_of_another_scene_under_the_image_is_refused():
+    """The image shows a bare wall (another frame's image, or depth not registered to it): its colour does not
+    change where the depth jumps."""
+    wall = _colour(np.full((H, W), BACK_WALL_M, np.float32), seed=1)
+    # a grid no finer than the pallet's pixels (rays reading the same pixel lift the AUC above chance)
+    s = _check(rgb=wall, params=StructureParams(grid=16))
+    assert s.reason == "depth_image_mismatch", s
+    assert abs(s.edge_auc - 0.5) < 0.15
+
+
+def test_image_of_a_pallet_elsewhere_is_refused():
+    elsewhere = _colour(_render(make_T(R_CAM_PALLET, np.array([-0.6, 0.3, 4.0]))), seed=2)
+    assert _check(rgb=elsewhere, params=StructureParams(grid=16)).reason == "depth_image_mismatch"
+
+
+def test_edge_test_needs_pairs_and_can_be_off():
+    flat = np.full((H, W), 3.0, np.float32)        # no depth jump at all: no evidence either way
+    s = structure_check(T_TRUE[None], EPAL.boxes_m, flat, K, BOX, rgb=RGB)[0]
+    assert np.isnan(s.edge_auc) and s.reason != "depth_image_mismatch"
+    wall = _colour(np.full((H, W), BACK_WALL_M, np.float32), seed=1)
+    assert _check(rgb=wall, params=StructureParams(grid=16, min_edge_auc=0.0)).ok
+    assert np.isnan(_check().edge_auc)              # without a colour image the test is skipped
+
+
+def test_focal_length_far_too_long_is_a_size_mismatch():
+    s = _check(K_=K * np.array([[4.0], [4.0], [1.0]]))
+    assert s.reason == "size_mismatch", s
+
+
+def test_size_bounds_can_be_off():
+    shrunk = DEPTH * np.float32(0.1)
+    s = _check(depth=shrunk, params=StructureParams(min_box_height_of_type=0.0))
+    assert s.reason != "size_mismatch"
+
+
+def test_box_metric_size():
+    depth = np.full((H, W), 2.0, np.float32)
+    depth[:10] = 0.0                                # missing depth is ignored
+    size = box_metric_size(np.array([[10.0, 20.0, 140.0, 46.0], [0.0, 0.0, 20.0, 5.0]]), depth, K)
+    assert size[0] == pytest.approx([130 * 2.0 / 260.0, 26 * 2.0 / 260.0])
+    assert np.all(np.isnan(size[1]))                # no valid depth in the box
+
+
+def test_edge_agreement_ranks_colour_steps_at_depth_jumps():
+    z = np.full((1, 8, 8), 3.0)
+    z[:, :, 4:] = 5.0                               # a depth jump between columns 3 and 4
+    colour = np.zeros((1, 8, 8, 3))
+    tol = np.full((1, 8, 8), 0.05)
+    colour[:, :, 4:] = 100.0                        # ... where the colour steps too
+    assert edge_agreement(z, colour, tol, min_pairs=5)[0] == pytest.approx(1.0)
+    colour_elsewhere = np.zeros((1, 8, 8, 3))
+    colour_elsewhere[:, 4:] = 100.0                 # a colour step across the rows instead
+    assert edge_agreement(z, colour_elsewhere, tol, min_pairs=5)[0] < 0.6
+    assert np.isnan(edge_agreement(z, colour, tol, min_pairs=9)[0])    # 8 jumping pairs only
+
+
+def test_rgb_of_another_size_raises():
+    with pytest.raises(ValueError, match="rgb"):
+        _check(rgb=RGB[:-1])
