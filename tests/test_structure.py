@@ -184,19 +184,21 @@ def test_depth_of_another_scene_under_the_image_is_refused():
     change where the depth jumps."""
     wall = _colour(np.full((H, W), BACK_WALL_M, np.float32), seed=1)
     # a grid no finer than the pallet's pixels (rays reading the same pixel lift the AUC above chance)
-    s = _check(rgb=wall, params=StructureParams(grid=16))
+    s = _check(rgb=wall, params=StructureParams(grid=16, min_edge_auc=0.58))
     assert s.reason == "depth_image_mismatch", s
     assert abs(s.edge_auc - 0.5) < 0.15
 
 
 def test_image_of_a_pallet_elsewhere_is_refused():
     elsewhere = _colour(_render(make_T(R_CAM_PALLET, np.array([-0.6, 0.3, 4.0]))), seed=2)
-    assert _check(rgb=elsewhere, params=StructureParams(grid=16)).reason == "depth_image_mismatch"
+    assert _check(rgb=elsewhere, params=StructureParams(grid=16, min_edge_auc=0.58)).reason == "depth_image_mismatch"
+    assert _check(rgb=elsewhere, params=StructureParams(grid=16)).ok       # the edge test is off by default
 
 
 def test_edge_test_needs_pairs_and_can_be_off():
     flat = np.full((H, W), 3.0, np.float32)        # no depth jump at all: no evidence either way
-    s = structure_check(T_TRUE[None], EPAL.boxes_m, flat, K, BOX, rgb=RGB)[0]
+    s = structure_check(T_TRUE[None], EPAL.boxes_m, flat, K, BOX, rgb=RGB,
+                        params=StructureParams(min_edge_auc=0.58))[0]
     assert np.isnan(s.edge_auc) and s.reason != "depth_image_mismatch"
     wall = _colour(np.full((H, W), BACK_WALL_M, np.float32), seed=1)
     assert _check(rgb=wall, params=StructureParams(grid=16, min_edge_auc=0.0)).ok
