@@ -18,9 +18,24 @@ SIZES = ((64, 128), (96, 96))          # the tiny config's reference size, and a
 
 
 def _manifest_v2() -> dict:
-    """The shipped bundle's manifest as a format_version 2 dict (its detector: one input, 192x640)."""
+    """The shipped bundle's manifest as a format_version 2 dict, its detector at one input, 192x640."""
     m, _ = read_manifest(json.loads((SHIPPED / "manifest.json").read_text()))
-    return m.to_dict()
+    d = m.to_dict()
+    d["detector"].pop("input_sizes", None)
+    d["detector"]["input_hw"] = [192, 640]
+    return d
+
+
+@pytest.fixture(scope="module")
+def single(tmp_path_factory, one_torch_thread):
+    """A tiny bundle whose detector graph is static at one input, 64x128."""
+    from pallet6d.export.bundle_export import export_bundle
+    from pallet6d.export.calib_data import make_calibration_set
+    from pallet6d.export.config import get_config
+
+    cfg = get_config("tiny")
+    calib = make_calibration_set(cfg, frames=2, max_crops=4, seed=0, synthetic=True)
+    return export_bundle(cfg, tmp_path_factory.mktemp("b") / "single", random_init=True, int8=True, calib=calib)
 
 
 # -- the manifest -------------------------------------------------------------------------------------------
@@ -64,11 +79,11 @@ def test_manifest_refuses_bad_input_sizes(sizes, message):
         Manifest.from_dict(d)
 
 
-def test_single_size_bundle_letterboxes_every_frame_to_input_hw():
-    stage = DetectorStage(load_bundle(SHIPPED), "fp32", 1, (0,), 0.5, 0.5, 10)
+def test_single_size_bundle_letterboxes_every_frame_to_input_hw(single):
+    stage = DetectorStage(single.bundle, "fp32", 1, (0,), 0.5, 0.5, 10)
     for hw in ((480, 640), (370, 1224), (400, 640)):
         x, lb = stage.preprocess(np.zeros((*hw, 3), np.uint8))
-        assert x.shape == (1, 3, 192, 640) and lb.input_hw == (192, 640)
+        assert x.shape == (1, 3, 64, 128) and lb.input_hw == (64, 128)
 
 
 # -- a tiny bundle whose detector takes two sizes ---------------------------------------------------------
@@ -102,21 +117,21 @@ def test_multi_size_export_passes_bundle_check(multi):
         assert checks["gflops"][f"detector_per_frame_{name}"] > 0
 
 
-def test_a_static_graph_that_misses_a_listed_size_is_refused(tmp_path):
-    """The shipped detector graph is static 192x640: a manifest that lists 256x480 too is refused by `bundle
-    check` (at that size) and by the estimator."""
+def test_a_static_graph_that_misses_a_listed_size_is_refused(single, tmp_path):
+    """A detector graph static at 64x128: a manifest that lists 96x96 too is refused by `bundle check` (at that
+    size) and by the estimator."""
     import shutil
 
     from pallet6d.runtime.estimator import PalletEstimator
 
     root = tmp_path / "b"
-    shutil.copytree(SHIPPED, root)
-    d = _manifest_v2()
-    d["detector"]["input_sizes"] = [[192, 640], [256, 480]]
+    shutil.copytree(single.root, root)
+    d = json.loads((root / "manifest.json").read_text())
+    d["detector"]["input_sizes"] = [[64, 128], [96, 96]]
     (root / "manifest.json").write_text(json.dumps(d))
     problems = check_bundle(root)
-    assert len(problems) == 2 and all("at 256x480" in p for p in problems), problems   # fp32 and int8
-    with pytest.raises(BundleError, match=r"detector.input_sizes\[1\]\[0\] is 256"):
+    assert len(problems) == 2 and all("at 96x96" in p for p in problems), problems   # fp32 and int8
+    with pytest.raises(BundleError, match=r"detector.input_sizes\[1\]\[0\] is 96"):
         PalletEstimator.from_bundle(root, threads=1)
 
 
@@ -165,7 +180,7 @@ def test_stage_boxes_come_back_in_image_pixels(multi, image_hw, box_image, box_i
 
 # -- export choices ---------------------------------------------------------------------------------------
 
-def test_export_takes_the_sizes_the_checkpoint_was_trained_on(multi, tmp_path):
+def test_export_takes_the_sizes_the_checkpoint_was_trained_on(multi, single, tmp_path):
     import torch
 
     from pallet6d.export.bundle_export import build_networks, export_bundle
@@ -188,8 +203,8 @@ def test_export_takes_the_sizes_the_checkpoint_was_trained_on(multi, tmp_path):
     with pytest.raises(ExportError, match="multiples of 32"):
         export_bundle(cfg, tmp_path / "c", random_init=True, detector_input_sizes=((64, 128), (100, 96)))
     with pytest.raises(ExportError, match="takes one input size"):
-        export_bundle(cfg, tmp_path / "e", random_init=True, detector_onnx=SHIPPED / "detector.onnx",
-                      classes=("epal",), detector_input_sizes=((192, 640), (256, 480)))
+        export_bundle(cfg, tmp_path / "e", random_init=True, detector_onnx=single.root / "detector.onnx",
+                      classes=("epal",), detector_input_sizes=((64, 128), (96, 96)))
 
 
 def test_calibration_set_made_for_one_size_letterboxes_its_inputs_to_another(caplog):
