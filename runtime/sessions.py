@@ -6,6 +6,13 @@ Thread spinning is off: each of the three sessions has its own pool, and a pool 
 after its graph ran steals the cores from the next graph and from the numpy stages in between
 (measured with 2 threads on 2 cores: detector 29 -> 16 ms, point sampling 32 -> 25 ms, end to end
 -20 %; with spinning on, 2 threads were barely faster than 1).
+
+No CPU memory arena and no memory patterns: an arena keeps the largest activations each graph has ever
+needed, for good and per session (about 130 MB more resident with 8 pallets in a fusion batch), while without
+it a run's activations go back to the C allocator when the run ends, and the three graphs, which run one
+after the other, reuse the same freed memory; without patterns each tensor is allocated as it is needed
+rather than all of a run's at once, which lowers the peak by a few MB more at the same CPU time
+(docs/experiments/latency.md, "Memory").
 """
 from __future__ import annotations
 
@@ -32,6 +39,8 @@ def session_options(threads: int) -> ort.SessionOptions:
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.log_severity_level = 3
+    so.enable_cpu_mem_arena = False
+    so.enable_mem_pattern = False
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     so.add_session_config_entry("session.inter_op.allow_spinning", "0")
     return so

@@ -23,10 +23,10 @@ from .sessions import OnnxModel
 
 __all__ = ["GRAPH_BATCH", "PoseNetworkStage"]
 
-# The fusion and pose graphs run on at most this many pallets at once. onnxruntime's memory arena keeps the
-# largest batch it has seen: 16 pallets in one batch held about 95 MB more for good than 8 (soak run), while
-# batches larger than 8 save little time per pallet.
-GRAPH_BATCH = 8
+# The fusion and pose graphs run on at most this many pallets at once. The fusion graph's activations for one
+# 96x96 crop take about 16 MB, and the peak resident memory grows by that much per pallet of a batch, while
+# larger batches save no time per pallet on two cores (docs/experiments/latency.md, "Memory").
+GRAPH_BATCH = 1
 
 
 class PoseNetworkStage:

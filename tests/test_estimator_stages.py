@@ -172,6 +172,7 @@ def test_time_budget_poses_the_best_scores_first_and_skips_the_rest(bundle_dir, 
     est = PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(time_budget_ms=3.5, **{
         k: v for k, v in KW.items() if k != "threads"}), clock=lambda: next(ticks) / 1000.0)
     est.refiner.budget_chunk = 1
+    est.pose_network.graph_batch = len(boxes)                           # one network chunk: the budget ends in ICP
     scores = [0.6, 0.9, 0.7]                                            # not in score order on purpose
     r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes, scores=scores)
     assert 1 <= len(r.poses) < len(boxes)
