@@ -128,21 +128,29 @@ import numpy as np
 from pallet6d.runtime.estimator import PalletEstimator
 import_s = time.perf_counter() - t
 est = PalletEstimator.from_bundle(sys.argv[1], threads=2, precision=sys.argv[2])
-rng = np.random.default_rng(0)
-rgb = rng.integers(0, 255, (370, 1224, 3), dtype=np.uint8)
-depth = rng.uniform(1, 5, (370, 1224)).astype(np.float32)
-K = np.array([[700.0, 0, 612], [0, 700, 185], [0, 0, 1]])
+with np.load(sys.argv[3]) as z:
+    rgb, depth, K, boxes = z["rgb"], z["depth_m"], z["K"], z["boxes"]
 for _ in range(3):
     est.estimate(rgb, depth, K)
+    est.estimate_boxes(rgb, depth, K, boxes_xyxy=boxes, scores=np.linspace(0.9, 0.5, len(boxes)))
 print(import_s, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "torch" in sys.modules)
 """
 
 
-def footprint(bundle: str, precision: str) -> dict:
-    out = subprocess.run([sys.executable, "-c", _FOOTPRINT, bundle, precision], capture_output=True, text=True,
-                         check=True)
+def footprint(bundle: str, precision: str, pallets: int) -> dict:
+    """Import time and peak RSS of a fresh process that runs the estimator on the scene of `pallets` pallets
+    (detector on the frame, then the pose stages on those pallets' boxes)."""
+    import tempfile
+
+    frame, boxes = _scene(pallets)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "frame.npz"
+        np.savez(path, rgb=frame.rgb, depth_m=frame.depth_m, K=frame.K, boxes=boxes[:pallets])
+        out = subprocess.run([sys.executable, "-c", _FOOTPRINT, bundle, precision, str(path)], capture_output=True,
+                             text=True, check=True)
     import_s, rss_mb, torch_loaded = out.stdout.split()
-    return {"import_s": float(import_s), "peak_rss_mb": float(rss_mb), "torch_loaded": torch_loaded == "True"}
+    return {"import_s": float(import_s), "peak_rss_mb": float(rss_mb), "torch_loaded": torch_loaded == "True",
+            "pallets": pallets}
 
 
 def run_info(bundles: list[str]) -> dict:
@@ -181,10 +189,12 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
                      + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
                      + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
                      + (f"{t['p50']:.1f} | {nets:.1f} | {t['p50'] / nets:.2f} |" if t else f"- | {nets:.1f} | - |"))
-    lines += ["", "| bundle | precision | import (s) | peak RSS (MB) | torch loaded |", "|---|---|---|---|---|"]
+    lines += ["", "| bundle | precision | import (s) | peak RSS (MB) | pallets | torch loaded |",
+              "|---|---|---|---|---|---|"]
     for key, f in footprints.items():
         b, p = key.split("|")
-        lines.append(f"| {b} | {p} | {f['import_s']:.3f} | {f['peak_rss_mb']:.0f} | {f['torch_loaded']} |")
+        lines.append(f"| {b} | {p} | {f['import_s']:.3f} | {f['peak_rss_mb']:.0f} | {f['pallets']} | "
+                     f"{f['torch_loaded']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -212,7 +222,7 @@ def main() -> int:
             if precision not in b.precision:
                 print(f"{b.name}: no {precision} graphs, skipped", flush=True)
                 continue
-            footprints[f"{b.config}|{precision}"] = footprint(bundle, precision)
+            footprints[f"{b.config}|{precision}"] = footprint(bundle, precision, max(args.pallets))
             for threads in args.threads:
                 for pallets, starts in itertools.product(args.pallets, starts_list):
                     frame, boxes = _scene(pallets)
