@@ -5,9 +5,9 @@ that draws a camera's frame largest (`runtime.detector.choose_input_hw`): wide f
 squarer for 4:3 and 16:9 cameras. Frames are kept at their own size (longest side capped, cached); each
 training batch takes one input size (mostly the one its first frame would run at, sometimes another) and draws
 every frame into it with a random zoom and position (`place_in_window`), HSV gains, blur, noise and horizontal
-flips, from an epoch-seeded generator. Validation letterboxes each frame exactly as the runtime does. Targets are the visible boxes of pallets at least 10 % visible,
-the boxes the evaluation matches against. Validation: loss, and precision/recall at IoU 0.5 of the runtime's decoding
-(`runtime.detector.decode_yolov8`, score 0.25).
+flips, from an epoch-seeded generator. Validation letterboxes each frame exactly as the runtime does. Targets
+are the visible boxes of pallets at least 10 % visible, the boxes the evaluation matches against. Validation:
+loss, and precision/recall at IoU 0.5 of the runtime's decoding (`runtime.detector.decode_yolov8`, score 0.25).
 
 Real photographs (`real=`: a dataset imported by `real_data.py`) join the simulated frames: their train split,
 cut again by capture sequence for validation (`real_samples.py`). They carry no pallet type, so their boxes are
@@ -72,7 +72,7 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     for root in data:
         n = len(BopDataset(root))
         settings = {"max_side": MAX_SIDE, "max_frames": max_frames}
-        with tqdm(total=n if max_frames is None else min(n, max_frames), desc=f"letterbox {Path(root).name}",
+        with tqdm(total=n if max_frames is None else min(n, max_frames), desc=f"frames {Path(root).name}",
                   unit="frame", disable=not progress, leave=False) as bar:
             s, fp = load_or_build("detector", root, settings, cache_dir,
                                   lambda: build_detector_samples(root, MAX_SIDE, max_frames, bar.update))
