@@ -96,6 +96,48 @@ def evaluate(est, records: list[dict], root: Path, iou_threshold: float = 0.5,
     return report
 
 
+def write_examples(est, records: list[dict], root: Path, out_dir: Path, per_source: int = 2,
+                   iou_threshold: float = 0.5) -> list[Path]:
+    """Overlays of the photographs where the detector fails most (missed boxes plus false detections), the worst
+    `per_source` of each source: labelled boxes green when found, yellow when missed; detections blue when right,
+    red when wrong, with their scores. JPEGs at most 960 px wide."""
+    import cv2
+
+    from pallet6d.runtime.evaluation import match_greedy
+
+    scored = []
+    for rec in records:
+        bgr = cv2.imread(str(root / rec["image"]), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise ValueError(f"cannot read {root / rec['image']}")
+        det = est.detect(np.ascontiguousarray(bgr[:, :, ::-1]))
+        gt = np.asarray(rec["boxes_xyxy"], float).reshape(-1, 4)
+        pred_match, gt_found = match_greedy(det.boxes_xyxy, det.scores, gt, iou_threshold)
+        fails = int((~gt_found).sum() + (pred_match < 0).sum())
+        scored.append((rec["source"], -fails, rec["image"], bgr, det, gt, pred_match, gt_found))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written, taken = [], {}
+    for source, neg_fails, name, bgr, det, gt, pred_match, gt_found in sorted(scored, key=lambda t: t[:3]):
+        if taken.get(source, 0) >= per_source or neg_fails == 0:
+            continue
+        taken[source] = taken.get(source, 0) + 1
+        img = bgr.copy()
+        for box, found in zip(gt.astype(int), gt_found):
+            cv2.rectangle(img, tuple(box[:2]), tuple(box[2:]), (0, 200, 0) if found else (0, 220, 255), 2)
+        for box, score, m in zip(det.boxes_xyxy.astype(int), det.scores, pred_match):
+            colour = (255, 120, 0) if m >= 0 else (0, 0, 255)
+            cv2.rectangle(img, tuple(box[:2]), tuple(box[2:]), colour, 1)
+            cv2.putText(img, f"{score:.2f}", (int(box[0]), max(10, int(box[1]) - 3)), cv2.FONT_HERSHEY_SIMPLEX, 0.4,
+                        colour, 1)
+        scale = min(1.0, 960 / img.shape[1])
+        if scale < 1.0:
+            img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+        path = out_dir / f"{source}-{Path(name).stem}.jpg"
+        cv2.imwrite(str(path), img, [cv2.IMWRITE_JPEG_QUALITY, 80])
+        written.append(path)
+    return written
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", type=Path, required=True)
@@ -112,6 +154,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sim-presets", default="virtual-clean,virtual-occluded,indoor-noisy")
     ap.add_argument("--sim-seed", type=int, default=9100, help="seed of the simulated pallet-free frames")
     ap.add_argument("--out", type=Path, help="write OUT.md and OUT.json")
+    ap.add_argument("--examples", type=Path,
+                    help="also write overlays of the photographs where the detector fails most, per source, here")
     args = ap.parse_args(argv)
 
     from pallet6d.runtime.estimator import PalletEstimator
@@ -126,6 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
                                       score_threshold=args.score_threshold, max_pallets=300)
     report = evaluate(est, records, args.data, progress=True).to_dict()
+    if args.examples:
+        for path in write_examples(est, records, args.data, args.examples):
+            print(f"wrote {path}", file=sys.stderr)
     if args.sim_negatives:
         full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32")
