@@ -100,7 +100,8 @@ class EstimatorOptions:
         fails is rejected ("no_pallet_structure"). It also asks whether the depth belongs to the image: the
         detector's box must have a pallet's metric size at the depth inside it ("size_mismatch": depth scale or
         focal length off) and, opt-in (`min_edge_auc`), the depth's edges must coincide with the colour image's
-        ("depth_image_mismatch": another frame's depth). None turns the check off. What it keeps and refuses: `docs/structure-check.md`.
+        ("depth_image_mismatch": another frame's depth). None turns the check off. What it keeps and refuses:
+        `docs/structure-check.md`.
     :ivar roi: where pallets are expected (an image box and/or a depth hint, `roi.py`); detections outside are
         rejected ("outside_roi") before the pose network. None: everywhere.
     :ivar time_budget_ms: the frame's time budget from the start of `estimate`, milliseconds (None: no limit).
