@@ -80,8 +80,9 @@ def sim_negatives(est, presets: list[str], n_frames: int, seed: int) -> dict:
 
 
 def evaluate(est, records: list[dict], root: Path, iou_threshold: float = 0.5,
-             progress: bool = False) -> RealDataReport:
-    """Run `est.detect` (a `PalletEstimator`) on every record's image and tally the report."""
+             progress: bool = False, detections: list | None = None) -> RealDataReport:
+    """Run `est.detect` (a `PalletEstimator`) on every record's image and tally the report; with `detections`
+    (a list), also append each image's `Detections` to it."""
     import cv2
 
     report = RealDataReport()
@@ -91,37 +92,36 @@ def evaluate(est, records: list[dict], root: Path, iou_threshold: float = 0.5,
             raise ValueError(f"cannot read {root / rec['image']}")
         det = est.detect(np.ascontiguousarray(bgr[:, :, ::-1]))
         report.add_image(rec, det.boxes_xyxy, det.scores, iou_threshold)
+        if detections is not None:
+            detections.append(det)
         if progress and (k + 1) % 200 == 0:
             print(f"{k + 1}/{len(records)} images", file=sys.stderr)
     return report
 
 
-def write_examples(est, records: list[dict], root: Path, out_dir: Path, per_source: int = 2,
+def write_examples(records: list[dict], detections: list, root: Path, out_dir: Path, per_source: int = 2,
                    iou_threshold: float = 0.5) -> list[Path]:
-    """Overlays of the photographs where the detector fails most (missed boxes plus false detections), the worst
-    `per_source` of each source: labelled boxes green when found, yellow when missed; detections blue when right,
-    red when wrong, with their scores. JPEGs at most 960 px wide."""
+    """Overlays of the photographs where the detector failed most (missed boxes plus false detections, from the
+    `detections` that `evaluate` kept), the worst `per_source` of each source: labelled boxes green when found,
+    yellow when missed; detections blue when right, red when wrong, with their scores. JPEGs at most 960 px wide."""
     import cv2
 
     from pallet6d.runtime.evaluation import match_greedy
 
     scored = []
-    for rec in records:
-        bgr = cv2.imread(str(root / rec["image"]), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise ValueError(f"cannot read {root / rec['image']}")
-        det = est.detect(np.ascontiguousarray(bgr[:, :, ::-1]))
+    for rec, det in zip(records, detections):
         gt = np.asarray(rec["boxes_xyxy"], float).reshape(-1, 4)
         pred_match, gt_found = match_greedy(det.boxes_xyxy, det.scores, gt, iou_threshold)
         fails = int((~gt_found).sum() + (pred_match < 0).sum())
-        scored.append((rec["source"], -fails, rec["image"], bgr, det, gt, pred_match, gt_found))
+        if fails:
+            scored.append((rec["source"], -fails, rec["image"], det, gt, pred_match, gt_found))
     out_dir.mkdir(parents=True, exist_ok=True)
     written, taken = [], {}
-    for source, neg_fails, name, bgr, det, gt, pred_match, gt_found in sorted(scored, key=lambda t: t[:3]):
-        if taken.get(source, 0) >= per_source or neg_fails == 0:
+    for source, _, name, det, gt, pred_match, gt_found in sorted(scored, key=lambda t: t[:3]):
+        if taken.get(source, 0) >= per_source:
             continue
         taken[source] = taken.get(source, 0) + 1
-        img = bgr.copy()
+        img = cv2.imread(str(root / name), cv2.IMREAD_COLOR)
         for box, found in zip(gt.astype(int), gt_found):
             cv2.rectangle(img, tuple(box[:2]), tuple(box[2:]), (0, 200, 0) if found else (0, 220, 255), 2)
         for box, score, m in zip(det.boxes_xyxy.astype(int), det.scores, pred_match):
@@ -169,9 +169,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
                                       score_threshold=args.score_threshold, max_pallets=300)
-    report = evaluate(est, records, args.data, progress=True).to_dict()
+    detections = [] if args.examples else None
+    report = evaluate(est, records, args.data, progress=True, detections=detections).to_dict()
     if args.examples:
-        for path in write_examples(est, records, args.data, args.examples):
+        for path in write_examples(records, detections, args.data, args.examples):
             print(f"wrote {path}", file=sys.stderr)
     if args.sim_negatives:
         full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
