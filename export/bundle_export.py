@@ -365,7 +365,8 @@ def write_bundle(out: Path, n: Networks, g: Graphs, int8: Int8Graphs | None, pal
 
 def _default_types(n: Networks) -> tuple[str, ...]:
     """The types the pose stage was trained on (the config's one without a record) when the detector reports
-    each; else the first, as the detector cannot tell the types apart."""
+    each (a class per type, or one class for all: the runtime then tells them apart by the depth); else the
+    first."""
     try:
         trained = trained_pallet_types(n.training, n.cfg.pallet)
     except ValueError as exc:

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 __all__ = ["BopFormatError", "BopGT", "BopFrame", "BopWriter", "BopDataset", "models_info_entry",
-           "write_models_info", "read_models_info"]
+           "write_models_info", "read_models_info", "read_ply_mesh", "sample_surface"]
 
 log = logging.getLogger(__name__)
 _IMG_EXTS = (".png", ".jpg", ".jpeg", ".tif")
@@ -483,6 +483,70 @@ class BopDataset:
     def model_path(self, obj_id: int) -> Path:
         """Path of the model's PLY mesh (millimetres)."""
         return self.root / "models" / f"obj_{int(obj_id):06d}.ply"
+
+    def model_points(self, obj_id: int, n: int = 2000, seed: int = 0) -> np.ndarray:
+        """(n, 3) points sampled uniformly on the model's mesh surface (`read_ply_mesh`), metres."""
+        verts_mm, faces = read_ply_mesh(self.model_path(obj_id))
+        return sample_surface(verts_mm / 1000.0, faces, n, seed)
+
+
+def read_ply_mesh(path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of a PLY mesh (ascii or binary little-endian; float x, y, z first of the vertex
+    properties, faces as lists of 3 indexes). :return: (v, 3) float64, (f, 3) int64.
+    :raises BopFormatError: another layout."""
+    path = Path(path)
+    data = path.read_bytes()
+    end = data.find(b"end_header\n")
+    if not data.startswith(b"ply") or end < 0:
+        raise BopFormatError(f"{path}: not a PLY file")
+    header = data[:end].decode("ascii", "replace").splitlines()
+    fmt = next((ln.split()[1] for ln in header if ln.startswith("format ")), "")
+    counts, props, element = {}, {"vertex": [], "face": []}, None
+    for ln in header:
+        w = ln.split()
+        if w[:1] == ["element"]:
+            element, counts[w[1]] = w[1], int(w[2])
+        elif w[:1] == ["property"] and element in props:
+            props[element].append(w[1:])
+    vp, fp = props["vertex"], props["face"]
+    if fmt not in ("ascii", "binary_little_endian") or [p[-1] for p in vp[:3]] != ["x", "y", "z"] \
+            or any(p[0] != "float" for p in vp) or len(fp) != 1 or fp[0][:1] != ["list"]:
+        raise BopFormatError(f"{path}: expected float x, y, z vertices and one face list, {fmt} or ascii")
+    nv, nf = counts.get("vertex", 0), counts.get("face", 0)
+    body = data[end + len(b"end_header\n"):]
+    if fmt == "ascii":
+        rows = body.decode("ascii").split("\n")
+        verts = np.array([r.split()[:3] for r in rows[:nv]], np.float64).reshape(-1, 3)
+        faces = np.array([r.split()[1:4] for r in rows[nv:nv + nf]], np.int64).reshape(-1, 3)
+    else:
+        verts = np.frombuffer(body, "<f4", nv * len(vp)).reshape(nv, len(vp))[:, :3].astype(np.float64)
+        count_t, index_t = {"uchar": "u1", "uint8": "u1"}.get(fp[0][1]), {"int": "<i4", "uint": "<u4",
+                                                                          "int32": "<i4", "uint32": "<u4"}.get(fp[0][2])
+        if count_t is None or index_t is None:
+            raise BopFormatError(f"{path}: face list of {fp[0][1]} / {fp[0][2]} is not supported")
+        rec = np.frombuffer(body, np.dtype([("n", count_t), ("i", index_t, (3,))]), nf, offset=nv * len(vp) * 4)
+        if np.any(rec["n"] != 3):
+            raise BopFormatError(f"{path}: only triangle faces are supported")
+        faces = rec["i"].astype(np.int64)
+    if len(faces) == 0 or faces.min() < 0 or faces.max() >= len(verts):
+        raise BopFormatError(f"{path}: no triangles, or a face index outside the {len(verts)} vertices")
+    return verts, faces
+
+
+def sample_surface(verts: np.ndarray, faces: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """(n, 3) points uniform on a triangle mesh's surface (triangles by area, then uniform barycentrics).
+    :param verts: (v, 3); :param faces: (f, 3) vertex indexes."""
+    tri = np.asarray(verts, np.float64)[np.asarray(faces)]                      # (f, 3, 3)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    if not area.sum() > 0:
+        raise ValueError("the mesh has no area")
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(tri), size=int(n), p=area / area.sum())
+    a, b = rng.random((2, int(n), 1))
+    flip = a + b > 1
+    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+    t = tri[pick]
+    return t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
 
 
 def _scene_dirs(split_dir: Path) -> list[Path]:

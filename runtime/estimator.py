@@ -41,6 +41,7 @@ from .stage_fit import FitCheckStage
 from .roi import RegionOfInterest, roi_filter
 from .structure import StructureParams
 from .stage_geometry import bundle_geometries
+from .stage_type import TypeChoiceStage
 from .stage_pose import PoseNetworkStage
 from .stage_refine import RefinerStage
 
@@ -93,6 +94,9 @@ class EstimatorOptions:
     :ivar refine_start_max_rms_m: a landing counts only when its ICP RMS is below this, metres. Stricter
         than `refine_max_rms_m`: on stereo-noisy depth some landings reach 3-4 mm by chance and then win
         wrongly; on clean depth most landings that help are below 3 mm.
+    :ivar type_candidates: where one detector class reports several pallet types, the candidate is refined
+        with this many of them, the best-fitting at the network's pose first, and the best refined fit decides
+        its type (`stage_type.py`).
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's
@@ -127,6 +131,7 @@ class EstimatorOptions:
     refine_start_points: int = 300
     refine_select_tol_m: float = 0.015
     refine_start_max_rms_m: float = 0.003
+    type_candidates: int = 2
     nonfinite_depth: str = "raise"
     seed: int = 0
     structure: StructureParams | None = StructureParams()
@@ -164,6 +169,8 @@ class EstimatorOptions:
             raise ValueError(f"refine_select_tol_m must be positive, got {self.refine_select_tol_m}")
         if not self.refine_start_max_rms_m > 0:
             raise ValueError(f"refine_start_max_rms_m must be positive, got {self.refine_start_max_rms_m}")
+        if int(self.type_candidates) < 1:
+            raise ValueError(f"type_candidates must be >= 1, got {self.type_candidates}")
         if self.time_budget_ms is not None and not self.time_budget_ms >= 0:
             raise ValueError(f"time_budget_ms must be >= 0 or None, got {self.time_budget_ms}")
 
@@ -177,7 +184,8 @@ class PalletEstimator:
     :param options: `EstimatorOptions`.
     :param clock: the monotonic clock (seconds) the time budget is measured on.
 
-    :ivar detector: `DetectorStage`. :ivar pose_network: `PoseNetworkStage`. :ivar refiner: `RefinerStage`.
+    :ivar detector: `DetectorStage`. :ivar pose_network: `PoseNetworkStage`. :ivar type_choice: `TypeChoiceStage`.
+    :ivar refiner: `RefinerStage`.
     :ivar fit_check: `FitCheckStage`. :ivar pallet_types: the bundle's `PalletGeometry`s.
     """
 
@@ -194,12 +202,14 @@ class PalletEstimator:
         if o.depth_range_m is not None:
             spec = replace(spec, depth_range_m=tuple(o.depth_range_m))
         self.spec = spec
-        self.pallet_types, self._type_of_class = bundle_geometries(bundle)
-        self.detector = DetectorStage(bundle, precision, self.threads, tuple(self._type_of_class), o.score_threshold,
+        self.pallet_types, self._types_of_class = bundle_geometries(bundle)
+        self.detector = DetectorStage(bundle, precision, self.threads, tuple(self._types_of_class), o.score_threshold,
                                       o.iou_threshold, o.max_pallets)
         self.pose_network = PoseNetworkStage(bundle, precision, self.threads, spec, o.seed, o.min_valid_points)
         self._check_graphs_match_manifest()
         self.refiner = RefinerStage(self.pallet_types, o)
+        self.type_choice = TypeChoiceStage(self.pallet_types, self._types_of_class, self.refiner, o.fit_tol_m,
+                                           o.type_candidates)
         self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure)
 
     @classmethod
@@ -342,14 +352,14 @@ class PalletEstimator:
         scores = np.ones(len(boxes)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(-1)
         if len(scores) != len(boxes):
             raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
-        first = min(self._type_of_class)
+        first = min(self._types_of_class)
         class_ids = np.full(len(boxes), first) if class_ids is None else np.asarray(class_ids, np.int64).reshape(-1)
         if len(class_ids) != len(boxes):
             raise ValueError(f"{len(boxes)} boxes but {len(class_ids)} class ids")
-        unknown = sorted({int(c) for c in class_ids} - set(self._type_of_class))
+        unknown = sorted({int(c) for c in class_ids} - set(self._types_of_class))
         if unknown:
             raise ValueError(f"class ids {unknown} are not pallet classes of bundle {self.bundle.name} "
-                             f"(pallet classes: {sorted(self._type_of_class)})")
+                             f"(pallet classes: {sorted(self._types_of_class)})")
         return Detections(boxes, scores, class_ids)
 
     def _run(self, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, det: Detections,
@@ -358,7 +368,7 @@ class PalletEstimator:
         for s in STAGES:
             timings.setdefault(s, 0.0)
         det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
-        type_index = [self._type_of_class[int(c)] for c in det.class_ids]
+        type_index = [self._types_of_class[int(c)][0] for c in det.class_ids]   # the type choice may change it
         cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points)
         if self.options.roi is not None:
             keep, why = roi_filter(cands.boxes_xyxy, depth_m, self.options.roi)
@@ -366,6 +376,8 @@ class PalletEstimator:
             cands.reject(drop, "outside_roi", [why[i] for i in drop])
         if len(cands):
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
+            if self.type_choice.needed:
+                self.type_choice(cands, depth_m, K, timings, deadline)
             self.refiner(cands, depth_m, K, timings, deadline)
             self.fit_check(cands, depth_m, K, timings, rgb)
         return cands

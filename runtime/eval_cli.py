@@ -44,9 +44,11 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
     :raises ValueError: not a BOP dataset, or a frame the estimator rejects.
     """
     from .bop import BopDataset
-    from .evaluation import ScoreTally, counted_pallets, evaluate_poses, ground_truths_from_bop, records_to_dicts
+    from .evaluation import (ScoreTally, counted_pallets, dataset_models, evaluate_poses, ground_truths_from_bop,
+                             records_to_dicts)
 
     ds = BopDataset(data, split)
+    models = dataset_models(ds, estimator.pallet_types)   # each ground truth scored with its own model
     n = len(ds) if not max_frames else min(len(ds), max_frames)
     tally = ScoreTally()
     n_no_box = 0
@@ -64,7 +66,7 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
             result = estimator.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
         else:
             result = estimator.estimate(f.rgb, f.depth_m, f.K)
-        tally.add(evaluate_poses(i, result.poses, gts, estimator.model_points_m, estimator.symmetries))
+        tally.add(evaluate_poses(i, result.poses, gts, estimator.model_points_m, estimator.symmetries, models=models))
     if n_no_box:
         log.warning("%s: %d annotations without a visible box (no scene_gt_info.json entry) were not scored",
                     data, n_no_box)
@@ -92,6 +94,7 @@ def rescore(results: dict, data: str | Path, split: str | None = None, tol_m: fl
     from .evaluation import PalletRecord, counted_pallets, ground_truths_from_bop, summarize
 
     ds = BopDataset(data, split)
+    models = dataset_models(ds, estimator.pallet_types)   # each ground truth scored with its own model
     gts_of: dict[int, tuple] = {}
     records, dropped_detected = [], 0
     for r in results["records"]:

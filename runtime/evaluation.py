@@ -13,14 +13,16 @@ Protocol (used by `pallet6d eval`, `pallet6d run` on a BOP source and `benchmark
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Iterable, NamedTuple, Sequence
+from typing import Iterable, Mapping, NamedTuple, Sequence
 
 import numpy as np
 
 from . import metrics
 
+Models = Mapping[int, tuple[np.ndarray, np.ndarray]]   # obj_id -> model points (n, 3) metres, symmetries (S, 4, 4)
+
 __all__ = ["GroundTruth", "Estimate", "PalletRecord", "FrameScore", "ScoreTally", "counted_pallets", "box_iou",
-           "match_greedy", "ground_truths_from_bop", "evaluate_frame", "evaluate_poses", "summarize",
+           "match_greedy", "ground_truths_from_bop", "evaluate_frame", "evaluate_poses", "dataset_models", "summarize",
            "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M", "DEFAULT_VISIBILITY_BINS",
            "MIN_VISIB_FRACT"]
 
@@ -36,12 +38,14 @@ DEFAULT_VISIBILITY_BINS = (0.1, 0.3, 0.6, 1.0)
 class GroundTruth:
     """:param T_cam_model: (4, 4) metres; :param box_visib_xyxy: (4,) visible 2D box, pixels;
     :param truncated: the pallet's whole projected box reaches beyond the image (KITTI's truncation): part of it
-        is out of view, not hidden behind something."""
+        is out of view, not hidden behind something.
+    :param obj_id: its model in the dataset (BOP obj_id), for datasets of several pallet types."""
 
     T_cam_model: np.ndarray
     box_visib_xyxy: np.ndarray
     visib_fract: float
     truncated: bool = False
+    obj_id: int | None = None
 
     @property
     def bbox_visib_xywh(self) -> np.ndarray:
@@ -132,7 +136,7 @@ def ground_truths_from_bop(bop_gts: Sequence, image_hw: tuple[int, int] | None =
         x, y, w, h = (float(v) for v in g.bbox_visib_xywh)
         visib = float(g.visib_fract) if np.isfinite(g.visib_fract) else 1.0
         out.append(GroundTruth(g.T_cam_model, np.array([x, y, x + w, y + h]), visib,
-                               _leaves_image(g.bbox_obj_xywh, image_hw)))
+                               _leaves_image(g.bbox_obj_xywh, image_hw), int(g.obj_id)))
     return out, skipped
 
 
@@ -184,10 +188,13 @@ def match_greedy(pred_xyxy: np.ndarray, scores: np.ndarray, gt_xyxy: np.ndarray,
 
 def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[GroundTruth], model_pts: np.ndarray,
                    symmetries: np.ndarray, iou_threshold: float = 0.5,
-                   min_visib_fract: float = MIN_VISIB_FRACT) -> FrameScore:
+                   min_visib_fract: float = MIN_VISIB_FRACT, models: Models | None = None) -> FrameScore:
     """Match one frame's estimates to its ground truth and measure the pose errors.
 
-    :param model_pts: (n, 3) model points, metres; :param symmetries: (S, 4, 4).
+    :param model_pts: (n, 3) model points, metres; :param symmetries: (S, 4, 4): the model of every ground
+        truth that `models` does not name.
+    :param models: {obj_id: (model points (n, 3) metres, symmetries (S, 4, 4))}, each ground truth's own model
+        (`dataset_models`); None: `model_pts` for all.
     :return: records for counted pallets, true positives, false positives.
     """
     counted = counted_pallets(gts, min_visib_fract)
@@ -206,10 +213,11 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
         if j in matched_est:
             T = estimates[matched_est[j]].T_cam_model
             R, t = T[:3, :3], T[:3, 3]
-            errs = dict(add_m=metrics.add(R, t, R_gt, t_gt, model_pts),
-                        add_sym_m=metrics.add_sym(R, t, R_gt, t_gt, model_pts, symmetries),
-                        adds_m=metrics.adds(R, t, R_gt, t_gt, model_pts),
-                        rot_err_sym_deg=metrics.rotation_error_sym_deg(R, R_gt, symmetries),
+            pts, sym = (models or {}).get(g.obj_id, (model_pts, symmetries))
+            errs = dict(add_m=metrics.add(R, t, R_gt, t_gt, pts),
+                        add_sym_m=metrics.add_sym(R, t, R_gt, t_gt, pts, sym),
+                        adds_m=metrics.adds(R, t, R_gt, t_gt, pts),
+                        rot_err_sym_deg=metrics.rotation_error_sym_deg(R, R_gt, sym),
                         trans_err_m=metrics.translation_error_m(t, t_gt))
         records.append(PalletRecord(frame=frame, distance_m=float(np.linalg.norm(t_gt)),
                                     visib_fract=float(g.visib_fract), detected=j in matched_est,
@@ -218,16 +226,32 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
 
 
 def evaluate_poses(frame: int, poses: Sequence, gts: Sequence[GroundTruth], model_pts: np.ndarray,
-                   symmetries: np.ndarray) -> FrameScore:
+                   symmetries: np.ndarray, models: Models | None = None) -> FrameScore:
     """The per-frame evaluation of the estimator's output (`pallet6d eval`, `pallet6d run` on a BOP source).
 
     :param poses: the frame's `PalletPose`s (their `T_cam_pallet`, `box_xyxy`, `detector_score`); empty when
         the estimation failed (its counted pallets are then missed).
     :param gts: its ground truth (`ground_truths_from_bop`); :param model_pts: (n, 3) metres;
-    :param symmetries: (S, 4, 4).
+    :param symmetries: (S, 4, 4). :param models: each ground truth's own model (`evaluate_frame`).
     """
     estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in poses]
-    return evaluate_frame(frame, estimates, gts, model_pts, symmetries)
+    return evaluate_frame(frame, estimates, gts, model_pts, symmetries, models=models)
+
+
+def dataset_models(ds, geometries: Sequence = ()) -> Models:
+    """Each model of a BOP dataset for `evaluate_frame`: the bundle's pallet type of the same name (its points and
+    symmetries) where the dataset names it (`models_info.json` "name"), else points sampled on the dataset's mesh
+    with its symmetries. :param ds: `bop.BopDataset`; :param geometries: `PalletGeometry`s (name, points_m,
+    symmetries)."""
+    by_name = {g.name: (g.points_m, g.symmetries) for g in geometries}
+    out = {}
+    for obj_id, info in ds.models_info.items():
+        name = info.get("name")
+        if name in by_name:
+            out[obj_id] = by_name[name]
+        elif ds.model_path(obj_id).exists():
+            out[obj_id] = (ds.model_points(obj_id), ds.model_symmetries(obj_id))
+    return out
 
 
 class ScoreTally:

@@ -39,7 +39,8 @@ every file. How the bundle was made and what it scored live in `report.json` bes
         "points_centring": "mean", "translation": "point_offset", "quaternion_order": "wxyz"
       },
       "pallet_types": [{
-        "name": "epal", "class_id": 0,                 # the detector class that reports this type
+        "name": "epal", "class_id": 0,                 # the detector class that reports this type; types that
+                                                       # share a class are told apart by their fit to the depth
         "size_m": [1.2, 0.8, 0.144], "diameter_m": 1.449,
         "points_file": "pallets/epal.npy",             # (n, 3) float32 model points, pallet frame, metres
         "boxes_m": [[[x0, y0, z0], [x1, y1, z1]], ...] | null,   # (k, 2, 3) boards/blocks (ICP needs them)
@@ -302,11 +303,10 @@ class Manifest:
             if t.class_id >= nc:
                 raise FieldError(f"pallet_types[{i}].class_id", f"is {t.class_id}, but the detector has {nc} "
                                                                 f"classes {list(self.detector.classes)}")
-        for key in ("name", "class_id"):
-            values = [getattr(t, key) for t in types]
-            dup = next((v for v in values if values.count(v) > 1), None)
-            if dup is not None:
-                raise FieldError("pallet_types", f"has two types with {key} {dup!r}")
+        names = [t.name for t in types]
+        dup = next((v for v in names if names.count(v) > 1), None)
+        if dup is not None:
+            raise FieldError("pallet_types", f"has two types with name {dup!r}")
         if self.detector.source == "pallet6d":
             missing = sorted(set(range(nc)) - {t.class_id for t in types})
             if missing:

@@ -122,6 +122,7 @@ class _Tally:
 
         self.frames = self.estimated = self.errors = self.in_a_row = self.poses = self.overlay_errors = 0
         self.scores = ScoreTally()
+        self.models = None   # a BOP source's models, each ground truth scored with its own
 
     def summary(self, stopped_by: str | None) -> dict:
         out = {"frames": self.frames, "estimated": self.estimated, "errors": self.errors, "poses": self.poses}
@@ -191,6 +192,9 @@ def _run(args: argparse.Namespace, est, forklift: ForkliftOutput, source, stop: 
                 break
             tally.frames += 1
             gts = _ground_truth(source, frame) if error is None else None
+            if gts is not None and tally.models is None:
+                from .evaluation import dataset_models
+                tally.models = dataset_models(source.dataset, est.pallet_types)
             result, calibration_error = None, False
             if error is None:
                 try:
@@ -279,7 +283,8 @@ def _evaluate(est, frame_number: int, result, gts: list, tally: _Tally) -> list[
     from .evaluation import evaluate_poses
 
     poses = result.poses if result is not None else []   # None: the frame's estimation failed
-    score = tally.scores.add(evaluate_poses(frame_number, poses, gts, est.model_points_m, est.symmetries))
+    score = tally.scores.add(evaluate_poses(frame_number, poses, gts, est.model_points_m, est.symmetries,
+                                            models=tally.models))
 
     def m(v: float):
         return None if not np.isfinite(v) else round(float(v), 4)

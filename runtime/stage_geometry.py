@@ -1,9 +1,10 @@
 """The pallet geometry the refiner and the fit check need, per pallet type of a bundle (numpy only).
 
-A bundle's detector reports one class per pallet type (`Bundle.pallet_types`); each candidate is refined,
-symmetry-checked and fit-checked with its own type's model. `PalletGeometry` holds one type's arrays, ready
-for the stages (float64, loaded once); `bundle_geometries` reads them from a bundle together with the
-detector classes that report each type.
+A bundle's detector class reports one pallet type, or several (`Bundle.pallet_types`: a detector trained on
+photographs without type labels has one class, "pallet", for all of them; `stage_type` then picks the type by
+its fit to the depth). Each candidate is refined, symmetry-checked and fit-checked with its own type's model.
+`PalletGeometry` holds one type's arrays, ready for the stages (float64, loaded once); `bundle_geometries`
+reads them from a bundle together with the types each detector class reports.
 """
 from __future__ import annotations
 
@@ -42,11 +43,14 @@ class PalletGeometry:
                    refine_starts=np.asarray(t.refine_starts, dtype=np.float64).reshape(-1, 3))
 
 
-def bundle_geometries(bundle) -> tuple[tuple[PalletGeometry, ...], dict[int, int]]:
-    """Every pallet type of a bundle and which detector class reports which type.
+def bundle_geometries(bundle) -> tuple[tuple[PalletGeometry, ...], dict[int, tuple[int, ...]]]:
+    """Every pallet type of a bundle and which detector class reports which types.
 
-    :return: (geometries in the bundle's order, {detector class id: index into geometries}); a detector
-        class without a type (an external detector's other classes) is absent.
+    :return: (geometries in the bundle's order, {detector class id: indexes into geometries, in the bundle's
+        order}); a detector class without a type (an external detector's other classes) is absent.
     """
     geometries = tuple(PalletGeometry.from_type(t) for t in bundle.pallet_types)
-    return geometries, {int(t.class_id): i for i, t in enumerate(bundle.pallet_types)}
+    types_of_class: dict[int, tuple[int, ...]] = {}
+    for i, t in enumerate(bundle.pallet_types):
+        types_of_class[int(t.class_id)] = types_of_class.get(int(t.class_id), ()) + (i,)
+    return geometries, types_of_class

@@ -98,9 +98,11 @@ class RefinerStage:
                  deadline: Deadline | None = None) -> None:
         """The stage on the alive rows of `cands` of refined types: sets `T_cam_pallet` and `fit` where computed.
         Under a time budget the rows go `budget_chunk` at a time, highest score first; those left when it
-        expires are rejected ("time_budget")."""
+        expires are rejected ("time_budget"). Rows refined already (their `fit` set, by the type choice) keep
+        their pose."""
         t = time.perf_counter()
-        rows = np.flatnonzero(cands.alive & np.asarray(self.refines_type, bool)[cands.type_index])
+        rows = np.flatnonzero(cands.alive & np.asarray(self.refines_type, bool)[cands.type_index]
+                              & np.isnan(cands.fit[:, 2]))
         step = self.budget_chunk if deadline is not None and deadline.budget_ms is not None else max(len(rows), 1)
         chunks = [rows[k:k + step] for k in range(0, len(rows), step)]
         for c, idx in enumerate(chunks):
@@ -111,4 +113,4 @@ class RefinerStage:
             box_obs = [self.box_points(cands.pixels[i], depth_m, K) for i in idx]
             T, fit = self.refine(cands.T_net[idx], cands.points_cam[idx], box_obs, cands.type_index[idx], depth_m, K)
             cands.assign(idx, T_cam_pallet=T, fit=fit)
-        timings["refine"] = elapsed_ms(t)
+        timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)

@@ -1,5 +1,6 @@
 """The estimator's stages on their own, the pipeline they make, time budgets and pallet types per detection."""
 import dataclasses
+import functools
 import itertools
 import json
 
@@ -273,3 +274,57 @@ def test_depth_that_does_not_belong_to_the_image_gets_its_own_reason(bundle_dir,
     c = est.candidates(frame.rgb, frame.depth_m, frame.K, detections=Detections(boxes, np.ones(len(boxes)),
                                                                                   np.zeros(len(boxes), np.int64)))
     assert "size_mismatch" not in set(c.reason) and "depth_image_mismatch" not in set(c.reason)
+
+
+# -- one detector class for several pallet types: the depth picks the type ---------------------------------
+def _catalogue_type(name: str, class_id: int) -> PalletType:
+    m = get_pallet_model(name)
+    return PalletType(name=name, class_id=class_id, size_m=tuple(m.size_m), diameter_m=m.diameter_m,
+                      points_file=f"{name}_points.npy", symmetries=m.symmetries, boxes_m=m.boxes_m,
+                      refine_starts=default_refine_starts(m.size_m), points_m=m.surface_points(1000, seed=0))
+
+
+@functools.lru_cache(maxsize=4)
+def _scene_of(name: str):
+    """A forklift-approach frame whose pallets are all of one type, with exact depth."""
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    cfg = dataclasses.replace(get_preset("forklift-approach"), pallet_models=(name,))
+    f = generate_frame(cfg, seed=3)
+    return dataclasses.replace(f, depth_m=f.depth_ideal_m)
+
+
+@pytest.mark.parametrize("truth, refine", [("epal", True), ("eur6", True), ("plastic_9leg", True),
+                                           # unrefined, the fit at the network's pose tells sizes apart
+                                           ("epal", False), ("eur6", False)])
+def test_the_depth_picks_the_type_among_a_classes_types(bundle_dir, truth, refine):
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6", "gma", "plastic_9leg"))
+    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
+    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
+        k: v for k, v in KW.items() if k != "threads"}, refine=refine, type_candidates=2))
+    assert est.type_choice.needed and est._types_of_class == {0: (0, 1, 2, 3)}
+    f = _scene_of(truth)
+    p = max(f.pallets, key=lambda p: p.visib_fract)
+    assert p.model_name == truth and p.visib_fract > 0.5
+    x, y, w, h = p.bbox_visib_xywh
+    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
+    c = Candidates.new(np.array([[x, y, x + w, y + h]], float), [0.9], [0], [0], est.spec.num_points)
+    est.pose_network(rgb, depth_m, K, c, {})
+    T = p.T_cam_pallet.copy()
+    T[:3, 3] += [0.01, -0.01, 0.01]                   # a network pose near the truth
+    c.assign([0], T_net=T[None], T_cam_pallet=T[None])
+    est.type_choice(c, depth_m, K, {})
+    assert est.pallet_types[int(c.type_index[0])].name == truth
+    assert np.isnan(c.fit[0, 2]) != refine          # refined: the winner's fit is set and the refiner leaves it
+    if refine:
+        assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.02
+
+
+def test_types_may_share_a_detector_class(bundle_dir):
+    bundle = load_bundle(bundle_dir)
+    shared = dataclasses.replace(bundle.manifest, pallet_types=(bundle.pallet_types[0], _catalogue_type("eur6", 0)),
+                                 files={**bundle.manifest.files, "eur6_points.npy": "0" * 64})
+    assert [t.class_id for t in shared.pallet_types] == [0, 0]
+    with pytest.raises(ValueError, match="type_candidates"):
+        EstimatorOptions(type_candidates=0)

@@ -178,3 +178,37 @@ def test_match_greedy_takes_the_best_free_overlap_by_score():
         assert m.shape == (len(p),) and mm.shape == (len(g),) and not mm.any() and (m < 0).all()
     with pytest.raises(ValueError, match="scores"):
         match_greedy(gt_boxes, np.ones(3), gt_boxes)
+
+
+def test_each_ground_truth_is_scored_with_its_own_model():
+    """A pallet turned 180 degrees about x: a model symmetric under that turn scores it 0; the default one does not."""
+    Rx180 = np.diag([1.0, -1.0, -1.0])
+    flat = PTS * [1, 1, 0]                              # a flat model, symmetric under the turn about x
+    flat_syms = np.stack([np.eye(4), np.diag([1.0, -1.0, -1.0, 1.0])])
+    g = GroundTruth(make_T(np.eye(3), [0, 0, 3.0]), np.array([0, 0, 100, 50], float), 1.0, obj_id=2)
+    e = [est(0.0, [0, 0, 100, 50], R=Rx180)]
+    default, _, _ = evaluate_frame(0, e, [g], PTS, SYMS)
+    own, _, _ = evaluate_frame(0, e, [g], PTS, SYMS, models={2: (flat, flat_syms)})
+    other, _, _ = evaluate_frame(0, e, [g], PTS, SYMS, models={3: (flat, flat_syms)})
+    assert default[0].add_sym_m > 0.05 and own[0].add_sym_m == pytest.approx(0.0, abs=1e-12)
+    assert other[0].add_sym_m == default[0].add_sym_m
+
+
+def test_dataset_models_prefer_the_bundles_type_else_the_mesh(sim_bop_dataset):
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.runtime.evaluation import dataset_models
+    from pallet6d.runtime.fit import distance_to_boxes
+    from pallet6d.runtime.stage_geometry import PalletGeometry
+    from pallet6d.sim.pallets import get_pallet_model
+
+    ds = BopDataset(sim_bop_dataset)
+    from_mesh = dataset_models(ds)
+    assert len(from_mesh) == len(ds.models_info) > 1
+    for obj_id, info in ds.models_info.items():
+        model = get_pallet_model(info["name"])
+        assert from_mesh[obj_id][0].shape == (2000, 3)
+        assert distance_to_boxes(from_mesh[obj_id][0], model.boxes_m).max() < 1e-6   # on its boards and blocks
+        np.testing.assert_allclose(from_mesh[obj_id][1], model.symmetries, atol=1e-9)
+    obj_id, info = next(iter(ds.models_info.items()))
+    g = PalletGeometry(info["name"], PTS, None, SYMS, np.ones(3), np.zeros((0, 3)))
+    assert dataset_models(ds, [g])[obj_id][0] is PTS

@@ -11,6 +11,7 @@ from pallet6d.export.config import CONFIGS, DetectorConfig, FusionConfig, PoseCo
 from pallet6d.export.detector import build_detector
 from pallet6d.export.flops import count_gflops
 from pallet6d.export.fusion import build_fusion
+from pallet6d.export.pallet_types import class_ids_for_types
 from pallet6d.export.losses import DetectorLoss, pose_loss
 from pallet6d.export.onnx_io import export_graph
 from pallet6d.export.pose import build_pose
@@ -210,9 +211,9 @@ def test_export_refuses_bad_arguments(tmp_path, tiny_bundle):
         export_bundle(cfg, tmp_path / "y", checkpoint=bad, calib=tiny_bundle[2])
 
 
-def test_pallet_types_follow_the_pose_training(tmp_path, tiny_bundle, caplog):
+def test_pallet_types_follow_the_pose_training(tmp_path, tiny_bundle):
     """Without --pallet-types a bundle carries the types its pose stage was trained on, where the detector has a
-    class for each; a one-class detector reports only the first."""
+    class for each or one class for all (the runtime tells them apart by the depth)."""
     cfg = get_config("tiny")
     torch.manual_seed(2)
     nets = {"detector": build_detector(cfg.detector), "fusion": build_fusion(cfg.fusion),
@@ -220,12 +221,11 @@ def test_pallet_types_follow_the_pose_training(tmp_path, tiny_bundle, caplog):
     prov = {"pose": {"stage": "pose", "pallet_types": {"2": "gma", "1": "epal"}}}
     torch.save({"config": "tiny", "provenance": prov, **{k: v.state_dict() for k, v in nets.items()}},
                tmp_path / "ckpt.pt")
-    with caplog.at_level("WARNING"):
-        b = export_bundle(cfg, tmp_path / "one", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2]).bundle
-    assert [(t.name, t.class_id) for t in b.pallet_types] == [("epal", 0)] and "pallet type epal only" in caplog.text
-    with pytest.raises(ExportError, match="detector has 1 classes, not 2"):
-        export_bundle(cfg, tmp_path / "two", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2],
-                      pallet_types=("epal", "gma"))
+    b = export_bundle(cfg, tmp_path / "one", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2]).bundle
+    assert [(t.name, t.class_id) for t in b.pallet_types] == [("epal", 0), ("gma", 0)]
+    with pytest.raises(ExportError, match="detector has 2 classes"):
+        class_ids_for_types(("epal", "gma", "eur3"), ("epal", "gma"), external=False)
+    assert class_ids_for_types(("epal", "gma"), ("epal", "gma"), external=False) == (0, 1)
     prov["pose"]["pallet_types"]["3"] = "crate"
     torch.save({"config": "tiny", "provenance": prov, **{k: v.state_dict() for k, v in nets.items()}},
                tmp_path / "ckpt.pt")

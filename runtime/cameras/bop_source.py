@@ -43,6 +43,11 @@ class BopSource(FrameSource):
     def __len__(self) -> int:
         return 0 if self._ds is None else len(self._ds)
 
+    @property
+    def dataset(self):
+        """The open `BopDataset` (its models, for evaluation), None before start."""
+        return self._ds
+
     def _start(self) -> None:
         from pallet6d.runtime.bop import BopDataset  # the house BOP reader
         if not self.root.exists():

@@ -1,0 +1,106 @@
+"""Type choice stage: which of the pallet types its detector class reports is each candidate? (numpy only)
+
+A detector trained on photographs that carry no type label has one class, "pallet", for every type of the
+bundle; the depth then tells the types apart, as their sizes and boards differ (0.8 x 0.6 m to 1.22 x 1.02 m,
+blocks, stringers, legs, runners, closed decks). The pose network poses every type in the same frame (the
+centre of its bounding box, x along the length, z up), so per candidate whose class reports several types:
+
+1. every such type's model is scored at the network's pose against the candidate's sampled points
+   (`fit.fit_scores`: inlier fraction times one minus the free-space violation, against the type's boards);
+2. the best `keep` of them are refined (`RefinerStage.refine`, each with its own boards and starts), and the
+   type whose refined pose fits the depth best wins, with that pose and fit: the refiner stage then leaves the
+   row as it is. Types without boards, or refinement off: step 1's best type wins, unrefined.
+
+Cost: one refinement per kept type instead of one per candidate.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .candidates import Candidates
+from .deadline import Deadline, elapsed_ms
+from .fit import fit_scores
+from .stage_geometry import PalletGeometry
+from .stage_refine import RefinerStage
+
+__all__ = ["TypeChoiceStage"]
+
+
+class TypeChoiceStage:
+    """Picks the pallet type of candidates whose detector class reports several types.
+
+    :param geometries: the bundle's pallet types. :param types_of_class: detector class -> its type indexes.
+    :param refiner: the estimator's `RefinerStage` (its refinement decides between the kept types).
+    :param tol_m: tolerance of the fit score that ranks the types at the network's pose, metres.
+    :param keep: how many of a candidate's best-ranked types are refined (>= 1).
+    """
+
+    def __init__(self, geometries: tuple[PalletGeometry, ...], types_of_class: dict[int, tuple[int, ...]],
+                 refiner: RefinerStage, tol_m: float, keep: int) -> None:
+        if int(keep) < 1:
+            raise ValueError(f"keep must be >= 1, got {keep}")
+        self.geometries = tuple(geometries)
+        self.types_of_class = {int(c): tuple(int(j) for j in t) for c, t in types_of_class.items()}
+        self.refiner = refiner
+        self.tol_m, self.keep = float(tol_m), int(keep)
+
+    @property
+    def needed(self) -> bool:
+        """Whether any detector class reports more than one type."""
+        return any(len(t) > 1 for t in self.types_of_class.values())
+
+    def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+        """Fit score of each type at the network's pose of each row (-inf for the types its class does not
+        report). :return: (len(rows), number of types)."""
+        score = np.full((len(rows), len(self.geometries)), -np.inf)
+        for j, g in enumerate(self.geometries):
+            mine = np.flatnonzero([j in self.types_of_class[int(c)] for c in cands.class_ids[rows]])
+            if len(mine) == 0:
+                continue
+            r = rows[mine]
+            score[mine, j] = fit_scores(cands.T_net[r], cands.points_cam[r], None, g.points_m, depth_m, K, self.tol_m,
+                                        model_boxes_m=g.boxes_m)[2]
+        return score
+
+    def choose(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
+        """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined."""
+        score = self.rank(cands, rows, depth_m, K)
+        order = np.argsort(-score, axis=1, kind="stable")[:, :self.keep]
+        best = order[:, 0]
+        refines = np.asarray(self.refiner.refines_type, bool)
+        pair_row, pair_type = [], []
+        for k, types in enumerate(order):
+            for j in types:
+                if np.isfinite(score[k, j]) and refines[j]:
+                    pair_row.append(k)
+                    pair_type.append(int(j))
+        cands.assign(rows, type_index=best)
+        if not pair_row:
+            return
+        pair_row, pair_type = np.asarray(pair_row), np.asarray(pair_type)
+        src = rows[pair_row]
+        box_obs = {int(i): self.refiner.box_points(cands.pixels[i], depth_m, K) for i in np.unique(src)}
+        T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
+                                     pair_type, depth_m, K)
+        for k in np.unique(pair_row):
+            mine = np.flatnonzero(pair_row == k)
+            win = mine[int(np.argmax(fit[mine, 2]))]
+            cands.assign([rows[k]], type_index=[pair_type[win]], T_cam_pallet=T[win][None], fit=fit[win][None])
+
+    def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
+                 deadline: Deadline | None = None) -> None:
+        """The stage on the alive rows of multi-type classes. Its time counts as refinement. Under a time budget
+        the rows go `refiner.budget_chunk` at a time, highest score first; those left when it expires keep
+        their class's first type, unrefined (the refiner stage then rejects them for the budget)."""
+        t = time.perf_counter()
+        multi = np.array([len(self.types_of_class.get(int(c), ())) > 1 for c in cands.class_ids], bool)
+        rows = np.flatnonzero(cands.alive & multi)
+        budget = deadline is not None and deadline.budget_ms is not None
+        step = self.refiner.budget_chunk if budget else max(len(rows), 1)
+        for k in range(0, len(rows), step):
+            if deadline is not None and deadline.expired():
+                break
+            self.choose(cands, rows[k:k + step], depth_m, K)
+        timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)
