@@ -128,7 +128,7 @@ class Networks:
 def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | None = None,
                    random_init: bool = False, detector_onnx: str | Path | None = None,
                    classes: tuple[str, ...] | None = None, calib: CalibrationSet | None = None,
-                   calib_frames: int = 8, calib_crops: int = 96,
+                   calib_frames: int = 8, calib_crops: int = 96, calib_presets: tuple[str, ...] | None = None,
                    detector_input_sizes: tuple[tuple[int, int], ...] | None = None) -> Networks:
     """The networks to export: a checkpoint's weights, or fresh ones with BatchNorm warmed up on calibration
     inputs. `classes` (our own detector) renames its classes; the count must stay the config's unless the
@@ -175,7 +175,8 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
     for net in nets.values():
         net.eval()
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed,
-                                          detector_sizes=sizes)
+                                          detector_sizes=sizes, **({"presets": tuple(calib_presets)}
+                                                                   if calib_presets else {}))
     sampled = bool(getattr(cfg.fusion, "sampled", False))   # the fusion graph takes `choose`, gives (B, N, C)
     fusion_in = [calib.rgb_crops, calib.depth_crops, calib.choose][:3 if sampled else 2]
     training = None
@@ -384,7 +385,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                   random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
                   calib: CalibrationSet | None = None, calib_frames: int = 8, calib_crops: int = 96,
-                  fp16_weights: bool = True, int8_stages: tuple[str, ...] = INT8_STAGES,
+                  calib_presets: tuple[str, ...] | None = None, fp16_weights: bool = True, int8_stages: tuple[str, ...] = INT8_STAGES,
                   pallet_types: tuple[str, ...] | None = None,
                   detector_input_sizes: tuple[tuple[int, int], ...] | None = None) -> ExportedBundle:
     """Export `cfg`'s networks to a new bundle folder `out` (the steps of the module docstring).
@@ -395,6 +396,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         more than one, our own detector gets one class per type, named after it; an external detector's
         classes are matched to the types by name.
     :param int8: also write int8 graphs: the stages in `int8_stages` quantized, the others' float graph.
+    :param calib_presets: sim presets the int8 calibration frames and crops come from, in turn (default: the
+        paper's three, `calib_data.make_calibration_set`); a bundle for other scenes calibrates on them too.
     :param detector_input_sizes: the input sizes (H, W) our detector's graph takes, one chosen per frame by
         the runtime (default: those its checkpoint was trained on; `build_networks`). With more than one, the
         graph's height and width axes are dynamic, and parity and int8 calibration cover every size.
@@ -405,6 +408,11 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     """
     if not set(int8_stages) <= set(STAGES):
         raise ExportError(f"int8 stages must be among {STAGES}, got {tuple(int8_stages)}")
+    if calib_presets:
+        from pallet6d.sim.presets import PRESETS
+        unknown = [p for p in calib_presets if p not in PRESETS]
+        if unknown:
+            raise ExportError(f"unknown calibration preset(s) {unknown}; known: {', '.join(PRESETS)}")
     if pallet_types and detector_onnx is None and classes is None:
         classes = tuple(pallet_types) if len(pallet_types) > 1 or checkpoint is None else None
     out = Path(out)
@@ -412,7 +420,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         raise ExportError(f"output folder {out} is not empty; choose a new folder")
     n = build_networks(cfg, seed=seed, checkpoint=checkpoint, random_init=random_init, detector_onnx=detector_onnx,
                        classes=classes, calib=calib, calib_frames=calib_frames, calib_crops=calib_crops,
-                       detector_input_sizes=detector_input_sizes)
+                       calib_presets=calib_presets, detector_input_sizes=detector_input_sizes)
     types = tuple(pallet_types) if pallet_types else _default_types(n)
     class_ids_for_types(types, n.cfg.detector.classes, detector_onnx is not None)   # fail before the work
     out.mkdir(parents=True, exist_ok=True)

@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the arithmetic is float32 either way)")
     parser.add_argument("--calib-frames", type=int, default=96,
                         help="simulated frames for calibration, the presets in turn (default 96: ~32 indoor crops)")
+    parser.add_argument("--calib-presets", default=None,
+                        help="comma-separated sim presets the calibration frames and crops come from, in turn "
+                             "(default: virtual-occluded,indoor-noisy,virtual-clean)")
     parser.add_argument("--calib-crops", type=int, default=96,
                         help="pallet crops for calibration, taken from the presets in turn (default 96)")
     parser.add_argument("--torch-threads", type=int, default=0,
@@ -72,7 +75,9 @@ def main(args: argparse.Namespace) -> int:
         exported = export_bundle(get_config(args.config), args.out, seed=args.seed, checkpoint=args.checkpoint,
                                  random_init=args.random_init, int8=args.int8, detector_onnx=args.detector_onnx,
                                  classes=classes, name=args.name, command=command, calib_frames=args.calib_frames,
-                                 calib_crops=args.calib_crops,
+                                 calib_crops=args.calib_crops, calib_presets=tuple(
+                                     p.strip() for p in args.calib_presets.split(",") if p.strip())
+                                 if args.calib_presets else None,
                                  fp16_weights=not args.fp32_weights,
                                  int8_stages=INT8_STAGES if args.int8_stages is None else
                                  tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()),

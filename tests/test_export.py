@@ -332,3 +332,10 @@ def test_calibration_crops_come_from_the_presets_in_turn():
     assert set(calib.crop_sources[:3]) == set(presets)
     assert max(calib.crop_sources.count(p) for p in presets) - min(calib.crop_sources.count(p) for p in presets) <= 1
     assert calib.images.shape[0] == 6 and "5 ground-truth crops" in calib.source
+
+
+def test_export_refuses_unknown_calibration_presets(tmp_path):
+    with pytest.raises(ExportError, match=r"unknown calibration preset\(s\) \['attic'\]"):
+        export_bundle(get_config("tiny"), tmp_path / "x", random_init=True, int8=True,
+                      calib_presets=("indoor-noisy", "attic"))
+    assert not (tmp_path / "x").exists()
