@@ -272,7 +272,7 @@ def check_floor(calibrated: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_
         check = _compare(calibrated, near, max_tilt_deg, max_height_diff_m, "")
         if check.agrees:
             return check
-        why = "it disagrees"
+        why = "the plane near the calibrated floor disagrees and holds fewer floor points"
     except ValueError as exc:
         why = str(exc)
     try:
@@ -285,8 +285,8 @@ def check_floor(calibrated: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_
         log.debug("floor not near the calibrated one (%s), nor anywhere: %s", why, exc)
         nan = float("nan")
         return FloorCheck(False if fails else None, nan, nan, why if fails else f"floor not seen: {why}; {exc}")
-    if near is not None and _support(near, pts) >= _support(seen, pts):
-        return check                # a disagreeing plane near the calibrated floor, better supported
+    if near is not None and _support(seen, pts) <= 1.2 * _support(near, pts):
+        return check                # the disagreeing plane near the calibrated floor is (as good as) the floor
     check = _compare(calibrated, seen, max_tilt_deg, max_height_diff_m, f" (found in the whole image: {why})")
     if check.agrees:        # where the calibration expects it, yet not enough of it there to confirm
         return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {why}")
