@@ -163,7 +163,7 @@ def summarize(rows: list[dict]) -> dict:
     err = np.array([r["pocket_err_m"] for r in posed]) if posed else np.zeros(0)
     yaw = np.array([r["yaw_err_deg"] for r in posed]) if posed else np.zeros(0)
     typed = [r for r in rows if "type_ok" in r]
-    return {"pallets": len(rows), "posed": len(posed),
+    return {"pallets": len(rows), "detected": len(typed), "posed": len(posed),
             "type_unknown": sum(1 for r in rows if r.get("type_unknown")),
             "no_pockets": sum(1 for r in rows if r.get("no_pockets")),
             "type_ok": sum(r["type_ok"] for r in typed) / len(typed) if typed else None,
@@ -197,8 +197,7 @@ def main() -> None:
     for name, res in out.items():
         print(name, json.dumps({k: v for k, v in res.items() if k not in ("rows", "per_type")}))
         for model, s in res["per_type"].items():
-            print(f"  {model:22s} pallets {s['pallets']:3d} posed {s['posed']:3d} within {s['within_2cm_1deg']:.0%} "
-                  f"type_unknown {s['type_unknown']} table {s['pick_safe_table']}")
+            print(f"  {model:22s} {json.dumps({k: v for k, v in s.items() if k not in ('rows', 'per_type')})}")
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(out, indent=1))
