@@ -138,6 +138,7 @@ def floor_check_rates(frames_dir: Path, depth_key: str) -> dict:
               "height_5cm": (0.0, 0.0, 0.05), "pitch_20deg": (20.0, 0.0, 0.0), "height_+50cm": (0.0, 0.0, 0.5),
               "height_+1m": (0.0, 0.0, 1.0), "height_-50cm": (0.0, 0.0, -0.5)}
     counts = {k: {"agrees": 0, "disagrees": 0, "unseen": 0, "camera_too_low": 0} for k in knocks}
+    errors: dict[str, list[tuple[float, float]]] = {k: [] for k in knocks}
     for path in sorted(frames_dir.glob("*.npz")):
         z = np.load(path)
         T = z["T_vehicle_cam"]
@@ -151,6 +152,12 @@ def floor_check_rates(frames_dir: Path, depth_key: str) -> dict:
                 continue
             c = check_floor(FloorPlane(R[2].copy(), float(T[2, 3] + dh)), z[depth_key], z["K"])
             counts[name]["unseen" if c.agrees is None else "agrees" if c.agrees else "disagrees"] += 1
+            if c.agrees is not None and np.isfinite(c.height_diff_m):    # measured against the knock
+                errors[name].append((abs(c.height_diff_m + dh), abs(c.tilt_deg - np.hypot(dp, dr))))
+    for name, e in errors.items():
+        if e:
+            counts[name]["height_err_m_median_max"] = [float(np.median([a for a, _ in e])), max(a for a, _ in e)]
+            counts[name]["tilt_err_deg_median_max"] = [float(np.median([b for _, b in e])), max(b for _, b in e)]
     return counts
 
 

@@ -12,10 +12,12 @@ Each pallet is scored with its own type: without `--estimator` the ground-truth 
 pockets of the ground truth's type (the BOP obj_id, or the cached name, in the `pallet6d.sim.pallets`
 catalogue), which tests the geometry and the pocket check. With it, the estimator's pose (the detection whose
 box overlaps the pallet's most) with the geometry of the type the estimator reports (the bundle's `PalletType`,
-as the daemon does); a pallet whose type the bundle lacks is counted apart (`type_unknown`), and `type_ok`
-says whether the reported type is the ground truth's. `--gt-boxes` poses the ground truth's visible boxes
-instead of the detector's (the pose stage alone). Pallets are the targets (the pallet the forklift approaches);
-`--all` adds every other pallet with its face in view.
+as the daemon does); a pallet whose type the bundle lacks (with `--gt-boxes` the ground truth's, else the
+reported one) is counted apart (`type_unknown`), and `type_ok` says whether the reported type is the ground
+truth's. `--gt-boxes` poses the ground truth's visible boxes
+with the detector class of the ground truth's type instead of the detector's boxes (the pose stage alone).
+Pallets are the targets (the pallet the forklift approaches); `--all` adds every other pallet with its face in
+view.
 """
 from __future__ import annotations
 
@@ -108,9 +110,11 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
                 gt_boxes: bool) -> list[dict]:
     faces = [fc for fc in fr["faces"] if (fc["target"] or all_pallets) and fc["face_centre_vehicle_mm"] is not None]
     result = None
-    if estimator is not None and gt_boxes:        # the pose stage on the ground truth's visible boxes
-        boxes = [[x, y, x + w, y + h] for x, y, w, h in (fc["box_xywh"] for fc in faces)]
-        result = estimator.estimate_boxes(fr["rgb"], depth, fr["K"], boxes_xyxy=np.asarray(boxes, float).reshape(-1, 4))
+    if estimator is not None and gt_boxes:        # the pose stage on the ground truth's visible boxes and types
+        known = [fc for fc in faces if fc["model"] in types]
+        boxes = np.asarray([[x, y, x + w, y + h] for x, y, w, h in (fc["box_xywh"] for fc in known)], float)
+        result = estimator.estimate_boxes(fr["rgb"], depth, fr["K"], boxes_xyxy=boxes.reshape(-1, 4),
+                                          class_ids=[types[fc["model"]].class_id for fc in known])
     elif estimator is not None:
         result = estimator.estimate(fr["rgb"], depth, fr["K"])
     rows = []
@@ -121,6 +125,9 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
                "visib": [p["visib_fract"] for p in fc["pockets"]], "fork_length_m": fr["fork_length_m"]}
         geometry = get_pallet_model(fc["model"])
         T_cp = np.asarray(fc["T_cam_pallet"])
+        if estimator is not None and gt_boxes and fc["model"] not in types:     # not posed: no such class
+            rows.append({**row, "type_unknown": True})
+            continue
         if estimator is not None:
             x, y, w, h = fc["box_xywh"]
             best = max(result.poses, key=lambda p: _iou(p.box_xyxy, (x, y, x + w, y + h)), default=None)

@@ -7,7 +7,7 @@ returns at once) and a thread of its own fits the floor in that frame's depth (`
 configured tolerances. Where no floor lies near the calibrated one, the check looks for it in the whole image:
 a floor found far from where the calibration puts it (a camera height off by a metre, a tilt of 20 degrees)
 disagrees with its measured numbers. A check that finds no floor anywhere (a wall filling the view, no depth)
-says "unknown". A check costs tens of milliseconds on one core, on this thread, never on the camera loop's.
+says "unknown". A check costs about 0.1 s of one core (docs/daemon.md), on this thread, never on the camera loop's.
 
 States (`FloorStatus.state`):
 - "ok": the last check agreed (or one disagreement after agreeing before: a ramp edge is not a knock);
