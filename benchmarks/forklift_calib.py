@@ -130,12 +130,15 @@ def board_errors(n: int, seed: int) -> dict:
 
 def floor_check_rates(frames_dir: Path, depth_key: str) -> dict:
     """The running floor check on forklift-approach frames: with the exact calibration (false alarms) and with the
-    camera knocked after calibration (2 degrees of pitch, 1.5 of roll, or 5 cm of height)."""
+    camera knocked after calibration (2 or 20 degrees of pitch, 1.5 of roll, or 5 cm of height) or a calibration
+    far off in height (0.5 or 1 m too high, 0.5 m too low)."""
     from pallet6d.runtime.floor import FloorPlane, check_floor
 
     knocks = {"exact": (0.0, 0.0, 0.0), "pitch_2deg": (2.0, 0.0, 0.0), "roll_1.5deg": (0.0, 1.5, 0.0),
-              "height_5cm": (0.0, 0.0, 0.05)}
-    counts = {k: {"agrees": 0, "disagrees": 0, "unseen": 0} for k in knocks}
+              "height_5cm": (0.0, 0.0, 0.05), "pitch_20deg": (20.0, 0.0, 0.0), "height_+50cm": (0.0, 0.0, 0.5),
+              "height_+1m": (0.0, 0.0, 1.0), "height_-50cm": (0.0, 0.0, -0.5)}
+    counts = {k: {"agrees": 0, "disagrees": 0, "unseen": 0, "camera_too_low": 0} for k in knocks}
+    errors: dict[str, list[tuple[float, float]]] = {k: [] for k in knocks}
     for path in sorted(frames_dir.glob("*.npz")):
         z = np.load(path)
         T = z["T_vehicle_cam"]
@@ -144,8 +147,17 @@ def floor_check_rates(frames_dir: Path, depth_key: str) -> dict:
             Rp = np.array([[1, 0, 0], [0, np.cos(p), -np.sin(p)], [0, np.sin(p), np.cos(p)]])   # about camera x
             Rr = np.array([[np.cos(r), -np.sin(r), 0], [np.sin(r), np.cos(r), 0], [0, 0, 1]])   # about camera z
             R = T[:3, :3] @ Rp @ Rr                       # the calibration the camera had before the knock
+            if T[2, 3] + dh <= 0.05:                      # no calibration puts the camera under the floor
+                counts[name]["camera_too_low"] += 1
+                continue
             c = check_floor(FloorPlane(R[2].copy(), float(T[2, 3] + dh)), z[depth_key], z["K"])
             counts[name]["unseen" if c.agrees is None else "agrees" if c.agrees else "disagrees"] += 1
+            if c.agrees is not None and np.isfinite(c.height_diff_m):    # measured against the knock
+                errors[name].append((abs(c.height_diff_m + dh), abs(c.tilt_deg - np.hypot(dp, dr))))
+    for name, e in errors.items():
+        if e:
+            counts[name]["height_err_m_median_max"] = [float(np.median([a for a, _ in e])), max(a for a, _ in e)]
+            counts[name]["tilt_err_deg_median_max"] = [float(np.median([b for _, b in e])), max(b for _, b in e)]
     return counts
 
 

@@ -1,5 +1,5 @@
 """The floor plane in a depth image: RANSAC fit, and the check that a calibrated camera still sees it where the
-calibration says (a knocked camera moves the floor). Pure numpy.
+calibration says (a knocked camera moves the floor, a wrong calibration puts it elsewhere). Pure numpy.
 
 Plane convention: n . p + d = 0 in the camera frame, n a unit normal pointing up (towards the camera), so d is
 the camera's height above the floor.
@@ -11,11 +11,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import backproject_depth
+from .geometry import backproject_pixels
 
-__all__ = ["FloorPlane", "FloorCheck", "fit_floor_plane", "floor_points", "check_floor", "plane_angle_deg"]
+__all__ = ["FloorPlane", "FloorCheck", "fit_floor_plane", "floor_points", "image_points", "find_floor_anywhere",
+           "check_floor", "plane_angle_deg"]
 
 log = logging.getLogger(__name__)
+
+REFIT_BAND_M = 0.15     # a floor found in the whole image is refitted on the lower image's points this close to it
+SEARCH_RANGE_M = 5.0    # the whole-image search ignores farther points (stereo noise there bends planes)
+BELOW_M = 0.1           # points this far below a plane lie below it (beyond depth noise) ...
+MAX_BELOW = 0.05        # ... and a plane with more than this fraction of the points below it is not the floor
 
 
 @dataclass(frozen=True)
@@ -116,20 +122,95 @@ def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol
 def floor_points(depth_m: np.ndarray, K: np.ndarray, step: int = 4, rows_from: float = 0.4,
                  max_range_m: float = 8.0) -> np.ndarray:
     """Camera-frame points where the floor usually is: every `step`-th pixel of the image's rows below
-    `rows_from` (a fraction of the height), with depth in (0, max_range_m].
+    `rows_from` (a fraction of the height), with finite depth in (0, max_range_m].
 
-    :param depth_m: (H, W) metres, 0 = no data. :return: (n, 3) float64.
+    :param depth_m: (H, W) metres, 0 or NaN = no data. :return: (n, 3) float64.
     """
     depth_m = np.asarray(depth_m)
     if depth_m.ndim != 2:
         raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
-    h = depth_m.shape[0]
-    sub = np.zeros_like(depth_m, dtype=np.float32)
-    r0 = int(h * rows_from)
-    sub[r0::step, ::step] = depth_m[r0::step, ::step]
-    sub[~np.isfinite(sub) | (sub > max_range_m)] = 0
-    pts = backproject_depth(sub, K).reshape(-1, 3)
-    return pts[pts[:, 2] > 0].astype(np.float64)
+    if int(step) < 1:
+        raise ValueError(f"step must be >= 1, got {step}")
+    r0 = int(depth_m.shape[0] * rows_from)
+    v, u = np.mgrid[r0:depth_m.shape[0]:step, 0:depth_m.shape[1]:step]
+    z = depth_m[r0::step, ::step].astype(np.float64)
+    keep = np.isfinite(z) & (z > 0) & (z <= max_range_m)
+    return backproject_pixels(u[keep], v[keep], z[keep], K).astype(np.float64)
+
+
+def image_points(depth_m: np.ndarray, K: np.ndarray, max_points: int = 4000, max_range_m: float = 8.0) -> np.ndarray:
+    """Camera-frame points of the whole image on a regular pixel grid of at most about `max_points` pixels.
+
+    :param depth_m: (H, W) metres, 0 or NaN = no data. :return: (n, 3) float64, n <= max_points.
+    """
+    depth_m = np.asarray(depth_m)
+    if depth_m.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
+    step = max(1, int(np.ceil(np.sqrt(depth_m.size / max(int(max_points), 1)))))
+    return floor_points(depth_m, K, step=step, rows_from=0.0, max_range_m=max_range_m)
+
+
+def find_floor_anywhere(points_cam: np.ndarray, up_hint: np.ndarray, rng: np.random.Generator,
+                        max_tilt_deg: float = 35.0, min_support: float = 0.06, min_support_points: int = 150,
+                        max_planes: int = 3, inlier_tol_m: float = 0.02, inlier_tol_quad_per_m: float = 0.004,
+                        iterations: int = 150) -> FloorPlane:
+    """The floor wherever it is: the largest plane below the camera, facing up within `max_tilt_deg` of
+    `up_hint`, with next to nothing below it.
+
+    Up to `max_planes` planes are fitted one after another (RANSAC, each on the points the previous ones leave,
+    so the largest first); each needs `min_support` of all points and at least `min_support_points`. Of those
+    that face up and lie below the camera, the first with at most `MAX_BELOW` of all points more than `BELOW_M`
+    (plus the inlier tolerance) below it is the floor: nothing lies below the floor, while fork tines, pallet
+    decks and loads have floor around them, and a plane cutting through the scene has points on both sides.
+
+    :param points_cam: (n, 3) camera-frame points, metres (e.g. `image_points`).
+    :param up_hint: (3,) the expected floor normal, camera frame (the calibrated floor's).
+    :param rng: random generator (deterministic for a given state).
+    :raises ValueError: no plane of enough support faces up (a wall filling the view, no depth), or each that
+        does has points below it.
+    """
+    pts = np.asarray(points_cam, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points_cam must be (n, 3), got shape {pts.shape}")
+    up = np.asarray(up_hint, dtype=np.float64).reshape(-1)
+    if up.shape != (3,) or not np.all(np.isfinite(up)) or np.linalg.norm(up) < 1e-9:
+        raise ValueError(f"up_hint must be a finite non-zero (3,) vector, got {up_hint!r}")
+    up = up / np.linalg.norm(up)
+    pts = pts[np.all(np.isfinite(pts), axis=1) & (pts[:, 2] > 0)]
+    need = max(int(min_support_points), int(np.ceil(min_support * len(pts))))
+    if len(pts) < need:
+        raise ValueError(f"no floor plane: {len(pts)} valid depth points in the image (need {need})")
+    tol = inlier_tol_m + inlier_tol_quad_per_m * pts[:, 2] ** 2
+    min_cos = np.cos(np.radians(max_tilt_deg))
+    left = np.ones(len(pts), bool)
+    found: list[FloorPlane] = []
+    for _ in range(int(max_planes)):
+        if left.sum() < need:
+            break
+        try:
+            plane = fit_floor_plane(pts[left], rng, inlier_tol_m=inlier_tol_m, iterations=iterations,
+                                    min_inlier_ratio=0.0, up_hint=up, max_tilt_deg=max_tilt_deg,
+                                    inlier_tol_quad_per_m=inlier_tol_quad_per_m)
+        except ValueError:
+            break
+        on = left & (np.abs(pts @ plane.normal + plane.d) < tol)
+        if on.sum() < need:
+            break
+        if float(plane.normal @ up) >= min_cos:      # faces up and lies below the camera (not a shelf above it)
+            found.append(plane)
+        left &= ~on
+    if not found:
+        raise ValueError(f"no floor plane: no plane within {max_tilt_deg:g} deg of the expected floor holds "
+                         f"{need} of the {len(pts)} depth points")
+    below = [float(np.mean(pts @ p.normal + p.d < -(tol + BELOW_M))) for p in found]
+    floors = [p for p, b in zip(found, below) if b <= MAX_BELOW]
+    if not floors:
+        k = int(np.argmin(below))
+        raise ValueError(f"no floor plane: {below[k]:.0%} of the depth points lie below the large horizontal plane "
+                         f"with the fewest below it (camera {found[k].d:.2f} m above it)")
+    floor = floors[0]
+    inliers = np.abs(pts @ floor.normal + floor.d) < tol
+    return FloorPlane(floor.normal, floor.d, float(inliers.mean()), floor.rms_m)
 
 
 @dataclass(frozen=True)
@@ -156,39 +237,92 @@ class FloorCheck:
 
 def check_floor(calibrated: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_tilt_deg: float = 1.0,
                 max_height_diff_m: float = 0.03, min_inlier_ratio: float = 0.1, band_m: float = 0.3,
-                min_floor_points: int = 1000, seed: int = 0) -> FloorCheck:
+                min_floor_points: int = 1000, seed: int = 0, search_tilt_deg: float = 35.0) -> FloorCheck:
     """Fit the floor of one frame near the calibrated one (points within `band_m` of it, planes within 15
-    degrees) and compare. Many points far below the calibrated floor (where nothing can be) also disagree.
+    degrees) and compare; where it is not there, look for it in the whole image (`find_floor_anywhere`).
 
     A forklift's view is mostly pallets, loads and racks: the floor may be a tenth of the lower image, so a plane
     that `min_inlier_ratio` of those points support, and at least `min_floor_points` of them (every 4th pixel
-    each way), counts as the floor seen: a few hundred points between pallets on a crowded floor are too few.
+    each way), with next to nothing below it, counts as the floor seen: a few hundred points between pallets on
+    a crowded floor are too few, and a deck or load top has floor below it.
+
+    A calibration far off (the camera more than `band_m` higher or lower than calibrated, or tilted more than
+    15 degrees) leaves no floor in the band, or puts much of the view below the calibrated floor, where nothing
+    can be. Then the floor is searched in the whole image (within `search_tilt_deg` of the calibrated one and
+    `SEARCH_RANGE_M`), refitted on the lower image's points near it with the same standard of evidence, and
+    disagrees with its measured tilt and height. Without one the check is "unknown" (`agrees` None), or
+    disagrees without numbers when a fifth of the lower image lies below the calibrated floor.
 
     :param calibrated: the floor plane stored in the calibration (camera frame).
-    :param depth_m: (H, W) metres. :param K: (3, 3) of that image.
+    :param depth_m: (H, W) metres, 0 or NaN = no data. :param K: (3, 3) of that image.
+    :raises ValueError: `depth_m` not 2-D, or `K` not a valid intrinsic matrix.
     """
+    depth_m = np.asarray(depth_m)
+    if depth_m.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
     pts = floor_points(depth_m, K)
-    height = pts @ calibrated.normal + calibrated.d                 # above the calibrated floor, metres
-    below = float(np.mean(height < -band_m)) if len(pts) else 0.0
-    if len(pts) >= 200 and below >= 0.2:
-        return FloorCheck(False, float("nan"), float("nan"), f"{below:.0%} of the depth points low in the image lie "
-                                                             f"more than {band_m} m below the calibrated floor")
-    pts = pts[np.abs(height) <= band_m]     # racks, truck beds and pallet stacks are not the floor
-    if len(pts) < 200:
-        return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {len(pts)} depth points low in "
-                                                               "the image")
+    below = float(np.mean(pts @ calibrated.normal + calibrated.d < -band_m)) if len(pts) else 0.0
+    fails = len(pts) >= 200 and below >= 0.2      # nothing can be below the floor
+    near = None
     try:
-        seen = fit_floor_plane(pts, np.random.default_rng(seed), min_inlier_ratio=min_inlier_ratio,
-                               iterations=200, up_hint=calibrated.normal, max_tilt_deg=15.0)
+        if fails:
+            raise ValueError(f"{below:.0%} of the depth points low in the image lie more than {band_m} m below the "
+                             "calibrated floor")
+        near = _fit_near(calibrated, pts, band_m, min_inlier_ratio, min_floor_points, seed)
+        check = _compare(calibrated, near, max_tilt_deg, max_height_diff_m, "")
+        if check.agrees:
+            return check
+        why = "the plane near the calibrated floor disagrees and holds fewer floor points"
     except ValueError as exc:
-        return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {exc}")
-    if seen.inlier_ratio * len(pts) < min_floor_points:
-        return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {seen.inlier_ratio * len(pts):.0f} "
-                                                               "floor points")
+        why = str(exc)
+    try:
+        found = find_floor_anywhere(image_points(depth_m, K, max_range_m=SEARCH_RANGE_M), calibrated.normal,
+                                    np.random.default_rng(seed), max_tilt_deg=search_tilt_deg)
+        seen = _fit_near(found, pts, REFIT_BAND_M, min_inlier_ratio, min_floor_points, seed)
+    except ValueError as exc:
+        if near is not None:        # the plane near the calibrated floor is the best there is
+            return check
+        log.debug("floor not near the calibrated one (%s), nor anywhere: %s", why, exc)
+        nan = float("nan")
+        return FloorCheck(False if fails else None, nan, nan, why if fails else f"floor not seen: {why}; {exc}")
+    if near is not None and _support(seen, pts) <= 1.2 * _support(near, pts):
+        return check                # the disagreeing plane near the calibrated floor is (as good as) the floor
+    check = _compare(calibrated, seen, max_tilt_deg, max_height_diff_m, f" (found in the whole image: {why})")
+    if check.agrees:        # where the calibration expects it, yet not enough of it there to confirm
+        return FloorCheck(None, float("nan"), float("nan"), f"floor not seen: {why}")
+    return check
+
+
+def _fit_near(expected: FloorPlane, pts: np.ndarray, band_m: float, min_inlier_ratio: float, min_floor_points: int,
+              seed: int) -> FloorPlane:
+    """The floor fitted on the points `pts` (n, 3) within `band_m` of `expected`, tilted at most 15 degrees from
+    it, with `min_floor_points` on it and at most `MAX_BELOW` of `pts` more than `BELOW_M` below it.
+
+    :raises ValueError: saying which of these fails."""
+    near = pts[np.abs(pts @ expected.normal + expected.d) <= band_m]   # racks, truck beds, pallet stacks: no floor
+    if len(near) < 200:
+        raise ValueError(f"{len(near)} depth points low in the image near the expected floor")
+    seen = fit_floor_plane(near, np.random.default_rng(seed), min_inlier_ratio=min_inlier_ratio, iterations=200,
+                           up_hint=expected.normal, max_tilt_deg=15.0)
+    if seen.inlier_ratio * len(near) < min_floor_points:
+        raise ValueError(f"{seen.inlier_ratio * len(near):.0f} floor points near the expected floor")
+    below = float(np.mean(pts @ seen.normal + seen.d < -BELOW_M))
+    if below > MAX_BELOW:
+        raise ValueError(f"the plane fitted near the expected floor has {below:.0%} of the depth points low in the "
+                         f"image more than {100 * BELOW_M:.0f} cm below it: not the floor")
+    return seen
+
+
+def _support(plane: FloorPlane, pts: np.ndarray, tol_m: float = 0.02) -> int:
+    """How many of `pts` (n, 3) lie within `tol_m` of `plane`."""
+    return int(np.sum(np.abs(pts @ plane.normal + plane.d) < tol_m))
+
+
+def _compare(calibrated: FloorPlane, seen: FloorPlane, max_tilt_deg: float, max_height_diff_m: float,
+             where: str) -> FloorCheck:
     tilt = plane_angle_deg(seen.normal, calibrated.normal)
     dh = seen.d - calibrated.d
     agrees = tilt <= max_tilt_deg and abs(dh) <= max_height_diff_m
     detail = (f"floor tilted {tilt:.2f} deg (max {max_tilt_deg}) and camera height off by {100 * dh:+.1f} cm "
-              f"(max {100 * max_height_diff_m:.0f}) from the calibration")
+              f"(max {100 * max_height_diff_m:.0f}) from the calibration{where}")
     return FloorCheck(bool(agrees), tilt, float(dh), detail)
-

@@ -107,6 +107,34 @@ def test_a_tilted_camera_fails_and_the_tolerance_is_the_configs(seen):
     assert lenient.status.state == "ok"
 
 
+@pytest.mark.parametrize("height_error_m", [0.5, 1.0])
+def test_a_calibration_far_too_high_fails_with_the_floor_found_elsewhere(seen, height_error_m):
+    """The floor lies far outside the band around the calibrated one: found in the whole image, not unknown."""
+    watch = checked(FloorWatch(calibration(height_error_m), cfg(when_unseen="ready"), Metrics()), seen)
+    d = watch.to_dict()
+    assert d["state"] == "failed" and not watch.ready() and "found in the whole image" in d["detail"]
+    assert d["camera_height_m"]["measured"] == pytest.approx(0.5, abs=0.01)
+    assert d["camera_height_m"]["expected"] == pytest.approx(0.5 + height_error_m)
+    assert "camera moved since it was calibrated" in watch.blocked_reason(seen)
+
+
+def test_a_calibration_tilted_20_degrees_fails_with_the_measured_tilt(seen):
+    T = T_VEHICLE_CAM.copy()
+    a = np.radians(20.0)
+    T[:3, :3] = T[:3, :3] @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    cal = Calibration("sim", "2026-11-23", W, H, K, T, FloorPlane(T[2, :3].copy(), float(T[2, 3])))
+    watch = checked(FloorWatch(cal, cfg(), Metrics()), seen)
+    assert watch.status.state == "failed"
+    assert watch.to_dict()["floor_tilt_deg"]["measured"] == pytest.approx(20, abs=0.3)
+
+
+def test_a_frame_without_depth_is_unknown_even_far_off():
+    """No depth at all shows no floor anywhere: unknown, whatever the calibration says (NaN depth: the camera
+    frame is uint16, see tests/test_floor_far.py for the floor check itself)."""
+    watch = checked(FloorWatch(calibration(0.5), cfg(), Metrics()), frame(np.zeros((H, W), np.float32)))
+    assert watch.status.state == "unknown" and "floor not seen" in watch.status.detail
+
+
 @pytest.mark.parametrize("when_unseen, ready", [("ready", True), ("not_ready", False)])
 def test_no_floor_in_view_is_unknown_and_readiness_follows_the_config(when_unseen, ready):
     wall = frame(np.full((H, W), 1.5, np.float32))     # a wall 1.5 m ahead, no floor

@@ -1,5 +1,5 @@
 """`pallet6d serve` in the vehicle frame: the real daemon on a replay of a simulated forklift view, with the
-simulator's exact calibration and with one whose camera height is 20 cm off."""
+simulator's exact calibration and with ones whose camera height is 20 cm and 50 cm off."""
 from __future__ import annotations
 
 import dataclasses
@@ -146,6 +146,33 @@ def test_a_calibration_20cm_off_fails_readyz_and_withholds_vehicle_output(daemon
     assert d.metric('pallet6d_floor_checks_total{result="disagrees"}') >= 1
     assert d.metric("pallet6d_calibration_ok") == 0
     assert d.metric('pallet6d_failures_total{reason="calibration"}') >= 1
+
+
+@pytest.fixture(scope="module")
+def far_daemon(forklift_view, bundle_dir, tmp_path_factory):
+    """A daemon whose calibration puts the camera 0.5 m too high: no floor near the calibrated one."""
+    d, _ = start(tmp_path_factory.mktemp("far"), forklift_view, bundle_dir, 0.5)
+    try:
+        d.wait_healthy()
+        d.wait(lambda: d.client.get("/readyz").json()["calibration"]["checks"] >= 1, "a floor check")
+        yield d
+    finally:
+        assert d.stop() == 0, d.log()
+
+
+def test_a_calibration_half_a_metre_too_high_fails_readyz_with_the_floor_found_elsewhere(far_daemon):
+    d = far_daemon
+    r = d.client.get("/readyz")
+    ready = r.json()
+    floor = ready["calibration"]
+    assert r.status_code == 503 and ready["checks"]["calibration"] is False and floor["state"] == "failed"
+    ReadyResponse.model_validate(ready)
+    assert floor["camera_height_m"]["expected"] - floor["camera_height_m"]["measured"] == pytest.approx(0.5, abs=0.02)
+    assert floor["floor_tilt_deg"]["measured"] < 1.0
+    reason = next(r for r in ready["reasons"] if r.startswith("calibration failed: floor tilted"))
+    assert "camera height off by -50.0 cm" in reason and "found in the whole image" in reason
+    assert d.metric('pallet6d_floor_checks_total{result="disagrees"}') >= 1
+    assert d.metric("pallet6d_calibration_ok") == 0
 
 
 def test_check_names_the_calibration_and_refuses_vehicle_output_without_one(daemons, tmp_path, forklift_view,

@@ -4,13 +4,16 @@ The calibration's `T_vehicle_cam` puts the floor at the vehicle's z = 0; seen fr
 (`Calibration.vehicle_floor`). Every `interval_s` the camera loop hands its newest frame over (`offer`, which
 returns at once) and a thread of its own fits the floor in that frame's depth (`floor.check_floor`, through a
 `CalibrationMonitor`) and compares: the floor's tilt and the camera's height above it must agree within the
-configured tolerances. A check that sees too little floor says "unknown".
+configured tolerances. Where no floor lies near the calibrated one, the check looks for it in the whole image:
+a floor found far from where the calibration puts it (a camera height off by a metre, a tilt of 20 degrees)
+disagrees with its measured numbers. A check that finds no floor anywhere (a wall filling the view, no depth)
+says "unknown". A check costs about 0.1 s of one core (docs/daemon.md), on this thread, never on the camera loop's.
 
 States (`FloorStatus.state`):
 - "ok": the last check agreed (or one disagreement after agreeing before: a ramp edge is not a knock);
 - "failed": the camera counts as moved (the first check disagreed, or two in a row later; three agreeing checks
   in a row end it), or the frames are not of the calibrated camera (intrinsics or size);
-- "unknown": not checked yet, or the last check saw too little floor.
+- "unknown": not checked yet, or the last check saw no floor of enough support anywhere in the view.
 
 While "failed", vehicle-frame output is withheld (`blocked_reason`); `GET /readyz` is ready in "ok" and, when
 `when_unseen = "ready"`, in "unknown".

@@ -1,0 +1,97 @@
+"""The floor check (`floor.check_floor`) on a seeded simulated forklift view (D435-like depth): a calibration a
+little or far off, in height or tilt, fails with the measured numbers; the right one agrees; a view without
+floor, or without depth, is "unknown"."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pallet6d.runtime.floor import FloorPlane, check_floor, find_floor_anywhere, image_points
+
+SEED = 4          # of the forklift-approach preset at 424x240: a camera 0.74 m up that sees the floor
+
+
+@pytest.fixture(scope="module")
+def view():
+    """(depth_m, K, T_vehicle_cam) of one generated forklift view."""
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    f = generate_frame(get_preset("forklift-approach").with_image_size(424, 240), SEED, 0)
+    assert f.T_vehicle_cam[2, 3] > 0.6          # room for a calibration 0.5 m too low
+    return f.depth_m, f.K, f.T_vehicle_cam
+
+
+def calibrated_floor(T_vehicle_cam: np.ndarray, height_error_m: float = 0.0, tilt_deg: float = 0.0) -> FloorPlane:
+    """The floor a calibration `height_error_m` too high, and tilted `tilt_deg` about the camera's x axis, stores."""
+    a = np.radians(tilt_deg)
+    R = T_vehicle_cam[:3, :3] @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    return FloorPlane(R[2].copy(), float(T_vehicle_cam[2, 3] + height_error_m))
+
+
+def check(depth_m, K, floor):
+    return check_floor(floor, depth_m, K, max_tilt_deg=2.0, max_height_diff_m=0.03)
+
+
+def test_the_right_calibration_agrees(view):
+    depth, K, T = view
+    c = check(depth, K, calibrated_floor(T))
+    assert c.agrees is True and c.tilt_deg < 0.5 and abs(c.height_diff_m) < 0.01
+
+
+@pytest.mark.parametrize("height_error_m", [0.05, 0.5, 1.0, -0.5])
+def test_a_camera_height_off_fails_with_the_measured_height(view, height_error_m):
+    depth, K, T = view
+    c = check(depth, K, calibrated_floor(T, height_error_m))
+    assert c.agrees is False
+    assert c.height_diff_m == pytest.approx(-height_error_m, abs=0.02) and c.tilt_deg < 1.0
+    assert "camera height off by " + ("-" if height_error_m > 0 else "+") in c.detail
+
+
+@pytest.mark.parametrize("tilt_deg", [5.0, 20.0])
+def test_a_tilted_calibration_fails_with_the_measured_tilt(view, tilt_deg):
+    depth, K, T = view
+    c = check(depth, K, calibrated_floor(T, tilt_deg=tilt_deg))
+    assert c.agrees is False
+    assert c.tilt_deg == pytest.approx(tilt_deg, abs=1.0) and abs(c.height_diff_m) < 0.02
+
+
+def test_far_off_floors_are_found_in_the_whole_image(view):
+    depth, K, T = view
+    c = check(depth, K, calibrated_floor(T, 0.5))
+    assert "found in the whole image" in c.detail
+    found = find_floor_anywhere(image_points(depth, K), calibrated_floor(T, 0.5).normal, np.random.default_rng(0))
+    assert found.d == pytest.approx(T[2, 3], abs=0.03)
+
+
+def test_a_wall_filling_the_view_is_unknown(view):
+    _, K, T = view
+    wall = np.full((240, 424), 1.5, np.float32)             # a wall 1.5 m ahead, square to the camera
+    for floor in (calibrated_floor(T), calibrated_floor(T, 0.5), calibrated_floor(T, -0.5)):
+        c = check(wall, K, floor)
+        assert c.agrees is None and "floor not seen" in c.detail and np.isnan(c.height_diff_m)
+
+
+@pytest.mark.parametrize("fill", [0.0, np.nan, np.inf, -1.0])
+def test_no_depth_is_unknown(view, fill):
+    _, K, T = view
+    c = check(np.full((240, 424), fill, np.float32), K, calibrated_floor(T, 0.5))
+    assert c.agrees is None and "floor not seen" in c.detail
+
+
+def test_nan_holes_in_the_depth_change_nothing(view):
+    depth, K, T = view
+    holey = depth.copy()
+    holey[np.random.default_rng(0).random(depth.shape) < 0.3] = np.nan
+    assert check(holey, K, calibrated_floor(T)).agrees is True
+    c = check(holey, K, calibrated_floor(T, 1.0))
+    assert c.agrees is False and c.height_diff_m == pytest.approx(-1.0, abs=0.02)
+
+
+def test_empty_or_malformed_depth_is_refused(view):
+    _, K, T = view
+    assert check(np.zeros((0, 0), np.float32), K, calibrated_floor(T)).agrees is None
+    with pytest.raises(ValueError, match="depth_m must be"):
+        check(np.zeros(10, np.float32), K, calibrated_floor(T))
+    with pytest.raises(ValueError, match="up_hint"):
+        find_floor_anywhere(np.zeros((10, 3)), np.zeros(3), np.random.default_rng(0))
