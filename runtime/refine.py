@@ -84,16 +84,6 @@ def _extents(boxes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _argmin_rows(v: np.ndarray) -> np.ndarray:
-    """(n,) index of the smallest of each column of a (k, n) array, the first on ties (as `argmin`)."""
-    best, arg = v[0].copy(), np.zeros(v.shape[1], dtype=np.int64)
-    for i in range(1, len(v)):
-        better = v[i] < best
-        np.copyto(best, v[i], where=better)
-        arg[better] = i
-    return arg
-
-
 def _closest(p: np.ndarray, boxes: np.ndarray,
              extents: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`closest_on_boxes` of (n, 3) float64 points, with the boxes' `_extents`."""
@@ -114,7 +104,7 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
         np.maximum(gap, 0.0, out=gap)
         np.multiply(gap, gap, out=gap)
         d_out2 += gap[box_col]
-    j = _argmin_rows(d_out2)                                     # nearest box per point
+    j = d_out2.argmin(0)                                     # nearest box per point
     d = np.sqrt(d_out2[j, np.arange(n)])
     q = np.clip(p, lo[j], hi[j])
     normal = np.zeros((n, 3))
@@ -132,7 +122,7 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
         below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
         np.minimum(d_in, below[box_col], out=d_in)
     dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
-    ji = _argmin_rows(dist)
+    ji = dist.argmin(0)
     r = np.arange(len(ins))
     di = dist[ji, r]
     blo, bhi = lo[ji], hi[ji]
