@@ -91,8 +91,11 @@ class ModelPointIndex:
         cell, owner = cell[order], owner[order]
         counts = np.bincount(cell, minlength=int(np.prod(self.shape)))
         rank = np.arange(len(cell)) - np.repeat(np.cumsum(counts) - counts, counts)[:len(cell)]
-        self.points = np.full((len(counts), int(counts.max()), 3), self._FAR)               # (cells, L, 3)
-        self.points[cell, rank] = model[owner]
+        # row 0 holds only padding: empty cells (most of the grid) share it
+        self.row = np.zeros(len(counts), dtype=np.int64)
+        self.row[counts > 0] = np.arange(1, int((counts > 0).sum()) + 1)
+        self.points = np.full((int((counts > 0).sum()) + 1, int(counts.max()), 3), self._FAR)   # (rows, L, 3)
+        self.points[self.row[cell], rank] = model[owner]
 
     def distances(self, pts: np.ndarray) -> np.ndarray:
         """(n,) distance from (n, 3) points (model frame, metres) to the nearest model point where that is
@@ -102,7 +105,7 @@ class ModelPointIndex:
         inside = np.all((idx >= 0) & (idx < self.shape), axis=1)
         out = np.full(len(pts), np.inf)
         if inside.any():
-            near = self.points[np.ravel_multi_index(idx[inside].T, self.shape)]               # (n', L, 3)
+            near = self.points[self.row[np.ravel_multi_index(idx[inside].T, self.shape)]]     # (n', L, 3)
             diff = near - pts[inside, None]
             out[inside] = np.sqrt((diff * diff).sum(-1).min(1))
         return out
