@@ -22,7 +22,7 @@ import numpy as np
 from .geometry import check_K
 from .results import FitScore
 
-__all__ = ["check_poses", "distance_to_boxes", "distance_to_points", "fit_score", "fit_scores"]
+__all__ = ["check_poses", "distance_to_boxes", "distance_to_points", "fit_score", "fit_scores", "ModelPointIndex"]
 
 
 def distance_to_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> np.ndarray:
@@ -57,6 +57,58 @@ def distance_to_points(pts: np.ndarray, model_pts: np.ndarray, chunk: int = 512)
         d2 = (p * p).sum(1)[:, None] + m2[None] - 2.0 * p @ model.T
         out[i:i + chunk] = np.sqrt(np.maximum(d2.min(1), 0.0))
     return out
+
+
+class ModelPointIndex:
+    """Model points bucketed on a grid of `tol_m` cells: the distance to the nearest model point of every query
+    point within `tol_m` of one, from only the points near its cell (no search over all of them).
+
+    A query point in cell k has every model point within `tol_m` of it inside that cell grown by `tol_m`, so
+    each cell keeps exactly those (padded to the fullest cell's count with a far point).
+
+    :param model_pts: (m, 3) model points, model frame, metres. :param tol_m: the largest distance asked for.
+    """
+
+    _FAR = 1e3                                    # padding: a model point no query point comes near
+
+    def __init__(self, model_pts: np.ndarray, tol_m: float) -> None:
+        model = np.asarray(model_pts, dtype=np.float64).reshape(-1, 3)
+        if len(model) == 0 or not tol_m > 0:
+            raise ValueError(f"need model points and a positive tol_m, got {len(model)} points, tol_m={tol_m}")
+        self.tol_m = float(tol_m)
+        self.origin = model.min(0) - 2.0 * self.tol_m
+        self.shape = np.floor((model.max(0) + 2.0 * self.tol_m - self.origin) / self.tol_m).astype(np.int64) + 1
+        lo = np.floor((model - self.tol_m - self.origin) / self.tol_m).astype(np.int64)      # (m, 3) first cell
+        hi = np.floor((model + self.tol_m - self.origin) / self.tol_m).astype(np.int64)      # (m, 3) last cell
+        cells, owners = [], []
+        for off in np.ndindex(3, 3, 3):                          # tol_m cells: a point reaches 2-3 per axis
+            c = lo + np.array(off)
+            ok = np.all(c <= hi, axis=1)
+            cells.append(np.ravel_multi_index(c[ok].T, self.shape))
+            owners.append(np.flatnonzero(ok))
+        cell, owner = np.concatenate(cells), np.concatenate(owners)
+        order = np.lexsort((owner, cell))
+        cell, owner = cell[order], owner[order]
+        counts = np.bincount(cell, minlength=int(np.prod(self.shape)))
+        rank = np.arange(len(cell)) - np.repeat(np.cumsum(counts) - counts, counts)[:len(cell)]
+        # row 0 holds only padding: empty cells (most of the grid) share it
+        self.row = np.zeros(len(counts), dtype=np.int64)
+        self.row[counts > 0] = np.arange(1, int((counts > 0).sum()) + 1)
+        self.points = np.full((int((counts > 0).sum()) + 1, int(counts.max()), 3), self._FAR)   # (rows, L, 3)
+        self.points[self.row[cell], rank] = model[owner]
+
+    def distances(self, pts: np.ndarray) -> np.ndarray:
+        """(n,) distance from (n, 3) points (model frame, metres) to the nearest model point where that is
+        at most `tol_m`; some value above `tol_m` elsewhere."""
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        idx = np.floor((pts - self.origin) / self.tol_m).astype(np.int64)
+        inside = np.all((idx >= 0) & (idx < self.shape), axis=1)
+        out = np.full(len(pts), np.inf)
+        if inside.any():
+            near = self.points[self.row[np.ravel_multi_index(idx[inside].T, self.shape)]]     # (n', L, 3)
+            diff = near - pts[inside, None]
+            out[inside] = np.sqrt((diff * diff).sum(-1).min(1))
+        return out
 
 
 def _free_space_violations(model_cam: np.ndarray, depth_m: np.ndarray, K: np.ndarray, tol_m: float,
@@ -109,8 +161,8 @@ def check_poses(T: np.ndarray, name: str) -> np.ndarray:
 
 def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarray | None, model_pts: np.ndarray,
                depth_m: np.ndarray, K: np.ndarray, tol_m: float = 0.04,
-               model_boxes_m: np.ndarray | None = None,
-               points_in_boxes_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+               model_boxes_m: np.ndarray | None = None, points_in_boxes_m: np.ndarray | None = None,
+               point_index: ModelPointIndex | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`fit_score` of P poses at once, each against its own observed points (one numpy pass).
 
     :param T_cam_model: (P, 4, 4) poses to check.
@@ -121,6 +173,8 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
     :param points_in_boxes_m: optional (k, 2, 3) boxes that hold every model point (the pallet's own boxes,
         when `model_pts` are sampled on them): with distances to points, an observed point farther than
         `tol_m` from these boxes is farther from every model point too and skips the nearest-point search.
+    :param point_index: optional `ModelPointIndex` of `model_pts` for at least `tol_m`: distances to the
+        points come from it instead of a search over all of them (same inliers).
     :return: (inlier_fraction, free_space_violation, score), each (P,).
     """
     if not tol_m > 0:
@@ -151,8 +205,12 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
         cand[cand] = distance_to_boxes(obs_model[cand], points_in_boxes_m) <= tol_m + 1e-6
     inlier_pts = np.zeros((P, N), dtype=bool)
     if cand.any():
-        d = distance_to_boxes(obs_model[cand], model_boxes_m) if model_boxes_m is not None \
-            else distance_to_points(obs_model[cand], model)
+        if model_boxes_m is not None:
+            d = distance_to_boxes(obs_model[cand], model_boxes_m)
+        elif point_index is not None and point_index.tol_m >= tol_m:
+            d = point_index.distances(obs_model[cand])
+        else:
+            d = distance_to_points(obs_model[cand], model)
         inlier_pts[cand] = d <= tol_m
     inlier = np.where(n_obs > 0, inlier_pts.sum(1) / np.maximum(n_obs, 1), 0.0)
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fit import check_poses, distance_to_boxes, fit_scores
+from .fit import ModelPointIndex, check_poses, distance_to_boxes, fit_scores
 from .geometry import backproject_pixels, check_K, clamp_box, select_pixels, transform_points
 from .results import FitScore
 
@@ -84,16 +84,6 @@ def _extents(boxes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _argmin_rows(v: np.ndarray) -> np.ndarray:
-    """(n,) index of the smallest of each column of a (k, n) array, the first on ties (as `argmin`)."""
-    best, arg = v[0].copy(), np.zeros(v.shape[1], dtype=np.int64)
-    for i in range(1, len(v)):
-        better = v[i] < best
-        np.copyto(best, v[i], where=better)
-        arg[better] = i
-    return arg
-
-
 def _closest(p: np.ndarray, boxes: np.ndarray,
              extents: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`closest_on_boxes` of (n, 3) float64 points, with the boxes' `_extents`."""
@@ -114,7 +104,7 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
         np.maximum(gap, 0.0, out=gap)
         np.multiply(gap, gap, out=gap)
         d_out2 += gap[box_col]
-    j = _argmin_rows(d_out2)                                     # nearest box per point
+    j = d_out2.argmin(0)                                     # nearest box per point
     d = np.sqrt(d_out2[j, np.arange(n)])
     q = np.clip(p, lo[j], hi[j])
     normal = np.zeros((n, 3))
@@ -132,7 +122,7 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
         below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
         np.minimum(d_in, below[box_col], out=d_in)
     dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
-    ji = _argmin_rows(dist)
+    ji = dist.argmin(0)
     r = np.arange(len(ins))
     di = dist[ji, r]
     blo, bhi = lo[ji], hi[ji]
@@ -417,6 +407,7 @@ class RefineGeometry:
     boxes_m: np.ndarray
     starts: np.ndarray = dataclasses.field(default_factory=default_starts)
     points_on_boxes: bool = dataclasses.field(init=False, repr=False, compare=False)
+    _indexes: dict = dataclasses.field(init=False, repr=False, compare=False, default_factory=dict)
 
     def __post_init__(self) -> None:
         pts = np.asarray(self.model_points_m, dtype=np.float64)
@@ -434,6 +425,13 @@ class RefineGeometry:
     def in_boxes(self) -> np.ndarray | None:
         """The boxes when they hold every model point (see `fit_scores`), else None."""
         return self.boxes_m if self.points_on_boxes else None
+
+    def point_index(self, tol_m: float) -> ModelPointIndex:
+        """The model points' `ModelPointIndex` for `tol_m`, built on first use."""
+        key = float(tol_m)
+        if key not in self._indexes:
+            self._indexes[key] = ModelPointIndex(self.model_points_m, key)
+        return self._indexes[key]
 
 
 @dataclass(frozen=True)
@@ -575,7 +573,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     if len(gate):
         both = fit_scores(np.concatenate([base.T_cam_pallet[gate], T_net[gate]]),
                           np.concatenate([obs[gate], obs[gate]]), None, geom.model_points_m, depth_m, K, o.fit_tol_m,
-                          points_in_boxes_m=geom.in_boxes)
+                          points_in_boxes_m=geom.in_boxes, point_index=geom.point_index(o.fit_tol_m))
         both = np.stack(both, 1)
         f_icp, f_net = both[:len(gate)], both[len(gate):]
         keep = f_icp[:, 2] >= f_net[:, 2] + o.margin
@@ -614,5 +612,6 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     todo = np.flatnonzero(np.isnan(fit[:, 0]))
     if len(todo):
         fit[todo] = np.stack(fit_scores(T[todo], obs[todo], None, geom.model_points_m, depth_m, K, o.fit_tol_m,
-                                        points_in_boxes_m=geom.in_boxes), 1)
+                                        points_in_boxes_m=geom.in_boxes,
+                                        point_index=geom.point_index(o.fit_tol_m)), 1)
     T_out[sel], source[sel], rms_out[sel], fit_out[sel] = T, src, base.rms_m, fit

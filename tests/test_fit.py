@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from pallet6d.runtime.fit import distance_to_boxes, distance_to_points, fit_score, fit_scores
+from pallet6d.runtime.fit import ModelPointIndex, distance_to_boxes, distance_to_points, fit_score, fit_scores
 from pallet6d.runtime.geometry import (backproject_pixels, clamp_box, make_T, quat_to_rot, sample_indices,
                                        select_pixels)
 
@@ -109,3 +109,41 @@ def test_fit_scores_equal_fit_score_pose_by_pose(scene, boxes):
         fit_scores(Ts, obs[None], None, MODEL_PTS, frame.depth_m, frame.K)
     with pytest.raises(ValueError, match="T_cam_model"):
         fit_scores(np.eye(4), obs[None], None, MODEL_PTS, frame.depth_m, frame.K)
+
+
+@pytest.mark.parametrize("tol_m", [0.04, 0.015])
+def test_model_point_index_finds_every_model_point_within_tol(tol_m):
+    rng = np.random.default_rng(7)
+    lo, hi = MODEL_PTS.min(0) - 0.1, MODEL_PTS.max(0) + 0.1
+    pts = np.concatenate([rng.uniform(lo, hi, (3000, 3)),                         # around and inside the pallet
+                          MODEL_PTS[:200] + rng.normal(0, tol_m / 2, (200, 3)),   # near the surface
+                          [[50.0, 0.0, 0.0], [-3.0, -3.0, -3.0]]])                # far outside the grid
+    ref = distance_to_points(pts, MODEL_PTS)
+    got = ModelPointIndex(MODEL_PTS, 0.04).distances(pts)
+    within = ref <= tol_m
+    assert 100 < within.sum() < len(pts) - 100
+    np.testing.assert_array_equal(got <= tol_m, within)
+    np.testing.assert_allclose(got[within], ref[within], atol=1e-5)            # the search runs in float32
+    assert np.all(got[-2:] > 0.04) and ModelPointIndex(MODEL_PTS[:1], 0.04).distances(np.zeros((0, 3))).shape == (0,)
+
+
+def test_model_point_index_bad_input_and_one_point():
+    with pytest.raises(ValueError, match="tol_m"):
+        ModelPointIndex(MODEL_PTS, 0.0)
+    with pytest.raises(ValueError, match="model points"):
+        ModelPointIndex(np.zeros((0, 3)), 0.04)
+    one = ModelPointIndex(np.array([[0.1, 0.2, 0.3]]), 0.04)
+    np.testing.assert_allclose(one.distances(np.array([[0.1, 0.2, 0.33], [0.1, 0.2, 0.5]]))[0], 0.03)
+    assert one.distances(np.array([[0.1, 0.2, 0.5]]))[0] > 0.04
+
+
+def test_fit_scores_with_a_point_index_equal_the_search(scene):
+    frame, T_gt, obs = scene
+    rng = np.random.default_rng(5)
+    Ts = np.stack([T_gt] + [make_T(T_gt[:3, :3], T_gt[:3, 3] + rng.uniform(-0.1, 0.1, 3)) for _ in range(4)])
+    args = (Ts, np.broadcast_to(obs, (len(Ts),) + obs.shape), None, MODEL_PTS, frame.depth_m, frame.K, 0.04)
+    ref = fit_scores(*args, points_in_boxes_m=EPAL.boxes_m)
+    for index in (ModelPointIndex(MODEL_PTS, 0.04), ModelPointIndex(MODEL_PTS, 0.03)):   # 0.03: too small, unused
+        got = fit_scores(*args, points_in_boxes_m=EPAL.boxes_m, point_index=index)
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)

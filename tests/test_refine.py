@@ -386,6 +386,18 @@ def test_refine_batch_empty_and_without_starts(render):
         np.testing.assert_allclose(res.T_cam_pallet[k], T_ref, atol=1e-9)
 
 
+def test_refine_batch_with_every_landing_untrusted_keeps_the_pose_without_starts(render):
+    frame = render("virtual-occluded", 2)
+    T_net, obs, box_obs = _detections(frame, 2)
+    untrusted = RefineOptions(start_max_rms_m=1e-12)            # no landing's RMS gets this low
+    res = refine_batch(T_net, obs, box_obs, GEOM_EPAL, frame.depth_m, frame.K, untrusted)
+    no_starts = RefineGeometry(MODEL_PTS, EPAL.boxes_m, np.zeros((0, 3)))
+    ref = refine_batch(T_net, obs, box_obs, no_starts, frame.depth_m, frame.K, untrusted)
+    assert set(res.source) <= {FROM_NETWORK, FROM_ICP}
+    np.testing.assert_array_equal(res.T_cam_pallet, ref.T_cam_pallet)
+    assert res.fits == ref.fits
+
+
 @pytest.mark.parametrize("T, obs, box_obs, geom, exc, match", [
     (np.eye(4), np.zeros((1, 5, 3)), [np.zeros((5, 3))], GEOM_EPAL, ValueError, "T_net_cam_pallet"),
     (np.full((1, 4, 4), np.nan), np.zeros((1, 5, 3)), [np.zeros((5, 3))], GEOM_EPAL, ValueError, "T_net_cam_pallet"),
