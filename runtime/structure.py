@@ -58,9 +58,9 @@ class StructureParams:
     :ivar tol_quad_per_m: tolerance growth with range, metres per metre squared (stereo noise grows with z**2).
     :ivar min_evidence: fewer rays with evidence (solid, see-through, open, closed) -> "structure_unseen".
     :ivar min_agreement: (solid + open) / all evidence below this -> "structure_mismatch".
-    :ivar min_opening_evidence: openings are judged only with at least this many open + closed rays (8: a flat
-        wall under a far or cut pallet shows 8-11 closed and no open ones; correct poses on the validation frames
-        pass at 4).
+    :ivar min_opening_evidence: openings are judged only with at least this many open + closed rays (a flat wall
+        under a pallet cut by the image's edge showed 11 closed rays and no open one on the validation frames;
+        correct poses there pass with as few as 4).
     :ivar min_open_fraction: open / (open + closed) below this -> "openings_closed".
     :ivar min_box_cover: fraction of the detector's box inside the posed model's projected box; below ->
         "box_mismatch".
