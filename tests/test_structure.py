@@ -284,3 +284,38 @@ def test_box_cut_by_the_image_edge_keeps_the_looser_bound():
     s = _check(T=T, depth=depth, box=box)
     assert s.box_cut and s.ok, s
     assert s.box_size_m[1] < StructureParams().min_whole_box_height_of_type * EPAL.size_m.min()
+
+
+def test_whole_box_height_is_measured_at_the_pallets_depth():
+    """Posts 1.5 m from the camera hide 60 % of the pallet's columns: the median depth in the box is theirs, the
+    pallet's height is measured where the rays found its surface."""
+    depth = DEPTH.copy()
+    cols = np.arange(int(BOX[0, 0]), int(BOX[0, 2]))
+    depth[:, cols[(cols - cols[0]) % 10 < 6]] = 1.5
+    s = _check(depth=depth)
+    assert s.ok and not s.box_cut, s
+    assert s.box_size_m[1] < StructureParams().min_whole_box_height_of_type * EPAL.size_m.min()   # at the posts
+    assert s.whole_height_m == pytest.approx(_check().whole_height_m, rel=0.05)
+
+
+def test_fit_check_stage_names_the_whole_box_height_in_its_rejection():
+    from pallet6d.runtime.candidates import Candidates
+    from pallet6d.runtime.stage_fit import FitCheckStage
+    from pallet6d.runtime.stage_geometry import PalletGeometry
+
+    geoms = tuple(PalletGeometry(name=n, points_m=m.boxes_m.reshape(-1, 3), boxes_m=m.boxes_m, symmetries=m.symmetries,
+                                 size_m=m.size_m, refine_starts=np.zeros((0, 3)))
+                  for n, m in (("epal", EPAL), ("eur6", get_pallet_model("eur6"))))
+    T = make_T(R_CAM_PALLET, np.array([0.1, 0.45, 2.5]))
+    depth, box = _render_type(geoms[1].boxes_m, T)
+    K_focal = K.copy()
+    K_focal[0, 0] *= 2.0
+    K_focal[1, 1] *= 2.0
+    stage = FitCheckStage(geoms, tol_m=0.04, min_fit=0.0, min_confidence=0.0)
+    right, wrong = (Candidates.new(box, [0.9], [0], [1], num_points=8) for _ in range(2))
+    right.assign(np.arange(1), T_cam_pallet=T[None])
+    wrong.assign(np.arange(1), T_cam_pallet=make_T(R_CAM_PALLET, T[:3, 3] * np.array([0.5, 0.5, 1.0]))[None])
+    stage.check_structure(right, np.arange(1), depth, K)
+    stage.check_structure(wrong, np.arange(1), depth, K_focal)
+    assert right.reason[0] == "", right.detail[0]          # the eur6 at its true pose passes
+    assert wrong.reason[0] == "size_mismatch" and "tall at the pallet's depth" in wrong.detail[0], wrong.detail[0]
