@@ -86,8 +86,10 @@ def _rejection_reason(structure_reason: str) -> str:
 
 def _structure_detail(s) -> str:
     if s.reason == "size_mismatch":
+        whole = "" if s.box_cut or np.isnan(s.whole_height_m) else \
+            f", {s.whole_height_m:.3f} m tall at the pallet's depth (not cut by the image's edge)"
         return (f"size_mismatch: the detector's box spans {s.box_size_m[0]:.2f} x {s.box_size_m[1]:.2f} m at the depth "
-                "inside it, not a pallet of this type (depth scale or focal length off?)")
+                f"inside it{whole}, not a pallet of this type (depth scale or focal length off?)")
     if s.reason == "depth_image_mismatch":
         return (f"depth_image_mismatch: depth edges agree with the image's at AUC {s.edge_auc:.2f} (0.5 = chance; "
                 "depth of another frame, or not registered to the colour image?)")

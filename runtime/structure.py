@@ -22,7 +22,9 @@ Two tests ask whether the depth belongs to the image at all (they fail as "size_
 
 - metric size: the detector's box, at the median depth inside it and the focal length, spans a metric height and
   width; a pallet's visible face is at least about its own height tall and at most its diameter across. A depth
-  scale 10x too small (or a focal length far too long) shrinks that size by the same factor, 10x too large grows it;
+  scale 10x too small (or a focal length far too long) shrinks that size by the same factor, 10x too large grows it.
+  A box that the image's top or bottom edge does not cut shows the pallet's whole height, so there the bound is
+  tight enough to catch a focal length 2x too long;
 - edge agreement: where the observed depth jumps between neighbouring rays of the grid, the colour image should
   change too (a surface ends there). The rank statistic (AUC) of the colour differences across depth jumps against
   those elsewhere is about 0.5 when the depth comes from another frame or is not registered to the image, and
@@ -56,7 +58,9 @@ class StructureParams:
     :ivar tol_quad_per_m: tolerance growth with range, metres per metre squared (stereo noise grows with z**2).
     :ivar min_evidence: fewer rays with evidence (solid, see-through, open, closed) -> "structure_unseen".
     :ivar min_agreement: (solid + open) / all evidence below this -> "structure_mismatch".
-    :ivar min_opening_evidence: openings are judged only with at least this many open + closed rays.
+    :ivar min_opening_evidence: openings are judged only with at least this many open + closed rays (a flat wall
+        under a pallet cut by the image's edge showed 11 closed rays and no open one on the validation frames;
+        correct poses there pass with as few as 4).
     :ivar min_open_fraction: open / (open + closed) below this -> "openings_closed".
     :ivar min_box_cover: fraction of the detector's box inside the posed model's projected box; below ->
         "box_mismatch".
@@ -68,7 +72,15 @@ class StructureParams:
     :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
     :ivar min_box_height_of_type: the detector's box height times the median depth inside it over fy (its metric
         height) below this fraction of the type's height (its smallest side) -> "size_mismatch" (depth scale too
-        small, focal length too long). A pallet seen from the front shows its full height; 0 turns it off.
+        small, focal length too long). A loose bound that holds for a box the image's top or bottom edge cuts;
+        0 turns it off.
+    :ivar min_whole_box_height_of_type: a box that neither the top nor the bottom edge of the image cuts shows the
+        pallet's whole height (a face seen from the front is the type's height tall, seen from above taller): its
+        height at the median depth of the rays that found the posed pallet's surface below this fraction of the
+        type's height -> "size_mismatch". Tighter than `min_box_height_of_type`, it catches a focal length 2x too
+        long (the box then spans half the height). On the validation frames correct poses' whole boxes span at
+        least 0.99 of the type's height; 0 turns it off.
+    :ivar border_px: a box edge within this many pixels of the image's top or bottom edge is cut by it.
     :ivar max_box_size_of_diameter: the box's metric width or height above this multiple of the type's diameter
         -> "size_mismatch" (depth scale too large, focal length too short).
     :ivar min_edge_auc: with the colour image, the AUC of colour differences across depth jumps of the grid against
@@ -85,13 +97,15 @@ class StructureParams:
     tol_quad_per_m: float = 0.004
     min_evidence: int = 40
     min_agreement: float = 0.6
-    min_opening_evidence: int = 12
+    min_opening_evidence: int = 8
     min_open_fraction: float = 0.15
     min_box_cover: float = 0.6
     min_box_solid: float = 0.3
     min_seen_iou: float = 0.1
     max_tilt_deg: float = 25.0
     min_box_height_of_type: float = 0.4
+    min_whole_box_height_of_type: float = 0.8
+    border_px: float = 3.0
     max_box_size_of_diameter: float = 3.0
     min_edge_auc: float = 0.0
     min_edge_pairs: int = 5
@@ -105,13 +119,15 @@ class StructureParams:
         if not self.tol_m > 0:
             raise ValueError(f"tol_m must be positive, got {self.tol_m}")
         for name in ("min_agreement", "min_open_fraction", "min_box_cover", "min_box_solid",
-                     "min_seen_iou", "min_edge_auc", "min_box_height_of_type"):
+                     "min_seen_iou", "min_edge_auc", "min_box_height_of_type", "min_whole_box_height_of_type"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if int(self.min_evidence) < 1 or int(self.min_opening_evidence) < 1:
             raise ValueError("min_evidence and min_opening_evidence must be >= 1")
         if not self.max_box_size_of_diameter > 0:
             raise ValueError(f"max_box_size_of_diameter must be positive, got {self.max_box_size_of_diameter}")
+        if not self.border_px >= 0:
+            raise ValueError(f"border_px must be >= 0, got {self.border_px}")
         if int(self.min_edge_pairs) < 1:
             raise ValueError(f"min_edge_pairs must be >= 1, got {self.min_edge_pairs}")
         if not 0.0 < self.max_tilt_deg <= 180.0:
@@ -136,6 +152,9 @@ class StructureScore:
     :ivar tilt_deg: angle between the pallet's z axis and the up vector (NaN without one).
     :ivar box_size_m: (width, height) of the detector's box in metres at the median depth inside it (NaN without
         depth there).
+    :ivar box_cut: the image's top or bottom edge cuts the detector's box (its height is then not the pallet's).
+    :ivar whole_height_m: the height of a box that is not cut, in metres at the median depth of the rays that found
+        the posed pallet's surface (NaN for a cut box or without such rays).
     :ivar edge_auc: AUC of colour differences across depth jumps against those elsewhere (NaN without a colour image
         or too few pairs).
     :ivar reason: "" when accepted, else one of "size_mismatch", "depth_image_mismatch", "structure_unseen",
@@ -155,6 +174,8 @@ class StructureScore:
     box_size_m: tuple[float, float]
     edge_auc: float
     reason: str
+    box_cut: bool = False
+    whole_height_m: float = float("nan")
 
     @property
     def ok(self) -> bool:
@@ -336,9 +357,16 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     # does the depth belong to the image? the box's metric size, the depth's edges against the colour's
     extent = boxes[:, 1].max(0) - boxes[:, 0].min(0)
     size_m = box_metric_size(det, depth, K)
+    # a whole box (not cut by the image's top or bottom edge) at the depth where the rays found the posed pallet's
+    # surface (an occluder nearer than the pallet inside the box does not shrink it): the pallet's whole height
+    box_cut = (det[:, 1] < params.border_px) | (det[:, 3] > h - 1 - params.border_px)
+    n_solid = solid.sum(1)
+    z_solid = np.array([np.median(z_obs[i][solid[i]]) if n_solid[i] else np.nan for i in range(len(T))])
+    whole_height_m = np.where(box_cut, np.nan, (det[:, 3] - det[:, 1]) * z_solid / K[1, 1])
     with np.errstate(invalid="ignore"):
         wrong_size = (size_m[:, 1] < params.min_box_height_of_type * extent.min()) \
-            | (size_m.max(1) > params.max_box_size_of_diameter * np.linalg.norm(extent))
+            | (size_m.max(1) > params.max_box_size_of_diameter * np.linalg.norm(extent)) \
+            | (whole_height_m < params.min_whole_box_height_of_type * extent.min())
     g2 = (len(T), params.grid, params.grid)
     if rgb is None:
         edge_auc = np.full(len(T), np.nan)
@@ -405,5 +433,6 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         out.append(StructureScore(s, st, op, cl, float(agreement), float(open_fraction), float(cover[i]),
                                   float(box_solid[i]), float(seen_iou[i]),
                                   float(tilt[i]), (float(size_m[i, 0]), float(size_m[i, 1])),
-                                  float(edge_auc[i]), reason))
+                                  float(edge_auc[i]), reason, bool(box_cut[i]),
+                                  float(whole_height_m[i])))
     return out

@@ -164,7 +164,8 @@ def test_bad_boxes_raise():
 
 @pytest.mark.parametrize("kwargs", [dict(grid=2), dict(tol_m=0.0), dict(min_agreement=1.5), dict(max_tilt_deg=0.0),
                                     dict(min_evidence=0), dict(min_edge_auc=1.2), dict(min_box_height_of_type=-0.1),
-                                    dict(max_box_size_of_diameter=0.0), dict(min_edge_pairs=0)])
+                                    dict(max_box_size_of_diameter=0.0), dict(min_edge_pairs=0),
+                                    dict(min_whole_box_height_of_type=1.5), dict(border_px=-1.0)])
 def test_bad_params_raise(kwargs):
     with pytest.raises(ValueError):
         StructureParams(**kwargs)
@@ -212,7 +213,7 @@ def test_focal_length_far_too_long_is_a_size_mismatch():
 
 def test_size_bounds_can_be_off():
     shrunk = DEPTH * np.float32(0.1)
-    s = _check(depth=shrunk, params=StructureParams(min_box_height_of_type=0.0))
+    s = _check(depth=shrunk, params=StructureParams(min_box_height_of_type=0.0, min_whole_box_height_of_type=0.0))
     assert s.reason != "size_mismatch"
 
 
@@ -240,3 +241,81 @@ def test_edge_agreement_ranks_colour_steps_at_depth_jumps():
 def test_rgb_of_another_size_raises():
     with pytest.raises(ValueError, match="rgb"):
         _check(rgb=RGB[:-1])
+
+
+def _render_type(boxes_m: np.ndarray, T_cam_pallet: np.ndarray, K_: np.ndarray = K) -> tuple[np.ndarray, np.ndarray]:
+    """Ideal depth of a posed pallet of any type before the back wall, and its visible box in the image."""
+    v, u = np.mgrid[0:H, 0:W]
+    d_cam = np.stack([(u - K_[0, 2]) / K_[0, 0], (v - K_[1, 2]) / K_[1, 1], np.ones((H, W))], -1).reshape(1, -1, 3)
+    R, t = T_cam_pallet[:3, :3], T_cam_pallet[:3, 3]
+    t_box, _ = cast_rays_boxes((-R.T @ t)[None], d_cam @ R, boxes_m)
+    depth = np.minimum(t_box[0], BACK_WALL_M).reshape(H, W).astype(np.float32)
+    rows, cols = np.nonzero(depth < BACK_WALL_M)
+    return depth, np.array([[cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]], float)
+
+
+@pytest.mark.parametrize("name", ["epal", "eur6", "plastic_3runner_1210", "gma"])
+def test_whole_box_height_uses_the_types_own_geometry(name):
+    """Every type's true pose passes; with the focal length 2x too long its whole box spans half its height."""
+    boxes = get_pallet_model(name).boxes_m
+    T = make_T(R_CAM_PALLET, np.array([0.1, 0.45, 2.5]))
+    depth, box = _render_type(boxes, T)
+    s = structure_check(T[None], boxes, depth, K, box)[0]
+    assert s.ok and not s.box_cut, s
+    height_m = (boxes[:, 1].max(0) - boxes[:, 0].min(0)).min()
+    assert s.box_size_m[1] > StructureParams().min_whole_box_height_of_type * height_m
+    # with fx, fy doubled the depth back-projects to a pallet half the size laterally, at the same range: the
+    # pose network puts the full-size model there (half the lateral offset), larger than the box
+    T_focal = make_T(R_CAM_PALLET, T[:3, 3] * np.array([0.5, 0.5, 1.0]))
+    K_focal = K.copy()
+    K_focal[0, 0] *= 2.0
+    K_focal[1, 1] *= 2.0
+    wrong = structure_check(T_focal[None], boxes, depth, K_focal, box)[0]
+    assert wrong.reason == "size_mismatch" and not wrong.box_cut, wrong
+    assert wrong.whole_height_m == pytest.approx(s.whole_height_m / 2.0, rel=0.15)
+    assert s.whole_height_m == pytest.approx(s.box_size_m[1], rel=0.15)
+
+
+def test_box_cut_by_the_image_edge_keeps_the_looser_bound():
+    """A pallet half below the image's bottom edge shows less than its height: a cut box, not a size mismatch."""
+    T = make_T(R_CAM_PALLET, np.array([0.1, 1.55, 3.0]))
+    depth, box = _render_type(EPAL.boxes_m, T)
+    assert box[0, 3] == H                           # the box ends at the image's bottom edge
+    s = _check(T=T, depth=depth, box=box)
+    assert s.box_cut and s.ok, s
+    assert s.box_size_m[1] < StructureParams().min_whole_box_height_of_type * EPAL.size_m.min()
+
+
+def test_whole_box_height_is_measured_at_the_pallets_depth():
+    """Posts 1.5 m from the camera hide 60 % of the pallet's columns: the median depth in the box is theirs, the
+    pallet's height is measured where the rays found its surface."""
+    depth = DEPTH.copy()
+    cols = np.arange(int(BOX[0, 0]), int(BOX[0, 2]))
+    depth[:, cols[(cols - cols[0]) % 10 < 6]] = 1.5
+    s = _check(depth=depth)
+    assert s.ok and not s.box_cut, s
+    assert s.box_size_m[1] < StructureParams().min_whole_box_height_of_type * EPAL.size_m.min()   # at the posts
+    assert s.whole_height_m == pytest.approx(_check().whole_height_m, rel=0.05)
+
+
+def test_fit_check_stage_names_the_whole_box_height_in_its_rejection():
+    from pallet6d.runtime.candidates import Candidates
+    from pallet6d.runtime.stage_fit import FitCheckStage
+    from pallet6d.runtime.stage_geometry import PalletGeometry
+
+    geoms = tuple(PalletGeometry(name=n, points_m=m.boxes_m.reshape(-1, 3), boxes_m=m.boxes_m, symmetries=m.symmetries,
+                                 size_m=m.size_m, refine_starts=np.zeros((0, 3)))
+                  for n, m in (("epal", EPAL), ("eur6", get_pallet_model("eur6"))))
+    T = make_T(R_CAM_PALLET, np.array([0.1, 0.45, 2.5]))
+    depth, box = _render_type(geoms[1].boxes_m, T)
+    K_focal = K.copy()
+    K_focal[0, 0] *= 2.0
+    K_focal[1, 1] *= 2.0
+    stage = FitCheckStage(geoms, tol_m=0.04, min_fit=0.0, min_confidence=0.0)
+    right, wrong = (Candidates.new(box, [0.9], [0], [1], num_points=8) for _ in range(2))
+    right.assign(np.arange(1), T_cam_pallet=T[None])
+    wrong.assign(np.arange(1), T_cam_pallet=make_T(R_CAM_PALLET, T[:3, 3] * np.array([0.5, 0.5, 1.0]))[None])
+    stage.check_structure(right, np.arange(1), depth, K)
+    stage.check_structure(wrong, np.arange(1), depth, K_focal)
+    assert right.reason[0] == "", right.detail[0]          # the eur6 at its true pose passes
+    assert wrong.reason[0] == "size_mismatch" and "tall at the pallet's depth" in wrong.detail[0], wrong.detail[0]
