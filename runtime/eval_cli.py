@@ -94,7 +94,6 @@ def rescore(results: dict, data: str | Path, split: str | None = None, tol_m: fl
     from .evaluation import PalletRecord, counted_pallets, ground_truths_from_bop, summarize
 
     ds = BopDataset(data, split)
-    models = dataset_models(ds, estimator.pallet_types)   # each ground truth scored with its own model
     gts_of: dict[int, tuple] = {}
     records, dropped_detected = [], 0
     for r in results["records"]:
