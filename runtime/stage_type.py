@@ -5,13 +5,16 @@ bundle; the depth then tells the types apart, as their sizes and boards differ (
 blocks, stringers, legs, runners, closed decks). The pose network poses every type in the same frame (the
 centre of its bounding box, x along the length, z up), so per candidate whose class reports several types:
 
-1. every such type's model is scored at the network's pose against the candidate's sampled points
-   (`fit.fit_scores`: inlier fraction times one minus the free-space violation, against the type's boards);
+1. every such type is scored at the network's pose: its fit to the candidate's sampled points (`fit.fit_scores`:
+   inlier fraction times one minus the free-space violation) times the structure check's agreement with its
+   boards and openings (`structure.structure_check`: rays that find a board where the type has one or see into
+   an opening where it has one). The fit alone cannot tell types apart: a solid-deck or wider model explains an
+   EPAL's front face as well as the EPAL does; the rays into its fork pockets tell;
 2. the best `keep` of them are refined (`RefinerStage.refine`, each with its own boards and starts), and the
-   type whose refined pose fits the depth best wins, with that pose and fit: the refiner stage then leaves the
-   row as it is. Types without boards, or refinement off: step 1's best type wins, unrefined.
+   type whose refined pose scores best the same way wins, with that pose and fit: the refiner stage then leaves
+   the row as it is. Types without boards, or refinement off: step 1's best type wins, unrefined.
 
-Cost: one refinement per kept type instead of one per candidate.
+Cost: a structure check per type and one refinement per kept type, instead of one refinement per candidate.
 """
 from __future__ import annotations
 
@@ -24,6 +27,7 @@ from .deadline import Deadline, elapsed_ms
 from .fit import fit_scores
 from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
+from .structure import structure_check
 
 __all__ = ["TypeChoiceStage"]
 
@@ -52,8 +56,8 @@ class TypeChoiceStage:
         return any(len(t) > 1 for t in self.types_of_class.values())
 
     def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
-        """Fit score of each type at the network's pose of each row (-inf for the types its class does not
-        report). :return: (len(rows), number of types)."""
+        """Fit score times structure agreement of each type at the network's pose of each row (-inf for the types
+        its class does not report). :return: (len(rows), number of types)."""
         score = np.full((len(rows), len(self.geometries)), -np.inf)
         for j, g in enumerate(self.geometries):
             mine = np.flatnonzero([j in self.types_of_class[int(c)] for c in cands.class_ids[rows]])
@@ -61,8 +65,22 @@ class TypeChoiceStage:
                 continue
             r = rows[mine]
             score[mine, j] = fit_scores(cands.T_net[r], cands.points_cam[r], None, g.points_m, depth_m, K, self.tol_m,
-                                        model_boxes_m=g.boxes_m)[2]
+                                        model_boxes_m=g.boxes_m)[2] * self.agreement(
+                cands.T_net[r], cands.boxes_xyxy[r], np.full(len(r), j), depth_m, K)
         return score
+
+    def agreement(self, T: np.ndarray, boxes_xyxy: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
+                  K: np.ndarray) -> np.ndarray:
+        """The structure check's agreement of each pose with its own type's boards and openings (rays that find
+        a board where the type has one, or see into an opening where it has one). :return: (n,)."""
+        out = np.ones(len(T))
+        for j in np.unique(type_index):
+            g = self.geometries[int(j)]
+            if g.boxes_m is None:
+                continue
+            mine = np.flatnonzero(type_index == j)
+            out[mine] = [s.agreement for s in structure_check(T[mine], g.boxes_m, depth_m, K, boxes_xyxy[mine])]
+        return out
 
     def choose(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
         """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined."""
@@ -84,9 +102,10 @@ class TypeChoiceStage:
         box_obs = {int(i): self.refiner.box_points(cands.pixels[i], depth_m, K) for i in np.unique(src)}
         T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
                                      pair_type, depth_m, K)
+        select = fit[:, 2] * self.agreement(T, cands.boxes_xyxy[src], pair_type, depth_m, K)
         for k in np.unique(pair_row):
             mine = np.flatnonzero(pair_row == k)
-            win = mine[int(np.argmax(fit[mine, 2]))]
+            win = mine[int(np.argmax(select[mine]))]
             cands.assign([rows[k]], type_index=[pair_type[win]], T_cam_pallet=T[win][None], fit=fit[win][None])
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
