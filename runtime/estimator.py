@@ -209,7 +209,7 @@ class PalletEstimator:
         self._check_graphs_match_manifest()
         self.refiner = RefinerStage(self.pallet_types, o)
         self.type_choice = TypeChoiceStage(self.pallet_types, self._types_of_class, self.refiner, o.fit_tol_m,
-                                           o.type_candidates)
+                                           o.type_candidates, o.structure or StructureParams())
         self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure)
 
     @classmethod

@@ -27,7 +27,7 @@ from .deadline import Deadline, elapsed_ms
 from .fit import fit_scores
 from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
-from .structure import structure_check
+from .structure import StructureParams, structure_check
 
 __all__ = ["TypeChoiceStage"]
 
@@ -39,16 +39,18 @@ class TypeChoiceStage:
     :param refiner: the estimator's `RefinerStage` (its refinement decides between the kept types).
     :param tol_m: tolerance of the fit score that ranks the types at the network's pose, metres.
     :param keep: how many of a candidate's best-ranked types are refined (>= 1).
+    :param structure: the structure check's ray parameters for the agreement.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], types_of_class: dict[int, tuple[int, ...]],
-                 refiner: RefinerStage, tol_m: float, keep: int) -> None:
+                 refiner: RefinerStage, tol_m: float, keep: int, structure: StructureParams = StructureParams()) -> None:
         if int(keep) < 1:
             raise ValueError(f"keep must be >= 1, got {keep}")
         self.geometries = tuple(geometries)
         self.types_of_class = {int(c): tuple(int(j) for j in t) for c, t in types_of_class.items()}
         self.refiner = refiner
         self.tol_m, self.keep = float(tol_m), int(keep)
+        self.structure = structure
 
     @property
     def needed(self) -> bool:
@@ -79,7 +81,8 @@ class TypeChoiceStage:
             if g.boxes_m is None:
                 continue
             mine = np.flatnonzero(type_index == j)
-            out[mine] = [s.agreement for s in structure_check(T[mine], g.boxes_m, depth_m, K, boxes_xyxy[mine])]
+            scores = structure_check(T[mine], g.boxes_m, depth_m, K, boxes_xyxy[mine], self.structure)
+            out[mine] = [sc.agreement for sc in scores]
         return out
 
     def choose(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
