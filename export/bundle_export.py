@@ -175,8 +175,7 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
     for net in nets.values():
         net.eval()
     calib = calib or make_calibration_set(cfg, frames=calib_frames, max_crops=calib_crops, seed=seed,
-                                          detector_sizes=sizes, **({"presets": tuple(calib_presets)}
-                                                                   if calib_presets else {}))
+                                          presets=calib_presets, detector_sizes=sizes)
     sampled = bool(getattr(cfg.fusion, "sampled", False))   # the fusion graph takes `choose`, gives (B, N, C)
     fusion_in = [calib.rgb_crops, calib.depth_crops, calib.choose][:3 if sampled else 2]
     training = None
@@ -385,7 +384,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                   random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
                   calib: CalibrationSet | None = None, calib_frames: int = 8, calib_crops: int = 96,
-                  calib_presets: tuple[str, ...] | None = None, fp16_weights: bool = True, int8_stages: tuple[str, ...] = INT8_STAGES,
+                  calib_presets: tuple[str, ...] | None = None, fp16_weights: bool = True,
+                  int8_stages: tuple[str, ...] = INT8_STAGES,
                   pallet_types: tuple[str, ...] | None = None,
                   detector_input_sizes: tuple[tuple[int, int], ...] | None = None) -> ExportedBundle:
     """Export `cfg`'s networks to a new bundle folder `out` (the steps of the module docstring).

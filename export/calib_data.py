@@ -18,9 +18,11 @@ from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 from .config import ModelConfig
 
-__all__ = ["CalibrationSet", "make_calibration_set", "pose_input_spec"]
+__all__ = ["CalibrationSet", "PAPER_PRESETS", "make_calibration_set", "pose_input_spec"]
 
 log = logging.getLogger(__name__)
+
+PAPER_PRESETS = ("virtual-occluded", "indoor-noisy", "virtual-clean")   # the default calibration presets
 
 
 @dataclass(frozen=True)
@@ -149,9 +151,11 @@ def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int,
 
 
 def make_calibration_set(cfg: ModelConfig, frames: int = 8, max_crops: int = 96, seed: int = 0,
-                         presets: tuple[str, ...] = ("virtual-occluded", "indoor-noisy", "virtual-clean"),
-                         synthetic: bool = False, detector_sizes=()) -> CalibrationSet:
+                         presets: tuple[str, ...] | None = None, synthetic: bool = False,
+                         detector_sizes=()) -> CalibrationSet:
     """Calibration inputs from the simulator, or synthetic ones when it is not installed or `synthetic`.
+
+    :param presets: the sim presets the frames and crops come from, in turn (None: `PAPER_PRESETS`).
 
     :param detector_sizes: detector input sizes (H, W) to letterbox the frames at besides the config's
         `input_hw` (`CalibrationSet.images_at`).
@@ -165,4 +169,4 @@ def make_calibration_set(cfg: ModelConfig, frames: int = 8, max_crops: int = 96,
     except ImportError:
         log.warning("pallet6d.sim is not available: calibrating on synthetic inputs")
         return _synthetic(cfg, frames, max_crops, seed, other_sizes)
-    return _from_sim(cfg, frames, max_crops, seed, presets, other_sizes)
+    return _from_sim(cfg, frames, max_crops, seed, tuple(presets or PAPER_PRESETS), other_sizes)

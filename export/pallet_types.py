@@ -64,10 +64,9 @@ def class_ids_for_types(names: tuple[str, ...], classes: tuple[str, ...], extern
     """The detector class of each pallet type.
 
     Our own detector has one class per type, in order, or one class for every type (a detector trained on
-    photographs without type labels: the runtime tells the types apart by their fit to the depth). An external
-    detector's class that reports a type is
-    the one with the type's name; a single type in a detector without such a class is its first class whose
-    name says "pallet" (class 0 when none does).
+    photographs without type labels: the runtime tells the types apart by the depth). An external detector's
+    class that reports a type is the one with the type's name; a single type in a detector without such a class
+    is its first class whose name says "pallet" (class 0 when none does).
 
     :raises ExportError: the classes and the types do not match.
     """

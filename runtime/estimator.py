@@ -95,8 +95,8 @@ class EstimatorOptions:
         than `refine_max_rms_m`: on stereo-noisy depth some landings reach 3-4 mm by chance and then win
         wrongly; on clean depth most landings that help are below 3 mm.
     :ivar type_candidates: where one detector class reports several pallet types, the candidate is refined
-        with this many of them, the best-fitting at the network's pose first, and the best refined fit decides
-        its type (`stage_type.py`).
+        with this many of them, those that best fit the depth and show their boards and openings at the
+        network's pose, and the refined pose that does so best decides its type (`stage_type.py`).
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's

@@ -185,3 +185,33 @@ def test_depth_missing_gives_zeros_and_a_float_depth_image_is_refused(bop_copy):
     cv2.imwrite(str(scene / "depth" / "000000.tif"), np.ones(frame.depth_m.shape, np.float32))
     with pytest.raises(BopFormatError, match="000000.tif.*integer"):
         BopDataset(bop_copy)[0]
+
+
+def test_ply_mesh_ascii_and_surface_samples(tmp_path):
+    from pallet6d.runtime.bop import read_ply_mesh, sample_surface
+
+    path = tmp_path / "square.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+                    "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n1 1 0\n0 1 0\n3 0 1 2\n3 0 2 3\n")
+    verts, faces = read_ply_mesh(path)
+    np.testing.assert_array_equal(verts, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(faces, [[0, 1, 2], [0, 2, 3]])
+    pts = sample_surface(verts, faces, 4000, seed=1)
+    assert pts.shape == (4000, 3) and np.all(pts[:, 2] == 0) and pts[:, :2].min() >= 0 and pts[:, :2].max() <= 1
+    assert abs(pts[:, 0].mean() - 0.5) < 0.03 and abs(pts[:, 1].mean() - 0.5) < 0.03   # uniform over the square
+
+
+@pytest.mark.parametrize("text, match", [
+    ("not a ply", "not a PLY file"),
+    ("ply\nformat binary_big_endian 1.0\nelement vertex 0\nproperty float x\nproperty float y\nproperty float z\n"
+     "element face 0\nproperty list uchar int vertex_indices\nend_header\n", "expected float x, y, z"),
+    ("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
+     "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n3 0 1 2\n", "face index outside"),
+])
+def test_ply_mesh_refuses_other_layouts(tmp_path, text, match):
+    from pallet6d.runtime.bop import read_ply_mesh
+
+    (tmp_path / "m.ply").write_text(text)
+    with pytest.raises(BopFormatError, match=match):
+        read_ply_mesh(tmp_path / "m.ply")
