@@ -114,6 +114,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector: also train on the train split of real photographs imported by "
                              "`python -m pallet6d.export.real_data import` (this folder; docs/data.md)")
     parser.add_argument("--real-max-images", type=int, help="detector: use at most N real photographs")
+    parser.add_argument("--real-repeat-large", type=int, default=1, metavar="K",
+                        help="detector: train real photographs holding a box >= 20%% of the image tall K times (1)")
+    parser.add_argument("--select", choices=("loss", "near_f1"), default="loss",
+                        help="detector: best.pt by validation loss (default) or by F1 of real near-box recall "
+                             "(boxes >= 8%% of the image tall) and real precision")
     parser.add_argument("--detector", type=Path,
                         help="merge: detector checkpoint, or a bundle folder to take its detector")
     parser.add_argument("--pose", type=Path, help="merge: pose checkpoint, or a bundle folder to take its pose stage")
@@ -226,7 +231,8 @@ def main(args: argparse.Namespace) -> int:
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,
-                                   real_max_images=args.real_max_images, input_sizes=sizes, **common)
+                                   real_max_images=args.real_max_images, input_sizes=sizes,
+                                   real_repeat_large=args.real_repeat_large, select=args.select, **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

@@ -12,7 +12,13 @@ loss, and precision/recall at IoU 0.5 of the runtime's decoding (`runtime.detect
 Real photographs (`real=`: a dataset imported by `real_data.py`) join the simulated frames: their train split,
 cut again by capture sequence for validation (`real_samples.py`). They carry no pallet type, so their boxes are
 class -1 for `DetectorLoss` (box and "is a pallet" only) while simulated boxes also teach the type. Validation
-reports precision and recall on the simulated and the real validation frames apart.
+reports precision and recall on the simulated and the real validation frames apart, and recall on the real
+boxes at least 8 % of the image tall (`recall_real_near`: the pallets a forklift approaches; LOCO's many far,
+small pallets would otherwise dominate the real numbers).
+
+Near pallets are few among the real photographs (LOCO is mostly far pallets): `real_repeat_large` repeats the
+real training photographs that hold a box at least 20 % of the image tall, and `select="near_f1"` keeps the
+checkpoint with the best F1 of near-box recall and real precision instead of the lowest validation loss.
 """
 from __future__ import annotations
 
@@ -41,6 +47,9 @@ log = logging.getLogger(__name__)
 
 MAX_SIDE = 1280          # frames are kept at most this large: a 640-wide input zoomed 2x stays sharp
 OWN_SIZE_PROB = 0.75     # share of batches at the input size their first frame runs at; the rest at any size
+NEAR_FRACTION = 0.08     # real boxes at least this fraction of the image tall count as near (medium + large)
+LARGE_FRACTION = 0.2     # real photographs with a box this tall are the ones `real_repeat_large` repeats
+SELECTIONS = ("loss", "near_f1")
 
 
 @dataclass
@@ -63,9 +72,12 @@ class DetectorData:
 def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, cache_dir: str | Path | None,
                        val_fraction: float = 0.1, max_frames: int | None = None,
                        progress: bool = True, real: str | Path | None = None,
-                       real_max_images: int | None = None) -> DetectorData:
+                       real_max_images: int | None = None, real_repeat_large: int = 1) -> DetectorData:
     """Letterboxed frames of every dataset (cached), split into train/val frames; with `real`, the imported
-    real photographs' train split joins them (its own sequence-wise validation cut)."""
+    real photographs' train split joins them (its own sequence-wise validation cut), those with a large box
+    `real_repeat_large` times."""
+    if real_repeat_large < 1:
+        raise ValueError(f"real_repeat_large must be >= 1, got {real_repeat_large}")
     from tqdm import tqdm
 
     parts, fps = [], []
@@ -92,7 +104,11 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
 
         r_train, r_val, r_fp = load_real_samples(real, MAX_SIDE, val_fraction, real_max_images, seed)
         samples = DetectorSamples.concat([samples, r_train, r_val])
-        train_idx = np.concatenate([train_idx, n + np.arange(len(r_train))])
+        large = np.array([has_large_box(b, img.shape[0]) for b, img in zip(r_train.boxes, r_train.images)], bool)
+        repeats = np.where(large, real_repeat_large, 1)
+        train_idx = np.concatenate([train_idx, n + np.repeat(np.arange(len(r_train)), repeats)])
+        log.info("real photographs with a large box: %d of %d, each trained %d times",
+                 int(large.sum()), len(large), real_repeat_large)
         val_idx = np.concatenate([val_idx, n + len(r_train) + np.arange(len(r_val))])
         is_real = np.concatenate([is_real, np.ones(len(r_train) + len(r_val), bool)])
         fps.append({"real": r_fp})
@@ -100,11 +116,25 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     return DetectorData(samples, train_idx, val_idx, fps, is_real)
 
 
+def has_large_box(boxes_xyxy: np.ndarray, image_h_px: int) -> bool:
+    """:param boxes_xyxy: (n, 4) in pixels of an image `image_h_px` tall."""
+    b = np.asarray(boxes_xyxy, np.float64).reshape(-1, 4)
+    return bool(len(b)) and float((b[:, 3] - b[:, 1]).max()) >= LARGE_FRACTION * image_h_px
+
+
 class DetectorTrainer:
-    """:param input_sizes: the detector's input sizes (H, W), multiples of 32; default: the config's one size."""
+    """:param input_sizes: the detector's input sizes (H, W), multiples of 32; default: the config's one size.
+    :param select: the validation metric that picks `best.pt`: "loss" or "near_f1" (1 - F1 of real near-box
+        recall and real precision; needs real validation frames)."""
 
     def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu",
-                 amp: bool = False, input_sizes: Sequence[tuple[int, int]] | None = None) -> None:
+                 amp: bool = False, input_sizes: Sequence[tuple[int, int]] | None = None,
+                 select: str = "loss") -> None:
+        if select not in SELECTIONS:
+            raise ValueError(f"select must be one of {SELECTIONS}, got {select!r}")
+        if select == "near_f1" and not data.real[data.val_idx].any():
+            raise ValueError("select='near_f1' needs real validation photographs (--real)")
+        self.select = select
         self.cfg, self.data, self.aug, self.device, self.amp = cfg, data, aug, torch.device(device), amp
         self.input_sizes = [tuple(int(v) for v in hw) for hw in (input_sizes or [cfg.detector.input_hw])]
         for h, w in self.input_sizes:
@@ -162,13 +192,14 @@ class DetectorTrainer:
     @torch.no_grad()
     def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
         """Validation loss over all validation frames; precision/recall over the simulated ones, and (`_real`)
-        over the real ones when there are any."""
+        over the real ones when there are any, with the recall of the real near boxes; `metric` by `select`."""
         idx_all = self.data.val_idx
         sizes = [self.input_hw_of(int(i)) for i in idx_all]
         groups = [idx_all[[k for k, hw in enumerate(sizes) if hw == size]] for size in dict.fromkeys(sizes)]
         chunks = [g[i:i + batch] for g in groups for i in range(0, len(g), batch)]   # one input size per batch
         total = 0.0
         counts = {False: [0, 0, 0], True: [0, 0, 0]}   # real? -> tp, n_pred, n_gt
+        near = [0, 0]                                   # real boxes >= NEAR_FRACTION tall: found, all
         for idx in chunks:
             x, targets = self.batch(idx, None)
             raw = self.detector.forward_raw(x)
@@ -178,40 +209,66 @@ class DetectorTrainer:
             for k, t in enumerate(targets):
                 det = decode_yolov8(decoded[k], score_threshold, 0.5, tuple(range(self.detector.head.nc)), 300)
                 gt = t[:, 1:].cpu().numpy()
-                c = counts[bool(self.data.real[idx[k]])]
+                real = bool(self.data.real[idx[k]])
+                c = counts[real]
                 c[1], c[2] = c[1] + len(det.boxes_xyxy), c[2] + len(gt)
-                if len(det.boxes_xyxy) and len(gt):
-                    m = box_iou(det.boxes_xyxy, gt) >= iou
-                    used: set[int] = set()
-                    for row in m:   # decode returns boxes by descending score
-                        j = next((j for j in np.flatnonzero(row) if j not in used), None)
-                        if j is not None:
-                            used.add(int(j))
-                    c[0] += len(used)
+                found = match_greedy(det.boxes_xyxy, gt, iou)
+                c[0] += int(found.sum())
+                if real:   # near: tall relative to the letterboxed image's own height
+                    content_h = letterboxed_height(self.data.samples.images[idx[k]].shape[:2], tuple(x.shape[2:]))
+                    is_near = (gt[:, 3] - gt[:, 1]) >= NEAR_FRACTION * content_h
+                    near[0] += int((found & is_near).sum())
+                    near[1] += int(is_near.sum())
         loss = total / max(len(idx_all), 1)
         out = {"metric": loss, "loss": loss}
+        if near[1]:
+            out.update({"recall_real_near": near[0] / near[1], "n_gt_real_near": near[1]})
         for is_real, suffix in ((False, ""), (True, "_real")):
             tp, n_pred, n_gt = counts[is_real]
             if is_real and n_gt == 0 and n_pred == 0:
                 continue
             out.update({f"precision{suffix}": tp / n_pred if n_pred else 0.0,
                         f"recall{suffix}": tp / n_gt if n_gt else 0.0, f"n_gt{suffix}": n_gt})
+        if self.select == "near_f1":
+            r, p = out.get("recall_real_near", 0.0), out.get("precision_real", 0.0)
+            out["near_f1"] = 2 * r * p / (r + p) if r + p > 0 else 0.0
+            out["metric"] = 1.0 - out["near_f1"]
         return out
+
+
+def letterboxed_height(image_hw: tuple[int, int], input_hw: tuple[int, int]) -> float:
+    """Height in input pixels of an (H, W) image letterboxed into `input_hw` (scaled to fit, aspect kept)."""
+    h, w = image_hw
+    return h * min(input_hw[0] / h, input_hw[1] / w)
+
+
+def match_greedy(det_xyxy: np.ndarray, gt_xyxy: np.ndarray, iou: float) -> np.ndarray:
+    """Which ground-truth boxes a detection claims at IoU >= `iou`, detections taken in the given (descending
+    score) order, each claiming the first unclaimed box it overlaps. :return: (n_gt,) bool."""
+    found = np.zeros(len(gt_xyxy), bool)
+    if len(det_xyxy) and len(gt_xyxy):
+        for row in box_iou(det_xyxy, gt_xyxy) >= iou:
+            j = next((j for j in np.flatnonzero(row) if not found[j]), None)
+            if j is not None:
+                found[j] = True
+    return found
 
 
 def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
                    aug: AugmentConfig | None = None, resume: bool = False, cache_dir: str | Path | None = None,
                    val_fraction: float = 0.1, max_frames: int | None = None, command: str = "",
                    progress: bool = True, init: str | Path | None = None, real: str | Path | None = None,
-                   real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None) -> dict:
+                   real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None,
+                   real_repeat_large: int = 1, select: str = "loss") -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry."""
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
-                            val_fraction, max_frames, progress, real, real_max_images)
-    trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes)
+                            val_fraction, max_frames, progress, real, real_max_images, real_repeat_large)
+    trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes,
+                              select=select)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases
     decay = [p for n, p in trainer.detector.named_parameters() if p.ndim > 1]
     no_decay = [p for n, p in trainer.detector.named_parameters() if p.ndim <= 1]
@@ -222,6 +279,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                   "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,
+                  "real_repeat_large": real_repeat_large, "select": select,
                   "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx)),
                               "real": int(dd.real.sum())},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}

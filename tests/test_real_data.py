@@ -237,6 +237,69 @@ def test_detector_data_mixes_real_frames_as_untyped_boxes(raw_sources, sim_bop_d
         np.testing.assert_array_equal(a, b)
 
 
+def test_real_photographs_with_a_large_box_repeat_and_near_f1_selects(raw_sources, sim_bop_dataset, tmp_path):
+    pytest.importorskip("torch")
+    from pallet6d.export.config import get_config
+    from pallet6d.export.train_data import NO_AUGMENT
+    from pallet6d.export.train_detector import DetectorTrainer, has_large_box, load_detector_data
+
+    raw, sources = raw_sources
+    out = tmp_path / "real"
+    import_sources(raw, out, sources, heldout_fraction=0.3, seed=0)
+    cfg = get_config("tiny")
+    kw = dict(seed=0, cache_dir=tmp_path / "cache", progress=False, real=out, val_fraction=0.0)
+    once = load_detector_data(cfg, [sim_bop_dataset], **kw)   # every real photograph trains
+    thrice = load_detector_data(cfg, [sim_bop_dataset], real_repeat_large=3, **kw)
+    s = once.samples
+    large = [i for i in once.train_idx if once.real[i] and has_large_box(s.boxes[i], s.images[i].shape[0])]
+    assert large, "the fixture needs a real photograph with a large box"
+    counts = np.bincount(thrice.train_idx, minlength=len(s))
+    assert all(counts[i] == 3 for i in large)
+    assert len(thrice.train_idx) == len(once.train_idx) + 2 * len(large)
+    np.testing.assert_array_equal(thrice.val_idx, once.val_idx)
+    with pytest.raises(ValueError, match="real_repeat_large"):
+        load_detector_data(cfg, [sim_bop_dataset], real_repeat_large=0, **kw)
+
+    with pytest.raises(ValueError, match="real validation"):   # no real validation photographs to select by
+        DetectorTrainer(cfg, once, NO_AUGMENT, select="near_f1")
+    with_val = load_detector_data(cfg, [sim_bop_dataset], **{**kw, "val_fraction": 0.1})
+    assert with_val.real[with_val.val_idx].any()
+    v = DetectorTrainer(cfg, with_val, NO_AUGMENT, select="near_f1").validate()
+    assert v["n_gt_real_near"] > 0 and 0.0 <= v["recall_real_near"] <= 1.0
+    assert 0.0 <= v["near_f1"] <= 1.0 and v["metric"] == pytest.approx(1.0 - v["near_f1"])
+    by_loss = DetectorTrainer(cfg, with_val, NO_AUGMENT).validate()
+    assert by_loss["metric"] == by_loss["loss"] and "near_f1" not in by_loss
+    with pytest.raises(ValueError, match="select"):
+        DetectorTrainer(cfg, once, NO_AUGMENT, select="recall")
+
+
+@pytest.mark.parametrize("boxes, image_h, expected", [
+    (np.zeros((0, 4)), 100, False),
+    ([[0, 0, 10, 19.9]], 100, False),
+    ([[0, 0, 10, 20.0]], 100, True),
+    ([[0, 0, 10, 5], [5, 10, 50, 60]], 100, True),
+])
+def test_has_large_box(boxes, image_h, expected):
+    pytest.importorskip("torch")
+    from pallet6d.export.train_detector import has_large_box
+
+    assert has_large_box(np.asarray(boxes, float), image_h) is expected
+
+
+def test_greedy_matching_and_letterboxed_height():
+    pytest.importorskip("torch")
+    from pallet6d.export.train_detector import letterboxed_height, match_greedy
+
+    gt = np.array([[0, 0, 10, 10], [20, 20, 30, 30]], float)
+    det = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [21, 21, 30, 30]], float)   # a duplicate claims nothing
+    np.testing.assert_array_equal(match_greedy(det, gt, 0.5), [True, True])
+    np.testing.assert_array_equal(match_greedy(det[:2], gt, 0.5), [True, False])
+    assert match_greedy(np.zeros((0, 4)), gt, 0.5).tolist() == [False, False]
+    assert match_greedy(det, np.zeros((0, 4)), 0.5).shape == (0,)
+    assert letterboxed_height((300, 1280), (192, 640)) == pytest.approx(150.0)   # width-bound
+    assert letterboxed_height((480, 640), (192, 640)) == pytest.approx(192.0)    # height-bound
+
+
 def test_card_ships_beside_a_bundle(raw_sources, tmp_path):
     from pallet6d.export.real_data import ship_card
 
