@@ -33,7 +33,8 @@ from .calib_data import CalibrationSet, make_calibration_set
 from .config import ModelConfig
 from .detector import build_detector
 from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git_commit, load_checkpoint,
-                            read_checkpoint, trained_input_hw, trained_input_sizes, warm_up_batchnorm)
+                            read_checkpoint, trained_classes, trained_input_hw, trained_input_sizes,
+                            warm_up_batchnorm)
 from .flops import count_gflops
 from .fusion import build_fusion
 from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
@@ -149,6 +150,8 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
                               "--detector-input-sizes is for our own detector")
         sizes = (det_hw,)
     else:
+        if ckpt is not None and (names := trained_classes(ckpt)) is not None:
+            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, classes=names))   # as trained
         if classes is not None:
             if ckpt is not None and len(classes) != len(cfg.detector.classes):
                 raise ExportError(f"the checkpoint's detector has {len(cfg.detector.classes)} classes, not "

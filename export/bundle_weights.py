@@ -249,7 +249,8 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
     if bundle.detector.source != "pallet6d" and "detector" in nets:
         raise BundleWeightsError(f"--init {root}: its detector is an external graph, not one of ours")
     cfg = get_config(bundle.config)
-    cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw)))
+    cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw),
+                                                   classes=tuple(bundle.detector.classes)))
     calib = make_calibration_set(cfg, frames=calib_frames, seed=seed)
     record: dict = {"bundle": str(root), "name": bundle.name, "config": bundle.config, "graphs": {}, "parity": {}}
     for stage, net in nets.items():
@@ -284,7 +285,8 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
     bundle = _read_bundle(bundle_dir)
     cfg = get_config(bundle.config)
     if stage == "detector":
-        nets = {"detector": build_detector(dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw)))}
+        nets = {"detector": build_detector(dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw),
+                                                               classes=tuple(bundle.detector.classes)))}
     elif stage == "pose":
         nets = {"fusion": build_fusion(cfg.fusion), "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
     else:
@@ -296,6 +298,7 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
     if stage == "detector":
         provenance["input_hw"] = list(bundle.detector.input_hw)
         provenance["input_sizes"] = [list(hw) for hw in bundle.detector.input_sizes]
+        provenance["classes"] = list(bundle.detector.classes)
     return {"format": CKPT_FORMAT, "format_version": 1, "stage": stage, "config": bundle.config,
             "epoch": before.get("epoch"), "val": before.get("val"), "provenance": provenance,
             **{k: net.state_dict() for k, net in nets.items()}}

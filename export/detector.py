@@ -14,7 +14,7 @@ from torch import nn
 
 from .config import DetectorConfig
 
-__all__ = ["YoloDetector", "build_detector", "make_anchors", "STRIDES"]
+__all__ = ["YoloDetector", "build_detector", "make_anchors", "STRIDES", "widen_class_outputs"]
 
 STRIDES = (8, 16, 32)
 
@@ -198,3 +198,21 @@ class YoloDetector(nn.Module):
 def build_detector(cfg: DetectorConfig) -> YoloDetector:
     """The detector for `cfg` (random weights)."""
     return YoloDetector(cfg)
+
+
+def widen_class_outputs(state: dict[str, torch.Tensor], model: nn.Module) -> dict[str, torch.Tensor]:
+    """A one-class detector's weights made to fit `model`'s several classes: each class starts as the one
+    class (its output conv's row repeated), so a detector that tells pallet types apart starts from one that
+    finds pallets. Other entries are returned unchanged (a mismatch there still fails at loading).
+
+    :param state: the trained detector's state dict. :return: a new state dict.
+    """
+    target = model.state_dict()
+    out = dict(state)
+    for k, v in state.items():
+        t = target.get(k)
+        if (k.startswith("head.cls.") and t is not None and v.shape != t.shape and v.shape[0] == 1
+                and v.shape[1:] == t.shape[1:]):
+            out[k] = v.repeat(t.shape[0], *([1] * (v.ndim - 1)))
+    return out
+

@@ -86,6 +86,20 @@ def trained_input_hw(ckpt: dict) -> tuple[int, int] | None:
     return (int(hw[0]), int(hw[1])) if hw is not None else None
 
 
+def trained_classes(ckpt: dict) -> tuple[str, ...] | None:
+    """The class names a checkpoint's detector was trained with (provenance key `classes`: one per pallet
+    type, or one for every type); None when not recorded (then the config's classes apply).
+
+    :raises ExportError: the record is not a non-empty list of names.
+    """
+    names = _detector_provenance(ckpt).get("classes")
+    if names is None:
+        return None
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) and n for n in names):
+        raise ExportError(f"the checkpoint's detector provenance has classes {names!r}, not a list of names")
+    return tuple(names)
+
+
 def trained_input_sizes(ckpt: dict) -> tuple[tuple[int, int], ...] | None:
     """The detector input sizes [[H, W], ...] a checkpoint's detector was trained on (provenance key
     `input_sizes`); None when not recorded (then it was trained at `input_hw` alone).

@@ -63,8 +63,9 @@ def trained_pallet_models(training: dict | None, default: str) -> list[PalletMod
 def class_ids_for_types(names: tuple[str, ...], classes: tuple[str, ...], external: bool) -> tuple[int, ...]:
     """The detector class of each pallet type.
 
-    Our own detector has one class per type, in order, or one class for every type (a detector trained on
-    photographs without type labels: the runtime tells the types apart by the depth). An external detector's
+    Our own detector has one class for every type (the runtime tells the types apart by the depth), or one
+    class per type: the class named after it, else (classes named otherwise) the types in order. An external
+    detector's
     class that reports a type is the one with the type's name; a single type in a detector without such a class
     is its first class whose name says "pallet" (class 0 when none does).
 
@@ -73,6 +74,8 @@ def class_ids_for_types(names: tuple[str, ...], classes: tuple[str, ...], extern
     if not external:
         if len(classes) == 1:
             return (0,) * len(names)
+        if all(n in classes for n in names):
+            return tuple(classes.index(n) for n in names)
         if len(classes) != len(names):
             raise ExportError(f"the detector has {len(classes)} classes {list(classes)} but {len(names)} pallet "
                               f"types {list(names)} were asked for")

@@ -114,6 +114,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector: also train on the train split of real photographs imported by "
                              "`python -m pallet6d.export.real_data import` (this folder; docs/data.md)")
     parser.add_argument("--real-max-images", type=int, help="detector: use at most N real photographs")
+    parser.add_argument("--detector-classes", metavar="types|NAME,...",
+                        help="detector: its classes: 'types' (one per pallet type of the training data, so the "
+                             "detector reports the type), or names of pallet types; default one class, 'pallet'")
     parser.add_argument("--real-repeat-large", type=int, default=1, metavar="K",
                         help="detector: train real photographs holding a box >= 20%% of the image tall K times (1)")
     parser.add_argument("--select", choices=("loss", "near_f1"), default="loss",
@@ -122,6 +125,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", type=Path,
                         help="merge: detector checkpoint, or a bundle folder to take its detector")
     parser.add_argument("--pose", type=Path, help="merge: pose checkpoint, or a bundle folder to take its pose stage")
+
+
+def detector_classes(spec: str, data: list[Path]) -> tuple[str, ...]:
+    """The detector's class names: "types" = every pallet type the datasets' models_info names, in catalogue
+    order; else comma-separated catalogue type names.
+
+    :raises ValueError: an unknown type name, or no type found in the data.
+    """
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.sim.pallets import PALLET_MODELS
+
+    if spec.strip() == "types":
+        found = {v.get("name") for root in data for v in BopDataset(root).models_info.values()}
+        names = tuple(n for n in PALLET_MODELS if n in found)
+        if not names:
+            raise ValueError("--detector-classes types: the datasets name no pallet type of the catalogue "
+                             f"({', '.join(PALLET_MODELS)})")
+        return names
+    names = tuple(n.strip() for n in spec.split(",") if n.strip())
+    unknown = [n for n in names if n not in PALLET_MODELS]
+    if unknown or not names or len(set(names)) != len(names):
+        raise ValueError(f"--detector-classes {spec!r}: give 'types' or distinct pallet types of "
+                         f"{', '.join(PALLET_MODELS)}")
+    return names
 
 
 def _hw(text: str) -> tuple[int, int]:
@@ -204,6 +231,12 @@ def main(args: argparse.Namespace) -> int:
                 print("pallet6d train: --detector-input is for the detector stage", file=sys.stderr)
                 return 2
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=args.detector_input))
+        if args.detector_classes is not None:
+            if args.stage != "detector":
+                print("pallet6d train: --detector-classes is for the detector stage", file=sys.stderr)
+                return 2
+            cfg = cfg.replace(detector=dataclasses.replace(
+                cfg.detector, classes=detector_classes(args.detector_classes, args.data)))
         sizes = args.detector_input_sizes
         if sizes is not None:
             if args.stage != "detector" or not sizes:

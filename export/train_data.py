@@ -168,14 +168,22 @@ def augment_depth(depth_m: np.ndarray, rng: np.random.Generator, aug: AugmentCon
     return d
 
 
+def _box_rows(boxes_xyxy: np.ndarray) -> np.ndarray:
+    """(n, 4 + k) float32 rows of xyxy boxes (a flat or empty input becomes (n, 4))."""
+    boxes = np.asarray(boxes_xyxy, dtype=np.float32)
+    if boxes.ndim != 2 or boxes.shape[1] < 4:
+        boxes = boxes.reshape(-1, 4)
+    return boxes
+
+
 def flip_horizontal(image: np.ndarray, boxes_xyxy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mirror an image left-right and its boxes with it.
 
-    :param image: (H, W, 3). :param boxes_xyxy: (n, 4) pixels.
-    :return: the flipped image and (n, 4) boxes, still x1 < x2.
+    :param image: (H, W, 3). :param boxes_xyxy: (n, 4 + k) pixels; columns after the fourth (a class) ride along.
+    :return: the flipped image and (n, 4 + k) boxes, still x1 < x2.
     """
     w = image.shape[1]
-    boxes = np.asarray(boxes_xyxy, dtype=np.float32).reshape(-1, 4).copy()
+    boxes = _box_rows(boxes_xyxy).copy()
     boxes[:, [0, 2]] = w - boxes[:, [2, 0]]
     return np.ascontiguousarray(image[:, ::-1]), boxes
 
@@ -191,12 +199,13 @@ def place_in_window(image: np.ndarray, boxes_xyxy: np.ndarray, window_hw: tuple[
     Boxes are clipped to the window; one keeps when at least `min_area_kept` of its area stays inside and both
     sides stay `min_side_px` or longer (a pallet cut by the image border is still a pallet).
 
-    :param image: (h, w, 3) uint8. :param boxes_xyxy: (n, 4) frame pixels. :param window_hw: (H, W).
-    :return: the (H, W, 3) uint8 input and (m, 4) float32 boxes in its pixels.
+    :param image: (h, w, 3) uint8. :param boxes_xyxy: (n, 4 + k) frame pixels; columns after the fourth (a class)
+        ride along. :param window_hw: (H, W).
+    :return: the (H, W, 3) uint8 input and (m, 4 + k) float32 boxes in its pixels.
     """
     h, w = image.shape[:2]
     H, W = int(window_hw[0]), int(window_hw[1])
-    boxes = np.asarray(boxes_xyxy, dtype=np.float32).reshape(-1, 4)
+    boxes = _box_rows(boxes_xyxy)
     lo, hi = math.log(max(1.0 - zoom_range, 1e-3)), math.log(max(zoom_in_max, 1e-3))
     s = min(H / h, W / w) * (math.exp(rng.uniform(lo, hi)) if hi > lo else 1.0)
     new_w, new_h = w * s, h * s
@@ -207,7 +216,8 @@ def place_in_window(image: np.ndarray, boxes_xyxy: np.ndarray, window_hw: tuple[
     A = np.array([[s, 0.0, tx], [0.0, s, ty]], dtype=np.float64)
     out = cv2.warpAffine(image, A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=(fill, fill, fill))
-    moved = boxes * np.float32(s) + np.array([tx, ty, tx, ty], np.float32)
+    moved = boxes.copy()
+    moved[:, :4] = boxes[:, :4] * np.float32(s) + np.array([tx, ty, tx, ty], np.float32)
     clipped = moved.copy()
     clipped[:, [0, 2]] = np.clip(moved[:, [0, 2]], 0, W)
     clipped[:, [1, 3]] = np.clip(moved[:, [1, 3]], 0, H)
@@ -347,17 +357,24 @@ class DetectorSamples:
     :ivar images: (F,) object array of (h_i, w_i, 3) uint8 RGB frames (or one (F, H, W, 3) array).
     :ivar boxes: (F,) object array of (n_i, 4) float32 xyxy boxes in frame pixels.
     :ivar frame: (F,) int64 frame index in its dataset.
+    :ivar types: (F,) object array of (n_i,) int64: each box's pallet type as its index in
+        `sim.pallets.PALLET_MODELS`, -1 when unknown (a real photograph); default all -1.
     """
 
     images: np.ndarray
     boxes: np.ndarray
     frame: np.ndarray
+    types: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         f = len(self.frame)
         if len(self.images) != f or len(self.boxes) != f:
             raise ValueError(f"DetectorSamples: expected images (F,), boxes (F,), frame (F,), got "
                              f"{len(self.images)}, {len(self.boxes)}, {f}")
+        if self.types is None:
+            self.types = _objects([np.full(len(np.reshape(b, (-1, 4))), -1, np.int64) for b in self.boxes])
+        if len(self.types) != f or any(len(t) != len(np.reshape(b, (-1, 4))) for t, b in zip(self.types, self.boxes)):
+            raise ValueError("DetectorSamples: types must give one pallet type per box of every frame")
         for img in self.images:
             if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
                 raise ValueError(f"DetectorSamples: each image must be (h, w, 3) uint8, got {img.shape} {img.dtype}")
@@ -366,7 +383,8 @@ class DetectorSamples:
         return len(self.frame)
 
     def take(self, idx: np.ndarray) -> "DetectorSamples":
-        return DetectorSamples(_objects([self.images[i] for i in idx]), self.boxes[idx], self.frame[idx])
+        return DetectorSamples(_objects([self.images[i] for i in idx]), self.boxes[idx], self.frame[idx],
+                               self.types[idx])
 
     @staticmethod
     def concat(parts: Sequence["DetectorSamples"]) -> "DetectorSamples":
@@ -374,7 +392,8 @@ class DetectorSamples:
             raise ValueError("no detector samples to concatenate")
         return DetectorSamples(_objects([im for p in parts for im in p.images]),
                                _objects([b for p in parts for b in p.boxes]),
-                               np.concatenate([p.frame for p in parts]))
+                               np.concatenate([p.frame for p in parts]),
+                               _objects([t for p in parts for t in p.types]))
 
 
 def _objects(items: Sequence[np.ndarray]) -> np.ndarray:
@@ -398,10 +417,15 @@ def cap_image(rgb: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
 
 def build_detector_samples(root: str | Path, max_side: int, max_frames: int | None = None,
                            progress: Callable[[int], None] | None = None) -> DetectorSamples:
-    """Every frame, longest side capped at `max_side`; boxes = visible boxes of pallets visible >= 10 %."""
+    """Every frame, longest side capped at `max_side`; boxes = visible boxes of pallets visible >= 10 %, with
+    their pallet types (-1 for an object the dataset does not name as a catalogue type)."""
+    from pallet6d.sim.pallets import PALLET_MODELS
+
     ds = BopDataset(root)
     n_frames = len(ds) if max_frames is None else min(len(ds), max_frames)
-    images, boxes = [], []
+    type_of = {int(k): PALLET_MODELS.index(v["name"]) if v.get("name") in PALLET_MODELS else -1
+               for k, v in ds.models_info.items()}
+    images, boxes, types = [], [], []
     for i in range(n_frames):
         f = ds[i]
         img, scale = cap_image(f.rgb, max_side)
@@ -411,9 +435,11 @@ def build_detector_samples(root: str | Path, max_side: int, max_frames: int | No
         bs = [g.bbox_visib_xywh.astype(np.float64) for g, c in zip(f.gts, counted) if c]
         b = np.array([[x, y, x + w, y + h] for x, y, w, h in bs], np.float64).reshape(-1, 4)
         boxes.append((b * scale).astype(np.float32))
+        types.append(np.array([type_of.get(int(g.obj_id), -1) for g, c in zip(f.gts, counted) if c], np.int64))
         if progress is not None:
             progress(1)
-    return DetectorSamples(_objects(images), _objects(boxes), np.arange(n_frames, dtype=np.int64))
+    return DetectorSamples(_objects(images), _objects(boxes), np.arange(n_frames, dtype=np.int64),
+                           _objects(types))
 
 
 # --------------------------------------------------------------------------------------------- cache
@@ -443,6 +469,7 @@ def _to_cache(samples: PoseSamples | DetectorSamples) -> dict[str, np.ndarray]:
         arrays["images"], arrays["images_shape"] = _ragged(samples.images, (3,), np.uint8)
         boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in samples.boxes]
         arrays["boxes"], arrays["boxes_shape"] = _ragged(boxes, (4,), np.float32)
+        arrays["types"], arrays["types_shape"] = _ragged(samples.types, (), np.int64)
     return arrays
 
 
@@ -452,6 +479,7 @@ def _from_cache(cls: type, z) -> PoseSamples | DetectorSamples:
     if cls is DetectorSamples:
         fields["images"] = _unragged(fields["images"], z["images_shape"])
         fields["boxes"] = _unragged(fields["boxes"], z["boxes_shape"])
+        fields["types"] = _unragged(fields["types"], z["types_shape"])
     return cls(**fields)
 
 

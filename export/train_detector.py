@@ -136,6 +136,7 @@ class DetectorTrainer:
             raise ValueError("select='near_f1' needs real validation photographs (--real)")
         self.select = select
         self.cfg, self.data, self.aug, self.device, self.amp = cfg, data, aug, torch.device(device), amp
+        self.class_of_type = detector_class_of_type(cfg.detector.classes, data)
         self.input_sizes = [tuple(int(v) for v in hw) for hw in (input_sizes or [cfg.detector.input_hw])]
         for h, w in self.input_sizes:
             if h <= 0 or w <= 0 or h % 32 or w % 32:
@@ -159,7 +160,11 @@ class DetectorTrainer:
         hw = input_hw or self.input_hw_of(int(idx[0]))
         images, targets = [], []
         for i in idx:
-            img, boxes = s.images[i], np.asarray(s.boxes[i], np.float32).reshape(-1, 4)
+            # class -1: a pallet of unknown type (a real photograph's box); the class rides along as a 5th column
+            cls = np.full(len(s.types[i]), -1.0) if self.data.real[i] else \
+                self.class_of_type[np.asarray(s.types[i], np.int64)].astype(np.float64)
+            img = s.images[i]
+            boxes = np.column_stack([np.asarray(s.boxes[i], np.float32).reshape(-1, 4), cls]).astype(np.float32)
             if rng is not None:
                 a = self.aug
                 img, boxes = place_in_window(img, boxes, hw, rng, a.zoom_range, a.zoom_in_max, a.shift_fraction)
@@ -172,9 +177,7 @@ class DetectorTrainer:
                 boxes[:, [0, 2]] = boxes[:, [0, 2]] * lb.scale_x + lb.pad_x
                 boxes[:, [1, 3]] = boxes[:, [1, 3]] * lb.scale_y + lb.pad_y
             images.append(img)
-            t = np.zeros((len(boxes), 5), np.float32)   # class 0: pallet; -1: a real box, type unknown
-            t[:, 0] = -1.0 if self.data.real[i] else 0.0
-            t[:, 1:] = boxes
+            t = np.ascontiguousarray(boxes[:, [4, 0, 1, 2, 3]], np.float32)   # class, x1, y1, x2, y2
             targets.append(torch.from_numpy(t).to(self.device))
         x = torch.from_numpy(np.stack(images)).to(self.device).permute(0, 3, 1, 2).float().div_(255.0)
         return x.contiguous(), targets
@@ -207,7 +210,8 @@ class DetectorTrainer:
             total += float(loss) * len(idx)
             decoded = self.detector.head.decode(raw).cpu().numpy()
             for k, t in enumerate(targets):
-                det = decode_yolov8(decoded[k], score_threshold, 0.5, tuple(range(self.detector.head.nc)), 300)
+                det = decode_yolov8(decoded[k], score_threshold, 0.5, tuple(range(self.detector.head.nc)), 300,
+                                    agnostic=True)
                 gt = t[:, 1:].cpu().numpy()
                 real = bool(self.data.real[idx[k]])
                 c = counts[real]
@@ -234,6 +238,27 @@ class DetectorTrainer:
             out["near_f1"] = 2 * r * p / (r + p) if r + p > 0 else 0.0
             out["metric"] = 1.0 - out["near_f1"]
         return out
+
+
+def detector_class_of_type(classes: Sequence[str], data: DetectorData) -> np.ndarray:
+    """The detector class that learns each catalogue pallet type (`sim.pallets.PALLET_MODELS` order, then -1 for
+    an unknown type): one class for every type, or one class per type named after it. An unknown type's boxes,
+    in a detector of several classes, are pallets of any type (class -1).
+
+    :return: (len(PALLET_MODELS) + 1,) float array; index -1 is the unknown type.
+    :raises ValueError: the simulated frames hold a type that none of several classes names.
+    """
+    from pallet6d.sim.pallets import PALLET_MODELS
+
+    if len(classes) == 1:
+        return np.zeros(len(PALLET_MODELS) + 1)
+    out = np.array([float(classes.index(n)) if n in classes else np.nan for n in PALLET_MODELS] + [-1.0])
+    sim_types = {int(t) for i in np.flatnonzero(~data.real) for t in data.samples.types[i]}
+    missing = sorted(PALLET_MODELS[t] for t in sim_types if t >= 0 and np.isnan(out[t]))
+    if missing:
+        raise ValueError(f"the training frames hold pallet types {missing} that none of the detector's classes "
+                         f"{list(classes)} names")
+    return np.nan_to_num(out, nan=-1.0)
 
 
 def letterboxed_height(image_hw: tuple[int, int], input_hw: tuple[int, int]) -> float:
@@ -275,7 +300,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": 5e-4}, {"params": no_decay, "weight_decay": 0.0}],
                                   lr=settings.lr, betas=(0.937, 0.999))
     provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
-                  "input_sizes": [list(hw) for hw in trainer.input_sizes],
+                  "input_sizes": [list(hw) for hw in trainer.input_sizes], "classes": list(cfg.detector.classes),
                   "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,

@@ -116,8 +116,12 @@ def load_init_weights(path: str | Path, nets: dict[str, torch.nn.Module]) -> dic
     for k, net in nets.items():
         if k not in ckpt:
             raise ValueError(f"--init {path} has no {k!r} weights (it is a {ckpt.get('stage')!r} checkpoint)")
+        state = ckpt[k]
+        if k == "detector":   # a one-class detector starts every class of a typed one
+            from .detector import widen_class_outputs
+            state = widen_class_outputs(state, net)
         try:
-            net.load_state_dict(ckpt[k])
+            net.load_state_dict(state)
         except RuntimeError as exc:
             raise ValueError(f"--init {path}: its {k!r} weights do not fit this config's network: "
                              f"{str(exc).splitlines()[0]}") from None

@@ -152,14 +152,18 @@ def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.
 
 
 def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: float,
-                  class_ids: tuple[int, ...] | None = None, max_detections: int = 100) -> Detections:
-    """Decode one image's YOLOv8 output and run class-aware NMS.
+                  class_ids: tuple[int, ...] | None = None, max_detections: int = 100,
+                  agnostic: bool = False) -> Detections:
+    """Decode one image's YOLOv8 output and run NMS, class-aware (as ultralytics) or across classes.
 
     :param output: (4 + nc, A) or (1, 4 + nc, A): cx, cy, w, h in input pixels, then class scores.
     :param score_threshold: keep anchors whose best class score is above this (as ultralytics: 1.0 keeps nothing).
-    :param iou_threshold: NMS IoU above which the lower-scoring box of the same class is dropped.
+    :param iou_threshold: NMS IoU above which the lower-scoring box of the same class (of any kept class, with
+        `agnostic`) is dropped.
     :param class_ids: classes to keep (None = all).
     :param max_detections: at most this many, highest score first.
+    :param agnostic: NMS across classes: classes that are kinds of one object (pallet types) never give one
+        object two boxes.
     :return: `Detections` in detector-input pixels.
     """
     out = np.asarray(output)
@@ -182,7 +186,7 @@ def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: flo
     boxes = np.stack([cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2], axis=1)
     score, best = score[keep].astype(np.float64), best[keep].astype(np.int64)
     # Class-aware NMS in one pass: shift each class's boxes to a disjoint region.
-    offset = best[:, None] * (np.abs(boxes).max() + 1.0)
+    offset = 0.0 if agnostic else best[:, None] * (np.abs(boxes).max() + 1.0)
     idx = nms(boxes + offset, score, iou_threshold)[:max_detections]
     return Detections(boxes[idx], score[idx], best[idx])
 

@@ -53,6 +53,8 @@ class DetectorStage:
         return self.model.run({d.input_name: x}, [d.output_name])[d.output_name]
 
     def postprocess(self, raw: np.ndarray, lb: Letterbox) -> Detections:
-        """Pallet detections in image pixels after NMS, highest score first, at most `max_detections`."""
-        det = decode_yolov8(raw, self.score_threshold, self.iou_threshold, self.class_ids, self.max_detections)
+        """Pallet detections in image pixels after NMS across the pallet classes (a detector that reports the
+        type may score one pallet as two types), highest score first, at most `max_detections`."""
+        det = decode_yolov8(raw, self.score_threshold, self.iou_threshold, self.class_ids, self.max_detections,
+                            agnostic=True)
         return Detections(undo_letterbox(det.boxes_xyxy, lb), det.scores, det.class_ids)

@@ -75,6 +75,10 @@ def test_nms_suppresses_overlaps_within_a_class_only():
     # the second box overlaps the first (same class) and goes; the third is another class and stays
     np.testing.assert_allclose(det.scores, [0.9, 0.7, 0.6])
     np.testing.assert_array_equal(det.class_ids, [0, 1, 0])
+    # across classes (pallet types of one object), the third box goes too
+    det = decode_yolov8(_yolo_output(boxes, scores), 0.5, 0.5, agnostic=True)
+    np.testing.assert_allclose(det.scores, [0.9, 0.6])
+    np.testing.assert_array_equal(det.class_ids, [0, 0])
 
 
 def test_nms_iou_threshold_boundary():
