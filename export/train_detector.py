@@ -195,7 +195,8 @@ class DetectorTrainer:
     @torch.no_grad()
     def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
         """Validation loss over all validation frames; precision/recall over the simulated ones, and (`_real`)
-        over the real ones when there are any, with the recall of the real near boxes; `metric` by `select`."""
+        over the real ones when there are any, with the recall of the real near boxes; with several classes, the
+        share of found simulated boxes given their own type (`type_accuracy`); `metric` by `select`."""
         idx_all = self.data.val_idx
         sizes = [self.input_hw_of(int(i)) for i in idx_all]
         groups = [idx_all[[k for k, hw in enumerate(sizes) if hw == size]] for size in dict.fromkeys(sizes)]
@@ -203,6 +204,7 @@ class DetectorTrainer:
         total = 0.0
         counts = {False: [0, 0, 0], True: [0, 0, 0]}   # real? -> tp, n_pred, n_gt
         near = [0, 0]                                   # real boxes >= NEAR_FRACTION tall: found, all
+        types = [0, 0]                                  # found boxes of a known type: of the right type, all
         for idx in chunks:
             x, targets = self.batch(idx, None)
             raw = self.detector.forward_raw(x)
@@ -216,8 +218,13 @@ class DetectorTrainer:
                 real = bool(self.data.real[idx[k]])
                 c = counts[real]
                 c[1], c[2] = c[1] + len(det.boxes_xyxy), c[2] + len(gt)
-                found = match_greedy(det.boxes_xyxy, gt, iou)
+                matched = match_greedy(det.boxes_xyxy, gt, iou)
+                found = matched >= 0
                 c[0] += int(found.sum())
+                gt_cls = t[:, 0].cpu().numpy()
+                typed = found & (gt_cls >= 0) if self.detector.head.nc > 1 else np.zeros(len(gt), bool)
+                types[0] += int((det.class_ids[matched[typed]] == gt_cls[typed]).sum())
+                types[1] += int(typed.sum())
                 if real:   # near: tall relative to the letterboxed image's own height
                     content_h = letterboxed_height(self.data.samples.images[idx[k]].shape[:2], tuple(x.shape[2:]))
                     is_near = (gt[:, 3] - gt[:, 1]) >= NEAR_FRACTION * content_h
@@ -227,6 +234,8 @@ class DetectorTrainer:
         out = {"metric": loss, "loss": loss}
         if near[1]:
             out.update({"recall_real_near": near[0] / near[1], "n_gt_real_near": near[1]})
+        if types[1]:
+            out.update({"type_accuracy": types[0] / types[1], "n_typed": types[1]})
         for is_real, suffix in ((False, ""), (True, "_real")):
             tp, n_pred, n_gt = counts[is_real]
             if is_real and n_gt == 0 and n_pred == 0:
@@ -268,15 +277,15 @@ def letterboxed_height(image_hw: tuple[int, int], input_hw: tuple[int, int]) -> 
 
 
 def match_greedy(det_xyxy: np.ndarray, gt_xyxy: np.ndarray, iou: float) -> np.ndarray:
-    """Which ground-truth boxes a detection claims at IoU >= `iou`, detections taken in the given (descending
-    score) order, each claiming the first unclaimed box it overlaps. :return: (n_gt,) bool."""
-    found = np.zeros(len(gt_xyxy), bool)
+    """Which detection claims each ground-truth box at IoU >= `iou`, detections taken in the given (descending
+    score) order, each claiming the first unclaimed box it overlaps. :return: (n_gt,) detection index, -1 none."""
+    claimed_by = np.full(len(gt_xyxy), -1, np.int64)
     if len(det_xyxy) and len(gt_xyxy):
-        for row in box_iou(det_xyxy, gt_xyxy) >= iou:
-            j = next((j for j in np.flatnonzero(row) if not found[j]), None)
+        for i, row in enumerate(box_iou(det_xyxy, gt_xyxy) >= iou):
+            j = next((j for j in np.flatnonzero(row) if claimed_by[j] < 0), None)
             if j is not None:
-                found[j] = True
-    return found
+                claimed_by[j] = i
+    return claimed_by
 
 
 def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,

@@ -292,9 +292,9 @@ def test_greedy_matching_and_letterboxed_height():
 
     gt = np.array([[0, 0, 10, 10], [20, 20, 30, 30]], float)
     det = np.array([[0, 0, 10, 10], [0, 0, 10, 10], [21, 21, 30, 30]], float)   # a duplicate claims nothing
-    np.testing.assert_array_equal(match_greedy(det, gt, 0.5), [True, True])
-    np.testing.assert_array_equal(match_greedy(det[:2], gt, 0.5), [True, False])
-    assert match_greedy(np.zeros((0, 4)), gt, 0.5).tolist() == [False, False]
+    np.testing.assert_array_equal(match_greedy(det, gt, 0.5), [0, 2])
+    np.testing.assert_array_equal(match_greedy(det[:2], gt, 0.5), [0, -1])
+    assert match_greedy(np.zeros((0, 4)), gt, 0.5).tolist() == [-1, -1]
     assert match_greedy(det, np.zeros((0, 4)), 0.5).shape == (0,)
     assert letterboxed_height((300, 1280), (192, 640)) == pytest.approx(150.0)   # width-bound
     assert letterboxed_height((480, 640), (192, 640)) == pytest.approx(192.0)    # height-bound

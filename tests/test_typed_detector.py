@@ -105,6 +105,8 @@ def test_typed_detector_targets_are_the_types_and_real_boxes_any_type():
     assert all(set(t[:, 0].tolist()) <= {c} for t, c in zip(augmented, (1.0, 0.0, -1.0)))
     loss, _ = trainer.step(np.arange(2), np.random.default_rng(0))
     assert torch.isfinite(loss)
+    v = trainer.validate(score_threshold=0.0, iou=0.0)   # an untrained detector: every box found, types by chance
+    assert v["n_typed"] == 2 and v["type_accuracy"] in (0.0, 0.5, 1.0)
     with_aug = DetectorTrainer(cfg, data, AugmentConfig())
     assert with_aug.class_of_type[PALLET_MODELS.index("epal")] == 1
 
