@@ -26,46 +26,25 @@ def box_extents(boxes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
-def _take(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """Rows `idx` of `a` (numpy's `take`: many times faster than fancy indexing of rows of a few values)."""
-    return a.take(idx, 0)
-
-
-def _put(dst: np.ndarray, idx: np.ndarray, src: np.ndarray) -> None:
-    """dst[idx] = src for (n, c) dst, one column at a time (fast 1-d scatters)."""
-    for c in range(dst.shape[1]):
-        dst[:, c][idx] = src[:, c]
-
-
-def _outside_result(p: np.ndarray, d: np.ndarray, lo_j: np.ndarray,
-                    hi_j: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Closest point and normal on the chosen boxes (n, 3) at outside distances d (n,); normal 0 where d is 0."""
-    q = np.clip(p, lo_j, hi_j)
+def _finish(p: np.ndarray, lo_hi: np.ndarray, d: np.ndarray,
+            off: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest point and outward normal of (n, 3) points on their chosen boxes `lo_hi` (n, 2, 3), at distance
+    d (n,): clamped into the box where the point is off it (`off`: its outside distance to the box is > 0),
+    else moved to the box's nearest face (the first of -x -y -z +x +y +z)."""
+    lo, hi = lo_hi[:, 0], lo_hi[:, 1]
+    q = np.minimum(np.maximum(p, lo), hi)                         # np.clip's arithmetic, without its overhead
     normal = np.zeros((len(p), 3))
-    out = d > 0.0
-    np.divide(p - q, d[:, None], out=normal, where=out[:, None])
-    return q, normal, out
-
-
-def _inside_result(pi: np.ndarray, di: np.ndarray, via_out: np.ndarray, blo: np.ndarray, bhi: np.ndarray,
-                   argmin_rows=lambda v: v.argmin(1)) -> tuple[np.ndarray, np.ndarray]:
-    """Closest point and normal of points inside some box, on their chosen boxes (m, 3): at the outside
-    distance di where `via_out`, else on the chosen box's nearest face (the first of equals, -x -y -z +x +y +z,
-    by `argmin_rows`)."""
-    qi = np.clip(pi, blo, bhi)
-    ni = np.zeros((len(pi), 3))
-    out = np.flatnonzero(via_out)
-    _put(ni, out, (_take(pi, out) - _take(qi, out)) / di[out, None])
-    face = np.flatnonzero(~via_out)                               # move to the nearest face
-    pf, lf, hf = _take(pi, face), _take(blo, face), _take(bhi, face)
-    to_face = np.concatenate([pf - lf, hf - pf], axis=1)          # -x -y -z +x +y +z
-    f = argmin_rows(to_face)
-    axis, positive = f % 3, f >= 3
-    at = face * 3 + axis                                          # flat index of (face, axis)
-    qi.reshape(-1)[at] = np.where(positive, hf.reshape(-1)[np.arange(len(face)) * 3 + axis],
-                                  lf.reshape(-1)[np.arange(len(face)) * 3 + axis])
-    ni.reshape(-1)[at] = np.where(positive, 1.0, -1.0)
-    return qi, ni
+    np.divide(p - q, d[:, None], out=normal, where=off[:, None])
+    face = np.flatnonzero(~off)
+    if len(face):
+        pf, lf, hf = p.take(face, 0), lo.take(face, 0), hi.take(face, 0)
+        f = np.concatenate([pf - lf, hf - pf], axis=1).argmin(1)
+        axis, positive = f % 3, f >= 3
+        own = np.arange(0, 3 * len(face), 3) + axis               # flat (face row, axis)
+        at = face * 3 + axis                                      # flat (point, axis)
+        q.reshape(-1)[at] = np.where(positive, hf.take(own), lf.take(own))
+        normal.reshape(-1)[at] = np.where(positive, 1.0, -1.0)
+    return q, normal, d
 
 
 def closest_all(p: np.ndarray, boxes: np.ndarray,
@@ -78,7 +57,6 @@ def closest_all(p: np.ndarray, boxes: np.ndarray,
     n = len(p)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    lo, hi = boxes[:, 0], boxes[:, 1]                           # (k, 3)
     # squared distance outside each box, one axis at a time: a pallet's boards and blocks share few distinct
     # extents per axis (EPAL: 16 over the three axes for 20 boxes), so each axis' squared gap is computed once
     # per distinct extent and gathered per box. Arrays are (boxes, points): numpy's inner loops then run
@@ -91,29 +69,26 @@ def closest_all(p: np.ndarray, boxes: np.ndarray,
         np.maximum(gap, pa - extent[:, 1, None], out=gap)
         np.maximum(gap, 0.0, out=gap)
         np.multiply(gap, gap, out=gap)
-        d_out2 += gap[box_col]
+        d_out2 += gap.take(box_col, 0)
     j = d_out2.argmin(0)                                     # nearest box per point
-    d = np.sqrt(d_out2[j, np.arange(n)])
-    q, normal, out = _outside_result(p, d, _take(lo, j), _take(hi, j))
-    ins = np.flatnonzero(~out)
-    if len(ins) == 0:
-        return q, normal, d
-    # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
-    # of at its outside distance (boxes may overlap); the nearest wins
-    o2 = d_out2[:, ins]
-    d_in = np.full(o2.shape, np.inf)                              # (k, m) depth below each box's nearest face
-    for a, (extent, box_col) in enumerate(extents):
-        pa = p_axes[a, ins]
-        below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
-        np.minimum(d_in, below[box_col], out=d_in)
-    dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
-    ji = dist.argmin(0)
-    r = np.arange(len(ins))
-    qi, ni = _inside_result(_take(p, ins), dist[ji, r], o2[ji, r] > 0.0, _take(lo, ji), _take(hi, ji))
-    _put(q, ins, qi)
-    _put(normal, ins, ni)
-    d[ins] = dist[ji, r]
-    return q, normal, d
+    d = np.sqrt(d_out2.take(j * n + np.arange(n)))
+    off = d > 0.0
+    ins = np.flatnonzero(~off)
+    if len(ins):
+        # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
+        # of at its outside distance (boxes may overlap); the nearest wins
+        m = len(ins)
+        o2 = d_out2.take(ins, 1)
+        d_in = np.full(o2.shape, np.inf)                          # (k, m) depth below each box's nearest face
+        for a, (extent, box_col) in enumerate(extents):
+            pa = p_axes[a].take(ins)
+            below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
+            np.minimum(d_in, below.take(box_col, 0), out=d_in)
+        dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
+        ji = dist.argmin(0)
+        at = ji * m + np.arange(m)
+        j[ins], d[ins], off[ins] = ji, dist.take(at), o2.take(at) > 0.0
+    return _finish(p, boxes.take(j, 0), d, off)
 
 
 def _separable_distance(bx: np.ndarray, by: np.ndarray, bz: np.ndarray) -> np.ndarray:
@@ -154,15 +129,15 @@ class BoxGrid:
     cell grown by `_GROW_M` and a `_GROW_M` slack, far above rounding. Points outside the grid go through the
     full search (`closest_all`).
 
-    Cells are grouped by how many candidates they keep (1, 2, up to 4, more), each group's candidates padded by
-    repeating its last box (argmin keeps the first of equals): a point is tested against its group's width.
+    Each distinct candidate set is padded to the largest one's size by repeating its last box (argmin keeps
+    the first of equals). A query costs about as many numpy calls as the full search: ICP asks for a few
+    hundred to a few thousand points at a time, where each call's overhead counts as much as its arithmetic.
 
     :param boxes_m: (k, 2, 3) min/max corners, metres. :param margin_m: the grid reaches this far beyond the
         boxes' bounding box (ICP's largest correspondence distance). :param cell_m: cell edge, metres.
     """
 
     _GROW_M = 1e-7
-    _WIDTHS = (1, 2, 4)
 
     def __init__(self, boxes_m: np.ndarray, margin_m: float, cell_m: float) -> None:
         boxes = np.asarray(boxes_m, dtype=np.float64)
@@ -179,33 +154,22 @@ class BoxGrid:
         cand = self._candidates()                                         # (cells, k) bool
         lists, cell_list = _distinct_rows(cand)                            # distinct candidate sets
         count = lists.sum(1)
-        widths = self._WIDTHS + (max(int(count.max()), self._WIDTHS[-1] + 1),)
-        group = np.searchsorted(widths, count)                            # smallest width that holds each set
-        self.widths = widths
-        self.group = np.zeros(len(lists), dtype=np.int8)
-        self.pos = np.zeros(len(lists), dtype=np.int64)
-        self.ids, self.tables = [], []                                   # per group: (R, W) boxes, (R, 6, W)
-        for g, w in enumerate(widths):
-            rows = np.flatnonzero(group == g)
-            self.group[rows], self.pos[rows] = g, np.arange(len(rows))
-            ids = np.zeros((len(rows), w), dtype=np.int64)
-            for i, row in enumerate(rows):
-                b = np.flatnonzero(lists[row])
-                ids[i] = np.concatenate([b, np.full(w - len(b), b[-1])])
-            self.ids.append(ids)
-            # per candidate: min x y z, max x y z, laid out (R, 6, W) so that each is a (points, W) slice
-            self.tables.append(np.ascontiguousarray(boxes[ids].reshape(len(rows), w, 6).transpose(0, 2, 1)))
-        flat = cell_list.reshape(-1)
-        small = np.int16 if len(lists) < np.iinfo(np.int16).max else np.int32
-        self.cell_group = self.group[flat]                                # (cells,) int8
-        self.cell_pos = self.pos[flat].astype(small)                      # (cells,)
-        self.max_candidates = int(count.max())
+        self.width = w = int(count.max())
+        self.ids = np.zeros((len(lists), w), dtype=np.int64)            # each set, padded
+        for i, row in enumerate(lists):
+            b = np.flatnonzero(row)
+            self.ids[i] = np.concatenate([b, np.full(w - len(b), b[-1])])
+        # (2, 3, W, R): a cell's candidates min/max corners; gathered per point to (2, 3, W, n), the points
+        # innermost, so numpy's loops run along them
+        self.table = np.ascontiguousarray(boxes[self.ids].transpose(2, 3, 1, 0))
+        self.ids = np.ascontiguousarray(self.ids.T)                                  # (W, R)
+        self.cell_row = cell_list.astype(np.int16 if len(lists) <= np.iinfo(np.int16).max else np.int32)
+        self.strides = np.array([self.shape[1] * self.shape[2], self.shape[2], 1], dtype=np.float64)
 
     @property
     def nbytes(self) -> int:
         """Memory the index holds, bytes."""
-        return int(self.cell_group.nbytes + self.cell_pos.nbytes + sum(t.nbytes for t in self.tables)
-                   + sum(i.nbytes for i in self.ids))
+        return int(self.cell_row.nbytes + self.table.nbytes + self.ids.nbytes)
 
     def _candidates(self, chunk: int = 8) -> np.ndarray:
         """(cells, k) whether each box can be nearest somewhere in each cell (C order over `shape`).
@@ -250,89 +214,46 @@ class BoxGrid:
     def closest(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`closest_all` of (n, 3) float64 points (same results), testing only the candidates of each point's
         cell; points outside the grid (or not finite) test every box."""
-        n = len(p)
-        if n == 0:
-            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
         u = p - self.origin
-        u /= self.cell_m                                              # position in cells
-        inside = np.all((u >= 0.0) & (u < self.shape), axis=1)
-        if not inside.all():
-            q, normal, d = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+        u /= self.cell_m
+        np.floor(u, out=u)                                            # each point's cell, per axis
+        if len(p) and not (u.min() >= 0.0 and (u.max(0) < self.shape).all()):
+            inside = np.all((u >= 0.0) & (u < self.shape), axis=1)
+            q, normal, d = np.empty((len(p), 3)), np.empty((len(p), 3)), np.empty(len(p))
             for sel, fn in ((np.flatnonzero(~inside), lambda x: closest_all(x, self.boxes, self.extents)),
                             (np.flatnonzero(inside), self.closest)):
                 if len(sel):
-                    qs, ns, d[sel] = fn(_take(p, sel))
-                    _put(q, sel, qs)
-                    _put(normal, sel, ns)
+                    q[sel], normal[sel], d[sel] = fn(p.take(sel, 0))
             return q, normal, d
-        ijk = u.astype(np.int64)                                      # u >= 0: truncation is floor
-        cell = (ijk[:, 0] * self.shape[1] + ijk[:, 1]) * self.shape[2] + ijk[:, 2]
-        group, pos = self.cell_group[cell], self.cell_pos[cell]
-        q, normal, d = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
-        for g in range(len(self.widths)):
-            sel = np.flatnonzero(group == g)
-            if len(sel) == n:
-                return _closest_among(p, _take(self.tables[g], pos), _take(self.ids[g], pos), self.boxes)
-            if len(sel):
-                rows = pos[sel]
-                qs, ns, d[sel] = _closest_among(_take(p, sel), _take(self.tables[g], rows),
-                                                _take(self.ids[g], rows), self.boxes)
-                _put(q, sel, qs)
-                _put(normal, sel, ns)
-        return q, normal, d
-
-
-def _argmin_rows(v: np.ndarray) -> np.ndarray:
-    """(n,) index of the first least value of each row of finite (n, W), as `argmin(1)`."""
-    j = np.zeros(len(v), dtype=np.int64)
-    if v.shape[1] == 1:
-        return j
-    best = v[:, 0].copy()
-    for c in range(1, v.shape[1]):
-        less = v[:, c] < best
-        j[less] = c
-        np.minimum(best, v[:, c], out=best)
-    return j
-
-
-def _pick(v: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """(n,) v[r, j[r]] of (n, W) v."""
-    if v.shape[1] == 1:
-        return v[:, 0].copy()
-    return v.reshape(-1)[np.arange(len(v)) * v.shape[1] + j]
+        row = self.cell_row.take((u @ self.strides).astype(np.intp))   # whole numbers: exact
+        return _closest_among(p, self.table.take(row, 3), self.ids.take(row, 1), self.boxes)
 
 
 def _closest_among(p: np.ndarray, table: np.ndarray, ids: np.ndarray,
                    boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`closest_all` of finite (n, 3) points among each point's own candidates: `table` (n, 6, W) their min
-    x y z, max x y z, `ids` (n, W) their box indices in ascending order. The same arithmetic as `closest_all`."""
-    o2 = None
-    for a in range(3):
-        pa = p[:, a, None]
-        gap = np.subtract(table[:, a], pa)
-        np.maximum(gap, pa - table[:, 3 + a], out=gap)
-        np.maximum(gap, 0.0, out=gap)
-        np.multiply(gap, gap, out=gap)
-        o2 = gap if o2 is None else o2 + gap           # ((x + y) + z), as the full search sums
-    j = _argmin_rows(o2)
-    box = _pick(ids, j)
-    d = np.sqrt(_pick(o2, j))
-    lo, hi = boxes[:, 0], boxes[:, 1]
-    q, normal, out = _outside_result(p, d, _take(lo, box), _take(hi, box))
-    ins = np.flatnonzero(~out)
-    if len(ins) == 0:
-        return q, normal, d
-    o2, t, pi = _take(o2, ins), _take(table, ins), _take(p, ins)
-    d_in = np.full(o2.shape, np.inf)
-    for a in range(3):
-        pa = pi[:, a, None]
-        np.minimum(d_in, np.minimum(pa - t[:, a], t[:, 3 + a] - pa), out=d_in)
-    dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
-    ji = _argmin_rows(dist)
-    bi = _pick(_take(ids, ins), ji)
-    di = _pick(dist, ji)
-    qi, ni = _inside_result(pi, di, _pick(o2, ji) > 0.0, _take(lo, bi), _take(hi, bi), _argmin_rows)
-    _put(q, ins, qi)
-    _put(normal, ins, ni)
-    d[ins] = di
-    return q, normal, d
+    """`closest_all` of finite (n, 3) points among each point's own candidates: `table` (2, 3, W, n) their
+    min and max corners, `ids` (W, n) their box indices in ascending order. The same arithmetic as
+    `closest_all`, on (3, W, n) arrays."""
+    w, n = ids.shape
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    pw = np.ascontiguousarray(p.T)[:, None]                           # (3, 1, n)
+    gap = np.subtract(table[0], pw)
+    np.maximum(gap, pw - table[1], out=gap)
+    np.maximum(gap, 0.0, out=gap)
+    np.multiply(gap, gap, out=gap)
+    o2 = gap[0] + gap[1]
+    o2 += gap[2]                                       # ((x + y) + z), as the full search sums
+    at = o2.argmin(0) * n + np.arange(n)               # flat (candidate, point) of the nearest
+    box = ids.take(at)
+    d = np.sqrt(o2.take(at))
+    off = d > 0.0
+    ins = np.flatnonzero(~off)
+    if len(ins):
+        m = len(ins)
+        o2, t, pw = o2.take(ins, 1), table.take(ins, 3), pw.take(ins, 2)
+        d_in = np.minimum(pw - t[0], t[1] - pw).min(0)              # (W, m) depth below the nearest face
+        dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
+        at = dist.argmin(0) * m + np.arange(m)
+        box[ins], d[ins], off[ins] = ids.take(ins, 1).take(at), dist.take(at), o2.take(at) > 0.0
+    return _finish(p, boxes.take(box, 0), d, off)
