@@ -22,14 +22,12 @@ The work is then arithmetic on the points, not Python calls: per ICP step, every
 from __future__ import annotations
 
 import dataclasses
-import functools
 import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from .closest_grid import BoxGrid, box_extents, closest_all
 from .fit import ModelPointIndex, check_poses, distance_to_boxes, fit_scores
 from .geometry import backproject_pixels, check_K, clamp_box, select_pixels, transform_points
 from .results import FitScore
@@ -74,7 +72,81 @@ def closest_on_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> tuple[np.ndarray, 
     :return: (closest (n, 3), unit normal (n, 3), distance (n,)) in metres.
     """
     boxes = _check_boxes(boxes_m)
-    return closest_all(np.asarray(pts, dtype=np.float64).reshape(-1, 3), boxes, box_extents(boxes))
+    return _closest(np.asarray(pts, dtype=np.float64).reshape(-1, 3), boxes, _extents(boxes))
+
+
+def _extents(boxes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per axis, the distinct (min, max) extents of the boxes (u, 2) and each box's extent (k,)."""
+    out = []
+    for a in range(3):
+        extent, box_col = np.unique(boxes[:, :, a], axis=0, return_inverse=True)
+        out.append((extent, box_col.reshape(-1)))
+    return out
+
+
+def _finish(p: np.ndarray, lo_hi: np.ndarray, d: np.ndarray,
+            off: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest point and outward normal of (n, 3) points on their chosen boxes `lo_hi` (n, 2, 3), at distance
+    d (n,): clamped into the box where the point is off it (`off`: its outside distance to the box is > 0),
+    else moved to the box's nearest face (the first of -x -y -z +x +y +z)."""
+    lo, hi = lo_hi[:, 0], lo_hi[:, 1]
+    q = np.minimum(np.maximum(p, lo), hi)                         # np.clip's arithmetic, without its overhead
+    face = np.flatnonzero(~off)
+    if len(face):
+        normal = np.zeros((len(p), 3))
+        np.divide(p - q, d[:, None], out=normal, where=off[:, None])
+    else:
+        normal = np.divide(p - q, d[:, None])
+    if len(face):
+        pf, lf, hf = p.take(face, 0), lo.take(face, 0), hi.take(face, 0)
+        f = np.concatenate([pf - lf, hf - pf], axis=1).argmin(1)
+        axis, positive = f % 3, f >= 3
+        own = np.arange(0, 3 * len(face), 3) + axis               # flat (face row, axis)
+        at = face * 3 + axis                                      # flat (point, axis)
+        q.reshape(-1)[at] = np.where(positive, hf.take(own), lf.take(own))
+        normal.reshape(-1)[at] = np.where(positive, 1.0, -1.0)
+    return q, normal, d
+
+
+def _closest(p: np.ndarray, boxes: np.ndarray,
+             extents: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`closest_on_boxes` of (n, 3) float64 points, with the boxes' `_extents`."""
+    n = len(p)
+    if n == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    # squared distance outside each box, one axis at a time: a pallet's boards and blocks share few distinct
+    # extents per axis (EPAL: 16 over the three axes for 20 boxes), so each axis' squared gap is computed once
+    # per distinct extent and gathered per box (ICP calls this every iteration for every point). Arrays are
+    # (boxes, points): numpy's inner loops then run along the points; rows are gathered with `take` (numpy's
+    # fancy indexing of short rows costs ten times more).
+    p_axes = np.ascontiguousarray(p.T)                           # (3, n)
+    d_out2 = np.zeros((len(boxes), n))
+    for a, (extent, box_col) in enumerate(extents):
+        pa = p_axes[a]
+        gap = np.subtract(extent[:, 0, None], pa)
+        np.maximum(gap, pa - extent[:, 1, None], out=gap)
+        np.maximum(gap, 0.0, out=gap)
+        np.multiply(gap, gap, out=gap)
+        d_out2 += gap.take(box_col, 0)
+    j = d_out2.argmin(0)                                     # nearest box per point
+    d = np.sqrt(d_out2.take(j * n + np.arange(n)))
+    off = d > 0.0
+    ins = np.flatnonzero(~off)
+    if len(ins):
+        # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
+        # of at its outside distance (boxes may overlap); the nearest wins
+        m = len(ins)
+        o2 = d_out2.take(ins, 1)
+        d_in = np.full(o2.shape, np.inf)                          # (k, m) depth below each box's nearest face
+        for a, (extent, box_col) in enumerate(extents):
+            pa = p_axes[a].take(ins)
+            below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
+            np.minimum(d_in, below.take(box_col, 0), out=d_in)
+        dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
+        ji = dist.argmin(0)
+        at = ji * m + np.arange(m)
+        j[ins], d[ins], off[ins] = ji, dist.take(at), o2.take(at) > 0.0
+    return _finish(p, boxes.take(j, 0), d, off)
 
 
 # Extra ICP starts around a pose, in the pallet frame (applied on the right: T_cam_pallet @ offset), most
@@ -223,19 +295,16 @@ class _IcpRun:
 
 def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, iterations: int,
          corr_start_m: float, corr_end_m: float, prior_rot_rad: float, prior_trans_m: float, min_inliers: int,
-         tol: float, stop_near: np.ndarray | None, stop_near_m: float, grid: BoxGrid | None = None) -> _IcpRun:
+         tol: float, stop_near: np.ndarray | None, stop_near_m: float) -> _IcpRun:
     """`refine_pose` for P poses at once, each on its own points; one numpy pass per step for all.
 
     :param T0: (P, 4, 4) starting poses. :param pts: (P, N, 3) camera frame, metres; pose i uses its first
     `n_pts[i]` rows. :param stop_near: None or (P, 4, 4), a pose per start at which it stops.
-    :param grid: None, or the boxes' `BoxGrid`: the closest-point search then tests only each point's
-        candidate boxes (the same results).
     """
     if not 0 < corr_end_m <= corr_start_m:
         raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
     boxes = _check_boxes(boxes_m)
-    closest = grid.closest if grid is not None else functools.partial(closest_all, boxes=boxes,
-                                                                        extents=box_extents(boxes))
+    extents = _extents(boxes)
     m, n = pts.shape[:2]
     valid = np.arange(n)[None] < np.asarray(n_pts)[:, None]                             # (P, N)
     model_lo, model_hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
@@ -260,11 +329,14 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         p = transform_points(T_pal_cam[a], pts[a])                                        # (a, n, 3)
         # only points within thr of the model's bounding box can correspond: skip the rest of the box's
         # background (floor, rack, load) in the closest-point search, which is most of the time
-        near = np.all((p > model_lo - thr) & (p < model_hi + thr), axis=-1) & valid[a]     # (a, n)
+        near = valid[a]                                                                   # (a, n)
+        for c in range(3):
+            near &= p[..., c] > model_lo[c] - thr
+            near &= p[..., c] < model_hi[c] + thr
         q, nrm, d = np.zeros_like(p), np.zeros_like(p), np.full((len(a), n), np.inf)
         at = np.flatnonzero(near)                         # flat (pose, point) rows; `take` beats mask indexing
         if len(at):
-            q_at, n_at, d.reshape(-1)[at] = closest(p.reshape(-1, 3).take(at, 0))
+            q_at, n_at, d.reshape(-1)[at] = _closest(p.reshape(-1, 3).take(at, 0), boxes, extents)
             q_rows, n_rows = q.reshape(-1, 3), nrm.reshape(-1, 3)                       # views
             for c in range(3):
                 q_rows[:, c][at] = q_at[:, c]
@@ -273,10 +345,11 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         n_use = use.sum(1)
         starved = n_use < min_inliers                 # this start stops here, keeping its pose so far
         active[a[starved]] = False
-        keep = ~starved
-        a, p, q, nrm, d, use, n_use = a[keep], p[keep], q[keep], nrm[keep], d[keep], use[keep], n_use[keep]
-        if len(a) == 0:
-            break
+        if starved.any():
+            keep = ~starved
+            a, p, q, nrm, d, use, n_use = a[keep], p[keep], q[keep], nrm[keep], d[keep], use[keep], n_use[keep]
+            if len(a) == 0:
+                break
         w = np.where(use, (1.0 - (np.minimum(d, thr) / thr) ** 2) ** 2, 0.0)           # Tukey biweight
         r = (p[..., 0] - q[..., 0]) * nrm[..., 0] + (p[..., 1] - q[..., 1]) * nrm[..., 1] \
             + (p[..., 2] - q[..., 2]) * nrm[..., 2]                                        # point-to-plane
@@ -339,11 +412,6 @@ def best_landing(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     return best_T, best_k
 
 
-# cell edge of `RefineGeometry.box_grid`, metres: on the validation sets' ICP points, 1.5 cm cells leave 1.7
-# candidate boxes per point on average (EPAL), build in about 0.1 s and hold 0.4 MB (docs/experiments/latency.md)
-GRID_CELL_M = 0.015
-
-
 @dataclass(frozen=True, eq=False)
 class RefineGeometry:
     """One pallet type as refinement needs it (the pallet frame, metres).
@@ -375,14 +443,6 @@ class RefineGeometry:
     def in_boxes(self) -> np.ndarray | None:
         """The boxes when they hold every model point (see `fit_scores`), else None."""
         return self.boxes_m if self.points_on_boxes else None
-
-    @property
-    def box_grid(self) -> BoxGrid:
-        """The boxes' `BoxGrid` for ICP's closest points (cells of `GRID_CELL_M`, reaching ICP's largest
-        correspondence distance beyond the boxes), built on first use."""
-        if "box_grid" not in self._indexes:
-            self._indexes["box_grid"] = BoxGrid(self.boxes_m, _ICP_DEFAULTS[0], GRID_CELL_M)
-        return self._indexes["box_grid"]
 
     def point_index(self, tol_m: float) -> ModelPointIndex:
         """The model points' `ModelPointIndex` for `tol_m`, built on first use."""
@@ -521,7 +581,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0, geom.box_grid)
+    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0)
     T = T_net.copy()
     src = np.full(g, FROM_NETWORK)
     fit = np.full((g, 3), np.nan)
@@ -552,7 +612,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
         T_start = (T[run][:, None] @ offsets[None]).reshape(-1, 4, 4)                      # detection-major
         near = np.repeat(T[run], S, axis=0) if o.stop_near_m > 0 else None
         land = _icp(T_start, np.repeat(sub, S, axis=0), np.repeat(n_sub, S), geom.boxes_m, o.iterations,
-                    *_ICP_DEFAULTS, near, o.stop_near_m, geom.box_grid)
+                    *_ICP_DEFAULTS, near, o.stop_near_m)
         trusted = ~land.stopped_near & np.isfinite(land.rms_m) & (land.rms_m < o.start_max_rms_m)
         cand = np.flatnonzero(trusted)                                                    # landing rows
         owner = np.concatenate([np.arange(len(run)), cand // S])                         # row in `run`
