@@ -120,14 +120,16 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
     # (boxes, points): numpy's inner loops then run along the points; rows are gathered with `take` (numpy's
     # fancy indexing of short rows costs ten times more).
     p_axes = np.ascontiguousarray(p.T)                           # (3, n)
-    d_out2 = np.zeros((len(boxes), n))
     for a, (extent, box_col) in enumerate(extents):
         pa = p_axes[a]
         gap = np.subtract(extent[:, 0, None], pa)
         np.maximum(gap, pa - extent[:, 1, None], out=gap)
         np.maximum(gap, 0.0, out=gap)
-        np.multiply(gap, gap, out=gap)
-        d_out2 += gap.take(box_col, 0)
+        np.multiply(gap, gap, out=gap)                        # >= +0: summing from x's equals summing from 0
+        if a == 0:
+            d_out2 = gap.take(box_col, 0)                     # (k, n)
+        else:
+            d_out2 += gap.take(box_col, 0)
     j = d_out2.argmin(0)                                     # nearest box per point
     d = np.sqrt(d_out2.take(j * n + np.arange(n)))
     off = d > 0.0
@@ -136,13 +138,23 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
         # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
         # of at its outside distance (boxes may overlap); the nearest wins
         m = len(ins)
-        o2 = d_out2.take(ins, 1)
-        d_in = np.full(o2.shape, np.inf)                          # (k, m) depth below each box's nearest face
-        for a, (extent, box_col) in enumerate(extents):
-            pa = p_axes[a].take(ins)
-            below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
-            np.minimum(d_in, below.take(box_col, 0), out=d_in)
-        dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
+        o2 = d_out2.take(ins, 1)                                 # (k, m)
+        dist = np.sqrt(o2)
+        held = ~(o2 > 0.0)                                       # the boxes each point is in
+        # the box found above holds the point: its depth below its nearest face (one box, not all of them)
+        first, pi = j.take(ins), p.take(ins, 0)
+        lo_hi = boxes.take(first, 0)
+        below = np.minimum(pi - lo_hi[:, 0], lo_hi[:, 1] - pi)               # (m, 3)
+        dist.reshape(-1)[first * m + np.arange(m)] = np.maximum(
+            np.minimum(np.minimum(below[:, 0], below[:, 1]), below[:, 2]), 0.0)
+        multi = np.flatnonzero(held.sum(0) > 1)                  # in touching or overlapping boxes: each depth
+        if len(multi):
+            d_in = np.full((len(boxes), len(multi)), np.inf)     # depth below each box's nearest face
+            for a, (extent, box_col) in enumerate(extents):
+                pa = p_axes[a].take(ins.take(multi))
+                below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
+                np.minimum(d_in, below.take(box_col, 0), out=d_in)
+            dist[:, multi] = np.where(held[:, multi], np.maximum(d_in, 0.0), dist[:, multi])
         ji = dist.argmin(0)
         at = ji * m + np.arange(m)
         j[ins], d[ins], off[ins] = ji, dist.take(at), o2.take(at) > 0.0
