@@ -92,19 +92,17 @@ def _finish(p: np.ndarray, lo_hi: np.ndarray, d: np.ndarray,
     lo, hi = lo_hi[:, 0], lo_hi[:, 1]
     q = np.minimum(np.maximum(p, lo), hi)                         # np.clip's arithmetic, without its overhead
     face = np.flatnonzero(~off)
-    if len(face):
-        normal = np.zeros((len(p), 3))
-        np.divide(p - q, d[:, None], out=normal, where=off[:, None])
-    else:
-        normal = np.divide(p - q, d[:, None])
-    if len(face):
-        pf, lf, hf = p.take(face, 0), lo.take(face, 0), hi.take(face, 0)
-        f = np.concatenate([pf - lf, hf - pf], axis=1).argmin(1)
-        axis, positive = f % 3, f >= 3
-        own = np.arange(0, 3 * len(face), 3) + axis               # flat (face row, axis)
-        at = face * 3 + axis                                      # flat (point, axis)
-        q.reshape(-1)[at] = np.where(positive, hf.take(own), lf.take(own))
-        normal.reshape(-1)[at] = np.where(positive, 1.0, -1.0)
+    if len(face) == 0:
+        return q, np.divide(p - q, d[:, None]), d
+    normal = np.zeros((len(p), 3))
+    np.divide(p - q, d[:, None], out=normal, where=off[:, None])
+    pf, lf, hf = p.take(face, 0), lo.take(face, 0), hi.take(face, 0)
+    f = np.concatenate([pf - lf, hf - pf], axis=1).argmin(1)
+    axis, positive = f % 3, f >= 3
+    own = np.arange(0, 3 * len(face), 3) + axis                   # flat (face row, axis)
+    at = face * 3 + axis                                          # flat (point, axis)
+    q.reshape(-1)[at] = np.where(positive, hf.take(own), lf.take(own))
+    normal.reshape(-1)[at] = np.where(positive, 1.0, -1.0)
     return q, normal, d
 
 
