@@ -343,7 +343,7 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         for c in range(3):
             near &= p[..., c] > model_lo[c] - thr
             near &= p[..., c] < model_hi[c] + thr
-        q, nrm, d = np.zeros_like(p), np.zeros_like(p), np.full((len(a), n), np.inf)
+        q, nrm, d = np.zeros(p.shape), np.zeros(p.shape), np.full((len(a), n), np.inf)   # C order: views below
         at = np.flatnonzero(near)                         # flat (pose, point) rows; `take` beats mask indexing
         if len(at):
             q_at, n_at, d.reshape(-1)[at] = _closest(p.reshape(-1, 3).take(at, 0), boxes, extents)
