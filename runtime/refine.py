@@ -123,7 +123,7 @@ def _closest(p: np.ndarray, boxes: np.ndarray,
         gap = np.subtract(extent[:, 0, None], pa)
         np.maximum(gap, pa - extent[:, 1, None], out=gap)
         np.maximum(gap, 0.0, out=gap)
-        np.multiply(gap, gap, out=gap)                        # >= +0: summing from x's equals summing from 0
+        np.multiply(gap, gap, out=gap)                        # squares >= +0: 0 + x is x exactly
         if a == 0:
             d_out2 = gap.take(box_col, 0)                     # (k, n)
         else:
