@@ -84,60 +84,79 @@ def _extents(boxes: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return out
 
 
+def _finish(p: np.ndarray, lo_hi: np.ndarray, d: np.ndarray,
+            off: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closest point and outward normal of (n, 3) points on their chosen boxes `lo_hi` (n, 2, 3), at distance
+    d (n,): clamped into the box where the point is off it (`off`: its outside distance to the box is > 0),
+    else moved to the box's nearest face (the first of -x -y -z +x +y +z)."""
+    lo, hi = lo_hi[:, 0], lo_hi[:, 1]
+    q = np.minimum(np.maximum(p, lo), hi)                         # np.clip's arithmetic, without its overhead
+    face = np.flatnonzero(~off)
+    if len(face) == 0:
+        return q, np.divide(p - q, d[:, None]), d
+    normal = np.zeros((len(p), 3))
+    np.divide(p - q, d[:, None], out=normal, where=off[:, None])
+    pf, lf, hf = p.take(face, 0), lo.take(face, 0), hi.take(face, 0)
+    f = np.concatenate([pf - lf, hf - pf], axis=1).argmin(1)
+    axis, positive = f % 3, f >= 3
+    own = np.arange(0, 3 * len(face), 3) + axis                   # flat (face row, axis)
+    at = face * 3 + axis                                          # flat (point, axis)
+    q.reshape(-1)[at] = np.where(positive, hf.take(own), lf.take(own))
+    normal.reshape(-1)[at] = np.where(positive, 1.0, -1.0)
+    return q, normal, d
+
+
 def _closest(p: np.ndarray, boxes: np.ndarray,
              extents: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`closest_on_boxes` of (n, 3) float64 points, with the boxes' `_extents`."""
     n = len(p)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
-    lo, hi = boxes[:, 0], boxes[:, 1]                           # (k, 3)
     # squared distance outside each box, one axis at a time: a pallet's boards and blocks share few distinct
     # extents per axis (EPAL: 16 over the three axes for 20 boxes), so each axis' squared gap is computed once
     # per distinct extent and gathered per box (ICP calls this every iteration for every point). Arrays are
-    # (boxes, points): numpy's inner loops then run along the points.
+    # (boxes, points): numpy's inner loops then run along the points; rows are gathered with `take` (numpy's
+    # fancy indexing of short rows costs ten times more).
     p_axes = np.ascontiguousarray(p.T)                           # (3, n)
-    d_out2 = np.zeros((len(boxes), n))
     for a, (extent, box_col) in enumerate(extents):
         pa = p_axes[a]
         gap = np.subtract(extent[:, 0, None], pa)
         np.maximum(gap, pa - extent[:, 1, None], out=gap)
         np.maximum(gap, 0.0, out=gap)
-        np.multiply(gap, gap, out=gap)
-        d_out2 += gap[box_col]
+        np.multiply(gap, gap, out=gap)                        # squares >= +0: 0 + x is x exactly
+        if a == 0:
+            d_out2 = gap.take(box_col, 0)                     # (k, n)
+        else:
+            d_out2 += gap.take(box_col, 0)
     j = d_out2.argmin(0)                                     # nearest box per point
-    d = np.sqrt(d_out2[j, np.arange(n)])
-    q = np.clip(p, lo[j], hi[j])
-    normal = np.zeros((n, 3))
-    out = d > 0.0
-    np.divide(p - q, d[:, None], out=normal, where=out[:, None])
-    ins = np.flatnonzero(~out)
-    if len(ins) == 0:
-        return q, normal, d
-    # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
-    # of at its outside distance (boxes may overlap); the nearest wins
-    pi, o2 = p[ins], d_out2[:, ins]
-    d_in = np.full(o2.shape, np.inf)                              # (k, m) depth below each box's nearest face
-    for a, (extent, box_col) in enumerate(extents):
-        pa = p_axes[a, ins]
-        below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
-        np.minimum(d_in, below[box_col], out=d_in)
-    dist = np.where(o2 > 0.0, np.sqrt(o2), np.maximum(d_in, 0.0))
-    ji = dist.argmin(0)
-    r = np.arange(len(ins))
-    di = dist[ji, r]
-    blo, bhi = lo[ji], hi[ji]
-    qi = np.clip(pi, blo, bhi)
-    ni = np.zeros((len(ins), 3))
-    via_out = o2[ji, r] > 0.0
-    ni[via_out] = (pi[via_out] - qi[via_out]) / di[via_out, None]
-    face = np.flatnonzero(~via_out)                               # move to the nearest face
-    to_face = np.concatenate([pi[face] - blo[face], bhi[face] - pi[face]], axis=1)   # -x -y -z +x +y +z
-    f = to_face.argmin(1)
-    axis, positive = f % 3, f >= 3
-    qi[face, axis] = np.where(positive, bhi[face, axis], blo[face, axis])
-    ni[face, axis] = np.where(positive, 1.0, -1.0)
-    q[ins], normal[ins], d[ins] = qi, ni, di
-    return q, normal, d
+    d = np.sqrt(d_out2.take(j * n + np.arange(n)))
+    off = d > 0.0
+    ins = np.flatnonzero(~off)
+    if len(ins):
+        # inside a box: its nearest face is a candidate at the depth below it, every box the point is outside
+        # of at its outside distance (boxes may overlap); the nearest wins
+        m = len(ins)
+        o2 = d_out2.take(ins, 1)                                 # (k, m)
+        dist = np.sqrt(o2)
+        held = ~(o2 > 0.0)                                       # the boxes each point is in
+        # the box found above holds the point: its depth below its nearest face (one box, not all of them)
+        first, pi = j.take(ins), p.take(ins, 0)
+        lo_hi = boxes.take(first, 0)
+        below = np.minimum(pi - lo_hi[:, 0], lo_hi[:, 1] - pi)               # (m, 3)
+        dist.reshape(-1)[first * m + np.arange(m)] = np.maximum(
+            np.minimum(np.minimum(below[:, 0], below[:, 1]), below[:, 2]), 0.0)
+        multi = np.flatnonzero(held.sum(0) > 1)                  # in touching or overlapping boxes: each depth
+        if len(multi):
+            d_in = np.full((len(boxes), len(multi)), np.inf)     # depth below each box's nearest face
+            for a, (extent, box_col) in enumerate(extents):
+                pa = p_axes[a].take(ins.take(multi))
+                below = np.minimum(pa - extent[:, 0, None], extent[:, 1, None] - pa)
+                np.minimum(d_in, below.take(box_col, 0), out=d_in)
+            dist[:, multi] = np.where(held[:, multi], np.maximum(d_in, 0.0), dist[:, multi])
+        ji = dist.argmin(0)
+        at = ji * m + np.arange(m)
+        j[ins], d[ins], off[ins] = ji, dist.take(at), o2.take(at) > 0.0
+    return _finish(p, boxes.take(j, 0), d, off)
 
 
 # Extra ICP starts around a pose, in the pallet frame (applied on the right: T_cam_pallet @ offset), most
@@ -320,18 +339,27 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         p = transform_points(T_pal_cam[a], pts[a])                                        # (a, n, 3)
         # only points within thr of the model's bounding box can correspond: skip the rest of the box's
         # background (floor, rack, load) in the closest-point search, which is most of the time
-        near = np.all((p > model_lo - thr) & (p < model_hi + thr), axis=-1) & valid[a]     # (a, n)
-        q, nrm, d = np.zeros_like(p), np.zeros_like(p), np.full((len(a), n), np.inf)
-        if near.any():
-            q[near], nrm[near], d[near] = _closest(p[near], boxes, extents)
+        near = valid[a]                                                                   # (a, n)
+        for c in range(3):
+            near &= p[..., c] > model_lo[c] - thr
+            near &= p[..., c] < model_hi[c] + thr
+        q, nrm, d = np.zeros(p.shape), np.zeros(p.shape), np.full((len(a), n), np.inf)   # C order: views below
+        at = np.flatnonzero(near)                         # flat (pose, point) rows; `take` beats mask indexing
+        if len(at):
+            q_at, n_at, d.reshape(-1)[at] = _closest(p.reshape(-1, 3).take(at, 0), boxes, extents)
+            q_rows, n_rows = q.reshape(-1, 3), nrm.reshape(-1, 3)                       # views
+            for c in range(3):
+                q_rows[:, c][at] = q_at[:, c]
+                n_rows[:, c][at] = n_at[:, c]
         use = d < thr                                                                     # (a, n)
         n_use = use.sum(1)
         starved = n_use < min_inliers                 # this start stops here, keeping its pose so far
         active[a[starved]] = False
-        keep = ~starved
-        a, p, q, nrm, d, use, n_use = a[keep], p[keep], q[keep], nrm[keep], d[keep], use[keep], n_use[keep]
-        if len(a) == 0:
-            break
+        if starved.any():
+            keep = ~starved
+            a, p, q, nrm, d, use, n_use = a[keep], p[keep], q[keep], nrm[keep], d[keep], use[keep], n_use[keep]
+            if len(a) == 0:
+                break
         w = np.where(use, (1.0 - (np.minimum(d, thr) / thr) ** 2) ** 2, 0.0)           # Tukey biweight
         r = (p[..., 0] - q[..., 0]) * nrm[..., 0] + (p[..., 1] - q[..., 1]) * nrm[..., 1] \
             + (p[..., 2] - q[..., 2]) * nrm[..., 2]                                        # point-to-plane
