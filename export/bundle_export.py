@@ -403,7 +403,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                   random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
                   calib: CalibrationSet | None = None, calib_frames: int = 8, calib_crops: int = 96,
-                  calib_presets: tuple[str, ...] | None = None, float_weights: str = "fp16",
+                  calib_presets: tuple[str, ...] | None = None, float_weights: str = "int8",
                   int8_stages: tuple[str, ...] = INT8_STAGES,
                   pallet_types: tuple[str, ...] | None = None,
                   detector_input_sizes: tuple[tuple[int, int], ...] | None = None) -> ExportedBundle:
@@ -420,8 +420,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     :param detector_input_sizes: the input sizes (H, W) our detector's graph takes, one chosen per frame by
         the runtime (default: those its checkpoint was trained on; `build_networks`). With more than one, the
         graph's height and width axes are dynamic, and parity and int8 calibration cover every size.
-    :param float_weights: how the float graphs store their weights on disk (FLOAT_WEIGHTS): "fp16" (half
-        the size), "int8" (int8 per output channel, a quarter), "fp32"; the arithmetic is float32 in every
+    :param float_weights: how the float graphs store their weights on disk (FLOAT_WEIGHTS): "int8" (int8
+        per output channel, a quarter of the size), "fp16" (half), "fp32"; the arithmetic is float32 in every
         case, and int8 graphs are quantized from the full float32 weights before that.
     :raises ExportError: bad arguments, checkpoint or external detector.
     :raises onnx_io.ParityError: an exported graph does not reproduce its torch model.

@@ -31,9 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "checkpoint's detector was trained on); several give a graph with dynamic height/width")
     parser.add_argument("--classes", help="comma-separated class names of --detector-onnx (default: its metadata)")
     weights = parser.add_mutually_exclusive_group()
-    weights.add_argument("--float-weights", choices=("fp32", "fp16", "int8"), default="fp16",
-                         help="how the float graphs store their weights on disk: fp16 (default, half the size), int8 "
-                              "(per output channel, a quarter) or fp32; the arithmetic is float32 in every case")
+    weights.add_argument("--float-weights", choices=("fp32", "fp16", "int8"), default="int8",
+                         help="how the float graphs store their weights on disk: int8 (default, per output channel, "
+                              "a quarter of float32), fp16 (half) or fp32; the arithmetic is float32 in every case")
     weights.add_argument("--fp32-weights", dest="float_weights", action="store_const", const="fp32",
                          help="same as --float-weights fp32")
     parser.add_argument("--calib-frames", type=int, default=96,

@@ -183,6 +183,13 @@ def test_store_float_weights_records_the_change_and_refuses_over_the_limit(tmp_p
     assert g2.files["pose"].read_bytes() == before and not list((tmp_path / "b").glob("*int8-weights*"))
     with pytest.raises(ExportError, match="float weight storage"):
         store_float_weights(g2, tmp_path / "b", ("pose",), "fp32")
+    # float16 falls back to float32, and stores within its own limit
+    monkeypatch.setitem(FLOAT_WEIGHTS, "fp16", (FLOAT_WEIGHTS["fp16"][0], {"pose": 0.0}))
+    with pytest.raises(ExportError, match="--float-weights fp32"):
+        store_float_weights(g2, tmp_path / "b", ("pose",), "fp16")
+    monkeypatch.undo()
+    half = store_float_weights(g2, tmp_path / "b", ("pose",), "fp16")["pose"]
+    assert half["converted"] == 2 and half["vs_fp32_weights"]["y"]["rel_rms"] <= half["limit_rel_rms"] == 5e-3
 
 
 @pytest.fixture(scope="module")
@@ -232,8 +239,8 @@ def test_cli_float_weights_option_and_old_spelling():
     p = argparse.ArgumentParser()
     add_arguments(p)
     base = ["--config", "tiny", "--random-init", "--out", "x"]
-    assert p.parse_args(base).float_weights == "fp16"
-    assert p.parse_args([*base, "--float-weights", "int8"]).float_weights == "int8"
+    assert p.parse_args(base).float_weights == "int8"
+    assert p.parse_args([*base, "--float-weights", "fp16"]).float_weights == "fp16"
     assert p.parse_args([*base, "--fp32-weights"]).float_weights == "fp32"
     with pytest.raises(SystemExit):
         p.parse_args([*base, "--float-weights", "int4"])
