@@ -305,7 +305,7 @@ def quantize_graphs(g: Graphs, out: Path, stages: tuple[str, ...] = INT8_STAGES)
     return Int8Graphs(files, checks)
 
 
-def store_float_weights(g: Graphs, out: Path, stages: tuple[str, ...], storage: str = "fp16") -> dict:
+def store_float_weights(g: Graphs, out: Path, stages: tuple[str, ...], storage: str = "int8") -> dict:
     """Replace the float graphs of `stages` by copies with their weights stored as `storage` (a key of
     FLOAT_WEIGHTS other than fp32), after int8 quantization, which needs the float32 weights.
 
