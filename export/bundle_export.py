@@ -3,7 +3,8 @@
 1. `build_networks`: the networks from a checkpoint or freshly initialised (`export_inputs`);
 2. `export_graphs`: the three ONNX graphs, each checked against its torch model (parity), with sizes;
 3. `quantize_graphs`: static int8 copies of the chosen stages, compared with float on held-out inputs;
-4. `store_fp16_weights`: the float graphs' weights stored as float16 (half the size, float32 arithmetic);
+4. `store_float_weights`: the float graphs' weights stored compactly (float16, or int8 per output channel;
+   float32 arithmetic either way), each checked against the float32-weight graph;
 5. `write_bundle`: the pallet types' model points, `manifest.json` (the contract, sha256 of every file)
    and `report.json` (provenance, checks, scores), read back with the runtime's own `load_bundle`.
 
@@ -42,16 +43,25 @@ from .pallet_types import class_ids_for_types, trained_pallet_types, write_palle
 from .pose import build_pose
 from .quantize import INT8_RECIPES, quantize_graph
 from .weights_fp16 import store_weights_fp16
+from .weights_int8 import store_weights_int8
 
 __all__ = ["export_bundle", "ExportError", "INT8_STAGES", "Networks", "Graphs", "Int8Graphs", "ExportedBundle",
-           "build_networks", "export_graphs", "quantize_graphs", "store_fp16_weights", "write_bundle",
-           "trained_input_hw"]
+           "build_networks", "export_graphs", "quantize_graphs", "store_float_weights", "write_bundle",
+           "trained_input_hw", "FLOAT_WEIGHTS"]
 
 log = logging.getLogger(__name__)
 
-# float16 weight storage may change a graph's outputs by at most this relative RMS (measured: ~5e-4)
-FP16_WEIGHTS_REL_RMS = 5e-3
 STAGES = ("detector", "fusion", "pose")
+# How the float graphs store their weights on disk (float32 arithmetic in every case): the writer, and per
+# stage the largest relative RMS change of the outputs (held-out inputs, vs the float32-weight graph) allowed.
+# float16 measured ~1e-4 (detector), <1e-6 (fusion, pose); int8 per channel: docs/experiments/bundle-size.md.
+FLOAT_WEIGHTS = {
+    "fp32": (None, {}),
+    "fp16": (store_weights_fp16, dict.fromkeys(STAGES, 5e-3)),
+    "int8": (store_weights_int8, {"detector": 0.02, "fusion": 0.02, "pose": 0.02}),
+}
+# the storage to fall back to when one changes the outputs too much
+FLOAT_WEIGHTS_FALLBACK = {"int8": "fp16", "fp16": "fp32"}
 # Stages quantized by default. The pose net stays float: quantizing it cost 2-3 points of ADD-sym at 5 cm
 # on noisy depth (validation indoor-noisy: int8 pose 75.7 %, float pose 78.0 %, all float 78.7 %)
 # and saved only 2 ms per pallet on 2 cores (0.7 of a pallet's 5.6 GFLOP).
@@ -298,22 +308,31 @@ def quantize_graphs(g: Graphs, out: Path, stages: tuple[str, ...] = INT8_STAGES)
     return Int8Graphs(files, checks)
 
 
-def store_fp16_weights(g: Graphs, out: Path, stages: tuple[str, ...]) -> dict:
-    """Replace the float graphs of `stages` by copies with float16-stored weights (after quantization, which
-    needs the float32 weights). :return: per stage, the storage and its effect on the outputs.
-    :raises ExportError: the outputs change by more than FP16_WEIGHTS_REL_RMS."""
+def store_float_weights(g: Graphs, out: Path, stages: tuple[str, ...], storage: str = "int8") -> dict:
+    """Replace the float graphs of `stages` by copies with their weights stored as `storage` (a key of
+    FLOAT_WEIGHTS other than fp32), after int8 quantization, which needs the float32 weights.
+
+    :return: per stage, the storage and how it changes the outputs on held-out inputs ("vs_fp32_weights").
+    :raises ExportError: unknown storage, or a stage's outputs change by more than its limit (the message
+        names the storage to export with instead).
+    """
+    if storage not in FLOAT_WEIGHTS or FLOAT_WEIGHTS[storage][0] is None:
+        raise ExportError(f"float weight storage must be one of {[k for k, v in FLOAT_WEIGHTS.items() if v[0]]}, "
+                          f"got {storage!r}")
+    write, limits = FLOAT_WEIGHTS[storage]
     checks = {}
     for stage in stages:
-        half = out / f"{stage}.fp16-weights.onnx"
-        storage = store_weights_fp16(g.files[stage], half)
-        diff = _graph_diff(g.files[stage], half, g.held_out(stage))
+        small = out / f"{stage}.{storage}-weights.onnx"
+        stored = write(g.files[stage], small)
+        diff = _graph_diff(g.files[stage], small, g.held_out(stage))
         worst = max(v["rel_rms"] for v in diff.values())
-        if not worst <= FP16_WEIGHTS_REL_RMS:
-            half.unlink()
-            raise ExportError(f"{stage}: float16 weights change the output by {worst:.2g} relative RMS "
-                              f"(limit {FP16_WEIGHTS_REL_RMS}); export with --fp32-weights")
-        half.replace(g.files[stage])
-        checks[stage] = {**storage.to_dict(), "vs_fp32_weights": diff}
+        if not worst <= limits[stage]:
+            small.unlink()
+            raise ExportError(f"{stage}: {storage} weights change the output by {worst:.2g} relative RMS "
+                              f"(limit {limits[stage]}); export with --float-weights "
+                              f"{FLOAT_WEIGHTS_FALLBACK[storage]}")
+        small.replace(g.files[stage])
+        checks[stage] = {**stored.to_dict(), "vs_fp32_weights": diff, "limit_rel_rms": limits[stage]}
     return checks
 
 
@@ -387,7 +406,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                   random_init: bool = False, int8: bool = False, detector_onnx: str | Path | None = None,
                   classes: tuple[str, ...] | None = None, name: str | None = None, command: str = "",
                   calib: CalibrationSet | None = None, calib_frames: int = 8, calib_crops: int = 96,
-                  calib_presets: tuple[str, ...] | None = None, fp16_weights: bool = True,
+                  calib_presets: tuple[str, ...] | None = None, float_weights: str = "int8",
                   int8_stages: tuple[str, ...] = INT8_STAGES,
                   pallet_types: tuple[str, ...] | None = None,
                   detector_input_sizes: tuple[tuple[int, int], ...] | None = None) -> ExportedBundle:
@@ -404,11 +423,14 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     :param detector_input_sizes: the input sizes (H, W) our detector's graph takes, one chosen per frame by
         the runtime (default: those its checkpoint was trained on; `build_networks`). With more than one, the
         graph's height and width axes are dynamic, and parity and int8 calibration cover every size.
-    :param fp16_weights: the float graphs keep their weights as float16 on disk (half the size, float32
-        arithmetic); int8 graphs are quantized from the full float32 weights before that.
+    :param float_weights: how the float graphs store their weights on disk (FLOAT_WEIGHTS): "int8" (int8
+        per output channel, a quarter of the size), "fp16" (half), "fp32"; the arithmetic is float32 in every
+        case, and int8 graphs are quantized from the full float32 weights before that.
     :raises ExportError: bad arguments, checkpoint or external detector.
     :raises onnx_io.ParityError: an exported graph does not reproduce its torch model.
     """
+    if float_weights not in FLOAT_WEIGHTS:
+        raise ExportError(f"float weight storage must be one of {tuple(FLOAT_WEIGHTS)}, got {float_weights!r}")
     if not set(int8_stages) <= set(STAGES):
         raise ExportError(f"int8 stages must be among {STAGES}, got {tuple(int8_stages)}")
     if calib_presets:
@@ -432,8 +454,9 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     q = quantize_graphs(g, out, tuple(int8_stages)) if int8 else None
     if q is not None:
         checks["int8"] = q.checks
-    if fp16_weights:
-        checks["weights_fp16"] = store_fp16_weights(g, out, tuple(s for s in STAGES if s in n.nets))
+    if float_weights != "fp32":
+        checks[f"weights_{float_weights}"] = store_float_weights(g, out, tuple(s for s in STAGES if s in n.nets),
+                                                                 float_weights)
     provenance = {"command": command, "seed": seed, "git_commit": git_commit(),
                   "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                   "random_init": bool(random_init), "checkpoint": None if checkpoint is None else str(checkpoint),

@@ -4,8 +4,8 @@ Training checkpoints live in `runs/`, outside git; the bundle in `models/` is wh
 integrator retraining on real data actually has. `load_bundle_weights` rebuilds each network's state from
 the graph it was exported to and proves it with a parity check against onnxruntime:
 
-- initializers named after a parameter (`head.cls.0.2.weight`) are copied; float16-stored ones
-  (`weights_fp16`) come back through their Cast;
+- initializers named after a parameter (`head.cls.0.2.weight`) are copied; float16- and int8-stored ones
+  (`weights_fp16`, `weights_int8`) come back through their Cast (and scale Mul);
 - the exporter folded each BatchNorm into the convolution before it (anonymous `onnx::Conv_*`
   initializers); the node's name is the module's scope (`/rgb/backbone/layer1/layer1.0/conv1/Conv` is
   `rgb.backbone.layer1.0.conv1`), which takes the folded kernel, and its BatchNorm takes the folded bias;
@@ -50,12 +50,14 @@ class BundleWeightsError(ValueError):
 
 
 def _graph_values(model: onnx.ModelProto) -> dict[str, np.ndarray]:
-    """Initializers by the name their consumers use: a float16-stored weight under its Cast's output, a
-    parameter equal to another (the exporter keeps one copy) under its Identity's output."""
+    """Initializers by the name their consumers use: a float16- or int8-stored weight under its Cast's (and
+    scale Mul's) output, a parameter equal to another (the exporter keeps one copy) under its Identity's output."""
     values = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     for node in model.graph.node:
         if node.op_type in ("Cast", "Identity") and node.input and node.input[0] in values:
             values[node.output[0]] = values[node.input[0]].astype(np.float32)
+        elif node.op_type == "Mul" and len(node.input) == 2 and all(i in values for i in node.input):
+            values[node.output[0]] = (values[node.input[0]] * values[node.input[1]]).astype(np.float32)
     return values
 
 

@@ -30,9 +30,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector input sizes, one chosen per frame by its aspect (default: those the "
                              "checkpoint's detector was trained on); several give a graph with dynamic height/width")
     parser.add_argument("--classes", help="comma-separated class names of --detector-onnx (default: its metadata)")
-    parser.add_argument("--fp32-weights", action="store_true",
-                        help="keep the float graphs' weights float32 on disk (default: float16 on disk, half the size; "
-                             "the arithmetic is float32 either way)")
+    weights = parser.add_mutually_exclusive_group()
+    weights.add_argument("--float-weights", choices=("fp32", "fp16", "int8"), default="int8",
+                         help="how the float graphs store their weights on disk: int8 (default, per output channel, "
+                              "a quarter of float32), fp16 (half) or fp32; the arithmetic is float32 in every case")
+    weights.add_argument("--fp32-weights", dest="float_weights", action="store_const", const="fp32",
+                         help="same as --float-weights fp32")
     parser.add_argument("--calib-frames", type=int, default=96,
                         help="simulated frames for calibration, the presets in turn (default 96: ~32 indoor crops)")
     parser.add_argument("--calib-presets", default=None,
@@ -78,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
                                  calib_crops=args.calib_crops, calib_presets=tuple(
                                      p.strip() for p in args.calib_presets.split(",") if p.strip())
                                  if args.calib_presets else None,
-                                 fp16_weights=not args.fp32_weights,
+                                 float_weights=args.float_weights,
                                  int8_stages=INT8_STAGES if args.int8_stages is None else
                                  tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()),
                                  pallet_types=types, detector_input_sizes=args.detector_input_sizes)

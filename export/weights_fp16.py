@@ -9,31 +9,26 @@ before this step.
 """
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-__all__ = ["WeightStorage", "store_weights_fp16", "FP16_MAX"]
+from .weight_storage import Encoded, WeightStorage, rewrite_weights
 
-log = logging.getLogger(__name__)
+__all__ = ["WeightStorage", "store_weights_fp16", "encode_fp16", "FP16_MAX"]
 
 FP16_MAX = float(np.finfo(np.float16).max)
 
 
-@dataclass(frozen=True)
-class WeightStorage:
-    """What `store_weights_fp16` did: tensors converted, tensors kept float32, file sizes in bytes."""
-    converted: int
-    kept_fp32: int
-    bytes_before: int
-    bytes_after: int
-
-    def to_dict(self) -> dict:
-        return {"weights": "float16 on disk, float32 compute", **self.__dict__}
+def encode_fp16(name: str, w32: np.ndarray, uses: list | None = None) -> Encoded | None:
+    """`w32` as a float16 initializer `<name>__fp16` and a Cast to float32 named `name`; None when a value is
+    not finite or beyond float16's range."""
+    if not np.all(np.isfinite(w32)) or np.abs(w32).max() > FP16_MAX:
+        return None
+    half_name = f"{name}__fp16"
+    cast = helper.make_node("Cast", [half_name], [name], to=TensorProto.FLOAT, name=f"{name}__to_fp32")
+    return Encoded([numpy_helper.from_array(w32.astype(np.float16), half_name)], [cast], "float16")
 
 
 def store_weights_fp16(src: str | Path, dst: str | Path, min_elements: int = 1024) -> WeightStorage:
@@ -42,36 +37,4 @@ def store_weights_fp16(src: str | Path, dst: str | Path, min_elements: int = 102
     :param min_elements: initializers smaller than this stay float32.
     :raises ValueError: `src` has an initializer that is also a graph input (weights must be constants).
     """
-    src, dst = Path(src), Path(dst)
-    model = onnx.load(str(src))
-    graph = model.graph
-    graph_inputs = {i.name for i in graph.input}
-    casts, keep, converted, kept = [], [], 0, 0
-    for init in graph.initializer:
-        if init.data_type != TensorProto.FLOAT or int(np.prod(init.dims)) < min_elements:
-            keep.append(init)
-            continue
-        if init.name in graph_inputs:
-            raise ValueError(f"{src.name}: initializer {init.name!r} is also a graph input; cannot store it as a constant")
-        w32 = numpy_helper.to_array(init)
-        if not np.all(np.isfinite(w32)) or np.abs(w32).max() > FP16_MAX:
-            keep.append(init)
-            kept += 1
-            continue
-        half_name = f"{init.name}__fp16"
-        keep.append(numpy_helper.from_array(w32.astype(np.float16), half_name))
-        casts.append(helper.make_node("Cast", [half_name], [init.name], to=TensorProto.FLOAT,
-                                      name=f"{init.name}__to_fp32"))
-        converted += 1
-    del graph.initializer[:]
-    graph.initializer.extend(keep)
-    nodes = casts + list(graph.node)   # the Casts first: the node list stays topologically sorted
-    del graph.node[:]
-    graph.node.extend(nodes)
-    onnx.checker.check_model(model, full_check=True)
-    before = src.stat().st_size
-    onnx.save(model, str(dst))
-    storage = WeightStorage(converted, kept, before, dst.stat().st_size)
-    log.info("%s: %d weight tensors stored as float16 (%.1f -> %.1f MB)", dst.name, converted, before / 1e6,
-             storage.bytes_after / 1e6)
-    return storage
+    return rewrite_weights(src, dst, encode_fp16, "float16 on disk, float32 compute", "float16", min_elements)
