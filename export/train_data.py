@@ -474,7 +474,10 @@ def _to_cache(samples: PoseSamples | DetectorSamples) -> dict[str, np.ndarray]:
 
 
 def _from_cache(cls: type, z) -> PoseSamples | DetectorSamples:
-    """The samples `_to_cache` stored."""
+    """The samples `_to_cache` stored; a cache written without one of `cls`'s fields is refused."""
+    missing = sorted(set(cls.__dataclass_fields__) - set(z.files))
+    if missing:
+        raise ValueError(f"cache lacks {missing}: it was written by an older version; rebuild it")
     fields = {f: z[f] for f in cls.__dataclass_fields__}
     if cls is DetectorSamples:
         fields["images"] = _unragged(fields["images"], z["images_shape"])

@@ -31,6 +31,16 @@ def test_detector_cache_roundtrip(tmp_path, counts):
 def test_detector_cache_with_mismatched_counts_is_refused(tmp_path):
     path = tmp_path / "c.npz"
     np.savez(path, images=np.zeros((64, 3), np.uint8), images_shape=np.array([[8, 8, 3]]),
-             boxes=np.zeros((2, 4), np.float32), boxes_shape=np.array([[3, 4]]), frame=np.zeros(1, np.int64))
+             boxes=np.zeros((2, 4), np.float32), boxes_shape=np.array([[3, 4]]), frame=np.zeros(1, np.int64),
+             types=np.zeros(3, np.int64), types_shape=np.array([[3]]))
     with np.load(path, allow_pickle=False) as z, pytest.raises(ValueError, match="disagree"):
+        _from_cache(DetectorSamples, z)
+
+
+def test_detector_cache_without_types_is_refused(tmp_path):
+    """A cache from before detector samples carried pallet types is rebuilt, not read with made-up types."""
+    path = tmp_path / "c.npz"
+    np.savez(path, images=np.zeros((192, 3), np.uint8), images_shape=np.array([[8, 8, 3]]),
+             boxes=np.zeros((1, 4), np.float32), boxes_shape=np.array([[1, 4]]), frame=np.zeros(1, np.int64))
+    with np.load(path, allow_pickle=False) as z, pytest.raises(ValueError, match="types"):
         _from_cache(DetectorSamples, z)
