@@ -119,6 +119,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "detector reports the type), or names of pallet types; default one class, 'pallet'")
     parser.add_argument("--real-repeat-large", type=int, default=1, metavar="K",
                         help="detector: train real photographs holding a box >= 20%% of the image tall K times (1)")
+    parser.add_argument("--loader-threads", type=int, default=1,
+                        help="detector: threads that prepare a batch's frames (the same batches for any number; "
+                             "an accelerator needs several to be kept busy)")
     parser.add_argument("--select", choices=("loss", "near_f1"), default="loss",
                         help="detector: best.pt by validation loss (default) or by F1 of real near-box recall "
                              "(boxes >= 8%% of the image tall) and real precision")
@@ -265,7 +268,8 @@ def main(args: argparse.Namespace) -> int:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,
                                    real_max_images=args.real_max_images, input_sizes=sizes,
-                                   real_repeat_large=args.real_repeat_large, select=args.select, **common)
+                                   real_repeat_large=args.real_repeat_large, select=args.select,
+                                   loader_threads=args.loader_threads, **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

@@ -23,6 +23,7 @@ checkpoint with the best F1 of near-box recall and real precision instead of the
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -129,7 +130,7 @@ class DetectorTrainer:
 
     def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu",
                  amp: bool = False, input_sizes: Sequence[tuple[int, int]] | None = None,
-                 select: str = "loss") -> None:
+                 select: str = "loss", loader_threads: int = 1) -> None:
         if select not in SELECTIONS:
             raise ValueError(f"select must be one of {SELECTIONS}, got {select!r}")
         if select == "near_f1" and not data.real[data.val_idx].any():
@@ -141,6 +142,10 @@ class DetectorTrainer:
         for h, w in self.input_sizes:
             if h <= 0 or w <= 0 or h % 32 or w % 32:
                 raise ValueError(f"detector input sizes must be positive multiples of 32, got {h}x{w}")
+        if loader_threads < 1:
+            raise ValueError(f"loader_threads must be >= 1, got {loader_threads}")
+        # OpenCV and numpy release the GIL on whole images: threads prepare a batch's frames side by side
+        self.pool = ThreadPoolExecutor(loader_threads) if loader_threads > 1 else None
         self.detector = build_detector(cfg.detector).to(self.device)
         self.loss = DetectorLoss(self.detector)
 
@@ -156,31 +161,38 @@ class DetectorTrainer:
               input_hw: tuple[int, int] | None = None) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """Frames `idx` drawn into one input size (default: the first frame's), augmented (rng given) or
         letterboxed as the runtime does: (B, 3, H, W) float in [0, 1], B targets (n_i, 5) cls+xyxy."""
-        s = self.data.samples
         hw = input_hw or self.input_hw_of(int(idx[0]))
-        images, targets = [], []
-        for i in idx:
-            # class -1: a pallet of unknown type (a real photograph's box); the class rides along as a 5th column
-            cls = np.full(len(s.types[i]), -1.0) if self.data.real[i] else \
-                self.class_of_type[np.asarray(s.types[i], np.int64)].astype(np.float64)
-            img = s.images[i]
-            boxes = np.column_stack([np.asarray(s.boxes[i], np.float32).reshape(-1, 4), cls]).astype(np.float32)
-            if rng is not None:
-                a = self.aug
-                img, boxes = place_in_window(img, boxes, hw, rng, a.zoom_range, a.zoom_in_max, a.shift_fraction)
-                img = augment_rgb(img, rng, a)
-                if rng.random() < a.flip_prob:
-                    img, boxes = flip_horizontal(img, boxes)
-            else:
-                img, lb = letterbox(img, hw)
-                boxes = boxes.copy()
-                boxes[:, [0, 2]] = boxes[:, [0, 2]] * lb.scale_x + lb.pad_x
-                boxes[:, [1, 3]] = boxes[:, [1, 3]] * lb.scale_y + lb.pad_y
-            images.append(img)
-            t = np.ascontiguousarray(boxes[:, [4, 0, 1, 2, 3]], np.float32)   # class, x1, y1, x2, y2
-            targets.append(torch.from_numpy(t).to(self.device))
+        # one seed per frame, drawn up front: the batch is the same whichever thread prepares which frame
+        seeds = rng.integers(0, 2**63 - 1, size=len(idx)) if rng is not None else [None] * len(idx)
+        jobs = [(int(i), hw, seed) for i, seed in zip(idx, seeds)]
+        prepared = list(self.pool.map(self._prepare, jobs)) if self.pool else [self._prepare(j) for j in jobs]
+        images = [img for img, _ in prepared]
+        targets = [torch.from_numpy(t).to(self.device) for _, t in prepared]
         x = torch.from_numpy(np.stack(images)).to(self.device).permute(0, 3, 1, 2).float().div_(255.0)
         return x.contiguous(), targets
+
+    def _prepare(self, job: tuple[int, tuple[int, int], int | None]) -> tuple[np.ndarray, np.ndarray]:
+        """Frame `i` drawn into input size `hw`: augmented with a generator of `seed`, or letterboxed as the
+        runtime does (seed None). :return: (H, W, 3) uint8 image, (n, 5) float32 targets class, x1, y1, x2, y2."""
+        i, hw, seed = job
+        s = self.data.samples
+        # class -1: a pallet of unknown type (a real photograph's box); the class rides along as a 5th column
+        cls = np.full(len(s.types[i]), -1.0) if self.data.real[i] else \
+            self.class_of_type[np.asarray(s.types[i], np.int64)].astype(np.float64)
+        img = s.images[i]
+        boxes = np.column_stack([np.asarray(s.boxes[i], np.float32).reshape(-1, 4), cls]).astype(np.float32)
+        if seed is not None:
+            a, rng = self.aug, np.random.default_rng(int(seed))
+            img, boxes = place_in_window(img, boxes, hw, rng, a.zoom_range, a.zoom_in_max, a.shift_fraction)
+            img = augment_rgb(img, rng, a)
+            if rng.random() < a.flip_prob:
+                img, boxes = flip_horizontal(img, boxes)
+        else:
+            img, lb = letterbox(img, hw)
+            boxes = boxes.copy()
+            boxes[:, [0, 2]] = boxes[:, [0, 2]] * lb.scale_x + lb.pad_x
+            boxes[:, [1, 3]] = boxes[:, [1, 3]] * lb.scale_y + lb.pad_y
+        return img, np.ascontiguousarray(boxes[:, [4, 0, 1, 2, 3]], np.float32)
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
         frames = self.data.train_idx[idx]
@@ -293,7 +305,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                    val_fraction: float = 0.1, max_frames: int | None = None, command: str = "",
                    progress: bool = True, init: str | Path | None = None, real: str | Path | None = None,
                    real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None,
-                   real_repeat_large: int = 1, select: str = "loss") -> dict:
+                   real_repeat_large: int = 1, select: str = "loss", loader_threads: int = 1) -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry."""
     run_dir = Path(run_dir)
@@ -302,7 +314,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
                             val_fraction, max_frames, progress, real, real_max_images, real_repeat_large)
     trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes,
-                              select=select)
+                              select=select, loader_threads=loader_threads)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases
     decay = [p for n, p in trainer.detector.named_parameters() if p.ndim > 1]
     no_decay = [p for n, p in trainer.detector.named_parameters() if p.ndim <= 1]

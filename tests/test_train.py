@@ -182,6 +182,20 @@ def test_detector_batches_take_one_input_size_and_validation_letterboxes_like_th
         DetectorTrainer(CFG, dd, AugmentConfig(), input_sizes=[(100, 96)])
 
 
+def test_detector_batches_are_the_same_with_loader_threads(sim_bop_dataset, tmp_path):
+    """Each frame's augmentation has its own seed drawn up front: threads change the speed, never the batch."""
+    dd = load_detector_data(CFG, [sim_bop_dataset], seed=0, cache_dir=tmp_path, progress=False)
+    one = DetectorTrainer(CFG, dd, AugmentConfig())
+    four = DetectorTrainer(CFG, dd, AugmentConfig(), loader_threads=4)
+    idx = dd.train_idx[:4]
+    for rng in (lambda: np.random.default_rng(3), lambda: None):
+        (x1, t1), (x4, t4) = one.batch(idx, rng()), four.batch(idx, rng())
+        assert torch.equal(x1, x4) and all(torch.equal(a, b) for a, b in zip(t1, t4))
+    assert not torch.equal(one.batch(idx, np.random.default_rng(3))[0], one.batch(idx, np.random.default_rng(4))[0])
+    with pytest.raises(ValueError, match="loader_threads"):
+        DetectorTrainer(CFG, dd, AugmentConfig(), loader_threads=0)
+
+
 def test_init_starts_from_a_checkpoints_weights(pose_run, sim_bop_dataset, tmp_path):
     from pallet6d.export.fusion import build_fusion
     from pallet6d.export.pose import build_pose
