@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 __all__ = ["RegistrationScore", "registration_region", "registration_score", "pair_auc"]
@@ -106,8 +107,8 @@ def registration_region(boxes_xyxy: np.ndarray, shape_hw: tuple[int, int], margi
 
 
 def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndarray, *, shift_px: int = 24,
-                       pair_px: int = 2, margin_of_box: float = 0.5, max_samples: int = 16384, tol_m: float = 0.02,
-                       tol_quad_per_m: float = 0.004, min_pairs: int = 50, colour_edge: int = 30
+                       pair_px: int = 3, margin_of_box: float = 0.5, max_samples: int = 16384, tol_m: float = 0.02,
+                       tol_quad_per_m: float = 0.004, min_pairs: int = 50, colour_edge: int = 30, blur_px: int = 3
                        ) -> RegistrationScore:
     """AUC(0) and the largest AUC with the depth shifted by +-`shift_px` along rows and columns, over the
     candidates' dilated boxes.
@@ -124,6 +125,7 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
     :param min_pairs: fewer jumping, other or colour-edge pairs -> no evidence (NaN AUC).
     :param colour_edge: a pair whose colour difference (sum of absolute RGB differences) is at least this counts
         as a colour edge; an image without enough of them (constant, dark) cannot judge.
+    :param blur_px: the colour image is box-filtered over this many pixels first (1: not at all).
     :return: the frame's `RegistrationScore`.
     """
     depth = np.asarray(depth_m)
@@ -132,9 +134,10 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
         raise ValueError(f"depth_m must be (H, W), got shape {depth.shape}")
     if colour.shape != (*depth.shape, 3):
         raise ValueError(f"rgb must be (H, W, 3) like depth_m {depth.shape}, got shape {colour.shape}")
-    if int(shift_px) < 1 or int(pair_px) < 1 or int(max_samples) < 1:
-        raise ValueError(f"shift_px, pair_px and max_samples must be >= 1, got {shift_px}, {pair_px}, {max_samples}")
-    s, a = int(shift_px), int(pair_px)
+    if min(int(shift_px), int(pair_px), int(max_samples), int(blur_px)) < 1:
+        raise ValueError(f"shift_px, pair_px, max_samples and blur_px must be >= 1, got {shift_px}, {pair_px}, "
+                         f"{max_samples}, {blur_px}")
+    s, a, blur_px = int(shift_px), int(pair_px), int(blur_px)
     h, w = depth.shape
     dil, (x0, y0, x1, y1) = registration_region(boxes_xyxy, (h, w), margin_of_box, a)
     if x1 <= x0 or y1 <= y0:
@@ -145,34 +148,44 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
               & (ys[None, :, None] >= dil[:, 1, None, None]) & (ys[None, :, None] < dil[:, 3, None, None])).any(0)
 
     # colour differences of the pairs (p, p + a along x) and (p, p + a along y), once for all shifts
-    c = colour[y0:y1:step, x0:x1:step].astype(np.int16)
-    diff_x = np.abs(c - colour[y0:y1:step, x0 + a:x1 + a:step]).sum(-1)
-    diff_y = np.abs(c - colour[y0 + a:y1 + a:step, x0:x1:step]).sum(-1)
+    # (a box filter first: on a dark, noisy image the sensor noise would drown weak edges)
+    crop = colour[y0:y1 + a, x0:x1 + a]
+    if blur_px > 1:
+        crop = cv2.blur(np.ascontiguousarray(crop), (blur_px, blur_px))
+    c = crop[0:y1 - y0:step, 0:x1 - x0:step].astype(np.int16)
+    diff_x = np.abs(c - crop[0:y1 - y0:step, a:x1 - x0 + a:step]).sum(-1)
+    diff_y = np.abs(c - crop[a:y1 - y0 + a:step, 0:x1 - x0:step]).sum(-1)
     edges = int(((diff_x >= colour_edge) & inside).sum() + ((diff_y >= colour_edge) & inside).sum())
     if edges < min_pairs:
         return RegistrationScore.unjudged(edges)
 
     # the depth around the rectangle, zero (no data) beyond the image, so every shift reads with plain slices
-    hh, ww = y1 - y0 + a + 2 * s + step, x1 - x0 + a + 2 * s + step
+    m = s + 2 * a                                       # the widest read: a shift, then a pair's flanks
+    hh, ww = y1 - y0 + 2 * m + step, x1 - x0 + 2 * m + step
     pad = np.zeros((hh, ww), np.float32)
-    sy0, sx0 = max(y0 - s, 0), max(x0 - s, 0)
-    sy1, sx1 = min(y0 - s + hh, h), min(x0 - s + ww, w)
+    sy0, sx0 = max(y0 - m, 0), max(x0 - m, 0)
+    sy1, sx1 = min(y0 - m + hh, h), min(x0 - m + ww, w)
     crop = depth[sy0:sy1, sx0:sx1].astype(np.float32)
-    pad[sy0 - (y0 - s):sy1 - (y0 - s), sx0 - (x0 - s):sx1 - (x0 - s)] = np.where(np.isfinite(crop), crop, 0.0)
+    pad[sy0 - (y0 - m):sy1 - (y0 - m), sx0 - (x0 - m):sx1 - (x0 - m)] = np.where(np.isfinite(crop), crop, 0.0)
     ny, nx = len(ys), len(xs)
 
     def z_at(dy: int, dx: int) -> np.ndarray:
-        """(ny, nx) depth at the grid's pixels + (dy, dx) - shift."""
-        return pad[s + dy:s + dy + ny * step:step, s + dx:s + dx + nx * step:step]
+        """(ny, nx) depth at the grid's pixels + (dy, dx)."""
+        return pad[m + dy:m + dy + ny * step:step, m + dx:m + dx + nx * step:step]
 
     def auc(dy: int, dx: int) -> tuple[float, int, int]:
         """AUC with the depth read at the image's pixel + (dy, dx), and the pair counts."""
-        z0 = z_at(dy, dx)
         d, j = [], []
-        for z1, diff in ((z_at(dy, dx + a), diff_x), (z_at(dy + a, dx), diff_y)):
+        for (ey, ex), diff in (((0, 1), diff_x), ((1, 0), diff_y)):
+            z_b, z0, z1, z_a = (z_at(dy + k * a * ey, dx + k * a * ex) for k in (-1, 0, 1, 2))
             valid = inside & (z0 > 0) & (z1 > 0)
             far = np.maximum(z0, z1)
-            jump = np.abs(z0 - z1) > 2.0 * (tol_m + tol_quad_per_m * far * far)
+            step_m = np.abs(z0 - z1)
+            jump = step_m > 2.0 * (tol_m + tol_quad_per_m * far * far)
+            # a surface's end is a step between flatter flanks; a noise spike changes as much beside it, so such
+            # a pair counts neither as a jump nor as another pair
+            flat = (np.abs(z_b - z0) < 0.5 * step_m) & (np.abs(z_a - z1) < 0.5 * step_m)
+            valid &= ~jump | flat
             d.append(diff[valid])
             j.append(jump[valid])
         dd, jj = np.concatenate(d), np.concatenate(j)
