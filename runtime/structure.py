@@ -95,8 +95,9 @@ class StructureParams:
         the frame's candidates' boxes, the edge AUC of the depth as given (AUC(0)) minus the largest edge AUC of the
         depth shifted by `registration_shift_px` along rows and columns. Below this, with AUC(0) below
         `registered_edge_auc`, every candidate of the frame -> "depth_image_mismatch" (another frame's depth, depth
-        not registered to the image). On the validation frames registered depth peaks at 0.07 or more, another
-        frame's depth at 0.02 or less (docs/structure-check.md); 0 turns it off.
+        not registered to the image). Over ground-truth boxes of the validation and test frames a frame's own depth
+        peaks at 0.06 or more (median about 0.2), another frame's at about -0.03 (median); 0.03 keeps twice the
+        margin to the lowest own-depth peak (docs/structure-check.md); 0 turns it off.
     :ivar registered_edge_auc: a frame whose AUC(0) is at least this counts as registered whatever its peak (the
         depth's edges lie on the image's so clearly that a repeating scene, similar at the shift, cannot explain it).
     :ivar registration_shift_px: the depth's shift against the image for the registration peak, pixels (well beyond
