@@ -1,8 +1,9 @@
-"""Frame-level registration test: does the depth belong to this colour image, at this alignment? (numpy only)
+"""Frame-level registration test: does the depth belong to this colour image, at this alignment? (numpy, OpenCV)
 
 Where a surface ends, the depth jumps and the colour image usually changes too. Over a grid of pixels in the
 candidates' boxes (each dilated), pairs of pixels `pair_px` apart along rows and columns with valid depth are split
-into *jumping* pairs (depths differ by more than twice the range-dependent tolerance) and the others. The rank
+into *jumping* pairs (depths differ by more than twice the range-dependent tolerance, and by more than twice the
+change beside each end: a step, not a noise spike) and the others (depths within that tolerance). The rank
 statistic (Mann-Whitney AUC) of the colour differences of jumping pairs against the others is AUC(0): about 0.5 when
 depth and colour are unrelated, higher when the depth's edges lie on the image's. Then the same with the depth
 shifted by `shift_px` left, right, up and down against the image: a depth registered to the image has its edges on
@@ -10,8 +11,9 @@ the image's only at zero shift, so AUC(0) stands above every shifted AUC (the *r
 another frame, or depth not registered to the image, shows no such peak. One score per frame, pooled over all
 candidates, because per candidate the pairs are too few to judge on stereo-noisy depth.
 
-Colour differences are the sum of absolute RGB differences, integers 0-765, so each AUC comes from two histograms
-(no sort): a few milliseconds per frame with the grid's step chosen so that at most `max_samples` pixels are read.
+Colour differences are the sum of absolute RGB differences of the box-filtered image, integers 0-765, so each AUC
+comes from two histograms (no sort): a few milliseconds per frame with the grid's step chosen so that at most about
+`max_samples` pixels are read.
 """
 from __future__ import annotations
 
@@ -134,6 +136,8 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
         raise ValueError(f"depth_m must be (H, W), got shape {depth.shape}")
     if colour.shape != (*depth.shape, 3):
         raise ValueError(f"rgb must be (H, W, 3) like depth_m {depth.shape}, got shape {colour.shape}")
+    if colour.dtype != np.uint8:
+        raise TypeError(f"rgb must be uint8, got {colour.dtype}")
     if min(int(shift_px), int(pair_px), int(max_samples), int(blur_px)) < 1:
         raise ValueError(f"shift_px, pair_px, max_samples and blur_px must be >= 1, got {shift_px}, {pair_px}, "
                          f"{max_samples}, {blur_px}")
@@ -165,8 +169,8 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
     pad = np.zeros((hh, ww), np.float32)
     sy0, sx0 = max(y0 - m, 0), max(x0 - m, 0)
     sy1, sx1 = min(y0 - m + hh, h), min(x0 - m + ww, w)
-    crop = depth[sy0:sy1, sx0:sx1].astype(np.float32)
-    pad[sy0 - (y0 - m):sy1 - (y0 - m), sx0 - (x0 - m):sx1 - (x0 - m)] = np.where(np.isfinite(crop), crop, 0.0)
+    z_crop = depth[sy0:sy1, sx0:sx1].astype(np.float32)
+    pad[sy0 - (y0 - m):sy1 - (y0 - m), sx0 - (x0 - m):sx1 - (x0 - m)] = np.where(np.isfinite(z_crop), z_crop, 0.0)
     ny, nx = len(ys), len(xs)
 
     def z_at(dy: int, dx: int) -> np.ndarray:

@@ -121,6 +121,11 @@ def test_bad_input_raises(kw, match):
         registration_score(**args)
 
 
+def test_colour_must_be_uint8():
+    with pytest.raises(TypeError, match="uint8"):
+        registration_score(DEPTH, RGB.astype(np.float32), BOXES)
+
+
 @pytest.mark.parametrize("kw", [dict(min_registration_peak=-0.1), dict(registered_edge_auc=1.5),
                                 dict(registration_shift_px=0), dict(registration_samples=0),
                                 dict(registration_colour_edge=800), dict(frame_size_veto=-1)])
