@@ -30,6 +30,10 @@ Two tests ask whether the depth belongs to the image at all (they fail as "size_
   those elsewhere is about 0.5 when the depth comes from another frame or is not registered to the image, and
   0.6-0.99 (median 0.86) on the validation frames, whose depth belongs to the image.
 
+Before these per-pallet tests the fit-check stage runs the frame-level registration test (`registration.py`, with
+this check's `StructureParams`): the frame's depth edges, pooled over all candidates, must lie on the image's at
+zero shift and not as well with the depth shifted; else every candidate is "depth_image_mismatch".
+
 Mismatched inputs fail it: depth of a flat wall (openings closed), another frame's depth (nothing agrees, edges
 elsewhere), a depth scale or a focal length that is off (the box's metric size, or the posed model's boards
 project where the image has none). The tolerance grows with range like stereo depth noise:
