@@ -4,8 +4,10 @@ For each frame of BOP datasets, runs the estimator on the frame as recorded and 
 together (a flat wall's depth under the image, another frame's depth, depth 10x too near, a focal length 2x too
 long, a transposed K, fx = fy = 1e9; frames the estimator refuses count as `refused_frames`), and scores every
 pose the estimator accepts with its fit check alone (`structure=None`) with
-`runtime/structure.py`. Reports, per dataset and variant: those poses, how many are within 5 cm (ADD-sym) of a
-ground-truth pallet, and how many of each the structure check keeps. The estimator's poses are cached per dataset and
+`runtime/structure.py` the way the fit-check stage does: per frame the registration test over all its poses' boxes
+(`runtime/registration.py`), the structure check of each pose, then the frame's size veto. Reports, per dataset and
+variant: those poses, how many are within 5 cm (ADD-sym) of a ground-truth pallet, how many of each the structure
+check keeps, and the registration test's milliseconds per frame. The estimator's poses are cached per dataset and
 variant (`--cache DIR`), so re-scoring with other thresholds takes seconds. Measures only.
 
     python benchmarks/structure_check.py --bundle models/epal-default --data DIR [DIR ...] --frames 30 \
@@ -15,8 +17,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from collections import Counter
-from dataclasses import asdict, fields
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +27,7 @@ import numpy as np
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.estimator import PalletEstimator
 from pallet6d.runtime.metrics import add_sym
-from pallet6d.runtime.structure import StructureParams, structure_check
+from pallet6d.runtime.structure import StructureParams, frame_registration, structure_check
 
 VARIANTS = ("as_recorded", "flat_wall", "other_frame", "depth_x0.1", "focal_x2", "K_transposed", "focal_1e9")
 
@@ -86,16 +89,34 @@ def estimate(est: PalletEstimator, ds: BopDataset, variant: str, n: int) -> dict
 
 
 def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray, params: StructureParams,
-          no_rgb: bool = False) -> list:
-    """Structure scores of cached poses, in their order (`no_rgb`: without the colour image's edge test)."""
-    out = []
+          no_rgb: bool = False) -> tuple[list, list, list]:
+    """Structure scores of cached poses, in their order, as the fit-check stage decides them (`no_rgb`: without the
+    colour image's tests): a frame the registration test refuses makes each of its poses "depth_image_mismatch"
+    (first, as in the stage), the size veto makes the frame's others "size_mismatch".
+
+    :return: the scores, each pose's frame `RegistrationScore` (None without it), and the registration test's
+        milliseconds per frame.
+    """
+    out, regs, ms = [], [], []
     for i in np.unique(poses["frame"]):
         sel = poses["frame"] == i
         f = ds[int(i)]
         depth_m, K = mismatch(variant, f, _other(ds, int(i), n) if variant == "other_frame" else None)
-        out.extend(structure_check(poses["T"][sel], boxes_m, depth_m, K, poses["box"][sel], params,
-                                   rgb=None if no_rgb else f.rgb))
-    return out
+        scores = structure_check(poses["T"][sel], boxes_m, depth_m, K, poses["box"][sel], params,
+                                 rgb=None if no_rgb else f.rgb)
+        reg, refused = None, False
+        if not no_rgb and params.min_registration_peak > 0:
+            t = time.perf_counter()
+            reg, refused = frame_registration(depth_m, f.rgb, poses["box"][sel], params)
+            ms.append(1e3 * (time.perf_counter() - t))
+        if refused:
+            scores = [replace(s, reason="depth_image_mismatch") for s in scores]
+        n_size = sum(s.reason == "size_mismatch" for s in scores)
+        if params.frame_size_veto > 0 and n_size >= params.frame_size_veto:
+            scores = [s if s.reason else replace(s, reason="size_mismatch") for s in scores]
+        out.extend(scores)
+        regs.extend([reg] * len(scores))
+    return out, regs, ms
 
 
 def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8: bool, cache: Path | None,
@@ -117,18 +138,22 @@ def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8
                     path.parent.mkdir(parents=True, exist_ok=True)
                     np.savez(path, **poses)
             boxes_m = np.asarray((est.model_boxes_m if est else _boxes(bundle)))
-            scores = score(ds, variant, n, poses, boxes_m, params, no_rgb)
+            scores, regs, ms = score(ds, variant, n, poses, boxes_m, params, no_rgb)
             good = poses["err"] < 0.05
             kept = np.array([s.ok for s in scores], bool)
             c = {"frames": n, "refused_frames": int(poses.get("refused", 0)), "accepted": len(good),
                  "within_5cm": int(good.sum()), "kept": int(kept.sum()),
                  "kept_within_5cm": int((kept & good).sum()),
-                 "reasons": dict(Counter(s.reason or "ok" for s in scores))}
+                 "reasons": dict(Counter(s.reason or "ok" for s in scores)),
+                 "registration_ms": {"frames": len(ms), "median": float(np.median(ms)) if ms else None,
+                                     "max": float(np.max(ms)) if ms else None}}
             out[f"{Path(root).name}/{variant}"] = c
             print(f"{Path(root).name:>24} {variant:>12}: {c}", flush=True)
             rows.extend({"data": Path(root).name, "variant": variant, "frame": int(fr), "add_sym_m": float(e),
-                         "fit": float(ft), **asdict(s)} for fr, e, ft, s in zip(poses["frame"], poses["err"],
-                                                                                poses["fit"], scores))
+                         "fit": float(ft), **asdict(s),
+                         "registration_auc_0": None if r is None else r.auc_0,
+                         "registration_peak": None if r is None else r.peak}
+                        for fr, e, ft, s, r in zip(poses["frame"], poses["err"], poses["fit"], scores, regs))
     out["poses"] = rows
     return out
 

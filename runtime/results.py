@@ -31,7 +31,7 @@ REJECT_REASONS = (
     "size_mismatch",        # the detector's box has no pallet's metric size at the depth inside it: depth scale or
                             # focal length off (structure.py)
     "depth_image_mismatch",  # the depth's edges do not coincide with the colour image's: another frame's depth,
-                             # or depth not registered to the image (structure.py)
+                             # or depth not registered to the image (registration.py: every candidate of the frame)
     "time_budget",          # skipped: the frame's time budget was spent before this detection was posed
     "outside_roi",          # outside the region of interest or the depth hint (roi.py), dropped before posing
 )

@@ -11,7 +11,7 @@ from .deadline import elapsed_ms
 from .fit import fit_score
 from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
-from .structure import StructureParams, structure_check
+from .structure import StructureParams, frame_registration, structure_check
 
 __all__ = ["FitCheckStage"]
 
@@ -26,7 +26,10 @@ class FitCheckStage:
     :param structure: thresholds of the structure check, or None to skip it; a pose that fails it is rejected
         with the check's own reason where the inputs do not belong together ("size_mismatch": the detector's box
         has the wrong metric size at the depth; "depth_image_mismatch": the depth's edges are not the image's),
-        else "no_pallet_structure". Types without boxes are not structure-checked.
+        else "no_pallet_structure". Types without boxes are not structure-checked. Two tests judge the whole frame:
+        the registration test (`min_registration_peak`: the frame's depth edges against the image's, at zero shift
+        and shifted) rejects every candidate as "depth_image_mismatch", and with `frame_size_veto` enough
+        candidates failing the metric size reject every candidate as "size_mismatch".
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], tol_m: float, min_fit: float,
@@ -37,8 +40,20 @@ class FitCheckStage:
 
     def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
                         rgb: np.ndarray | None = None) -> None:
-        """The structure check on `rows` of `cands`, one batched call per pallet type; failures are rejected.
-        :param rgb: the colour image registered to `depth_m`, for the edge test (None skips it)."""
+        """The structure check on `rows` of `cands`: first the frame-level registration test over all of them, then
+        one batched call per pallet type, then the frame's size veto; failures are rejected.
+        :param rgb: the colour image registered to `depth_m`, for the edge and registration tests (None skips
+            them)."""
+        p = self.structure
+        if rgb is not None and p.min_registration_peak > 0 and len(rows):
+            reg, refused = frame_registration(depth_m, rgb, cands.boxes_xyxy[rows], p)
+            if refused:
+                cands.reject(rows, "depth_image_mismatch",
+                             f"depth_image_mismatch: the frame's depth edges agree with the image's at AUC "
+                             f"{reg.auc_0:.2f}, and as well with the depth shifted {p.registration_shift_px} px "
+                             f"(AUC {reg.auc_shifted:.2f}, peak {reg.peak:.3f} < {p.min_registration_peak}): depth of "
+                             "another frame, or not registered to the colour image?")
+                return
         for j, geom in enumerate(self.geometries):
             mine = rows[cands.type_index[rows] == j]
             if len(mine) == 0 or geom.boxes_m is None:
@@ -48,6 +63,11 @@ class FitCheckStage:
             for reason in ("size_mismatch", "depth_image_mismatch", "no_pallet_structure"):
                 bad = [k for k, sc in enumerate(scores) if not sc.ok and _rejection_reason(sc.reason) == reason]
                 cands.reject(mine[bad], reason, [_structure_detail(scores[k]) for k in bad])
+        n_size = int((cands.reason[rows] == "size_mismatch").sum())
+        if p.frame_size_veto > 0 and n_size >= p.frame_size_veto:
+            alive = rows[cands.alive[rows]]
+            cands.reject(alive, "size_mismatch", f"size_mismatch: {n_size} of the frame's {len(rows)} candidates have "
+                         "no pallet's metric size at the depth (frame_size_veto): depth scale or focal length off?")
 
     def score(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
               K: np.ndarray) -> np.ndarray:

@@ -30,6 +30,10 @@ Two tests ask whether the depth belongs to the image at all (they fail as "size_
   those elsewhere is about 0.5 when the depth comes from another frame or is not registered to the image, and
   0.6-0.99 (median 0.86) on the validation frames, whose depth belongs to the image.
 
+Before these per-pallet tests the fit-check stage runs the frame-level registration test (`registration.py`, with
+this check's `StructureParams`): the frame's depth edges, pooled over all candidates, must lie on the image's at
+zero shift and not as well with the depth shifted; else every candidate is "depth_image_mismatch".
+
 Mismatched inputs fail it: depth of a flat wall (openings closed), another frame's depth (nothing agrees, edges
 elsewhere), a depth scale or a focal length that is off (the box's metric size, or the posed model's boards
 project where the image has none). The tolerance grows with range like stereo depth noise:
@@ -42,9 +46,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import check_K
+from .registration import RegistrationScore, registration_score
 
 __all__ = ["StructureParams", "StructureScore", "structure_check", "cast_rays_boxes", "box_metric_size",
-           "edge_agreement"]
+           "edge_agreement", "frame_registration"]
 
 _BIG = 1e12
 
@@ -90,6 +95,30 @@ class StructureParams:
         depth, 0.58 refuses most poses on another frame's depth (docs/structure-check.md).
     :ivar min_edge_pairs: the edge test needs at least this many neighbour pairs with a depth jump and as many
         without (else no evidence either way).
+    :ivar min_registration_peak: with the colour image, the frame-level registration test (`registration.py`): over
+        the frame's candidates' boxes, the edge AUC of the depth as given (AUC(0)) minus the largest edge AUC of the
+        depth shifted by `registration_shift_px` along rows and columns. Below this, with AUC(0) below
+        `registered_edge_auc`, every candidate of the frame -> "depth_image_mismatch" (another frame's depth, depth
+        not registered to the image). Over ground-truth boxes of the validation and test frames a frame's own depth
+        peaks at 0.06 or more (median about 0.2), another frame's at about -0.03 (median); 0.03 keeps twice the
+        margin to the lowest own-depth peak (docs/structure-check.md); 0 turns it off.
+    :ivar registered_edge_auc: a frame whose AUC(0) is at least this counts as registered whatever its peak (the
+        depth's edges lie on the image's so clearly that a repeating scene, similar at the shift, cannot explain it).
+    :ivar registration_shift_px: the depth's shift against the image for the registration peak, pixels (well beyond
+        the few pixels by which stereo depth edges stray from the image's).
+    :ivar registration_pair_px: pixels between the two pixels of a pair in the registration test.
+    :ivar registration_blur_px: the registration test box-filters the colour image over this many pixels first, so
+        sensor noise on a dark image does not drown weak edges (1: not at all).
+    :ivar registration_margin_of_box: each candidate's box is dilated by this fraction of its width and height on each
+        side for the registration test (the pallet's outline and its surroundings hold the depth edges).
+    :ivar registration_samples: the registration test reads a grid of at most about this many pixels (its cost).
+    :ivar registration_min_pairs: the registration test needs at least this many jumping pairs, as many other pairs
+        and as many colour edges (else no evidence either way: no depth, a flat scene, a constant or dark image).
+    :ivar registration_colour_edge: a pair whose colour difference (sum of absolute RGB differences, 0-765) is at
+        least this is a colour edge.
+    :ivar frame_size_veto: when at least this many candidates of a frame fail the metric-size test, every candidate
+        of the frame -> "size_mismatch" (the depth scale or the focal length is the frame's, so wrong for all of
+        them); 0 turns it off, the default.
     """
 
     grid: int = 32
@@ -109,6 +138,16 @@ class StructureParams:
     max_box_size_of_diameter: float = 3.0
     min_edge_auc: float = 0.0
     min_edge_pairs: int = 5
+    min_registration_peak: float = 0.03
+    registered_edge_auc: float = 0.85
+    registration_shift_px: int = 24
+    registration_pair_px: int = 3
+    registration_blur_px: int = 3
+    registration_margin_of_box: float = 0.5
+    registration_samples: int = 16384
+    registration_min_pairs: int = 50
+    registration_colour_edge: int = 30
+    frame_size_veto: int = 0
 
     def __post_init__(self) -> None:
         if int(self.grid) < 4:
@@ -132,6 +171,19 @@ class StructureParams:
             raise ValueError(f"min_edge_pairs must be >= 1, got {self.min_edge_pairs}")
         if not 0.0 < self.max_tilt_deg <= 180.0:
             raise ValueError(f"max_tilt_deg must be in (0, 180], got {self.max_tilt_deg}")
+        for name in ("min_registration_peak", "registered_edge_auc"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        for name in ("registration_shift_px", "registration_pair_px", "registration_blur_px", "registration_samples",
+                     "registration_min_pairs"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not self.registration_margin_of_box >= 0:
+            raise ValueError(f"registration_margin_of_box must be >= 0, got {self.registration_margin_of_box}")
+        if not 0 <= int(self.registration_colour_edge) <= 765:
+            raise ValueError(f"registration_colour_edge must be in [0, 765], got {self.registration_colour_edge}")
+        if int(self.frame_size_veto) < 0:
+            raise ValueError(f"frame_size_veto must be >= 0 (0: off), got {self.frame_size_veto}")
 
 
 @dataclass(frozen=True)
@@ -436,3 +488,22 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
                                   float(edge_auc[i]), reason, bool(box_cut[i]),
                                   float(whole_height_m[i])))
     return out
+
+
+def frame_registration(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndarray,
+                       params: StructureParams = StructureParams()) -> tuple[RegistrationScore, bool]:
+    """The frame-level registration test (`registration.py`) with the thresholds of `params`.
+
+    :param depth_m: (H, W) metres, 0 = no data. :param rgb: (H, W, 3) uint8, the frame's colour image.
+    :param boxes_xyxy: (n, 4) the boxes of all the frame's candidates, image pixels.
+    :return: the frame's score and whether its depth is refused as not this image's (every candidate of the frame
+        -> "depth_image_mismatch"); never refused without enough evidence or with `min_registration_peak` 0.
+    """
+    score = registration_score(depth_m, rgb, boxes_xyxy, shift_px=int(params.registration_shift_px),
+                               pair_px=int(params.registration_pair_px),
+                               margin_of_box=float(params.registration_margin_of_box),
+                               max_samples=int(params.registration_samples), tol_m=params.tol_m,
+                               tol_quad_per_m=params.tol_quad_per_m, min_pairs=int(params.registration_min_pairs),
+                               colour_edge=int(params.registration_colour_edge),
+                               blur_px=int(params.registration_blur_px))
+    return score, score.mismatch(params.min_registration_peak, params.registered_edge_auc)
