@@ -111,6 +111,9 @@ def main(argv=None) -> int:
                     help="pose at most this many detections per frame (default: EstimatorOptions.max_pallets)")
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of the per-pallet point sampling (EstimatorOptions.seed): run a few to see the spread")
+    ap.add_argument("--structure", default=None,
+                    help="StructureParams overrides as JSON, e.g. '{\"min_registration_peak\": 0}' (the structure "
+                         "check's thresholds; default: the estimator's)")
     ap.add_argument("--write-scores", action="store_true",
                     help="record the summary in the bundle's report.json under scores.<fp32|int8>")
     args = ap.parse_args(argv)
@@ -120,10 +123,13 @@ def main(argv=None) -> int:
     from pallet6d.runtime.eval_cli import evaluate_dataset, format_table
 
     precision = "int8" if args.int8 else "fp32"
+    options = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets))
+               if v is not None}
+    if args.structure is not None:
+        from pallet6d.runtime.structure import StructureParams
+        options["structure"] = StructureParams(**json.loads(args.structure))
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision=precision,
-                                      refine=not args.no_refine, seed=args.seed,
-                                      **{k: v for k, v in (("refine_starts", args.refine_starts),
-                                                           ("max_pallets", args.max_pallets)) if v is not None})
+                                      refine=not args.no_refine, seed=args.seed, **options)
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for preset in args.presets:
@@ -139,7 +145,8 @@ def main(argv=None) -> int:
     variant = precision + (", GT boxes" if args.gt_boxes else "") + (", no refinement" if args.no_refine else "") \
         + (f", {args.refine_starts} extra ICP starts" if args.refine_starts is not None and not args.no_refine else "") \
         + (f", at most {args.max_pallets} pallets per frame" if args.max_pallets is not None else "") \
-        + (f", sampling seed {args.seed}" if args.seed else "")
+        + (f", sampling seed {args.seed}" if args.seed else "") \
+        + (f", structure check {args.structure}" if args.structure is not None else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")
     if args.write_scores:
