@@ -1,8 +1,15 @@
 """Pose network stage: boxes -> sampled points, fusion.onnx + pose.onnx, the most confident hypothesis.
 
 Per box: crop and encode, select the depth pixels and sample N of them (`pose_inputs.prepare_pose_inputs`,
-shared with training), then the fusion and pose graphs on all boxes at once (in chunks of `graph_batch`),
-then the most confident per-point hypothesis (`selection.select_poses`).
+shared with training), then the fusion and pose graphs on all boxes (in chunks of `graph_batch`), then the most
+confident per-point hypothesis (`selection.select_poses`).
+
+With two or more chunks and `lanes` > 1, the chunks run side by side, `lanes` at a time, each on a one-thread copy
+of the two graphs: graphs this small hardly use a second intra-op thread (one pallet, int8: 10 ms on 2 threads,
+14 ms on 1), so two pallets on one core each finish sooner than two pallets one after the other on both (four
+pallets, int8, 2 cores: 42 -> 29 ms; `docs/experiments/latency.md`, "Pallets side by side"). A single chunk keeps
+the graphs' `threads`-thread copy. The one-thread copy is made on the first frame that needs it (about 18 MB
+int8). onnxruntime runs one session from several threads at once, and releases the GIL while it runs.
 
 Point sampling is seeded per box from `seed` and the clamped box, so a pallet's points depend only on the
 frame and its box: the same frame gives the same poses, and a pallet gets the same pose whether it is
@@ -10,7 +17,9 @@ estimated alone or with others.
 """
 from __future__ import annotations
 
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -37,21 +46,39 @@ class PoseNetworkStage:
     :param spec: the preprocessing (`Bundle.pose_input_spec()`, depth range possibly overridden).
     :param seed: seed of the per-box point sampling.
     :param min_valid_points: a box with fewer valid depth pixels is rejected ("too_few_points").
+    :param lanes: chunks run side by side, each on one thread (1: one after the other on `threads` threads).
     """
 
     def __init__(self, bundle, precision: str, threads: int, spec: PoseInputSpec, seed: int,
-                 min_valid_points: int) -> None:
+                 min_valid_points: int, lanes: int = 1) -> None:
+        if int(lanes) < 1:
+            raise ValueError(f"lanes must be >= 1, got {lanes}")
         f, q = bundle.fusion, bundle.pose
         self.fusion_spec, self.pose_spec, self.spec = f, q, spec
         # a fusion graph that samples its features itself takes the chosen pixels as a third input
         self.choose_input = f.choose_input
-        fusion_inputs = (f.rgb_input, f.depth_input) + ((self.choose_input,) if self.choose_input else ())
-        self.fusion = OnnxModel(bundle.graph("fusion", precision), threads, fusion_inputs, (f.output_name,))
-        self.pose = OnnxModel(bundle.graph("pose", precision), threads, (q.points_input, q.features_input),
-                              (q.quat_output, q.trans_output, q.conf_output))
+        self._graphs = (bundle.graph("fusion", precision), bundle.graph("pose", precision))
+        self.fusion, self.pose = self._open(threads)
         self.seed = int(seed)
         self.min_valid_points = int(min_valid_points)
         self.graph_batch = GRAPH_BATCH
+        self.lanes = int(lanes)
+        self._lane_graphs: tuple[OnnxModel, OnnxModel] | None = None
+        self._pool: ThreadPoolExecutor | None = None
+
+    def _open(self, threads: int) -> tuple[OnnxModel, OnnxModel]:
+        """The fusion and pose graphs as sessions of `threads` intra-op threads."""
+        f, q = self.fusion_spec, self.pose_spec
+        fusion_inputs = (f.rgb_input, f.depth_input) + ((self.choose_input,) if self.choose_input else ())
+        return (OnnxModel(self._graphs[0], threads, fusion_inputs, (f.output_name,)),
+                OnnxModel(self._graphs[1], threads, (q.points_input, q.features_input),
+                          (q.quat_output, q.trans_output, q.conf_output)))
+
+    def close(self) -> None:
+        """Stop the lanes' worker threads (the stage still runs afterwards, starting them again if needed)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
     def preprocess(self, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
                    boxes_xyxy: np.ndarray) -> tuple[PoseBatch, list[tuple[np.ndarray, np.ndarray]]]:
@@ -65,36 +92,82 @@ class PoseNetworkStage:
 
     def infer(self, batch: PoseBatch, timings: dict[str, float] | None = None,
               deadline: Deadline | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Both graphs on the rows of `batch`, `graph_batch` rows at a time, in order; once `deadline` has
-        expired the remaining chunks are not run.
+        """Both graphs on the rows of `batch`, `graph_batch` rows at a time, taken in order (side by side in
+        `lanes` when there are several chunks); once `deadline` has expired no further chunk is taken, so the
+        rows run are always the first b.
 
         :return: per-point quaternions (b, N, 4), translation offsets (b, N, 3), confidences (b, N) for the
             first b rows of `batch` (b = len(batch) unless the deadline stopped it).
         """
-        f, q = self.fusion_spec, self.pose_spec
+        q = self.pose_spec
         timings = {} if timings is None else timings
-        outs = []
-        for c in range(0, len(batch), self.graph_batch):   # see GRAPH_BATCH: bounds the graphs' memory
-            if deadline is not None and deadline.expired():
-                break
-            part = slice(c, c + self.graph_batch)
-            t = time.perf_counter()
-            feeds = {f.rgb_input: batch.rgb_crops[part], f.depth_input: batch.depth_crops[part]}
-            if self.choose_input:
-                feeds[self.choose_input] = batch.choose[part]
-            feat = self.fusion.run(feeds, [f.output_name])[f.output_name]
-            timings["fusion"] = timings.get("fusion", 0.0) + elapsed_ms(t)
-            t = time.perf_counter()
-            if self.choose_input:   # the graph's output is already per point (B, N, C)
-                emb = np.ascontiguousarray(feat, np.float32)
-            else:
-                emb = gather_features(feat, batch.choose[part])
-            outs.append(self.pose.run({q.points_input: batch.points[part], q.features_input: emb}))
-            timings["pose"] = timings.get("pose", 0.0) + elapsed_ms(t)
+        chunks = [slice(c, c + self.graph_batch) for c in range(0, len(batch), self.graph_batch)]
+        if self.lanes > 1 and len(chunks) > 1:
+            outs = self._run_lanes(batch, chunks, timings, deadline)
+        else:
+            outs = []
+            for part in chunks:   # see GRAPH_BATCH: bounds the graphs' memory
+                if deadline is not None and deadline.expired():
+                    break
+                outs.append(self._run_chunk(self.fusion, self.pose, batch, part, timings))
         if not outs:
             n = batch.points.shape[1]
             return np.zeros((0, n, 4), np.float32), np.zeros((0, n, 3), np.float32), np.zeros((0, n), np.float32)
         return tuple(np.concatenate([o[k] for o in outs]) for k in (q.quat_output, q.trans_output, q.conf_output))
+
+    def _run_chunk(self, fusion: OnnxModel, pose: OnnxModel, batch: PoseBatch, part: slice,
+                   timings: dict[str, float]) -> dict[str, np.ndarray]:
+        """The fusion then the pose graph on rows `part`; adds their times to `timings`."""
+        f, q = self.fusion_spec, self.pose_spec
+        t = time.perf_counter()
+        feeds = {f.rgb_input: batch.rgb_crops[part], f.depth_input: batch.depth_crops[part]}
+        if self.choose_input:
+            feeds[self.choose_input] = batch.choose[part]
+        feat = fusion.run(feeds, [f.output_name])[f.output_name]
+        t_pose = time.perf_counter()
+        if self.choose_input:   # the graph's output is already per point (B, N, C)
+            emb = np.ascontiguousarray(feat, np.float32)
+        else:
+            emb = gather_features(feat, batch.choose[part])
+        out = pose.run({q.points_input: batch.points[part], q.features_input: emb})
+        timings["fusion"] = timings.get("fusion", 0.0) + (t_pose - t) * 1000.0
+        timings["pose"] = timings.get("pose", 0.0) + elapsed_ms(t_pose)
+        return out
+
+    def _run_lanes(self, batch: PoseBatch, chunks: list[slice], timings: dict[str, float],
+                   deadline: Deadline | None) -> list[dict[str, np.ndarray]]:
+        """`chunks` on `lanes` worker threads sharing one one-thread copy of the graphs; each worker takes the next
+        chunk until none is left or the deadline has expired. Timings: the section's wall time, split between
+        fusion and pose in proportion to their summed times."""
+        if self._lane_graphs is None:
+            self._lane_graphs = self._open(1)
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.lanes, thread_name_prefix="pallet6d-lane")
+        fusion, pose = self._lane_graphs
+        results: list[dict[str, np.ndarray] | None] = [None] * len(chunks)
+        taken = iter(range(len(chunks)))
+        lock = threading.Lock()
+        lane_times: list[dict[str, float]] = [{} for _ in range(self.lanes)]
+
+        def work(lane: int) -> None:
+            while True:
+                with lock:   # chunks are taken in order, so the chunks run are always the first ones
+                    if deadline is not None and deadline.expired():
+                        return
+                    k = next(taken, None)
+                if k is None:
+                    return
+                results[k] = self._run_chunk(fusion, pose, batch, chunks[k], lane_times[lane])
+
+        t = time.perf_counter()
+        for job in [self._pool.submit(work, lane) for lane in range(self.lanes)]:
+            job.result()   # re-raises a lane's error here
+        wall = elapsed_ms(t)
+        spent = {s: sum(lt.get(s, 0.0) for lt in lane_times) for s in ("fusion", "pose")}
+        total = spent["fusion"] + spent["pose"]
+        for s in ("fusion", "pose"):
+            timings[s] = timings.get(s, 0.0) + (wall * spent[s] / total if total > 0 else 0.0)
+        return [r for r in results if r is not None]
 
     @staticmethod
     def postprocess(quat: np.ndarray, trans: np.ndarray, conf: np.ndarray,

@@ -119,6 +119,62 @@ def test_graphs_run_in_chunks_of_graph_batch_with_the_same_poses(est, frame, box
         assert a.confidence == pytest.approx(b.confidence, abs=1e-5)
 
 
+@pytest.fixture(scope="module")
+def lanes_est(bundle_dir):
+    est = PalletEstimator.from_bundle(bundle_dir, threads=2, score_threshold=0.0, min_fit=0.0, structure=None)
+    yield est
+    est.close()
+
+
+def test_pallet_lanes_give_the_same_poses_as_one_after_the_other(lanes_est, frame, boxes):
+    assert lanes_est.pose_network.lanes == 2                      # as many as threads, by default
+    one = PalletEstimator.from_bundle(lanes_est.bundle.root, threads=2, score_threshold=0.0, min_fit=0.0,
+                                      structure=None, pallet_lanes=1)
+    a = one.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    b = lanes_est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    assert one.pose_network._lane_graphs is None                  # one lane: no one-thread copy of the graphs
+    assert lanes_est.pose_network._lane_graphs is not None        # several pallets went side by side
+    assert len(a.poses) == len(b.poses) == len(boxes) and a.rejected == b.rejected == []
+    for pa, pb in zip(a.poses, b.poses):
+        np.testing.assert_allclose(pb.T_cam_pallet, pa.T_cam_pallet, atol=1e-6)
+        assert pb.confidence == pytest.approx(pa.confidence, abs=1e-6)
+    assert b.timings_ms["fusion"] > 0 and b.timings_ms["pose"] > 0
+
+
+def test_pallet_lanes_keep_one_pallet_on_all_threads(bundle_dir, frame, boxes):
+    est = PalletEstimator.from_bundle(bundle_dir, threads=2, score_threshold=0.0, min_fit=0.0, structure=None)
+    r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:1])
+    assert len(r.poses) == 1 and est.pose_network._lane_graphs is None
+    est.close()
+    est.close()                                                   # twice is fine
+
+
+def test_pallet_lanes_stop_taking_pallets_once_the_budget_is_spent(lanes_est, frame, boxes):
+    """Chunks are taken in order: whatever the lanes did when the budget ran out, the rows run are the first."""
+    pn = lanes_est.pose_network
+    batch, _ = pn.preprocess(frame.rgb, frame.depth_m, frame.K, boxes)
+
+    class AfterReads:          # a deadline that expires after its first `n` reads
+        def __init__(self, n):
+            self.left, self.budget_ms = n, 1.0
+
+        def expired(self):
+            self.left -= 1
+            return self.left < 0
+
+    full = pn.infer(batch)
+    for n in range(0, 6):
+        quat, trans, conf = pn.infer(batch, {}, AfterReads(n))
+        assert len(quat) == min(n, len(boxes))
+        np.testing.assert_array_equal(conf, full[2][:len(conf)])
+
+
+@pytest.mark.parametrize("lanes", [0, -1])
+def test_pallet_lanes_option_is_checked(lanes):
+    with pytest.raises(ValueError, match="pallet_lanes"):
+        EstimatorOptions(pallet_lanes=lanes)
+
+
 def test_rejections_are_reported_with_reasons(bundle_dir, frame, boxes):
     depth = frame.depth_m.copy()
     x1, y1, x2, y2 = boxes[1].astype(int)
