@@ -36,8 +36,13 @@ def distance_to_boxes(pts: np.ndarray, boxes_m: np.ndarray) -> np.ndarray:
     boxes = np.asarray(boxes_m, dtype=np.float64)
     if boxes.ndim != 3 or boxes.shape[1:] != (2, 3):
         raise ValueError(f"boxes_m must be (k, 2, 3), got shape {boxes.shape}")
-    gap = np.maximum(np.maximum(boxes[None, :, 0] - pts[:, None], pts[:, None] - boxes[None, :, 1]), 0.0)
-    return np.sqrt((gap * gap).sum(-1)).min(1)
+    # (k, n) arrays, one axis at a time: numpy reduces slowly over a short last axis
+    d2 = np.zeros((len(boxes), len(pts)))
+    for c in range(3):
+        p = pts[:, c]
+        gap = np.maximum(np.maximum(boxes[:, 0, c, None] - p, p - boxes[:, 1, c, None]), 0.0)
+        d2 += gap * gap
+    return np.sqrt(d2.min(0)) if len(boxes) else np.full(len(pts), np.inf)
 
 
 def distance_to_points(pts: np.ndarray, model_pts: np.ndarray, chunk: int = 512) -> np.ndarray:
@@ -106,8 +111,12 @@ class ModelPointIndex:
         out = np.full(len(pts), np.inf)
         if inside.any():
             near = self.points[self.row[np.ravel_multi_index(idx[inside].T, self.shape)]]     # (n', L, 3)
-            diff = near - pts[inside, None]
-            out[inside] = np.sqrt((diff * diff).sum(-1).min(1))
+            p = pts[inside]
+            d2 = np.zeros(near.shape[:2])
+            for c in range(3):                        # not a sum over the short last axis: slow in numpy
+                diff = near[..., c] - p[:, c, None]
+                d2 += diff * diff
+            out[inside] = np.sqrt(d2.min(1))
         return out
 
 
