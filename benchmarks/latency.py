@@ -70,11 +70,11 @@ def _detector_ms(est, rgb) -> dict[str, float]:
 
 
 def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes,
-                  refine_starts: int) -> dict:
+                  refine_starts: int, pallet_lanes: int = 1) -> dict:
     from pallet6d.runtime.estimator import PalletEstimator
 
     est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
-                                      refine_starts=refine_starts)
+                                      refine_starts=refine_starts, pallet_lanes=pallet_lanes)
     scores = np.linspace(0.9, 0.5, pallets)
     samples: dict[str, list[float]] = {s: [] for s in STAGES}
     for i in range(frames + 5):
@@ -178,14 +178,16 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
              f"`{info['command']}` at {info['git_commit']} on {info['date_utc']}; {info['cpus']} CPUs, "
              f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}. Weights: {weights} "
              "(latency does not depend on the weights' values).", "",
-             "| bundle | precision | threads | pallets | ICP starts | " + " | ".join(f"{s} p50" for s in STAGES[:-1])
+             "| bundle | precision | threads | lanes | pallets | ICP starts | "
+             + " | ".join(f"{s} p50" for s in STAGES[:-1])
              + " | total p50 | total p95 | total p99 | torch eager nets p50 | onnx nets p50 | torch/onnx |",
-             "|" + "---|" * (5 + len(STAGES) - 1 + 6)]
+             "|" + "---|" * (6 + len(STAGES) - 1 + 6)]
     for r in results:
         s = r["stages"]
         nets = s["detector"]["p50"] + s["fusion"]["p50"] + s["pose"]["p50"]
         t = r.get("torch_eager_nets")
-        lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r['pallets']} | {r['refine_starts']} | "
+        lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r.get('pallet_lanes', 1)} | "
+                     f"{r['pallets']} | {r['refine_starts']} | "
                      + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
                      + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
                      + (f"{t['p50']:.1f} | {nets:.1f} | {t['p50'] / nets:.2f} |" if t else f"- | {nets:.1f} | - |"))
@@ -207,6 +209,8 @@ def main() -> int:
     ap.add_argument("--precision", nargs="+", default=["fp32", "int8"])
     ap.add_argument("--refine-starts", type=int, nargs="+", default=None,
                     help="extra ICP starts to measure (default: EstimatorOptions.refine_starts)")
+    ap.add_argument("--pallet-lanes", type=int, nargs="+", default=[1],
+                    help="EstimatorOptions.pallet_lanes to measure (default 1)")
     ap.add_argument("--no-torch", action="store_true", help="skip the torch eager comparison")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = ap.parse_args()
@@ -224,11 +228,12 @@ def main() -> int:
                 continue
             footprints[f"{b.config}|{precision}"] = footprint(bundle, precision, max(args.pallets))
             for threads in args.threads:
-                for pallets, starts in itertools.product(args.pallets, starts_list):
+                for pallets, starts, lanes in itertools.product(args.pallets, starts_list, args.pallet_lanes):
                     frame, boxes = _scene(pallets)
-                    stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes, starts)
-                    r = {"bundle": b.config, "precision": precision, "threads": threads, "pallets": pallets,
-                         "refine_starts": starts, "frames": args.frames, "stages": stages}
+                    stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes, starts,
+                                           lanes)
+                    r = {"bundle": b.config, "precision": precision, "threads": threads, "pallet_lanes": lanes,
+                         "pallets": pallets, "refine_starts": starts, "frames": args.frames, "stages": stages}
                     if not args.no_torch and precision == "fp32":
                         r["torch_eager_nets"] = bench_torch(b.config, threads, pallets, max(20, args.frames // 4))
                     results.append(r)

@@ -115,9 +115,10 @@ class EstimatorOptions:
         reported as rejected ("time_budget"), never as poses. The stages check it between units of work (a
         chunk of the pose network's batch, one pallet's refinement), so a frame ends at most one unit late.
     :ivar pallet_lanes: a frame's pallets go through the fusion and pose graphs this many side by side, each on
-        one thread (`stage_pose.py`; four pallets, int8, 2 cores: 42 -> 29 ms). None: as many as the estimator's
-        `threads`; 1: one after the other, each on all threads, and no second copy of the graphs in memory
-        (about 18 MB int8, made on the first frame with two or more pallets).
+        one thread (`stage_pose.py`; four pallets, int8, 2 cores: 40 -> 28 ms). It costs memory: a one-thread
+        copy of the two graphs and each lane's activations (peak resident memory about 160 -> 220 MB int8,
+        `benchmarks/memory.py`), so it is off by default. 1: one after the other, each on all `threads`;
+        None: as many lanes as `threads`.
     """
 
     score_threshold: float = 0.25
@@ -143,7 +144,7 @@ class EstimatorOptions:
     structure: StructureParams | None = StructureParams()
     roi: RegionOfInterest | None = None
     time_budget_ms: float | None = None
-    pallet_lanes: int | None = None
+    pallet_lanes: int | None = 1
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.score_threshold <= 1.0:

@@ -8,8 +8,9 @@ With two or more chunks and `lanes` > 1, the chunks run side by side, `lanes` at
 of the two graphs: graphs this small hardly use a second intra-op thread (one pallet, int8: 10 ms on 2 threads,
 14 ms on 1), so two pallets on one core each finish sooner than two pallets one after the other on both (four
 pallets, int8, 2 cores: 42 -> 29 ms; `docs/experiments/latency.md`, "Pallets side by side"). A single chunk keeps
-the graphs' `threads`-thread copy. The one-thread copy is made on the first frame that needs it (about 18 MB
-int8). onnxruntime runs one session from several threads at once, and releases the GIL while it runs.
+the graphs' `threads`-thread copy. The one-thread copy is made on the first frame that needs it; with it and each
+lane's activations the peak resident memory grows by about 60 MB (int8), which is why the estimator's default is
+one lane. onnxruntime runs one session from several threads at once, and releases the GIL while it runs.
 
 Point sampling is seeded per box from `seed` and the clamped box, so a pallet's points depend only on the
 frame and its box: the same frame gives the same poses, and a pallet gets the same pose whether it is

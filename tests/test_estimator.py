@@ -121,15 +121,17 @@ def test_graphs_run_in_chunks_of_graph_batch_with_the_same_poses(est, frame, box
 
 @pytest.fixture(scope="module")
 def lanes_est(bundle_dir):
-    est = PalletEstimator.from_bundle(bundle_dir, threads=2, score_threshold=0.0, min_fit=0.0, structure=None)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=2, score_threshold=0.0, min_fit=0.0, structure=None,
+                                      pallet_lanes=None)
     yield est
     est.close()
 
 
 def test_pallet_lanes_give_the_same_poses_as_one_after_the_other(lanes_est, frame, boxes):
-    assert lanes_est.pose_network.lanes == 2                      # as many as threads, by default
+    assert lanes_est.pose_network.lanes == 2                      # None: as many as threads
     one = PalletEstimator.from_bundle(lanes_est.bundle.root, threads=2, score_threshold=0.0, min_fit=0.0,
-                                      structure=None, pallet_lanes=1)
+                                      structure=None)
+    assert one.pose_network.lanes == 1                            # the default
     a = one.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
     b = lanes_est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
     assert one.pose_network._lane_graphs is None                  # one lane: no one-thread copy of the graphs
@@ -142,7 +144,8 @@ def test_pallet_lanes_give_the_same_poses_as_one_after_the_other(lanes_est, fram
 
 
 def test_pallet_lanes_keep_one_pallet_on_all_threads(bundle_dir, frame, boxes):
-    est = PalletEstimator.from_bundle(bundle_dir, threads=2, score_threshold=0.0, min_fit=0.0, structure=None)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=2, score_threshold=0.0, min_fit=0.0, structure=None,
+                                      pallet_lanes=2)
     r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:1])
     assert len(r.poses) == 1 and est.pose_network._lane_graphs is None
     est.close()
