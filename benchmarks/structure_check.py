@@ -3,10 +3,10 @@
 For each frame of BOP datasets, runs the estimator on the frame as recorded and on inputs that do not belong
 together (a flat wall's depth under the image, another frame's depth, depth 10x too near, a focal length 2x too
 long, a transposed K, fx = fy = 1e9; frames the estimator refuses count as `refused_frames`), and scores every
-pose the estimator accepts with its fit check alone (`structure=None`) with
-`runtime/structure.py` the way the fit-check stage does: per frame the registration test over all its poses' boxes
-(`runtime/registration.py`), the structure check of each pose, then the frame's size veto. Reports, per dataset and
-variant: those poses, how many are within 5 cm (ADD-sym) of a ground-truth pallet, how many of each the structure
+pose the estimator accepts with its fit check alone (`structure=None`) with `runtime/structure.py` the way the
+fit-check stage does: per frame the registration test over all its poses' boxes (`runtime/registration.py`), the
+structure check of each pose, then the frame's size veto and size majority. Reports, per dataset and variant: those
+poses, how many are within 5 cm (ADD-sym) of a ground-truth pallet, how many of each the structure
 check keeps, and the registration test's milliseconds per frame. The estimator's poses are cached per dataset and
 variant (`--cache DIR`), so re-scoring with other thresholds takes seconds. Measures only.
 
@@ -92,7 +92,7 @@ def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray
           no_rgb: bool = False) -> tuple[list, list, list]:
     """Structure scores of cached poses, in their order, as the fit-check stage decides them (`no_rgb`: without the
     colour image's tests): a frame the registration test refuses makes each of its poses "depth_image_mismatch"
-    (first, as in the stage), the size veto makes the frame's others "size_mismatch".
+    (first, as in the stage), the size veto and the size majority make the frame's others "size_mismatch".
 
     :return: the scores, each pose's frame `RegistrationScore` (None without it), and the registration test's
         milliseconds per frame.
@@ -112,7 +112,9 @@ def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray
         if refused:
             scores = [replace(s, reason="depth_image_mismatch") for s in scores]
         n_size = sum(s.reason == "size_mismatch" for s in scores)
-        if params.frame_size_veto > 0 and n_size >= params.frame_size_veto:
+        n_whole_sized = sum(s.reason != "size_mismatch" and not s.box_cut for s in scores)
+        if (params.frame_size_veto > 0 and n_size >= params.frame_size_veto) or \
+                (params.frame_size_majority and n_size > n_whole_sized):
             scores = [s if s.reason else replace(s, reason="size_mismatch") for s in scores]
         out.extend(scores)
         regs.extend([reg] * len(scores))

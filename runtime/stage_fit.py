@@ -28,8 +28,9 @@ class FitCheckStage:
         has the wrong metric size at the depth; "depth_image_mismatch": the depth's edges are not the image's),
         else "no_pallet_structure". Types without boxes are not structure-checked. Two tests judge the whole frame:
         the registration test (`min_registration_peak`: the frame's depth edges against the image's, at zero shift
-        and shifted) rejects every candidate as "depth_image_mismatch", and with `frame_size_veto` enough
-        candidates failing the metric size reject every candidate as "size_mismatch".
+        and shifted) rejects every candidate as "depth_image_mismatch"; candidates failing the metric size reject
+        every candidate as "size_mismatch" when they outnumber the whole boxes that pass it (`frame_size_majority`)
+        or reach `frame_size_veto`.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], tol_m: float, min_fit: float,
@@ -54,20 +55,25 @@ class FitCheckStage:
                              f"(AUC {reg.auc_shifted:.2f}, peak {reg.peak:.3f} < {p.min_registration_peak}): depth of "
                              "another frame, or not registered to the colour image?")
                 return
+        n_whole_sized = 0        # candidates whose whole box (not cut by the top or bottom edge) has the right size
         for j, geom in enumerate(self.geometries):
             mine = rows[cands.type_index[rows] == j]
             if len(mine) == 0 or geom.boxes_m is None:
                 continue
             scores = structure_check(cands.T_cam_pallet[mine], geom.boxes_m, depth_m, K, cands.boxes_xyxy[mine],
                                      self.structure, rgb=rgb)
+            n_whole_sized += sum(sc.reason != "size_mismatch" and not sc.box_cut for sc in scores)
             for reason in ("size_mismatch", "depth_image_mismatch", "no_pallet_structure"):
                 bad = [k for k, sc in enumerate(scores) if not sc.ok and _rejection_reason(sc.reason) == reason]
                 cands.reject(mine[bad], reason, [_structure_detail(scores[k]) for k in bad])
         n_size = int((cands.reason[rows] == "size_mismatch").sum())
-        if p.frame_size_veto > 0 and n_size >= p.frame_size_veto:
+        rule = "frame_size_veto" if p.frame_size_veto > 0 and n_size >= p.frame_size_veto else \
+            "frame_size_majority" if p.frame_size_majority and n_size > n_whole_sized else None
+        if rule:
             alive = rows[cands.alive[rows]]
             cands.reject(alive, "size_mismatch", f"size_mismatch: {n_size} of the frame's {len(rows)} candidates have "
-                         "no pallet's metric size at the depth (frame_size_veto): depth scale or focal length off?")
+                         f"no pallet's metric size at the depth, {n_whole_sized} whole boxes have it ({rule}): "
+                         "depth scale or focal length off?")
 
     def score(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
               K: np.ndarray) -> np.ndarray:

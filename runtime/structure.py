@@ -119,6 +119,10 @@ class StructureParams:
     :ivar frame_size_veto: when at least this many candidates of a frame fail the metric-size test, every candidate
         of the frame -> "size_mismatch" (the depth scale or the focal length is the frame's, so wrong for all of
         them); 0 turns it off, the default.
+    :ivar frame_size_majority: when the candidates of a frame that fail the metric-size test outnumber those whose
+        whole box (cut by neither the image's top nor its bottom edge) passes it, every candidate of the frame ->
+        "size_mismatch". A box cut by the image's edge cannot show a wrong focal length by its height, but the
+        frame's other pallets can; a correct frame's failures (a load hiding a pallet's upper half) are outnumbered.
     """
 
     grid: int = 32
@@ -148,6 +152,7 @@ class StructureParams:
     registration_min_pairs: int = 50
     registration_colour_edge: int = 30
     frame_size_veto: int = 0
+    frame_size_majority: bool = True
 
     def __post_init__(self) -> None:
         if int(self.grid) < 4:

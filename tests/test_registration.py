@@ -193,7 +193,8 @@ def test_frame_size_veto_rejects_every_candidate_when_enough_fail_the_metric_siz
         c = Candidates.new(np.array(boxes + [thin], float), np.ones(n), np.zeros(n, np.int64), np.zeros(n, np.int64),
                            est.spec.num_points)
         c.assign(np.arange(n), T_cam_pallet=T)
-        stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0, StructureParams(frame_size_veto=veto))
+        stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0,
+                              StructureParams(frame_size_veto=veto, frame_size_majority=False))
         stage.check_structure(c, np.arange(n), frame.depth_m, frame.K, frame.rgb)
         return c
 
@@ -202,3 +203,34 @@ def test_frame_size_veto_rejects_every_candidate_when_enough_fail_the_metric_siz
     on = run(1)
     assert list(on.reason) == ["size_mismatch"] * 3, on.reason
     assert "frame_size_veto" in on.detail[0] and "frame_size_veto" not in on.detail[2]
+
+
+@pytest.mark.parametrize("n_thin, majority, vetoed", [(1, True, False), (2, True, False), (3, True, True),
+                                                     (3, False, False)])
+def test_frame_size_majority_rejects_every_candidate_when_failures_outnumber_whole_boxes(bundle_dir, n_thin, majority,
+                                                                                        vetoed):
+    """Two pallets with whole boxes of the right metric size and n_thin boxes of no pallet's size: the frame is
+    refused only when the failures outnumber the right-sized whole boxes."""
+    from estimator_fixtures import scene
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.runtime.stage_fit import FitCheckStage
+
+    frame = scene()
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, structure=None)
+    pallets = sorted(frame.pallets, key=lambda p: -p.visib_fract)[:2]
+    boxes = [[p.bbox_visib_xywh[0], p.bbox_visib_xywh[1], p.bbox_visib_xywh[0] + p.bbox_visib_xywh[2],
+              p.bbox_visib_xywh[1] + p.bbox_visib_xywh[3]] for p in pallets]
+    assert all(b[1] > 5 and b[3] < frame.depth_m.shape[0] - 5 for b in boxes)     # whole boxes
+    thin = [boxes[0][0], boxes[0][1], boxes[0][2], boxes[0][1] + 4]                # 4 px tall: no pallet's height
+    n = 2 + n_thin
+    c = Candidates.new(np.array(boxes + [thin] * n_thin, float), np.ones(n), np.zeros(n, np.int64),
+                       np.zeros(n, np.int64), est.spec.num_points)
+    c.assign(np.arange(n), T_cam_pallet=np.stack([p.T_cam_pallet for p in pallets]
+                                                 + [pallets[0].T_cam_pallet] * n_thin))
+    stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0, StructureParams(frame_size_majority=majority))
+    stage.check_structure(c, np.arange(n), frame.depth_m, frame.K, frame.rgb)
+    assert list(c.reason[2:]) == ["size_mismatch"] * n_thin
+    if vetoed:
+        assert list(c.reason[:2]) == ["size_mismatch"] * 2 and "frame_size_majority" in c.detail[0]
+    else:
+        assert "size_mismatch" not in set(c.reason[:2]), c.reason
