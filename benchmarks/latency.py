@@ -122,7 +122,7 @@ def bench_torch(config: str, threads: int, pallets: int, frames: int) -> dict:
 
 
 _FOOTPRINT = """
-import resource, sys, time
+import sys, time
 t = time.perf_counter()
 import numpy as np
 from pallet6d.runtime.estimator import PalletEstimator
@@ -133,7 +133,9 @@ with np.load(sys.argv[3]) as z:
 for _ in range(3):
     est.estimate(rgb, depth, K)
     est.estimate_boxes(rgb, depth, K, boxes_xyxy=boxes, scores=np.linspace(0.9, 0.5, len(boxes)))
-print(import_s, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "torch" in sys.modules)
+# VmHWM, not ru_maxrss: after fork + exec ru_maxrss keeps the parent's size at the fork (this benchmark's own)
+hwm_kb = next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:"))
+print(import_s, hwm_kb / 1024, "torch" in sys.modules)
 """
 
 
