@@ -174,9 +174,10 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     replay = args.replay or make_replay(args.out)
     config = args.out / "serve.toml"
+    # camera-frame poses: the replay has no calibration (the vehicle frame costs the API nothing more)
     config.write_text(f'[camera]\nsource = "replay:{replay}"\n[model]\nbundle = "{args.bundle}"\n'
                       f'precision = "{args.precision}"\n[api]\nport = {args.port}\n'
-                      f'[snapshot]\ndir = "{args.out / "snapshots"}"\n')
+                      f'[output]\nframe = "camera"\n[snapshot]\ndir = "{args.out / "snapshots"}"\n')
     cmd = [sys.executable, "-m", "pallet6d.runtime.cli", "serve", "--config", str(config)]
     if args.cpus:
         cmd = ["taskset", "-c", args.cpus] + cmd
