@@ -193,8 +193,7 @@ def test_frame_size_veto_rejects_every_candidate_when_enough_fail_the_metric_siz
         c = Candidates.new(np.array(boxes + [thin], float), np.ones(n), np.zeros(n, np.int64), np.zeros(n, np.int64),
                            est.spec.num_points)
         c.assign(np.arange(n), T_cam_pallet=T)
-        stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0,
-                              StructureParams(frame_size_veto=veto, frame_size_majority=False))
+        stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0, StructureParams(frame_size_veto=veto))
         stage.check_structure(c, np.arange(n), frame.depth_m, frame.K, frame.rgb)
         return c
 
