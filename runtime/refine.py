@@ -124,7 +124,7 @@ def _argmin_rows(a: np.ndarray) -> np.ndarray:
 
 def _closest(p: np.ndarray, boxes: np.ndarray,
              extents: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`closest_on_boxes` of (n, 3) float64 points, with the boxes' `_extents`."""
+    """`closest_on_boxes` of (n, 3) points, with the boxes' `_extents` (both float64, or both float32 in ICP)."""
     n = len(p)
     if n == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
