@@ -27,7 +27,7 @@ import numpy as np
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.estimator import PalletEstimator
 from pallet6d.runtime.metrics import add_sym
-from pallet6d.runtime.structure import StructureParams, frame_registration, structure_check
+from pallet6d.runtime.structure import StructureParams, frame_registration, frame_size_rule, structure_check
 
 VARIANTS = ("as_recorded", "flat_wall", "other_frame", "depth_x0.1", "focal_x2", "K_transposed", "focal_1e9")
 
@@ -111,10 +111,7 @@ def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray
             ms.append(1e3 * (time.perf_counter() - t))
         if refused:
             scores = [replace(s, reason="depth_image_mismatch") for s in scores]
-        n_size = sum(s.reason == "size_mismatch" for s in scores)
-        n_whole_sized = sum(s.reason != "size_mismatch" and not s.box_cut for s in scores)
-        if (params.frame_size_veto > 0 and n_size >= params.frame_size_veto) or \
-                (params.frame_size_majority and n_size > n_whole_sized):
+        if frame_size_rule(scores, params):
             scores = [s if s.reason else replace(s, reason="size_mismatch") for s in scores]
         out.extend(scores)
         regs.extend([reg] * len(scores))

@@ -11,7 +11,7 @@ from .deadline import elapsed_ms
 from .fit import fit_score
 from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
-from .structure import StructureParams, frame_registration, structure_check
+from .structure import StructureParams, frame_registration, frame_size_rule, structure_check
 
 __all__ = ["FitCheckStage"]
 
@@ -42,7 +42,7 @@ class FitCheckStage:
     def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
                         rgb: np.ndarray | None = None) -> None:
         """The structure check on `rows` of `cands`: first the frame-level registration test over all of them, then
-        one batched call per pallet type, then the frame's size veto; failures are rejected.
+        one batched call per pallet type, then the frame's size rules (`frame_size_rule`); failures are rejected.
         :param rgb: the colour image registered to `depth_m`, for the edge and registration tests (None skips
             them)."""
         p = self.structure
@@ -55,25 +55,23 @@ class FitCheckStage:
                              f"(AUC {reg.auc_shifted:.2f}, peak {reg.peak:.3f} < {p.min_registration_peak}): depth of "
                              "another frame, or not registered to the colour image?")
                 return
-        n_whole_sized = 0        # candidates whose whole box (not cut by the top or bottom edge) has the right size
+        scores_all = []
         for j, geom in enumerate(self.geometries):
             mine = rows[cands.type_index[rows] == j]
             if len(mine) == 0 or geom.boxes_m is None:
                 continue
             scores = structure_check(cands.T_cam_pallet[mine], geom.boxes_m, depth_m, K, cands.boxes_xyxy[mine],
                                      self.structure, rgb=rgb)
-            n_whole_sized += sum(sc.reason != "size_mismatch" and not sc.box_cut for sc in scores)
+            scores_all += scores
             for reason in ("size_mismatch", "depth_image_mismatch", "no_pallet_structure"):
                 bad = [k for k, sc in enumerate(scores) if not sc.ok and _rejection_reason(sc.reason) == reason]
                 cands.reject(mine[bad], reason, [_structure_detail(scores[k]) for k in bad])
-        n_size = int((cands.reason[rows] == "size_mismatch").sum())
-        rule = "frame_size_veto" if p.frame_size_veto > 0 and n_size >= p.frame_size_veto else \
-            "frame_size_majority" if p.frame_size_majority and n_size > n_whole_sized else None
+        rule = frame_size_rule(scores_all, p)
         if rule:
-            alive = rows[cands.alive[rows]]
-            cands.reject(alive, "size_mismatch", f"size_mismatch: {n_size} of the frame's {len(rows)} candidates have "
-                         f"no pallet's metric size at the depth, {n_whole_sized} whole boxes have it ({rule}): "
-                         "depth scale or focal length off?")
+            n_size = sum(sc.reason == "size_mismatch" for sc in scores_all)
+            cands.reject(rows[cands.alive[rows]], "size_mismatch",
+                         f"size_mismatch: {n_size} of the frame's {len(rows)} candidates have no pallet's metric "
+                         f"size at the depth ({rule}): depth scale or focal length off?")
 
     def score(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
               K: np.ndarray) -> np.ndarray:

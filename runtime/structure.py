@@ -49,7 +49,7 @@ from .geometry import check_K
 from .registration import RegistrationScore, registration_score
 
 __all__ = ["StructureParams", "StructureScore", "structure_check", "cast_rays_boxes", "box_metric_size",
-           "edge_agreement", "frame_registration"]
+           "edge_agreement", "frame_registration", "frame_size_rule"]
 
 _BIG = 1e12
 
@@ -503,6 +503,19 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
                                   float(edge_auc[i]), reason, bool(box_cut[i]),
                                   float(whole_height_m[i])))
     return out
+
+
+def frame_size_rule(scores: list[StructureScore], params: StructureParams = StructureParams()) -> str | None:
+    """The frame-level size rule that refuses every candidate of a frame, given all its candidates' structure
+    scores: "frame_size_veto" (at least `frame_size_veto` fail the metric-size test), "frame_size_majority" (those
+    failing outnumber the whole boxes that pass), or None."""
+    n_size = sum(sc.reason == "size_mismatch" for sc in scores)
+    n_whole_sized = sum(sc.reason != "size_mismatch" and not sc.box_cut for sc in scores)
+    if params.frame_size_veto > 0 and n_size >= params.frame_size_veto:
+        return "frame_size_veto"
+    if params.frame_size_majority and n_size > n_whole_sized:
+        return "frame_size_majority"
+    return None
 
 
 def frame_registration(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndarray,
