@@ -119,6 +119,10 @@ class EstimatorOptions:
         copy of the two graphs and each lane's activations (peak resident memory about 160 -> 220 MB int8,
         `benchmarks/memory.py`), so it is off by default. 1: one after the other, each on all `threads`;
         None: as many lanes as `threads`.
+    :ivar pallet_types: the pallet types this site uses, by name (e.g. ("epal",)): only these are posed, and a
+        detector class that reports none of them is dropped. A warehouse knows its pallets; telling the estimator
+        spares it guessing between look-alike types (an EPAL's front face fits a closed-deck model too), which
+        costs accuracy and a refinement per extra type. None: every type of the bundle.
     """
 
     score_threshold: float = 0.25
@@ -145,6 +149,7 @@ class EstimatorOptions:
     roi: RegionOfInterest | None = None
     time_budget_ms: float | None = None
     pallet_lanes: int | None = 1
+    pallet_types: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.score_threshold <= 1.0:
@@ -183,6 +188,12 @@ class EstimatorOptions:
             raise ValueError(f"time_budget_ms must be >= 0 or None, got {self.time_budget_ms}")
         if self.pallet_lanes is not None and int(self.pallet_lanes) < 1:
             raise ValueError(f"pallet_lanes must be >= 1 or None, got {self.pallet_lanes}")
+        if self.pallet_types is not None:
+            if isinstance(self.pallet_types, str) or not all(isinstance(t, str) and t for t in self.pallet_types) \
+                    or not self.pallet_types:
+                raise ValueError(f"pallet_types must be a non-empty sequence of type names or None, "
+                                 f"got {self.pallet_types!r}")
+            object.__setattr__(self, "pallet_types", tuple(self.pallet_types))
 
 
 class PalletEstimator:
@@ -212,7 +223,7 @@ class PalletEstimator:
         if o.depth_range_m is not None:
             spec = replace(spec, depth_range_m=tuple(o.depth_range_m))
         self.spec = spec
-        self.pallet_types, self._types_of_class = bundle_geometries(bundle)
+        self.pallet_types, self._types_of_class = bundle_geometries(bundle, o.pallet_types)
         self.detector = DetectorStage(bundle, precision, self.threads, tuple(self._types_of_class), o.score_threshold,
                                       o.iou_threshold, o.max_pallets)
         self.pose_network = PoseNetworkStage(bundle, precision, self.threads, spec, o.seed, o.min_valid_points,

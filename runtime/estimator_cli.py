@@ -8,7 +8,7 @@ import sys
 
 def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """--bundle, --int8, --threads, --score-threshold, --max-pallets, --min-fit, --seed, --no-refine,
-    --refine-starts, --type-candidates, --time-budget-ms, --pallet-lanes, --no-structure-check."""
+    --refine-starts, --type-candidates, --pallet-types, --time-budget-ms, --pallet-lanes, --no-structure-check."""
     parser.add_argument("--bundle", help="model bundle folder (default: $PALLET6D_BUNDLE, else the installed "
                                          "pallet6d-models package's epal-default, else ./models/epal-default)")
     parser.add_argument("--no-structure-check", action="store_true",
@@ -29,6 +29,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--type-candidates", type=int, default=None,
                         help="where one detector class reports several pallet types, refine each pallet with this "
                              "many of them and keep the best fit (default: EstimatorOptions.type_candidates, 2)")
+    parser.add_argument("--pallet-types", type=lambda v: tuple(t.strip() for t in v.split(",") if t.strip()),
+                        default=None, help="comma-separated pallet types this site uses, e.g. epal: only these are "
+                                           "posed (default: every type of the bundle)")
     parser.add_argument("--time-budget-ms", type=float, default=None,
                         help="per-frame time budget: pallets are posed highest detector score first, and those left "
                              "when it is spent are reported as skipped (reason time_budget); default: no limit")
@@ -55,6 +58,7 @@ def load_estimator(args: argparse.Namespace, command: str):
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
         extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
                                    ("type_candidates", args.type_candidates),
+                                   ("pallet_types", args.pallet_types or None),
                                    ("time_budget_ms", args.time_budget_ms),
                                    ("pallet_lanes", args.pallet_lanes)) if v is not None}
         if args.no_structure_check:

@@ -43,14 +43,24 @@ class PalletGeometry:
                    refine_starts=np.asarray(t.refine_starts, dtype=np.float64).reshape(-1, 3))
 
 
-def bundle_geometries(bundle) -> tuple[tuple[PalletGeometry, ...], dict[int, tuple[int, ...]]]:
+def bundle_geometries(bundle, site_types: tuple[str, ...] | None = None
+                      ) -> tuple[tuple[PalletGeometry, ...], dict[int, tuple[int, ...]]]:
     """Every pallet type of a bundle and which detector class reports which types.
 
+    :param site_types: names of the types to pose (`EstimatorOptions.pallet_types`); None: all of them.
     :return: (geometries in the bundle's order, {detector class id: indexes into geometries, in the bundle's
-        order}); a detector class without a type (an external detector's other classes) is absent.
+        order}); a detector class without a type (an external detector's other classes) or whose types are not
+        among `site_types` is absent.
+    :raises ValueError: a name in `site_types` is not one of the bundle's types.
     """
     geometries = tuple(PalletGeometry.from_type(t) for t in bundle.pallet_types)
+    names = [g.name for g in geometries]
+    if site_types is not None:
+        unknown = sorted(set(site_types) - set(names))
+        if unknown:
+            raise ValueError(f"pallet types {unknown} are not in bundle {bundle.name} (its types: {', '.join(names)})")
     types_of_class: dict[int, tuple[int, ...]] = {}
     for i, t in enumerate(bundle.pallet_types):
-        types_of_class[int(t.class_id)] = types_of_class.get(int(t.class_id), ()) + (i,)
+        if site_types is None or names[i] in site_types:
+            types_of_class[int(t.class_id)] = types_of_class.get(int(t.class_id), ()) + (i,)
     return geometries, types_of_class

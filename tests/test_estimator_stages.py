@@ -328,3 +328,36 @@ def test_types_may_share_a_detector_class(bundle_dir):
     assert [t.class_id for t in shared.pallet_types] == [0, 0]
     with pytest.raises(ValueError, match="type_candidates"):
         EstimatorOptions(type_candidates=0)
+
+
+def test_site_pallet_types_narrow_the_type_choice(bundle_dir):
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6", "gma"))
+    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
+    opts = {k: v for k, v in KW.items() if k != "threads"}
+    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**opts, pallet_types=("eur6", "gma")))
+    assert est._types_of_class == {0: (1, 2)} and est.type_choice.needed
+    one = PalletEstimator(multi, threads=1, options=EstimatorOptions(**opts, pallet_types=["epal"]))
+    assert one._types_of_class == {0: (0,)} and not one.type_choice.needed
+    assert one.options.pallet_types == ("epal",)
+    f = _scene_of("epal")
+    p = max(f.pallets, key=lambda p: p.visib_fract)
+    x, y, w, h = p.bbox_visib_xywh
+    res = one.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=[[x, y, x + w, y + h]])
+    assert len(res.poses) + len(res.rejected) == 1 and all(q.pallet_type == "epal" for q in res.poses)
+
+
+def test_a_detector_class_outside_the_site_types_is_dropped(bundle_dir):
+    types = (_catalogue_type("epal", 0), _catalogue_type("gma", 1))
+    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
+    opts = {k: v for k, v in KW.items() if k != "threads"}
+    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**opts, pallet_types=("gma",)))
+    assert est._types_of_class == {1: (1,)} and est.detector.class_ids == (1,)
+    with pytest.raises(ValueError, match="not pallet classes"):
+        est.estimate_boxes(*_inputs(est, scene()), boxes_xyxy=[[10, 10, 60, 40]], class_ids=[0])
+
+
+@pytest.mark.parametrize("value, match", [(("epal", "nope"), "not in bundle"), ((), "non-empty"),
+                                          ("epal", "non-empty"), (("epal", ""), "non-empty")])
+def test_site_pallet_types_are_checked(bundle_dir, value, match):
+    with pytest.raises(ValueError, match=match):
+        PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(pallet_types=value))

@@ -32,6 +32,7 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     assert cfg.camera.source == f"replay:{tmp_path / 'rec'}"
     assert cfg.model.bundle == str(tmp_path / "b") and cfg.snapshot.dir == str(tmp_path / "snaps")
     assert cfg.estimator.depth_range_m == (0.3, 6.0) and cfg.estimator.max_pallets == 4
+    assert load(tmp_path, '[estimator]\npallet_types = ["epal"]\n' + CAMERA_FRAME).estimator.pallet_types == ("epal",)
     assert load(tmp_path, "[estimator]\nstructure = false\n" + CAMERA_FRAME).estimator.structure is None
     relaxed = load(tmp_path, "[estimator]\nstructure = {min_agreement = 0.5}\n" + CAMERA_FRAME).estimator.structure
     assert relaxed.min_agreement == 0.5 and relaxed.grid == 32
@@ -55,6 +56,8 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     ("[estimator]\nscore_threshold = 2.0\n", "score_threshold must be in [0, 1]"),
     ("[estimator]\nthreshold = 0.5\n", "[estimator] unknown key(s) ['threshold']"),
     ("[estimator]\ndepth_range_m = [1]\n", "estimator.depth_range_m"),
+    ("[estimator]\npallet_types = 'epal'\n", "estimator.pallet_types: expected a list of pallet type names"),
+    ("[estimator]\npallet_types = []\n", "estimator.pallet_types"),
     ("[estimator]\nstructure = 3\n", "estimator.structure: expected true, false or a table"),
     ("[estimator]\nstructure = {grid = 'x'}\n", "estimator.structure.grid: expected int"),
     ("[estimator]\nstructure = {gird = 32}\n", "estimator.structure: unknown key(s) ['gird']"),

@@ -281,6 +281,11 @@ def _estimator(values: Any, name: str) -> EstimatorOptions:
         default = fields[key].default
         if dataclasses.is_dataclass(default):       # a group of settings (structure): false = off, a table = set
             out[key] = _settings(value, type(default), f"estimator.{key}", name)
+        elif key == "pallet_types":
+            if not (isinstance(value, list) and value and all(isinstance(v, str) and v for v in value)):
+                raise ConfigError(f"{name}: estimator.pallet_types: expected a list of pallet type names, "
+                                  f"e.g. [\"epal\"], got {value!r}")
+            out[key] = tuple(value)
         elif key == "depth_range_m" or isinstance(value, list) or isinstance(default, tuple):
             size = 2 if key == "depth_range_m" else len(default) if isinstance(default, tuple) else None
             if not (isinstance(value, list) and (size is None or len(value) == size)
