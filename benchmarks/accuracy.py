@@ -111,6 +111,9 @@ def main(argv=None) -> int:
                     help="pose at most this many detections per frame (default: EstimatorOptions.max_pallets)")
     ap.add_argument("--seed", type=int, default=0,
                     help="seed of the per-pallet point sampling (EstimatorOptions.seed): run a few to see the spread")
+    ap.add_argument("--pallet-types", default=None,
+                    help="comma-separated pallet types the site uses (EstimatorOptions.pallet_types; the paper presets "
+                         "hold EPAL pallets only: epal); default: every type of the bundle")
     ap.add_argument("--structure", default=None,
                     help="StructureParams overrides as JSON, e.g. '{\"min_registration_peak\": 0}' (the structure "
                          "check's thresholds; default: the estimator's)")
@@ -125,6 +128,8 @@ def main(argv=None) -> int:
     precision = "int8" if args.int8 else "fp32"
     options = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets))
                if v is not None}
+    if args.pallet_types:
+        options["pallet_types"] = tuple(t.strip() for t in args.pallet_types.split(",") if t.strip())
     if args.structure is not None:
         from pallet6d.runtime.structure import StructureParams
         options["structure"] = StructureParams(**json.loads(args.structure))
@@ -146,6 +151,7 @@ def main(argv=None) -> int:
         + (f", {args.refine_starts} extra ICP starts" if args.refine_starts is not None and not args.no_refine else "") \
         + (f", at most {args.max_pallets} pallets per frame" if args.max_pallets is not None else "") \
         + (f", sampling seed {args.seed}" if args.seed else "") \
+        + (f", site pallet types {args.pallet_types}" if args.pallet_types else "") \
         + (f", structure check {args.structure}" if args.structure is not None else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")

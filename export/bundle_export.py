@@ -414,9 +414,10 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
 
     :param classes: the external detector's class names (default: its metadata), or our detector's.
     :param pallet_types: sim pallet model names (default: the types the checkpoint's pose stage was trained
-        on, where the detector has a class for each; else the first of them, or the config's pallet). With
-        more than one, our own detector gets one class per type, named after it; an external detector's
-        classes are matched to the types by name.
+        on, where the detector has a class for each; else the first of them, or the config's pallet). A
+        checkpoint's detector keeps its classes (one class for every type, or one named after each type); without
+        a checkpoint our own detector gets one class per type, named after it; an external detector's classes
+        are matched to the types by name.
     :param int8: also write int8 graphs: the stages in `int8_stages` quantized, the others' float graph.
     :param calib_presets: sim presets the int8 calibration frames and crops come from, in turn (default: the
         paper's three, `calib_data.make_calibration_set`); a bundle for other scenes calibrates on them too.
@@ -438,8 +439,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         unknown = [p for p in calib_presets if p not in PRESETS]
         if unknown:
             raise ExportError(f"unknown calibration preset(s) {unknown}; known: {', '.join(PRESETS)}")
-    if pallet_types and detector_onnx is None and classes is None:
-        classes = tuple(pallet_types) if len(pallet_types) > 1 or checkpoint is None else None
+    if pallet_types and detector_onnx is None and classes is None and checkpoint is None:
+        classes = tuple(pallet_types)     # a trained detector keeps its classes: one for all types, or one each
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ExportError(f"output folder {out} is not empty; choose a new folder")

@@ -223,6 +223,10 @@ def test_pallet_types_follow_the_pose_training(tmp_path, tiny_bundle):
                tmp_path / "ckpt.pt")
     b = export_bundle(cfg, tmp_path / "one", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2]).bundle
     assert [(t.name, t.class_id) for t in b.pallet_types] == [("epal", 0), ("gma", 0)]
+    # types the pose stage was not trained on, asked for by name, share the checkpoint's one detector class
+    b = export_bundle(cfg, tmp_path / "asked", checkpoint=tmp_path / "ckpt.pt", calib=tiny_bundle[2],
+                      pallet_types=("gma", "eur6", "epal")).bundle
+    assert [(t.name, t.class_id) for t in b.pallet_types] == [("gma", 0), ("eur6", 0), ("epal", 0)]
     with pytest.raises(ExportError, match="detector has 2 classes"):
         class_ids_for_types(("epal", "gma", "eur3"), ("epal", "gma"), external=False)
     assert class_ids_for_types(("epal", "gma"), ("epal", "gma"), external=False) == (0, 1)
