@@ -109,12 +109,14 @@ def bench_torch(config: str, threads: int, pallets: int, frames: int) -> dict:
     x_det = torch.zeros(1, 3, h, w)
     x_rgb, x_d = torch.randn(pallets, 3, ch, cw), torch.randn(pallets, 1, ch, cw)
     x_pts, x_feat = torch.randn(pallets, n, 3) * 0.3, torch.randn(pallets, n, c)
+    # a sampled-feature fusion net (edge2*) takes the chosen pixels too: row * crop width + col
+    x_choose = (torch.randint(0, ch * cw, (pallets, n)),) if cfg.fusion.sampled else ()
     out = []
     with torch.inference_mode():
         for i in range(frames + 3):
             t = time.perf_counter()
             nets[0](x_det)
-            nets[1](x_rgb, x_d)
+            nets[1](x_rgb, x_d, *x_choose)
             nets[2](x_pts, x_feat)
             if i >= 3:
                 out.append((time.perf_counter() - t) * 1000)

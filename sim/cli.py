@@ -27,6 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="index of the first frame, to extend a dataset or split work (default: 0)")
     parser.add_argument("--size", metavar="WxH", default=None,
                         help="override the preset's image size, keeping its horizontal field of view")
+    parser.add_argument("--pallet-types", default=None,
+                        help="comma-separated pallet types the scenes draw from, instead of the preset's (e.g. epal; "
+                             "the catalogue: pallet6d.sim.pallets.PALLET_MODELS)")
     parser.add_argument("--preview", action="store_true",
                         help="also write PNGs with each pallet's GT 3D box and axes, and the depth")
 
@@ -45,6 +48,17 @@ def main(args: argparse.Namespace) -> int:
                 print(f"pallet6d sim: --size must look like 640x480, got {args.size!r}", file=sys.stderr)
                 return 2
             config = config.with_image_size(w, h)
+        if args.pallet_types:
+            from dataclasses import replace
+
+            from pallet6d.sim.pallets import PALLET_MODELS
+            names = tuple(t.strip() for t in args.pallet_types.split(",") if t.strip())
+            unknown = [t for t in names if t not in PALLET_MODELS]
+            if not names or unknown:
+                print(f"pallet6d sim: unknown pallet type(s) {unknown or args.pallet_types!r}; known: "
+                      f"{', '.join(PALLET_MODELS)}", file=sys.stderr)
+                return 2
+            config = replace(config, pallet_models=names)
         if args.frames < 1 or args.start < 0:
             print("pallet6d sim: --frames must be >= 1 and --start >= 0", file=sys.stderr)
             return 2

