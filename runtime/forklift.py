@@ -35,7 +35,7 @@ from .geometry import check_K, invert_T
 from .structure import cast_rays_boxes
 
 __all__ = ["ForkliftParams", "Pocket", "ForkliftInfo", "FACE_NORMALS", "front_face", "face_frame_points",
-           "face_yaw_deg", "pocket_evidence", "forklift_info", "attach_forklift",
+           "face_yaw_deg", "pocket_evidence", "vehicle_pose", "forklift_info", "attach_forklift",
            "pallet_types_by_name", "vehicle_frame_result", "PICK_REASONS"]
 
 log = logging.getLogger(__name__)
@@ -63,6 +63,10 @@ class ForkliftParams:
     :ivar max_blocked_fraction: blocked / (open + blocked) above this -> the pocket is blocked.
     :ivar max_view_angle_deg: the angle between the face's normal and the line of sight from the face's centre
         to the camera; above it the face is seen too obliquely to judge its pockets.
+    :ivar level_max_tilt_deg: a pose whose z axis is tilted from the vehicle's up by at most this much is levelled
+        (`vehicle_pose`): warehouses keep pallets level on floors, rack beams and truck beds, and the estimate's tilt
+        (a degree or two on stereo depth) moves each pocket by centimetres. 0: never.
+    :ivar floor_snap_m: a levelled pallet whose underside is within this of the floor is set on it. 0: never.
     """
 
     grid: int = 8
@@ -75,6 +79,8 @@ class ForkliftParams:
     min_rays: int = 8
     max_blocked_fraction: float = 0.15
     max_view_angle_deg: float = 50.0
+    level_max_tilt_deg: float = 8.0
+    floor_snap_m: float = 0.04
 
     def __post_init__(self) -> None:
         if int(self.grid) < 2 or int(self.min_rays) < 1:
@@ -88,6 +94,10 @@ class ForkliftParams:
             raise ValueError(f"max_blocked_fraction must be in [0, 1], got {self.max_blocked_fraction}")
         if not 0.0 < self.max_view_angle_deg <= 90.0:
             raise ValueError(f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}")
+        if not 0.0 <= self.level_max_tilt_deg < 90.0:
+            raise ValueError(f"level_max_tilt_deg must be in [0, 90), got {self.level_max_tilt_deg}")
+        if not self.floor_snap_m >= 0:
+            raise ValueError(f"floor_snap_m must be >= 0, got {self.floor_snap_m}")
 
 
 def _vec(value, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -308,6 +318,33 @@ def _pocket_state(open_rays: int, blocked_rays: int, params: ForkliftParams) -> 
     return "blocked" if blocked_rays > params.max_blocked_fraction * seen else "clear"
 
 
+def vehicle_pose(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m,
+                 params: ForkliftParams = ForkliftParams()) -> np.ndarray:
+    """(4, 4) `T_vehicle_pallet`: the pose in the vehicle frame, levelled and set on the floor where it is nearly so.
+
+    Levelled (tilt at most `params.level_max_tilt_deg`): the pallet's z axis becomes the vehicle's up and its x axis
+    the horizontal direction nearest to the estimated one; the bounding-box centre stays. On the floor (after
+    levelling, its underside within `params.floor_snap_m` of z = 0): the centre goes to half the pallet's height.
+    A pose tilted further (on its side, or upside down) is returned as it is.
+    """
+    T_vp = np.asarray(T_vehicle_cam, dtype=np.float64) @ np.asarray(T_cam_pallet, dtype=np.float64)
+    R = T_vp[:3, :3]
+    tilt_deg = float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))
+    if params.level_max_tilt_deg <= 0 or tilt_deg > params.level_max_tilt_deg:
+        return T_vp
+    x = np.array([R[0, 0], R[1, 0], 0.0])
+    if np.linalg.norm(x) < 1e-9:        # x along the vertical: no yaw to keep (cannot happen under the tilt limit)
+        return T_vp
+    x /= np.linalg.norm(x)
+    z = np.array([0.0, 0.0, 1.0])
+    out = T_vp.copy()
+    out[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    half_h = float(np.asarray(size_m, dtype=np.float64)[2]) / 2
+    if params.floor_snap_m > 0 and abs(out[2, 3] - half_h) <= params.floor_snap_m:
+        out[2, 3] = half_h
+    return out
+
+
 def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, pockets_m: Mapping[str, np.ndarray],
                   boxes_m: np.ndarray | None, depth_m: np.ndarray | None, K: np.ndarray | None,
                   params: ForkliftParams = ForkliftParams()) -> ForkliftInfo | None:
@@ -317,14 +354,15 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
     :param size_m: (3,) the type's size. :param pockets_m: face -> (2, 2, 3) the type's pockets.
     :param boxes_m: (k, 2, 3) the type's boards and blocks; None (or no depth): the pockets are "hidden".
     :param depth_m: (H, W) observed depth, metres. :param K: (3, 3).
-    :return: None for a type without fork pockets.
+    :return: None for a type without fork pockets. Everything is of the pose `vehicle_pose` gives.
     """
     T_cam_pallet = np.asarray(T_cam_pallet, dtype=np.float64)
     T_vehicle_cam = np.asarray(T_vehicle_cam, dtype=np.float64)
     if T_cam_pallet.shape != (4, 4) or T_vehicle_cam.shape != (4, 4):
         raise ValueError(f"T_cam_pallet and T_vehicle_cam must be (4, 4), got {T_cam_pallet.shape}, "
                          f"{T_vehicle_cam.shape}")
-    T_vp = T_vehicle_cam @ T_cam_pallet
+    T_vp = vehicle_pose(T_cam_pallet, T_vehicle_cam, size_m, params)
+    T_cam_pallet = invert_T(T_vehicle_cam) @ T_vp
     face = front_face(pockets_m, T_vp)
     if face is None:
         return None
@@ -371,7 +409,8 @@ def pallet_types_by_name(bundle) -> dict[str, object]:
 
 def attach_forklift(result, T_vehicle_cam: np.ndarray, pallet_types: Mapping[str, object], depth_m: np.ndarray,
                     K: np.ndarray, params: ForkliftParams = ForkliftParams()):
-    """A `FrameResult` whose poses also carry `T_vehicle_pallet` and their `ForkliftInfo`.
+    """A `FrameResult` whose poses also carry `T_vehicle_pallet` (`vehicle_pose`: levelled, on the floor where
+    it nearly is) and their `ForkliftInfo`.
 
     :param result: the estimator's `FrameResult` for this frame.
     :param T_vehicle_cam: (4, 4) from a valid calibration (`CalibrationMonitor.ok`).
@@ -384,13 +423,14 @@ def attach_forklift(result, T_vehicle_cam: np.ndarray, pallet_types: Mapping[str
     for p in result.poses:
         name = getattr(p, "pallet_type", "") or p.class_name
         ptype = pallet_types.get(name)
-        info = None
+        info, T_vp = None, T_vc @ p.T_cam_pallet
         if ptype is None:
             log.warning("no pallet type %r: no fork pockets for this pose", name)
         else:
             info = forklift_info(p.T_cam_pallet, T_vc, ptype.size_m, ptype.pockets_m, ptype.boxes_m, depth_m, K,
                                  params)
-        poses.append(replace(p, T_vehicle_pallet=T_vc @ p.T_cam_pallet, forklift=info))
+            T_vp = vehicle_pose(p.T_cam_pallet, T_vc, ptype.size_m, params)
+        poses.append(replace(p, T_vehicle_pallet=T_vp, forklift=info))
     return replace(result, poses=poses)
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from forklift_fixtures import EPAL, K, camera, pallet_pose, render
-from pallet6d.runtime.forklift import ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info
+from pallet6d.runtime.forklift import ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info, vehicle_pose
 from pallet6d.runtime.geometry import invert_T
 from pallet6d.runtime.results import FitScore, FrameResult, PalletPose
 
@@ -110,3 +110,55 @@ def test_attach_forklift_adds_the_vehicle_pose_and_outputs_to_every_pose():
     d = a.to_dict()
     assert d["forklift"]["pick_safe"] and len(d["forklift"]["pockets"]) == 2 and "t_vehicle_m" in d
     assert "t_vehicle_m" not in pose.to_dict() and "forklift" not in pose.to_dict()
+
+
+def _tilted(T_vp, deg, axis=(1.0, 0.0, 0.0)):
+    """T_vp turned by `deg` about `axis` (vehicle frame) through its own origin."""
+    import cv2
+
+    R, _ = cv2.Rodrigues(np.radians(deg) * np.asarray(axis, float))
+    out = T_vp.copy()
+    out[:3, :3] = R @ T_vp[:3, :3]
+    return out
+
+
+def test_vehicle_pose_levels_a_slightly_tilted_pallet_and_sets_it_on_the_floor():
+    T_vc, T_vp = camera(), pallet_pose(2.0, 20.0, lateral_m=0.3)
+    est = _tilted(T_vp, 3.0, (1.0, 1.0, 0.0))
+    est[2, 3] += 0.025                                     # 2.5 cm above the floor
+    T_cp = invert_T(T_vc) @ est
+    np.testing.assert_allclose(vehicle_pose(T_cp, T_vc, EPAL.size_m), T_vp, atol=0.02)
+    levelled = vehicle_pose(T_cp, T_vc, EPAL.size_m)
+    np.testing.assert_allclose(levelled[:3, 2], [0, 0, 1], atol=1e-12)
+    assert levelled[2, 3] == pytest.approx(EPAL.size_m[2] / 2)
+    assert np.degrees(np.arctan2(levelled[1, 0], levelled[0, 0])) == pytest.approx(20.0, abs=0.2)
+    np.testing.assert_allclose(levelled[:2, 3], est[:2, 3], atol=1e-12)          # the centre stays (but for z)
+    exact = invert_T(T_vc) @ T_vp
+    np.testing.assert_allclose(vehicle_pose(exact, T_vc, EPAL.size_m), T_vp, atol=1e-12)
+
+
+def test_vehicle_pose_leaves_high_or_steeply_tilted_pallets_and_can_be_turned_off():
+    T_vc = camera()
+    on_rack = pallet_pose(2.0)
+    on_rack[2, 3] += 1.2
+    out = vehicle_pose(invert_T(T_vc) @ on_rack, T_vc, EPAL.size_m)
+    assert out[2, 3] == pytest.approx(on_rack[2, 3])                              # levelled, not moved down
+    steep = _tilted(pallet_pose(2.0), 20.0)
+    np.testing.assert_allclose(vehicle_pose(invert_T(T_vc) @ steep, T_vc, EPAL.size_m), steep, atol=1e-12)
+    slight = _tilted(pallet_pose(2.0), 2.0)
+    off = ForkliftParams(level_max_tilt_deg=0, floor_snap_m=0)
+    np.testing.assert_allclose(vehicle_pose(invert_T(T_vc) @ slight, T_vc, EPAL.size_m, off), slight, atol=1e-12)
+    with pytest.raises(ValueError, match="level_max_tilt_deg"):
+        ForkliftParams(level_max_tilt_deg=95)
+    with pytest.raises(ValueError, match="floor_snap_m"):
+        ForkliftParams(floor_snap_m=-0.01)
+
+
+def test_attach_forklift_reports_the_levelled_pose_its_pockets_come_from():
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    T_cp = invert_T(T_vc) @ _tilted(T_vp, 2.0, (0.0, 1.0, 0.0))
+    pose = PalletPose(T_cp, 0.9, 0.8, [100, 100, 200, 160], 500, FitScore(0.9, 0.0, 0.9), class_name="pallet")
+    (a,) = attach_forklift(FrameResult([pose]), T_vc, {"pallet": EPAL}, render(T_vc, T_vp), K).poses
+    np.testing.assert_allclose(a.T_vehicle_pallet, T_vp, atol=1e-9)
+    np.testing.assert_allclose(a.forklift.pockets[0].centre_vehicle_m, [2.0, 0.18625, 0.05], atol=1e-9)
+    np.testing.assert_allclose(a.T_cam_pallet, T_cp)                               # the camera-frame pose as estimated
