@@ -142,7 +142,7 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
                 continue
             T_cp = best.T_cam_pallet
         info = forklift_info(T_cp, fr["T_vehicle_cam"], geometry.size_m, geometry.pockets_m, geometry.boxes_m,
-                             depth, fr["K"], params)
+                             depth, fr["K"], params, None if estimator is None else best.box_xyxy)
         if info is None:
             rows.append({**row, "no_pockets": True})
             continue

@@ -346,7 +346,9 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
     T_pal_cam = np.tile(np.eye(4), (m, 1, 1))
     T_pal_cam[:, :3, :3] = np.swapaxes(R0, 1, 2)
     T_pal_cam[:, :3, 3] = -(np.swapaxes(R0, 1, 2) @ t0[..., None])[..., 0]
-    prior = np.diag([prior_rot_rad ** -2] * 3 + [prior_trans_m ** -2] * 3)
+    # per pallet-frame axis where given as 3 values (e.g. a level pallet: tight about x and y)
+    prior = np.diag(np.concatenate([np.broadcast_to(np.asarray(prior_rot_rad, dtype=np.float64), (3,)) ** -2,
+                                    np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (3,)) ** -2]))
     xi = np.zeros((m, 6))
     n_in, rms, done = np.zeros(m, dtype=np.int64), np.full(m, np.nan), np.zeros(m, dtype=np.int64)
     converged, stopped = np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)

@@ -7,6 +7,9 @@ from pallet6d.runtime.geometry import invert_T
 from pallet6d.runtime.results import FitScore, FrameResult, PalletPose
 
 
+NO_REFINE = ForkliftParams(level_refine_points=0)
+
+
 def _info(T_vc, T_vp, depth, params=ForkliftParams(), pockets=None):
     T_cp = invert_T(T_vc) @ T_vp
     return forklift_info(T_cp, T_vc, EPAL.size_m, EPAL.pockets_m if pockets is None else pockets, EPAL.boxes_m,
@@ -103,7 +106,7 @@ def test_attach_forklift_adds_the_vehicle_pose_and_outputs_to_every_pose():
     T_cp = invert_T(T_vc) @ T_vp
     pose = PalletPose(T_cp, 0.9, 0.8, [100, 100, 200, 160], 500, FitScore(0.9, 0.0, 0.9), class_name="pallet")
     other = PalletPose(T_cp, 0.9, 0.8, [100, 100, 200, 160], 500, FitScore(0.9, 0.0, 0.9), class_name="drum")
-    result = attach_forklift(FrameResult([pose, other]), T_vc, {"pallet": EPAL}, render(T_vc, T_vp), K)
+    result = attach_forklift(FrameResult([pose, other]), T_vc, {"pallet": EPAL}, render(T_vc, T_vp), K, NO_REFINE)
     a, b = result.poses
     np.testing.assert_allclose(a.T_vehicle_pallet, T_vp, atol=1e-9)
     assert a.forklift.pick_safe and b.forklift is None and b.T_vehicle_pallet is not None
@@ -152,13 +155,44 @@ def test_vehicle_pose_leaves_high_or_steeply_tilted_pallets_and_can_be_turned_of
         ForkliftParams(level_max_tilt_deg=95)
     with pytest.raises(ValueError, match="floor_snap_m"):
         ForkliftParams(floor_snap_m=-0.01)
+    with pytest.raises(ValueError, match="level_refine_points"):
+        ForkliftParams(level_refine_points=-1)
+    with pytest.raises(ValueError, match="level_refine_iterations"):
+        ForkliftParams(level_refine_iterations=0)
 
 
 def test_attach_forklift_reports_the_levelled_pose_its_pockets_come_from():
     T_vc, T_vp = camera(), pallet_pose(2.0)
     T_cp = invert_T(T_vc) @ _tilted(T_vp, 2.0, (0.0, 1.0, 0.0))
     pose = PalletPose(T_cp, 0.9, 0.8, [100, 100, 200, 160], 500, FitScore(0.9, 0.0, 0.9), class_name="pallet")
-    (a,) = attach_forklift(FrameResult([pose]), T_vc, {"pallet": EPAL}, render(T_vc, T_vp), K).poses
+    (a,) = attach_forklift(FrameResult([pose]), T_vc, {"pallet": EPAL}, render(T_vc, T_vp), K, NO_REFINE).poses
     np.testing.assert_allclose(a.T_vehicle_pallet, T_vp, atol=1e-9)
     np.testing.assert_allclose(a.forklift.pockets[0].centre_vehicle_m, [2.0, 0.18625, 0.05], atol=1e-9)
     np.testing.assert_allclose(a.T_cam_pallet, T_cp)                               # the camera-frame pose as estimated
+
+
+def _box_of(T_vc, T_vp):
+    """The pallet's image box (pixels) under `camera()`'s intrinsics."""
+    corners = np.array(np.meshgrid(*[[-v / 2, v / 2] for v in EPAL.size_m])).reshape(3, -1).T
+    T_cp = invert_T(T_vc) @ T_vp
+    c = corners @ T_cp[:3, :3].T + T_cp[:3, 3]
+    uv = c[:, :2] / c[:, 2:] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    return np.concatenate([uv.min(0), uv.max(0)])
+
+
+@pytest.mark.parametrize("yaw_err_deg, shift_m", [(1.5, (0.015, -0.01)), (-1.0, (-0.01, 0.02))])
+def test_the_levelled_pose_is_refined_on_the_depth_in_yaw_and_position(yaw_err_deg, shift_m):
+    T_vc, T_vp = camera(), pallet_pose(2.0, 10.0, lateral_m=0.2)
+    est = _tilted(T_vp, yaw_err_deg, (0.0, 0.0, 1.0))
+    est = _tilted(est, 1.5, (1.0, 0.0, 0.0))
+    est[:3, 3] += [shift_m[0], shift_m[1], 0.01]
+    T_cp, depth, box = invert_T(T_vc) @ est, render(T_vc, T_vp), _box_of(T_vc, T_vp)
+    out = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(), EPAL.boxes_m, depth, K, box)
+    np.testing.assert_allclose(out[:3, 2], [0, 0, 1], atol=1e-12)
+    assert out[2, 3] == pytest.approx(EPAL.size_m[2] / 2)
+    assert np.linalg.norm(out[:2, 3] - T_vp[:2, 3]) < 0.01
+    assert np.degrees(np.arccos(np.clip(out[:3, 0] @ T_vp[:3, 0], -1, 1))) < 0.5
+    levelled_only = vehicle_pose(T_cp, T_vc, EPAL.size_m, NO_REFINE, EPAL.boxes_m, depth, K, box)
+    assert np.linalg.norm(levelled_only[:2, 3] - T_vp[:2, 3]) > 0.015            # the refinement did the work
+    no_depth = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(), EPAL.boxes_m, np.zeros_like(depth), K, box)
+    np.testing.assert_allclose(no_depth, levelled_only, atol=1e-12)
