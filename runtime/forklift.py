@@ -453,7 +453,7 @@ def pallet_types_by_name(bundle) -> dict[str, object]:
 def attach_forklift(result, T_vehicle_cam: np.ndarray, pallet_types: Mapping[str, object], depth_m: np.ndarray,
                     K: np.ndarray, params: ForkliftParams = ForkliftParams()):
     """A `FrameResult` whose poses also carry `T_vehicle_pallet` (`vehicle_pose`: levelled, on the floor where
-    it nearly is) and their `ForkliftInfo`.
+    it nearly is, refined in yaw and position on the pose's box) and their `ForkliftInfo`.
 
     :param result: the estimator's `FrameResult` for this frame.
     :param T_vehicle_cam: (4, 4) from a valid calibration (`CalibrationMonitor.ok`).
@@ -470,9 +470,10 @@ def attach_forklift(result, T_vehicle_cam: np.ndarray, pallet_types: Mapping[str
         if ptype is None:
             log.warning("no pallet type %r: no fork pockets for this pose", name)
         else:
-            info = forklift_info(p.T_cam_pallet, T_vc, ptype.size_m, ptype.pockets_m, ptype.boxes_m, depth_m, K,
-                                 params, p.box_xyxy)
             T_vp = vehicle_pose(p.T_cam_pallet, T_vc, ptype.size_m, params, ptype.boxes_m, depth_m, K, p.box_xyxy)
+            # of that pose (no box: levelling it again changes nothing and it is not refined twice)
+            info = forklift_info(invert_T(T_vc) @ T_vp, T_vc, ptype.size_m, ptype.pockets_m, ptype.boxes_m, depth_m,
+                                 K, params)
         poses.append(replace(p, T_vehicle_pallet=T_vp, forklift=info))
     return replace(result, poses=poses)
 

@@ -257,8 +257,9 @@ def refine_pose(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarr
     :param boxes_m: (k, 2, 3) the pallet's boards and blocks, pallet frame.
     :param corr_start_m: correspondence distance of the first step; it shrinks geometrically to
         `corr_end_m` at the last step.
-    :param prior_rot_rad: how far (1 sigma) the input rotation may be off, radians.
-    :param prior_trans_m: how far (1 sigma) the input translation may be off, metres.
+    :param prior_rot_rad: how far (1 sigma) the input rotation may be off, radians; or (3,), one per pallet-frame
+        axis (a small one holds the rotation about that axis).
+    :param prior_trans_m: how far (1 sigma) the input translation may be off, metres; or (3,) per pallet-frame axis.
     :param min_inliers: with fewer correspondences the step stops (the pose reached so far is kept).
     :param tol: stop when a step moves by less than this (radians + metres).
     :return: RefineResult; with too few inliers at the first step the input pose comes back unchanged.
