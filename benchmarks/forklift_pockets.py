@@ -114,9 +114,10 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
         known = [fc for fc in faces if fc["model"] in types]
         boxes = np.asarray([[x, y, x + w, y + h] for x, y, w, h in (fc["box_xywh"] for fc in known)], float)
         result = estimator.estimate_boxes(fr["rgb"], depth, fr["K"], boxes_xyxy=boxes.reshape(-1, 4),
-                                          class_ids=[types[fc["model"]].class_id for fc in known])
+                                          class_ids=[types[fc["model"]].class_id for fc in known],
+                                          T_vehicle_cam=fr["T_vehicle_cam"])
     elif estimator is not None:
-        result = estimator.estimate(fr["rgb"], depth, fr["K"])
+        result = estimator.estimate(fr["rgb"], depth, fr["K"], T_vehicle_cam=fr["T_vehicle_cam"])
     rows = []
     for fc in faces:
         row = {"frame": fr["frame"], "model": fc["model"], "target": fc["target"],

@@ -33,6 +33,7 @@ from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .detector import Detections
 from .inputs import check_rgb, check_rgbd
+from .level import LevelParams, level_poses, up_in_camera
 from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel
@@ -119,6 +120,11 @@ class EstimatorOptions:
         copy of the two graphs and each lane's activations (peak resident memory about 160 -> 220 MB int8,
         `benchmarks/memory.py`), so it is off by default. 1: one after the other, each on all `threads`;
         None: as many lanes as `threads`.
+    :ivar level: with the camera's calibration (`estimate(..., T_vehicle_cam=...)`): each pose is levelled, set on
+        the floor where it nearly is, and refined in yaw and position with its tilt held (`level.py`) before the fit
+        check, whose structure check then also tests the tilt (`StructureParams.max_tilt_deg`). On stereo depth
+        too noisy for the 6-DoF refinement this gives poses the fit check can accept. None: not; without a
+        calibration it does nothing.
     :ivar pallet_types: the pallet types this site uses, by name (e.g. ("epal",)): only these are posed, and a
         detector class that reports none of them is dropped. A warehouse knows its pallets; telling the estimator
         spares it guessing between look-alike types (an EPAL's front face fits a closed-deck model too), which
@@ -150,6 +156,7 @@ class EstimatorOptions:
     time_budget_ms: float | None = None
     pallet_lanes: int | None = 1
     pallet_types: tuple[str, ...] | None = None
+    level: LevelParams | None = LevelParams()
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.score_threshold <= 1.0:
@@ -311,28 +318,34 @@ class PalletEstimator:
         first, at most `max_pallets` (as `decode_yolov8` returns them). :param rgb: (H, W, 3) uint8 RGB."""
         return self._detect(check_rgb(rgb), {})
 
-    def estimate(self, rgb, depth=None, K=None, depth_scale=None) -> FrameResult:
-        """Like `predict`, but the whole `FrameResult` (accepted, rejected, timings)."""
+    def estimate(self, rgb, depth=None, K=None, depth_scale=None, T_vehicle_cam=None) -> FrameResult:
+        """Like `predict`, but the whole `FrameResult` (accepted, rejected, timings).
+
+        :param T_vehicle_cam: (4, 4) the camera's calibration (`calib`), or None: with it the poses stand level on
+            the vehicle's floor (`EstimatorOptions.level`); they stay in the camera frame either way.
+        """
         t0 = time.perf_counter()
         deadline = Deadline(self.options.time_budget_ms, clock=self.clock)
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
+        T_vc = _check_T_vehicle_cam(T_vehicle_cam)
         timings: dict[str, float] = {}
-        cands = self._run(rgb, depth_m, K, self._detect(rgb, timings), timings, deadline)
+        cands = self._run(rgb, depth_m, K, self._detect(rgb, timings), timings, deadline, T_vc)
         return self._result(cands, depth_m.shape, timings, t0)
 
     def estimate_boxes(self, rgb, depth=None, K=None, depth_scale=None, boxes_xyxy=None, scores=None,
-                       class_ids=None) -> FrameResult:
+                       class_ids=None, T_vehicle_cam=None) -> FrameResult:
         """The pose stages on boxes from elsewhere (a shared detector): (n, 4) image pixels, (n,) scores,
-        (n,) detector class ids of this bundle (default: the first pallet class)."""
+        (n,) detector class ids of this bundle (default: the first pallet class); `T_vehicle_cam` as `estimate`."""
         t0 = time.perf_counter()
         deadline = Deadline(self.options.time_budget_ms, clock=self.clock)
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
+        T_vc = _check_T_vehicle_cam(T_vehicle_cam)
         timings: dict[str, float] = {}
-        cands = self._run(rgb, depth_m, K, self._boxes(boxes_xyxy, scores, class_ids), timings, deadline)
+        cands = self._run(rgb, depth_m, K, self._boxes(boxes_xyxy, scores, class_ids), timings, deadline, T_vc)
         return self._result(cands, depth_m.shape, timings, t0)
 
     def candidates(self, rgb, depth=None, K=None, depth_scale=None, detections: Detections | None = None,
-                   timings: dict[str, float] | None = None) -> Candidates:
+                   timings: dict[str, float] | None = None, T_vehicle_cam=None) -> Candidates:
         """Every stage's output for every detection of the frame (`Candidates`), for tools and benchmarks.
 
         :param detections: boxes from elsewhere (`Detections`, image pixels), or None to run the detector.
@@ -342,7 +355,7 @@ class PalletEstimator:
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
         timings = {} if timings is None else timings
         det = self._detect(rgb, timings) if detections is None else detections
-        return self._run(rgb, depth_m, K, det, timings, deadline)
+        return self._run(rgb, depth_m, K, det, timings, deadline, _check_T_vehicle_cam(T_vehicle_cam))
 
     def check_inputs(self, rgb, depth=None, K=None, depth_scale=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The validated frame: (rgb (H, W, 3) uint8, depth float32 metres (H, W), K (3, 3)), from arrays or
@@ -389,7 +402,7 @@ class PalletEstimator:
         return Detections(boxes, scores, class_ids)
 
     def _run(self, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, det: Detections,
-             timings: dict[str, float], deadline: Deadline) -> Candidates:
+             timings: dict[str, float], deadline: Deadline, T_vehicle_cam: np.ndarray | None = None) -> Candidates:
         """The stages after the detector on `det`, highest score first, at most `max_pallets`."""
         for s in STAGES:
             timings.setdefault(s, 0.0)
@@ -405,8 +418,28 @@ class PalletEstimator:
             if self.type_choice.needed:
                 self.type_choice(cands, depth_m, K, timings, deadline)
             self.refiner(cands, depth_m, K, timings, deadline)
-            self.fit_check(cands, depth_m, K, timings, rgb)
+            up_cam = None
+            if T_vehicle_cam is not None and self.options.level is not None:
+                self._level(cands, depth_m, K, T_vehicle_cam, timings)
+                up_cam = up_in_camera(T_vehicle_cam)
+            self.fit_check(cands, depth_m, K, timings, rgb, up_cam)
         return cands
+
+    def _level(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
+               timings: dict[str, float]) -> None:
+        """The alive candidates' poses levelled on the calibrated floor and refined with their tilt held
+        (`level.level_poses`); a changed pose's fit is computed again by the fit check. Its time counts as refine."""
+        t = time.perf_counter()
+        rows = np.flatnonzero(cands.alive)
+        if len(rows):
+            geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
+            T_vp = level_poses(cands.T_cam_pallet[rows], T_vehicle_cam, np.array([g.size_m[2] for g in geoms]),
+                               self.options.level, [g.boxes_m for g in geoms], depth_m, K, cands.boxes_xyxy[rows])
+            T_cp = np.linalg.inv(T_vehicle_cam) @ T_vp
+            moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
+            cands.assign(rows, T_cam_pallet=T_cp)
+            cands.assign(moved, fit=np.full((len(moved), 3), np.nan))
+        timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)
 
     def _result(self, cands: Candidates, image_hw: tuple[int, int], timings: dict[str, float],
                 t0: float) -> FrameResult:
@@ -430,3 +463,15 @@ class PalletEstimator:
     def _class_name(self, class_id: int) -> str:
         classes = self.bundle.classes
         return classes[class_id] if 0 <= class_id < len(classes) else str(class_id)
+
+
+def _check_T_vehicle_cam(T) -> np.ndarray | None:
+    """The calibration's (4, 4) camera-to-vehicle transform as float64, or None; a clear error for anything else."""
+    if T is None:
+        return None
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]) \
+            or not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(T[:3, :3]) < 0:
+        raise ValueError(f"T_vehicle_cam must be a finite (4, 4) rigid transform (a rotation and a translation), got "
+                         f"shape {T.shape}")
+    return T

@@ -32,6 +32,7 @@ from typing import Mapping
 import numpy as np
 
 from .geometry import check_K, invert_T
+from .level import LevelParams, level_poses
 from .structure import cast_rays_boxes
 
 __all__ = ["ForkliftParams", "Pocket", "ForkliftInfo", "FACE_NORMALS", "front_face", "face_frame_points",
@@ -63,17 +64,8 @@ class ForkliftParams:
     :ivar max_blocked_fraction: blocked / (open + blocked) above this -> the pocket is blocked.
     :ivar max_view_angle_deg: the angle between the face's normal and the line of sight from the face's centre
         to the camera; above it the face is seen too obliquely to judge its pockets.
-    :ivar level_max_tilt_deg: a pose whose z axis is tilted from the vehicle's up by at most this much is levelled
-        (`vehicle_pose`): warehouses keep pallets level on floors, rack beams and truck beds, and the estimate's tilt
-        (a degree or two on stereo depth) moves each pocket by centimetres. 0: never.
-    :ivar floor_snap_m: a levelled pallet whose underside is within this of the floor is set on it. 0: never.
-    :ivar level_refine_points: a levelled pose is refined on at most this many depth points of its detection box
-        by ICP with its tilt held (and its height, on the floor): yaw and position only, which noisy stereo depth
-        constrains far better than all six degrees of freedom. 0: not refined.
-    :ivar level_refine_iterations: its ICP steps; few, as the correspondence distance then shrinks from 8 to
-        1.5 cm in few steps (on EPAL forklift views, D435-like depth, 40 validation frames: within 2 cm and 1 degree
-        12.5 % unrefined, 22.5 / 20.0 / 17.5 / 15.0 % with 3 / 5 / 8 / 20 steps; exact depth 62.5 % throughout
-        but 60.0 % with 20).
+    :ivar level: how `T_vehicle_pallet` is levelled, set on the floor and refined (`level.LevelParams`); None:
+        the estimate as it is.
     """
 
     grid: int = 8
@@ -86,10 +78,7 @@ class ForkliftParams:
     min_rays: int = 8
     max_blocked_fraction: float = 0.15
     max_view_angle_deg: float = 50.0
-    level_max_tilt_deg: float = 8.0
-    floor_snap_m: float = 0.04
-    level_refine_points: int = 600
-    level_refine_iterations: int = 5
+    level: LevelParams | None = LevelParams()
 
     def __post_init__(self) -> None:
         if int(self.grid) < 2 or int(self.min_rays) < 1:
@@ -103,13 +92,6 @@ class ForkliftParams:
             raise ValueError(f"max_blocked_fraction must be in [0, 1], got {self.max_blocked_fraction}")
         if not 0.0 < self.max_view_angle_deg <= 90.0:
             raise ValueError(f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}")
-        if not 0.0 <= self.level_max_tilt_deg < 90.0:
-            raise ValueError(f"level_max_tilt_deg must be in [0, 90), got {self.level_max_tilt_deg}")
-        if not self.floor_snap_m >= 0:
-            raise ValueError(f"floor_snap_m must be >= 0, got {self.floor_snap_m}")
-        if int(self.level_refine_points) < 0 or int(self.level_refine_iterations) < 1:
-            raise ValueError(f"level_refine_points must be >= 0 and level_refine_iterations >= 1, got "
-                             f"{self.level_refine_points}, {self.level_refine_iterations}")
 
 
 def _vec(value, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -330,61 +312,21 @@ def _pocket_state(open_rays: int, blocked_rays: int, params: ForkliftParams) -> 
     return "blocked" if blocked_rays > params.max_blocked_fraction * seen else "clear"
 
 
-# 1 sigma of the held degrees of freedom in the levelled refinement (radians, metres): held, not frozen
-_HELD = 1e-3
-_FREE_ROT_RAD, _FREE_TRANS_M = 0.1, 0.1           # refine.refine_pose's own priors for the free ones
-_DEPTH_RANGE_M = (0.1, 20.0)
-
-
 def vehicle_pose(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m,
                  params: ForkliftParams = ForkliftParams(), boxes_m: np.ndarray | None = None,
                  depth_m: np.ndarray | None = None, K: np.ndarray | None = None,
                  box_xyxy=None) -> np.ndarray:
-    """(4, 4) `T_vehicle_pallet`: the pose in the vehicle frame, levelled and set on the floor where it is nearly so,
-    then refined on the depth with its tilt held.
-
-    Levelled (tilt at most `params.level_max_tilt_deg`): the pallet's z axis becomes the vehicle's up and its x axis
-    the horizontal direction nearest to the estimated one; the bounding-box centre stays. On the floor (after
-    levelling, its underside within `params.floor_snap_m` of z = 0): the centre goes to half the pallet's height.
-    Refined (with `boxes_m`, `depth_m`, `K`, `box_xyxy`, and `params.level_refine_points` > 0): point-to-plane ICP
-    (`refine.refine_pose`) on the box's depth points with roll and pitch held, and the height too on the floor.
-    A pose tilted further (on its side, or upside down) is returned as it is.
-    """
+    """(4, 4) `T_vehicle_pallet` of one pose: levelled, set on the floor where it nearly is, and refined in yaw and
+    position on its box's depth (`level.level_poses` with `params.level`; without the depth, box or boards only
+    levelled and set on the floor)."""
     T_vc = np.asarray(T_vehicle_cam, dtype=np.float64)
-    T_vp = T_vc @ np.asarray(T_cam_pallet, dtype=np.float64)
-    R = T_vp[:3, :3]
-    tilt_deg = float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))
-    if params.level_max_tilt_deg <= 0 or tilt_deg > params.level_max_tilt_deg:
-        return T_vp
-    out = T_vp.copy()
-    out[:3, :3] = _level(R)             # under the tilt limit the x axis is far from the vertical
-    half_h = float(np.asarray(size_m, dtype=np.float64)[2]) / 2
-    on_floor = params.floor_snap_m > 0 and abs(out[2, 3] - half_h) <= params.floor_snap_m
-    if on_floor:
-        out[2, 3] = half_h
-    if params.level_refine_points > 0 and all(v is not None for v in (boxes_m, depth_m, K, box_xyxy)):
-        from .refine import box_points, refine_pose          # here: refine -> results -> this module
-        pts = box_points(np.asarray(depth_m), check_K(K), np.asarray(box_xyxy, dtype=np.float64),
-                         int(params.level_refine_points), _DEPTH_RANGE_M)
-        if len(pts):
-            # the priors are per pallet-frame axis: the levelled pallet's x, y are horizontal, its z the vertical
-            held_z = _HELD if on_floor else _FREE_TRANS_M
-            r = refine_pose(invert_T(T_vc) @ out, pts, boxes_m, int(params.level_refine_iterations),
-                            prior_rot_rad=np.array([_HELD, _HELD, _FREE_ROT_RAD]),
-                            prior_trans_m=np.array([_FREE_TRANS_M, _FREE_TRANS_M, held_z]))
-            out = T_vc @ r.T_cam_pallet
-            out[:3, :3] = _level(out[:3, :3])                      # what the held tilt let through (< 0.1 deg)
-            if on_floor:
-                out[2, 3] = half_h
-    return out
-
-
-def _level(R: np.ndarray) -> np.ndarray:
-    """R with its z axis set to the vertical and its x axis projected to the horizontal."""
-    x = np.array([R[0, 0], R[1, 0], 0.0])
-    x /= np.linalg.norm(x)
-    z = np.array([0.0, 0.0, 1.0])
-    return np.column_stack([x, np.cross(z, x), z])
+    T_cp = np.asarray(T_cam_pallet, dtype=np.float64)
+    if params.level is None:
+        return T_vc @ T_cp
+    height = float(np.asarray(size_m, dtype=np.float64)[2])
+    box = None if box_xyxy is None else np.asarray(box_xyxy, dtype=np.float64)[None]
+    return level_poses(T_cp[None], T_vc, np.array([height]), params.level, None if boxes_m is None else [boxes_m],
+                       depth_m, K, box)[0]
 
 
 def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, pockets_m: Mapping[str, np.ndarray],

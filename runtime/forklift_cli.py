@@ -67,7 +67,9 @@ class ForkliftOutput:
             self.calibration.check_camera(frame.K, (frame.height, frame.width))
             self.monitor.update(frame.depth_m, frame.K)
             self.monitor.require_ok()
-        result = estimator.estimate(frame) if self.roi is None else estimate_in_roi(estimator, frame, self.roi)
+        T_vc = None if self.calibration is None else self.calibration.T_vehicle_cam
+        result = estimator.estimate(frame, T_vehicle_cam=T_vc) if self.roi is None \
+            else estimate_in_roi(estimator, frame, self.roi, T_vehicle_cam=T_vc)
         if self.calibration is None:
             return result
         return vehicle_frame_result(result, self.calibration.T_vehicle_cam, estimator.bundle, frame)

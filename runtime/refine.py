@@ -333,6 +333,7 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
 
     :param T0: (P, 4, 4) starting poses. :param pts: (P, N, 3) camera frame, metres; pose i uses its first
     `n_pts[i]` rows. :param stop_near: None or (P, 4, 4), a pose per start at which it stops.
+    :param prior_rot_rad, prior_trans_m: the prior's sigmas: a number, (3,) per pallet-frame axis, or (P, 3).
     """
     if not 0 < corr_end_m <= corr_start_m:
         raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
@@ -347,9 +348,11 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
     T_pal_cam = np.tile(np.eye(4), (m, 1, 1))
     T_pal_cam[:, :3, :3] = np.swapaxes(R0, 1, 2)
     T_pal_cam[:, :3, 3] = -(np.swapaxes(R0, 1, 2) @ t0[..., None])[..., 0]
-    # per pallet-frame axis where given as 3 values (e.g. a level pallet: tight about x and y)
-    prior = np.diag(np.concatenate([np.broadcast_to(np.asarray(prior_rot_rad, dtype=np.float64), (3,)) ** -2,
-                                    np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (3,)) ** -2]))
+    # the prior's diagonal per pose: one value for all axes, 3 per pallet-frame axis (a level pallet: tight about x
+    # and y), or (P, 3), one row per pose
+    prior = np.concatenate([np.broadcast_to(np.asarray(prior_rot_rad, dtype=np.float64), (m, 3)) ** -2,
+                            np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (m, 3)) ** -2], axis=1)
+    diag = np.arange(6)
     xi = np.zeros((m, 6))
     n_in, rms, done = np.zeros(m, dtype=np.int64), np.full(m, np.nan), np.zeros(m, dtype=np.int64)
     converged, stopped = np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
@@ -400,9 +403,10 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
         wrr = (w * r * r).sum(1, dtype=np.float64)
         var = np.maximum(wrr / wsum, 0.002 ** 2)                                          # noise, metres^2
         Jw = J * w[..., None]
-        H = np.matmul(np.swapaxes(Jw, 1, 2), J).astype(np.float64) / var[:, None, None] + prior
+        H = np.matmul(np.swapaxes(Jw, 1, 2), J).astype(np.float64) / var[:, None, None]
+        H[:, diag, diag] += prior[a]
         g = np.matmul(np.swapaxes(Jw, 1, 2), r[..., None])[..., 0].astype(np.float64) / var[:, None] \
-            + xi[a] @ prior
+            + xi[a] * prior[a]
         delta = -np.linalg.solve(H, g[..., None])[..., 0]
         xi[a] += delta                                                                    # small-motion sum
         T_pal_cam[a] = _exp_se3_batch(delta) @ T_pal_cam[a]

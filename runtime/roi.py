@@ -86,15 +86,16 @@ def roi_filter(boxes_xyxy: np.ndarray, depth_m: np.ndarray | None, roi: RegionOf
     return keep, why
 
 
-def estimate_in_roi(estimator, frame, roi: RegionOfInterest):
+def estimate_in_roi(estimator, frame, roi: RegionOfInterest, T_vehicle_cam=None):
     """The estimator's `FrameResult` for an `RGBDFrame` with detections outside `roi` dropped before posing
     (as "outside_roi" rejections): the detector runs, `roi_filter` judges its boxes, the pose stage runs on
-    the boxes kept."""
+    the boxes kept (`T_vehicle_cam`: the camera's calibration, as `PalletEstimator.estimate` takes it)."""
     from .results import Rejection
 
     det = estimator.detect(frame.rgb)
     keep, why = roi_filter(det.boxes_xyxy, frame.depth_m, roi)
-    result = estimator.estimate_boxes(frame, boxes_xyxy=det.boxes_xyxy[keep], scores=det.scores[keep])
+    result = estimator.estimate_boxes(frame, boxes_xyxy=det.boxes_xyxy[keep], scores=det.scores[keep],
+                                      T_vehicle_cam=T_vehicle_cam)
     dropped = [Rejection(det.boxes_xyxy[i], det.scores[i], "outside_roi", why[i]) for i in np.flatnonzero(~keep)]
     return type(result)(poses=result.poses, rejected=list(result.rejected) + dropped,
                         timings_ms=result.timings_ms, image_hw=result.image_hw)

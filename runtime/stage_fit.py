@@ -40,11 +40,11 @@ class FitCheckStage:
         self.structure = structure
 
     def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
-                        rgb: np.ndarray | None = None) -> None:
+                        rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None) -> None:
         """The structure check on `rows` of `cands`: first the frame-level registration test over all of them, then
         one batched call per pallet type, then the frame's size rules (`frame_size_rule`); failures are rejected.
         :param rgb: the colour image registered to `depth_m`, for the edge and registration tests (None skips
-            them)."""
+            them). :param up_cam: (3,) the vehicle's up in the camera frame, for the tilt test (None skips it)."""
         p = self.structure
         if rgb is not None and p.min_registration_peak > 0 and len(rows):
             reg, refused = frame_registration(depth_m, rgb, cands.boxes_xyxy[rows], p)
@@ -61,7 +61,7 @@ class FitCheckStage:
             if len(mine) == 0 or geom.boxes_m is None:
                 continue
             scores = structure_check(cands.T_cam_pallet[mine], geom.boxes_m, depth_m, K, cands.boxes_xyxy[mine],
-                                     self.structure, rgb=rgb)
+                                     self.structure, up_cam=up_cam, rgb=rgb)
             scores_all += scores
             for reason in ("size_mismatch", "depth_image_mismatch", "no_pallet_structure"):
                 bad = [k for k, sc in enumerate(scores) if not sc.ok and _rejection_reason(sc.reason) == reason]
@@ -83,9 +83,10 @@ class FitCheckStage:
         return out
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
-                 rgb: np.ndarray | None = None) -> None:
+                 rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None) -> None:
         """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates.
-        :param rgb: the frame's colour image, for the structure check's edge test (None skips that test)."""
+        :param rgb: the frame's colour image, for the structure check's edge test (None skips that test).
+        :param up_cam: the vehicle's up in the camera frame, for the structure check's tilt test (None skips it)."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
         todo = rows[np.isnan(cands.fit[rows, 2])]
@@ -98,7 +99,7 @@ class FitCheckStage:
         cands.reject(rows[poor], "poor_fit", [f"fit {s:.3f} < {self.min_fit} (inliers {i:.2f}, free-space violation "
                                               f"{v:.2f})" for i, v, s in fit[poor]])
         if self.structure is not None:
-            self.check_structure(cands, rows[~low & ~poor], depth_m, K, rgb)
+            self.check_structure(cands, rows[~low & ~poor], depth_m, K, rgb, up_cam)
         timings["fit"] = elapsed_ms(t)
 
 

@@ -3,6 +3,7 @@ import dataclasses
 import functools
 import itertools
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -361,3 +362,46 @@ def test_a_detector_class_outside_the_site_types_is_dropped(bundle_dir):
 def test_site_pallet_types_are_checked(bundle_dir, value, match):
     with pytest.raises(ValueError, match=match):
         PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(pallet_types=value))
+
+
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "epal-default"
+
+
+def test_with_the_calibration_poses_stand_level_on_the_floor():
+    f = _scene_of("epal")
+    T_vc = f.T_vehicle_cam
+    est = PalletEstimator.from_bundle(SHIPPED, threads=1, structure=None)
+    boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.5)]
+    free = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
+    level = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
+    assert len(level.poses) + len(level.rejected) == len(boxes)
+    cos_z = np.array([(T_vc @ p.T_cam_pallet)[2, 2] for p in level.poses])
+    # level in the vehicle frame, or (a pose on its side or upside down) left as estimated
+    assert len(cos_z) and np.all(np.abs(cos_z - 1.0) < 1e-9)
+    for p in level.poses:                                             # and on the floor (every pallet of this scene)
+        assert (T_vc @ p.T_cam_pallet)[2, 3] == pytest.approx(0.072)
+    tilts = [np.degrees(np.arccos(np.clip((T_vc @ p.T_cam_pallet)[2, 2], -1, 1))) for p in free.poses]
+    assert max(tilts) > 1e-3                                          # without it the estimate keeps its tilt
+    off = PalletEstimator.from_bundle(SHIPPED, threads=1, structure=None, level=None)
+    same = off.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
+    for a, b in zip(same.poses, free.poses):
+        np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet)
+
+
+@pytest.mark.parametrize("T, match", [(np.eye(3), "rigid"), (np.diag([2.0, 1, 1, 1]), "rigid"),
+                                      (np.full((4, 4), np.nan), "rigid"), (np.diag([1.0, 1, -1, 1]), "rigid")])
+def test_a_bad_calibration_transform_is_refused(est, frame, T, match):
+    with pytest.raises(ValueError, match=match):
+        est.estimate(frame.rgb, frame.depth_m, frame.K, T_vehicle_cam=T)
+
+
+def test_with_the_calibration_a_pose_that_is_not_upright_is_refused(bundle_dir):
+    f = _scene_of("epal")
+    est = PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(score_threshold=0.0,
+                                                                                       min_fit=0.0))
+    boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.5)]
+    res = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=f.T_vehicle_cam)
+    # the random-init test bundle's poses lie any way up: the structure check's tilt test refuses them
+    upside_down = [r for r in res.rejected if r.pose is not None and (f.T_vehicle_cam @ r.pose.T_cam_pallet)[2, 2] < 0]
+    assert upside_down and all(r.reason == "no_pallet_structure" for r in upside_down)
+    assert not [p for p in res.poses if (f.T_vehicle_cam @ p.T_cam_pallet)[2, 2] < np.cos(np.radians(25.0))]

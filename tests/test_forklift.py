@@ -4,10 +4,11 @@ import pytest
 from forklift_fixtures import EPAL, K, camera, pallet_pose, render
 from pallet6d.runtime.forklift import ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info, vehicle_pose
 from pallet6d.runtime.geometry import invert_T
+from pallet6d.runtime.level import LevelParams
 from pallet6d.runtime.results import FitScore, FrameResult, PalletPose
 
 
-NO_REFINE = ForkliftParams(level_refine_points=0)
+NO_REFINE = ForkliftParams(level=LevelParams(refine_points=0))
 
 
 def _info(T_vc, T_vp, depth, params=ForkliftParams(), pockets=None):
@@ -149,16 +150,14 @@ def test_vehicle_pose_leaves_high_or_steeply_tilted_pallets_and_can_be_turned_of
     steep = _tilted(pallet_pose(2.0), 20.0)
     np.testing.assert_allclose(vehicle_pose(invert_T(T_vc) @ steep, T_vc, EPAL.size_m), steep, atol=1e-12)
     slight = _tilted(pallet_pose(2.0), 2.0)
-    off = ForkliftParams(level_max_tilt_deg=0, floor_snap_m=0)
+    off = ForkliftParams(level=LevelParams(max_tilt_deg=0, floor_snap_m=0))
     np.testing.assert_allclose(vehicle_pose(invert_T(T_vc) @ slight, T_vc, EPAL.size_m, off), slight, atol=1e-12)
-    with pytest.raises(ValueError, match="level_max_tilt_deg"):
-        ForkliftParams(level_max_tilt_deg=95)
-    with pytest.raises(ValueError, match="floor_snap_m"):
-        ForkliftParams(floor_snap_m=-0.01)
-    with pytest.raises(ValueError, match="level_refine_points"):
-        ForkliftParams(level_refine_points=-1)
-    with pytest.raises(ValueError, match="level_refine_iterations"):
-        ForkliftParams(level_refine_iterations=0)
+    np.testing.assert_allclose(vehicle_pose(invert_T(T_vc) @ slight, T_vc, EPAL.size_m, ForkliftParams(level=None)),
+                               slight, atol=1e-12)
+    for kwargs, match in ((dict(max_tilt_deg=95), "max_tilt_deg"), (dict(floor_snap_m=-0.01), "floor_snap_m"),
+                          (dict(refine_points=-1), "refine_points"), (dict(refine_iterations=0), "refine_iterations")):
+        with pytest.raises(ValueError, match=match):
+            LevelParams(**kwargs)
 
 
 def test_attach_forklift_reports_the_levelled_pose_its_pockets_come_from():

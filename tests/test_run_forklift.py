@@ -37,8 +37,10 @@ def _calibration_file(bop, path, extra_pitch_deg=0.0):
 
 def test_vehicle_frame_run_gives_vehicle_poses_and_pockets(bundle_dir, forklift_bop, tmp_path, capsys):
     cal = _calibration_file(forklift_bop, tmp_path / "cam.toml")
+    # the random-init test bundle's poses lie any way up: with the calibration the structure check's tilt test
+    # refuses them all, so it is off here (this test is about the output's fields)
     rc = main(["run", "--source", f"bop:{forklift_bop}", "--bundle", str(bundle_dir), "--threads", "1",
-               "--score-threshold", "0", "--min-fit", "0", "--calibration", str(cal)])
+               "--score-threshold", "0", "--min-fit", "0", "--no-structure-check", "--calibration", str(cal)])
     assert rc == 0
     line = json.loads(capsys.readouterr().out.splitlines()[0])
     assert "error" not in line, line.get("error")

@@ -49,7 +49,7 @@ def _child(conn, bundle: str, threads: int, precision: str, options: dict, T_veh
         except (EOFError, OSError):
             return
         try:
-            result = est.estimate(frame)
+            result = est.estimate(frame, T_vehicle_cam=T_vehicle_cam)
             if T_vehicle_cam is not None:
                 result = vehicle_frame_result(result, T_vehicle_cam, est.bundle, frame)
             conn.send(("ok", result))
