@@ -395,13 +395,24 @@ def test_a_bad_calibration_transform_is_refused(est, frame, T, match):
         est.estimate(frame.rgb, frame.depth_m, frame.K, T_vehicle_cam=T)
 
 
-def test_with_the_calibration_a_pose_that_is_not_upright_is_refused(bundle_dir):
+def test_with_the_calibration_the_structure_check_tests_the_tilt(bundle_dir, monkeypatch):
+    """The fit-check stage hands the vehicle's up (in the camera frame) to the structure check's tilt test."""
+    import pallet6d.runtime.stage_fit as stage_fit
+
+    seen = []
+    real = stage_fit.structure_check
+
+    def spy(*args, up_cam=None, **kwargs):
+        seen.append(None if up_cam is None else np.array(up_cam))
+        return real(*args, up_cam=up_cam, **kwargs)
+
+    monkeypatch.setattr(stage_fit, "structure_check", spy)
     f = _scene_of("epal")
     est = PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(
         score_threshold=0.0, min_fit=0.0, min_confidence=0.0))
     boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.5)]
-    res = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=f.T_vehicle_cam)
-    # the random-init test bundle's poses lie any way up: the structure check's tilt test refuses them
-    upside_down = [r for r in res.rejected if r.pose is not None and (f.T_vehicle_cam @ r.pose.T_cam_pallet)[2, 2] < 0]
-    assert upside_down and all(r.reason in ("no_pallet_structure", "size_mismatch") for r in upside_down)
-    assert not [p for p in res.poses if (f.T_vehicle_cam @ p.T_cam_pallet)[2, 2] < np.cos(np.radians(25.0))]
+    est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
+    est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=f.T_vehicle_cam)
+    assert len(seen) == 2 and seen[0] is None
+    np.testing.assert_allclose(seen[1], f.T_vehicle_cam[2, :3])
+    np.testing.assert_allclose(f.T_vehicle_cam[:3, :3] @ seen[1], [0, 0, 1], atol=1e-12)   # the vehicle's up
