@@ -90,7 +90,7 @@ def test_vehicle_frame_response_equals_the_forklift_module(daemons, forklift_vie
     est = PalletEstimator.from_bundle(cfg.model.bundle, threads=1, precision="fp32", **_options(cfg.estimator))
     with open_source(f"replay:{rec}") as src:
         frame = next(iter(src))         # every frame of the recording is the same view
-    expected = vehicle_frame_result(est.estimate(frame), T, est.bundle, frame).to_dict()["poses"]
+    expected = vehicle_frame_result(est.estimate(frame, T_vehicle_cam=T), T, est.bundle, frame).to_dict()["poses"]
     assert any("forklift" in p and len(p["forklift"]["pockets"]) == 2 for p in expected), "nothing to compare"
     assert len(body["pallets"]) == len(expected)
     for got, want in zip(body["pallets"], expected):
