@@ -195,3 +195,26 @@ def test_the_levelled_pose_is_refined_on_the_depth_in_yaw_and_position(yaw_err_d
     assert np.linalg.norm(levelled_only[:2, 3] - T_vp[:2, 3]) > 0.015            # the refinement did the work
     no_depth = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(), EPAL.boxes_m, np.zeros_like(depth), K, box)
     np.testing.assert_allclose(no_depth, levelled_only, atol=1e-12)
+
+
+def test_level_poses_refines_a_frames_poses_together_as_one_by_one():
+    from pallet6d.runtime.level import level_poses
+
+    T_vc = camera()
+    on_floor, on_rack = pallet_pose(2.0, 10.0, lateral_m=0.6), pallet_pose(2.4, -5.0, lateral_m=-0.7)
+    on_rack[2, 3] += 0.5
+    depth = np.minimum(render(T_vc, on_floor), np.where(render(T_vc, on_rack, floor=False) > 0,
+                                                         render(T_vc, on_rack, floor=False), np.inf))
+    depth[~np.isfinite(depth)] = 0
+    est = [_tilted(T, 1.5, (1.0, 0.0, 0.0)) for T in (on_floor, on_rack)]
+    for T in est:
+        T[:3, 3] += [0.015, -0.01, 0.01]
+    T_cp = np.stack([invert_T(T_vc) @ T for T in est])
+    boxes = np.stack([_box_of(T_vc, T) for T in (on_floor, on_rack)])
+    both = level_poses(T_cp, T_vc, [EPAL.size_m[2]] * 2, LevelParams(), [EPAL.boxes_m] * 2, depth, K, boxes)
+    for i in range(2):
+        one = level_poses(T_cp[i:i + 1], T_vc, [EPAL.size_m[2]], LevelParams(), [EPAL.boxes_m], depth, K, boxes[i:i + 1])
+        np.testing.assert_allclose(both[i], one[0], atol=1e-9)
+    assert both[0, 2, 3] == pytest.approx(EPAL.size_m[2] / 2)                     # the floor one is set on it
+    assert abs(both[1, 2, 3] - on_rack[2, 3]) < 0.02                              # the rack one keeps its height
+    np.testing.assert_allclose(both[:, 2, 2], 1.0, atol=1e-12)
