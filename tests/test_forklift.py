@@ -213,7 +213,8 @@ def test_level_poses_refines_a_frames_poses_together_as_one_by_one():
     boxes = np.stack([_box_of(T_vc, T) for T in (on_floor, on_rack)])
     both = level_poses(T_cp, T_vc, [EPAL.size_m[2]] * 2, LevelParams(), [EPAL.boxes_m] * 2, depth, K, boxes)
     for i in range(2):
-        one = level_poses(T_cp[i:i + 1], T_vc, [EPAL.size_m[2]], LevelParams(), [EPAL.boxes_m], depth, K, boxes[i:i + 1])
+        one = level_poses(T_cp[i:i + 1], T_vc, [EPAL.size_m[2]], LevelParams(), [EPAL.boxes_m], depth, K,
+                          boxes[i:i + 1])
         np.testing.assert_allclose(both[i], one[0], atol=1e-9)
     assert both[0, 2, 3] == pytest.approx(EPAL.size_m[2] / 2)                     # the floor one is set on it
     assert abs(both[1, 2, 3] - on_rack[2, 3]) < 0.02                              # the rack one keeps its height
