@@ -33,6 +33,9 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     assert cfg.model.bundle == str(tmp_path / "b") and cfg.snapshot.dir == str(tmp_path / "snaps")
     assert cfg.estimator.depth_range_m == (0.3, 6.0) and cfg.estimator.max_pallets == 4
     assert load(tmp_path, '[estimator]\npallet_types = ["epal"]\n' + CAMERA_FRAME).estimator.pallet_types == ("epal",)
+    assert load(tmp_path, "[estimator]\nlevel = false\n" + CAMERA_FRAME).estimator.level is None
+    level = load(tmp_path, "[estimator]\nlevel = {refine_iterations = 3}\n" + CAMERA_FRAME).estimator.level
+    assert level.refine_iterations == 3 and level.refine_points == 600
     assert load(tmp_path, "[estimator]\nstructure = false\n" + CAMERA_FRAME).estimator.structure is None
     relaxed = load(tmp_path, "[estimator]\nstructure = {min_agreement = 0.5}\n" + CAMERA_FRAME).estimator.structure
     assert relaxed.min_agreement == 0.5 and relaxed.grid == 32
