@@ -29,7 +29,7 @@ _FREE_ROT_RAD, _FREE_TRANS_M = 0.1, 0.1
 _DEPTH_RANGE_M = (0.1, 20.0)
 _CORR_START_M, _CORR_END_M = 0.08, 0.015
 _MIN_INLIERS = 30
-_LEVEL_TOL_DEG = 1e-6            # a pose this close to level was levelled already
+_LEVEL_TOL_DEG = 1e-4            # a pose this close to level was levelled already (float rounding: ~1e-6)
 
 
 @dataclass(frozen=True)

@@ -219,3 +219,17 @@ def test_level_poses_refines_a_frames_poses_together_as_one_by_one():
     assert both[0, 2, 3] == pytest.approx(EPAL.size_m[2] / 2)                     # the floor one is set on it
     assert abs(both[1, 2, 3] - on_rack[2, 3]) < 0.02                              # the rack one keeps its height
     np.testing.assert_allclose(both[:, 2, 2], 1.0, atol=1e-12)
+
+
+def test_a_pose_the_estimator_levelled_is_not_refined_again():
+    T_vc, T_vp = camera(), pallet_pose(2.0, 5.0)
+    off = T_vp.copy()
+    off[:3, 3] += [0.015, -0.01, 0.0]                       # level and on the floor, but 1.8 cm off: refining moves it
+    T_cp = invert_T(T_vc) @ off
+    box, depth = _box_of(T_vc, T_vp), render(T_vc, T_vp)
+    pose = PalletPose(T_cp, 0.9, 0.8, box, 500, FitScore(0.9, 0.0, 0.9), class_name="pallet")
+    (a,) = attach_forklift(FrameResult([pose]), T_vc, {"pallet": EPAL}, depth, K).poses
+    np.testing.assert_allclose(a.T_vehicle_pallet, off, atol=1e-9)
+    tilted = invert_T(T_vc) @ _tilted(off, 1.0)
+    moved = vehicle_pose(tilted, T_vc, EPAL.size_m, ForkliftParams(), EPAL.boxes_m, depth, K, box)
+    assert np.linalg.norm(moved[:2, 3] - off[:2, 3]) > 0.005                 # an estimate that was not levelled is
