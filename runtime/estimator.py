@@ -33,6 +33,7 @@ from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .detector import Detections
 from .inputs import check_rgb, check_rgbd
+from .geometry import invert_T
 from .level import LevelParams, level_poses, up_in_camera
 from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
@@ -433,9 +434,10 @@ class PalletEstimator:
         rows = np.flatnonzero(cands.alive)
         if len(rows):
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
+            pts = [self.refiner.box_points(cands.pixels[i], depth_m, K) for i in rows]   # the refiner's ICP points
             T_vp = level_poses(cands.T_cam_pallet[rows], T_vehicle_cam, np.array([g.size_m[2] for g in geoms]),
-                               self.options.level, [g.boxes_m for g in geoms], depth_m, K, cands.boxes_xyxy[rows])
-            T_cp = np.linalg.inv(T_vehicle_cam) @ T_vp
+                               self.options.level, [g.boxes_m for g in geoms], pts_cam=pts)
+            T_cp = invert_T(T_vehicle_cam) @ T_vp
             moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
             cands.assign(rows, T_cam_pallet=T_cp)
             cands.assign(moved, fit=np.full((len(moved), 3), np.nan))

@@ -77,7 +77,8 @@ def _level(R: np.ndarray) -> np.ndarray:
 
 def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: np.ndarray,
                 params: LevelParams = LevelParams(), boxes_m: list | None = None, depth_m: np.ndarray | None = None,
-                K: np.ndarray | None = None, boxes_xyxy: np.ndarray | None = None) -> np.ndarray:
+                K: np.ndarray | None = None, boxes_xyxy: np.ndarray | None = None,
+                pts_cam: list | None = None) -> np.ndarray:
     """`T_vehicle_pallet` of n posed pallets, levelled, set on the floor and refined (see the module docstring).
 
     :param T_cam_pallet: (n, 4, 4) the estimated poses. :param T_vehicle_cam: (4, 4) from the calibration.
@@ -85,6 +86,8 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
     :param boxes_m: n arrays (k, 2, 3), each pose's type's boards and blocks (poses sharing the same array are
         refined together), or None; with `depth_m`, `K` and `boxes_xyxy` ((n, 4) detection boxes, pixels) the
         levelled poses are refined (`params.refine_points` > 0).
+    :param pts_cam: n arrays (m_i, 3), each pose's depth points (camera frame, metres) when the caller has them
+        already (the estimator's refiner): used instead of reading `depth_m` in `boxes_xyxy`.
     :return: (n, 4, 4) vehicle frame.
     """
     T_vc = np.asarray(T_vehicle_cam, dtype=np.float64)
@@ -104,24 +107,30 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
         on_floor[todo] = np.abs(out[todo, 2, 3] - half_h[todo]) <= params.floor_snap_m
         out[on_floor, 2, 3] = half_h[on_floor]
     refine = todo[~already]
-    if params.refine_points > 0 and len(refine) and boxes_m is not None and depth_m is not None and K is not None \
-            and boxes_xyxy is not None:
-        out[refine] = _refine(out[refine], on_floor[refine], T_vc, [boxes_m[i] for i in refine], depth_m, check_K(K),
-                              np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)[refine], params)
+    if params.refine_points > 0 and len(refine) and boxes_m is not None:
+        if pts_cam is not None:
+            pts = [np.asarray(pts_cam[i], dtype=np.float64).reshape(-1, 3) for i in refine]
+        elif depth_m is not None and K is not None and boxes_xyxy is not None:
+            from .refine import box_points          # here: refine -> results -> forklift -> this module
+            K = check_K(K)
+            boxes_xyxy = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+            pts = [box_points(depth_m, K, boxes_xyxy[i], int(params.refine_points), _DEPTH_RANGE_M) for i in refine]
+        else:
+            return out
+        out[refine] = _refine(out[refine], on_floor[refine], T_vc, [boxes_m[i] for i in refine], pts, params)
         out[refine, :3, :3] = _level(out[refine, :3, :3])             # what the held tilt let through (< 0.1 deg)
         snap = refine[on_floor[refine]]
         out[snap, 2, 3] = half_h[snap]
     return out
 
 
-def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: list, depth_m: np.ndarray,
-            K: np.ndarray, boxes_xyxy: np.ndarray, params: LevelParams) -> np.ndarray:
-    """ICP with the tilt held, one pass per pallet type; poses without depth points in their box stay."""
-    from .refine import _icp, box_points          # here: refine -> results -> forklift -> this module
+def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: list, pts: list,
+            params: LevelParams) -> np.ndarray:
+    """ICP with the tilt held, one pass per pallet type; poses without depth points stay."""
+    from .refine import _icp          # here: refine -> results -> forklift -> this module
 
     out = T_vp.copy()
     T_cv = invert_T(T_vc)
-    pts = [box_points(depth_m, K, b, int(params.refine_points), _DEPTH_RANGE_M) for b in boxes_xyxy]
     groups: dict[int, list[int]] = {}
     for i, b in enumerate(boxes_m):
         if b is not None and len(pts[i]):
