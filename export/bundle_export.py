@@ -34,8 +34,8 @@ from .calib_data import CalibrationSet, make_calibration_set
 from .config import ModelConfig
 from .detector import build_detector
 from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git_commit, load_checkpoint,
-                            read_checkpoint, trained_classes, trained_input_hw, trained_input_sizes,
-                            warm_up_batchnorm)
+                            read_checkpoint, trained_classes, trained_depth_max_m, trained_input_hw,
+                            trained_input_sizes, warm_up_batchnorm)
 from .flops import count_gflops
 from .fusion import build_fusion
 from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
@@ -167,6 +167,8 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
                 raise ExportError(f"the checkpoint's detector has {len(cfg.detector.classes)} classes, not "
                                   f"{len(classes)} ({list(classes)})")
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, classes=tuple(classes)))
+        if ckpt is not None and (depth_max := trained_depth_max_m(ckpt)) is not None:   # an RGB-D detector
+            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, depth_max_m=depth_max))
         if ckpt is not None and (hw := trained_input_hw(ckpt)) not in (None, cfg.detector.input_hw):
             # the detector is fully convolutional: export it at the size it was trained at
             log.info("detector input %s, as trained (config %s: %s)", hw, cfg.name, cfg.detector.input_hw)
@@ -362,7 +364,8 @@ def write_bundle(out: Path, n: Networks, g: Graphs, int8: Int8Graphs | None, pal
             file=rel(g.files["detector"]), file_int8=rel(i8["detector"]), input_name=g.det_in, output_name=g.det_out,
             input_hw=tuple(cfg.detector.input_hw), input_sizes=n.detector_sizes, letterbox_pad_value=114,
             pixel_scale=1.0 / 255.0, rgb_mean=(0.0, 0.0, 0.0), rgb_std=(1.0, 1.0, 1.0), channel_order="RGB",
-            classes=tuple(cfg.detector.classes), source="external" if external else "pallet6d")
+            classes=tuple(cfg.detector.classes), source="external" if external else "pallet6d",
+            depth_max_m=cfg.detector.depth_max_m)
         fusion = FusionSpec(
             file=rel(g.files["fusion"]), file_int8=rel(i8["fusion"]), rgb_input="rgb", depth_input="depth",
             choose_input=n.fusion_inputs[2] if len(n.fusion_inputs) > 2 else None, output_name="features", crop_hw=tuple(cfg.fusion.crop_hw), pixel_scale=1.0 / 255.0,

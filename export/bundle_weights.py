@@ -252,7 +252,8 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
         raise BundleWeightsError(f"--init {root}: its detector is an external graph, not one of ours")
     cfg = get_config(bundle.config)
     cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw),
-                                                   classes=tuple(bundle.detector.classes)))
+                                                   classes=tuple(bundle.detector.classes),
+                                                   depth_max_m=bundle.detector.depth_max_m))
     calib = make_calibration_set(cfg, frames=calib_frames, seed=seed)
     record: dict = {"bundle": str(root), "name": bundle.name, "config": bundle.config, "graphs": {}, "parity": {}}
     for stage, net in nets.items():
@@ -288,7 +289,8 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
     cfg = get_config(bundle.config)
     if stage == "detector":
         nets = {"detector": build_detector(dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw),
-                                                               classes=tuple(bundle.detector.classes)))}
+                                                               classes=tuple(bundle.detector.classes),
+                                                               depth_max_m=bundle.detector.depth_max_m))}
     elif stage == "pose":
         nets = {"fusion": build_fusion(cfg.fusion), "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
     else:
@@ -301,6 +303,7 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
         provenance["input_hw"] = list(bundle.detector.input_hw)
         provenance["input_sizes"] = [list(hw) for hw in bundle.detector.input_sizes]
         provenance["classes"] = list(bundle.detector.classes)
+        provenance["depth_max_m"] = bundle.detector.depth_max_m
     return {"format": CKPT_FORMAT, "format_version": 1, "stage": stage, "config": bundle.config,
             "epoch": before.get("epoch"), "val": before.get("val"), "provenance": provenance,
             **{k: net.state_dict() for k, net in nets.items()}}

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pallet6d.runtime.detector import letterbox
+from pallet6d.runtime.detector import depth_channel, letterbox, letterbox_depth
 from pallet6d.runtime.evaluation import counted_pallets
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
@@ -27,7 +27,8 @@ PAPER_PRESETS = ("virtual-occluded", "indoor-noisy", "virtual-clean")   # the de
 
 @dataclass(frozen=True)
 class CalibrationSet:
-    """:ivar images: (F, 3, H, W) float32 in [0, 1], letterboxed detector inputs.
+    """:ivar images: (F, C, H, W) float32 in [0, 1], letterboxed detector inputs (C = 4 for an RGB-D detector:
+        the depth channel last).
     :ivar rgb_crops: (P, 3, h, w). :ivar depth_crops: (P, 1, h, w). :ivar points: (P, N, 3). :ivar choose: (P, N).
     :ivar source: where the data came from (recorded in the manifest).
     :ivar crop_sources: (P,) the preset each crop was taken from.
@@ -53,8 +54,15 @@ class CalibrationSet:
         if hw not in self.other_images:
             log.warning("the calibration set has no detector inputs at %dx%d: letterboxing its %dx%d inputs to it "
                         "(make it with detector_sizes listing every size)", *hw, *self.images.shape[2:])
-            rgb = (self.images.transpose(0, 2, 3, 1) * 255.0).round().clip(0, 255).astype(np.uint8)
-            self.other_images[hw] = np.stack([_to_chw01(letterbox(im, hw)[0]) for im in rgb])
+            rgb = (self.images[:, :3].transpose(0, 2, 3, 1) * 255.0).round().clip(0, 255).astype(np.uint8)
+            out = []
+            for k, im in enumerate(rgb):
+                img, lb = letterbox(im, hw)
+                chans = [_to_chw01(img)]
+                if self.images.shape[1] == 4:   # the depth channel is letterboxed like depth (values already scaled)
+                    chans.append(letterbox_depth(self.images[k, 3], lb)[None])
+                out.append(np.concatenate(chans))
+            self.other_images[hw] = np.stack(out)
         return self.other_images[hw]
 
 
@@ -69,6 +77,15 @@ def _to_chw01(img: np.ndarray) -> np.ndarray:
     return img.transpose(2, 0, 1).astype(np.float32) / 255.0
 
 
+def _detector_input(rgb: np.ndarray, depth_m: np.ndarray, hw: tuple[int, int], depth_max_m: float | None) -> np.ndarray:
+    """The detector's (C, H, W) input of a frame, as the runtime's detector stage makes it (without normalisation:
+    our detectors take [0, 1])."""
+    img, lb = letterbox(rgb, hw)
+    if depth_max_m is None:
+        return _to_chw01(img)
+    return np.concatenate([_to_chw01(img), depth_channel(letterbox_depth(depth_m, lb), depth_max_m)[None]])
+
+
 def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets: tuple[str, ...],
               other_sizes: tuple[tuple[int, int], ...]) -> CalibrationSet:
     from pallet6d.sim.generate import generate_frame
@@ -81,9 +98,10 @@ def _from_sim(cfg: ModelConfig, frames: int, max_crops: int, seed: int, presets:
     for i in range(frames):
         preset = presets[i % len(presets)]
         frame = generate_frame(get_preset(preset), seed, i)
-        images.append(_to_chw01(letterbox(frame.rgb, cfg.detector.input_hw)[0]))
+        depth_max = cfg.detector.depth_max_m
+        images.append(_detector_input(frame.rgb, frame.depth_m, cfg.detector.input_hw, depth_max))
         for hw, imgs in others.items():
-            imgs.append(_to_chw01(letterbox(frame.rgb, hw)[0]))
+            imgs.append(_detector_input(frame.rgb, frame.depth_m, hw, depth_max))
         boxes = []
         # calibration's own rule: clearly visible pallets (>= 25 %, a box >= 8 px each way, >= 50 depth pixels)
         counted = counted_pallets(frame.pallets, min_visib_fract=0.25, min_box_side_px=8)
@@ -130,8 +148,9 @@ def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int,
         small = rng.random((max(2, shape_hw[0] // 16), max(2, shape_hw[1] // 16), c)).astype(np.float32)
         return cv2.resize(small, (shape_hw[1], shape_hw[0]), interpolation=cv2.INTER_CUBIC).reshape(*shape_hw, c)
 
-    images = np.stack([np.clip(smooth((H, W), 3), 0, 1).transpose(2, 0, 1) for _ in range(frames)])
-    others = {hw: np.stack([np.clip(smooth(hw, 3), 0, 1).transpose(2, 0, 1) for _ in range(frames)]).astype(np.float32)
+    c_det = cfg.detector.input_channels
+    images = np.stack([np.clip(smooth((H, W), c_det), 0, 1).transpose(2, 0, 1) for _ in range(frames)])
+    others = {hw: np.stack([np.clip(smooth(hw, c_det), 0, 1).transpose(2, 0, 1) for _ in range(frames)]).astype(np.float32)
               for hw in other_sizes}
     p = max_crops
     mean = np.asarray(spec.rgb_mean, np.float32).reshape(3, 1, 1)

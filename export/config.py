@@ -52,6 +52,8 @@ class DetectorConfig:
 
     :ivar scale: one of DETECTOR_SCALES, or "custom" with `depth_multiple`, `width_multiple` set.
     :ivar input_hw: letterboxed input (H, W), multiples of 32.
+    :ivar depth_max_m: None: RGB in. Else an RGB-D detector: depth is a 4th input channel, depth / depth_max_m
+        clipped to [0, 1], 0 where there is none (`runtime.detector.depth_channel`).
     """
 
     scale: str = "n"
@@ -61,8 +63,11 @@ class DetectorConfig:
     depth_multiple: float | None = None
     width_multiple: float | None = None
     max_channels: int | None = None
+    depth_max_m: float | None = None
 
     def __post_init__(self) -> None:
+        if self.depth_max_m is not None and not self.depth_max_m > 0:
+            raise ValueError(f"detector depth_max_m must be > 0 metres (or None for RGB), got {self.depth_max_m}")
         if self.scale != "custom" and self.scale not in DETECTOR_SCALES:
             raise ValueError(f"detector scale {self.scale!r} unknown; use one of {sorted(DETECTOR_SCALES)} or 'custom'")
         if self.scale == "custom" and (self.depth_multiple is None or self.width_multiple is None):
@@ -84,6 +89,11 @@ class DetectorConfig:
     @property
     def num_classes(self) -> int:
         return len(self.classes)
+
+    @property
+    def input_channels(self) -> int:
+        """3 (RGB) or 4 (RGB-D)."""
+        return 3 if self.depth_max_m is None else 4
 
 
 @dataclass(frozen=True)

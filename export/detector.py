@@ -14,7 +14,7 @@ from torch import nn
 
 from .config import DetectorConfig
 
-__all__ = ["YoloDetector", "build_detector", "make_anchors", "STRIDES", "widen_class_outputs"]
+__all__ = ["YoloDetector", "build_detector", "make_anchors", "STRIDES", "widen_class_outputs", "widen_input_channels"]
 
 STRIDES = (8, 16, 32)
 
@@ -161,7 +161,7 @@ class YoloDetector(nn.Module):
 
         c64, c128, c256, c512, c1024 = ch(64), ch(128), ch(256), ch(512), ch(1024)
         # backbone
-        self.stem = ConvBnAct(3, c64, 3, 2)                                               # P1/2
+        self.stem = ConvBnAct(cfg.input_channels, c64, 3, 2)                              # P1/2
         self.down2, self.c2f2 = ConvBnAct(c64, c128, 3, 2), C2f(c128, c128, n(3), True)   # P2/4
         self.down3, self.c2f3 = ConvBnAct(c128, c256, 3, 2), C2f(c256, c256, n(6), True)  # P3/8
         self.down4, self.c2f4 = ConvBnAct(c256, c512, 3, 2), C2f(c512, c512, n(6), True)  # P4/16
@@ -179,7 +179,7 @@ class YoloDetector(nn.Module):
         self.head.init_biases(cfg.input_hw)
 
     def forward_raw(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """(B, 3, H, W) in [0, 1] -> per-level raw maps (B, 4*reg_max + nc, H/s, W/s), s = 8, 16, 32."""
+        """(B, C, H, W) in [0, 1] (C = 3 RGB, or 4 with depth) -> per-level raw maps (B, 4*reg_max + nc, H/s, W/s), s = 8, 16, 32."""
         x = self.c2f2(self.down2(self.stem(x)))
         p3 = self.c2f3(self.down3(x))
         p4 = self.c2f4(self.down4(p3))
@@ -216,3 +216,21 @@ def widen_class_outputs(state: dict[str, torch.Tensor], model: nn.Module) -> dic
             out[k] = v.repeat(t.shape[0], *([1] * (v.ndim - 1)))
     return out
 
+
+
+def widen_input_channels(state: dict[str, torch.Tensor], model: nn.Module) -> dict[str, torch.Tensor]:
+    """An RGB detector's weights made to fit an RGB-D `model`: the first convolution's kernels for the extra
+    input channels start at zero, so the RGB-D detector starts out exactly as the RGB one and learns what depth
+    adds. Other entries are returned unchanged.
+
+    :param state: the trained detector's state dict. :return: a new state dict.
+    """
+    out = dict(state)
+    key = "stem.conv.weight"
+    t, v = model.state_dict().get(key), state.get(key)
+    if t is not None and v is not None and v.shape != t.shape and v.shape[0] == t.shape[0] \
+            and v.shape[2:] == t.shape[2:] and v.shape[1] < t.shape[1]:
+        w = torch.zeros_like(t, dtype=v.dtype)
+        w[:, :v.shape[1]] = v
+        out[key] = w
+    return out

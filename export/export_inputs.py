@@ -25,7 +25,7 @@ from .config import ModelConfig
 from .onnx_io import ort_session
 
 __all__ = ["ExportError", "DET_IN", "DET_OUT", "git_commit", "warm_up_batchnorm", "read_checkpoint",
-           "trained_input_hw", "trained_input_sizes", "load_checkpoint", "external_detector"]
+           "trained_input_hw", "trained_input_sizes", "trained_depth_max_m", "load_checkpoint", "external_detector"]
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +84,17 @@ def trained_input_hw(ckpt: dict) -> tuple[int, int] | None:
     --detector-input`), from its provenance; None when not recorded (then the config's size applies)."""
     hw = _detector_provenance(ckpt).get("input_hw")
     return (int(hw[0]), int(hw[1])) if hw is not None else None
+
+
+def trained_depth_max_m(ckpt: dict) -> float | None:
+    """The depth scale of a checkpoint's RGB-D detector (`pallet6d train detector --detector-depth-max-m`), from
+    its provenance; None for an RGB detector (or a checkpoint that does not record it)."""
+    v = _detector_provenance(ckpt).get("depth_max_m")
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+        raise ExportError(f"the checkpoint's detector provenance has depth_max_m {v!r}, not a positive number")
+    return float(v)
 
 
 def trained_classes(ckpt: dict) -> tuple[str, ...] | None:

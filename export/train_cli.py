@@ -110,6 +110,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector: the input sizes it runs at, each frame at the one that draws it largest (e.g. "
                              "192x640,256x480,288x416,320x384: wide paper frames, 16:9 and 4:3 cameras at one "
                              "cost); the first is the reference size unless --detector-input names another of them")
+    parser.add_argument("--detector-depth-max-m", type=float, metavar="M",
+                        help="detector: an RGB-D detector, depth as a 4th input channel (depth / M, clipped to 1); "
+                             "`--init` from an RGB detector starts it as that detector (depth kernels at zero)")
     parser.add_argument("--real", type=Path,
                         help="detector: also train on the train split of real photographs imported by "
                              "`python -m pallet6d.export.real_data import` (this folder; docs/data.md)")
@@ -240,6 +243,11 @@ def main(args: argparse.Namespace) -> int:
                 return 2
             cfg = cfg.replace(detector=dataclasses.replace(
                 cfg.detector, classes=detector_classes(args.detector_classes, args.data)))
+        if args.detector_depth_max_m is not None:
+            if args.stage != "detector":
+                print("pallet6d train: --detector-depth-max-m is for the detector stage", file=sys.stderr)
+                return 2
+            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, depth_max_m=args.detector_depth_max_m))
         sizes = args.detector_input_sizes
         if sizes is not None:
             if args.stage != "detector" or not sizes:

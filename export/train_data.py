@@ -188,6 +188,35 @@ def flip_horizontal(image: np.ndarray, boxes_xyxy: np.ndarray) -> tuple[np.ndarr
     return np.ascontiguousarray(image[:, ::-1]), boxes
 
 
+def _window_affine(image_hw: tuple[int, int], window_hw: tuple[int, int], rng: np.random.Generator,
+                   zoom_range: float, zoom_in_max: float, shift_fraction: float) -> tuple[float, float, float]:
+    """`place_in_window`'s random scale and offset (s, tx, ty): window = frame * s + (tx, ty)."""
+    h, w = image_hw
+    H, W = window_hw
+    lo, hi = math.log(max(1.0 - zoom_range, 1e-3)), math.log(max(zoom_in_max, 1e-3))
+    s = min(H / h, W / w) * (math.exp(rng.uniform(lo, hi)) if hi > lo else 1.0)
+    new_w, new_h = w * s, h * s
+    tx = (W - new_w) / 2 + float(rng.uniform(-1.0, 1.0)) * (abs(W - new_w) / 2 + shift_fraction * W) \
+        if shift_fraction > 0 else (W - new_w) / 2
+    ty = (H - new_h) / 2 + float(rng.uniform(-1.0, 1.0)) * (abs(H - new_h) / 2 + shift_fraction * H) \
+        if shift_fraction > 0 else (H - new_h) / 2
+    return s, tx, ty
+
+
+def _moved_boxes(boxes: np.ndarray, s: float, tx: float, ty: float, window_hw: tuple[int, int],
+                 min_area_kept: float, min_side_px: float) -> np.ndarray:
+    H, W = window_hw
+    moved = boxes.copy()
+    moved[:, :4] = boxes[:, :4] * np.float32(s) + np.array([tx, ty, tx, ty], np.float32)
+    clipped = moved.copy()
+    clipped[:, [0, 2]] = np.clip(moved[:, [0, 2]], 0, W)
+    clipped[:, [1, 3]] = np.clip(moved[:, [1, 3]], 0, H)
+    side_w, side_h = clipped[:, 2] - clipped[:, 0], clipped[:, 3] - clipped[:, 1]
+    area_moved = np.maximum((moved[:, 2] - moved[:, 0]) * (moved[:, 3] - moved[:, 1]), 1e-9)
+    keep = (side_w >= min_side_px) & (side_h >= min_side_px) & (side_w * side_h >= min_area_kept * area_moved)
+    return clipped[keep].astype(np.float32)
+
+
 def place_in_window(image: np.ndarray, boxes_xyxy: np.ndarray, window_hw: tuple[int, int], rng: np.random.Generator,
                     zoom_range: float, zoom_in_max: float, shift_fraction: float, fill: int = 114,
                     min_area_kept: float = 0.2, min_side_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
@@ -203,28 +232,35 @@ def place_in_window(image: np.ndarray, boxes_xyxy: np.ndarray, window_hw: tuple[
         ride along. :param window_hw: (H, W).
     :return: the (H, W, 3) uint8 input and (m, 4 + k) float32 boxes in its pixels.
     """
+    img, _, boxes = place_rgbd_in_window(image, None, boxes_xyxy, window_hw, rng, zoom_range, zoom_in_max,
+                                         shift_fraction, fill, min_area_kept, min_side_px)
+    return img, boxes
+
+
+def place_rgbd_in_window(image: np.ndarray, depth_m: np.ndarray | None, boxes_xyxy: np.ndarray,
+                         window_hw: tuple[int, int], rng: np.random.Generator, zoom_range: float, zoom_in_max: float,
+                         shift_fraction: float, fill: int = 114, min_area_kept: float = 0.2,
+                         min_side_px: float = 2.0) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """`place_in_window` for a colour image and its registered depth: the same zoom and position for both, the
+    depth drawn with nearest neighbour (no depth invented at edges) and 0 (no data) where the frame does not reach.
+
+    :param depth_m: (h, w) float metres, or None. :return: the (H, W, 3) uint8 input, the (H, W) float32 depth (None
+        without one) and (m, 4 + k) float32 boxes.
+    """
     h, w = image.shape[:2]
     H, W = int(window_hw[0]), int(window_hw[1])
-    boxes = _box_rows(boxes_xyxy)
-    lo, hi = math.log(max(1.0 - zoom_range, 1e-3)), math.log(max(zoom_in_max, 1e-3))
-    s = min(H / h, W / w) * (math.exp(rng.uniform(lo, hi)) if hi > lo else 1.0)
-    new_w, new_h = w * s, h * s
-    tx = (W - new_w) / 2 + float(rng.uniform(-1.0, 1.0)) * (abs(W - new_w) / 2 + shift_fraction * W) \
-        if shift_fraction > 0 else (W - new_w) / 2
-    ty = (H - new_h) / 2 + float(rng.uniform(-1.0, 1.0)) * (abs(H - new_h) / 2 + shift_fraction * H) \
-        if shift_fraction > 0 else (H - new_h) / 2
+    s, tx, ty = _window_affine((h, w), (H, W), rng, zoom_range, zoom_in_max, shift_fraction)
     A = np.array([[s, 0.0, tx], [0.0, s, ty]], dtype=np.float64)
     out = cv2.warpAffine(image, A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                          borderValue=(fill, fill, fill))
-    moved = boxes.copy()
-    moved[:, :4] = boxes[:, :4] * np.float32(s) + np.array([tx, ty, tx, ty], np.float32)
-    clipped = moved.copy()
-    clipped[:, [0, 2]] = np.clip(moved[:, [0, 2]], 0, W)
-    clipped[:, [1, 3]] = np.clip(moved[:, [1, 3]], 0, H)
-    side_w, side_h = clipped[:, 2] - clipped[:, 0], clipped[:, 3] - clipped[:, 1]
-    area_moved = np.maximum((moved[:, 2] - moved[:, 0]) * (moved[:, 3] - moved[:, 1]), 1e-9)
-    keep = (side_w >= min_side_px) & (side_h >= min_side_px) & (side_w * side_h >= min_area_kept * area_moved)
-    return np.ascontiguousarray(out), clipped[keep].astype(np.float32)
+    depth_out = None
+    if depth_m is not None:
+        if depth_m.shape != (h, w):
+            raise ValueError(f"depth is {depth_m.shape}, the image {(h, w)}")
+        depth_out = cv2.warpAffine(depth_m.astype(np.float32, copy=False), A, (W, H), flags=cv2.INTER_NEAREST,
+                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    boxes = _moved_boxes(_box_rows(boxes_xyxy), s, tx, ty, (H, W), min_area_kept, min_side_px)
+    return np.ascontiguousarray(out), depth_out, boxes
 
 
 # ------------------------------------------------------------------------------------------- models
@@ -359,12 +395,15 @@ class DetectorSamples:
     :ivar frame: (F,) int64 frame index in its dataset.
     :ivar types: (F,) object array of (n_i,) int64: each box's pallet type as its index in
         `sim.pallets.PALLET_MODELS`, -1 when unknown (a real photograph); default all -1.
+    :ivar depths: None, or (F,) object array of (h_i, w_i) uint16 millimetres registered to the images, a (0, 0)
+        array for a frame without depth (a photograph); 0 = no data.
     """
 
     images: np.ndarray
     boxes: np.ndarray
     frame: np.ndarray
     types: np.ndarray | None = None
+    depths: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         f = len(self.frame)
@@ -378,22 +417,40 @@ class DetectorSamples:
         for img in self.images:
             if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
                 raise ValueError(f"DetectorSamples: each image must be (h, w, 3) uint8, got {img.shape} {img.dtype}")
+        if self.depths is not None:
+            if len(self.depths) != f:
+                raise ValueError(f"DetectorSamples: {f} frames but {len(self.depths)} depths")
+            for img, d in zip(self.images, self.depths):
+                if d.dtype != np.uint16 or (d.shape != img.shape[:2] and d.shape != (0, 0)):
+                    raise ValueError(f"DetectorSamples: each depth must be (h, w) uint16 like its image "
+                                     f"{img.shape[:2]} or (0, 0) for none, got {d.shape} {d.dtype}")
+
+    def depth_m(self, i: int) -> np.ndarray | None:
+        """Frame `i`'s depth in float32 metres, or None when it has none."""
+        if self.depths is None or self.depths[i].size == 0:
+            return None
+        return self.depths[i].astype(np.float32) * np.float32(0.001)
 
     def __len__(self) -> int:
         return len(self.frame)
 
     def take(self, idx: np.ndarray) -> "DetectorSamples":
         return DetectorSamples(_objects([self.images[i] for i in idx]), self.boxes[idx], self.frame[idx],
-                               self.types[idx])
+                               self.types[idx], None if self.depths is None else _objects([self.depths[i] for i in idx]))
 
     @staticmethod
     def concat(parts: Sequence["DetectorSamples"]) -> "DetectorSamples":
+        """The frames of `parts` in order; when any part has depth, the others' frames get "none" (0, 0)."""
         if not parts:
             raise ValueError("no detector samples to concatenate")
+        depths = None
+        if any(p.depths is not None for p in parts):
+            none = np.zeros((0, 0), np.uint16)
+            depths = _objects([d for p in parts for d in (p.depths if p.depths is not None else [none] * len(p))])
         return DetectorSamples(_objects([im for p in parts for im in p.images]),
                                _objects([b for p in parts for b in p.boxes]),
                                np.concatenate([p.frame for p in parts]),
-                               _objects([t for p in parts for t in p.types]))
+                               _objects([t for p in parts for t in p.types]), depths)
 
 
 def _objects(items: Sequence[np.ndarray]) -> np.ndarray:
@@ -416,20 +473,26 @@ def cap_image(rgb: np.ndarray, max_side: int) -> tuple[np.ndarray, float]:
 
 
 def build_detector_samples(root: str | Path, max_side: int, max_frames: int | None = None,
-                           progress: Callable[[int], None] | None = None) -> DetectorSamples:
+                           progress: Callable[[int], None] | None = None, depth: bool = False) -> DetectorSamples:
     """Every frame, longest side capped at `max_side`; boxes = visible boxes of pallets visible >= 10 %, with
-    their pallet types (-1 for an object the dataset does not name as a catalogue type)."""
+    their pallet types (-1 for an object the dataset does not name as a catalogue type); with `depth`, each
+    frame's depth too (uint16 mm, resized with the image by nearest neighbour)."""
     from pallet6d.sim.pallets import PALLET_MODELS
 
     ds = BopDataset(root)
     n_frames = len(ds) if max_frames is None else min(len(ds), max_frames)
     type_of = {int(k): PALLET_MODELS.index(v["name"]) if v.get("name") in PALLET_MODELS else -1
                for k, v in ds.models_info.items()}
-    images, boxes, types = [], [], []
+    images, boxes, types, depths = [], [], [], []
     for i in range(n_frames):
         f = ds[i]
         img, scale = cap_image(f.rgb, max_side)
         images.append(img)
+        if depth:
+            mm = np.clip(np.round(np.nan_to_num(f.depth_m) * 1000.0), 0, 65535).astype(np.uint16)
+            if mm.shape != img.shape[:2]:
+                mm = cv2.resize(mm, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
+            depths.append(mm)
         # training's own rule: a target box of at least one pixel each way, no pallet of unknown visibility
         counted = counted_pallets(f.gts, min_box_side_px=1, unknown_visib_counts=False)
         bs = [g.bbox_visib_xywh.astype(np.float64) for g, c in zip(f.gts, counted) if c]
@@ -439,7 +502,7 @@ def build_detector_samples(root: str | Path, max_side: int, max_frames: int | No
         if progress is not None:
             progress(1)
     return DetectorSamples(_objects(images), _objects(boxes), np.arange(n_frames, dtype=np.int64),
-                           _objects(types))
+                           _objects(types), _objects(depths) if depth else None)
 
 
 # --------------------------------------------------------------------------------------------- cache
@@ -470,19 +533,26 @@ def _to_cache(samples: PoseSamples | DetectorSamples) -> dict[str, np.ndarray]:
         boxes = [np.asarray(b, np.float32).reshape(-1, 4) for b in samples.boxes]
         arrays["boxes"], arrays["boxes_shape"] = _ragged(boxes, (4,), np.float32)
         arrays["types"], arrays["types_shape"] = _ragged(samples.types, (), np.int64)
+        if samples.depths is None:
+            del arrays["depths"]
+        else:
+            arrays["depths"], arrays["depths_shape"] = _ragged(samples.depths, (), np.uint16)
     return arrays
 
 
 def _from_cache(cls: type, z) -> PoseSamples | DetectorSamples:
     """The samples `_to_cache` stored; a cache written without one of `cls`'s fields is refused."""
-    missing = sorted(set(cls.__dataclass_fields__) - set(z.files))
+    optional = {"depths"} if cls is DetectorSamples else set()
+    missing = sorted(set(cls.__dataclass_fields__) - set(z.files) - optional)
     if missing:
         raise ValueError(f"cache lacks {missing}: it was written by an older version; rebuild it")
-    fields = {f: z[f] for f in cls.__dataclass_fields__}
+    fields = {f: z[f] for f in cls.__dataclass_fields__ if f in z.files}
     if cls is DetectorSamples:
         fields["images"] = _unragged(fields["images"], z["images_shape"])
         fields["boxes"] = _unragged(fields["boxes"], z["boxes_shape"])
         fields["types"] = _unragged(fields["types"], z["types_shape"])
+        if "depths" in fields:
+            fields["depths"] = _unragged(fields["depths"], z["depths_shape"])
     return cls(**fields)
 
 

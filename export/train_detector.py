@@ -16,6 +16,10 @@ reports precision and recall on the simulated and the real validation frames apa
 boxes at least 8 % of the image tall (`recall_real_near`: the pallets a forklift approaches; LOCO's many far,
 small pallets would otherwise dominate the real numbers).
 
+An RGB-D detector (`DetectorConfig.depth_max_m`) also reads each simulated frame's depth, drawn into the input
+with the same zoom and position, with stereo-like noise and holes; in `DEPTH_OFF_PROB` of the simulated frames, and
+in every real photograph (they have none), the depth channel is empty, so the detector also works without depth.
+
 Near pallets are few among the real photographs (LOCO is mostly far pallets): `real_repeat_large` repeats the
 real training photographs that hold a box at least 20 % of the image tall, and `select="near_f1"` keeps the
 checkpoint with the best F1 of near-box recall and real precision instead of the lowest validation loss.
@@ -32,14 +36,14 @@ import numpy as np
 import torch
 
 from pallet6d.runtime.bop import BopDataset
-from pallet6d.runtime.detector import choose_input_hw, decode_yolov8, letterbox
+from pallet6d.runtime.detector import choose_input_hw, decode_yolov8, depth_channel, letterbox, letterbox_depth
 from pallet6d.runtime.evaluation import box_iou
 
 from .config import ModelConfig
 from .detector import build_detector
 from .losses import DetectorLoss
-from .train_data import AugmentConfig, DetectorSamples, augment_rgb, build_detector_samples, flip_horizontal, \
-    load_or_build, place_in_window
+from .train_data import AugmentConfig, DetectorSamples, augment_depth, augment_rgb, build_detector_samples, \
+    flip_horizontal, load_or_build, place_rgbd_in_window
 from .train_loop import LoopSettings, autocast, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
@@ -51,6 +55,7 @@ OWN_SIZE_PROB = 0.75     # share of batches at the input size their first frame 
 NEAR_FRACTION = 0.08     # real boxes at least this fraction of the image tall count as near (medium + large)
 LARGE_FRACTION = 0.2     # real photographs with a box this tall are the ones `real_repeat_large` repeats
 SELECTIONS = ("loss", "near_f1")
+DEPTH_OFF_PROB = 0.3     # RGB-D detector: share of simulated training frames shown without depth
 
 
 @dataclass
@@ -76,19 +81,20 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
                        real_max_images: int | None = None, real_repeat_large: int = 1) -> DetectorData:
     """Letterboxed frames of every dataset (cached), split into train/val frames; with `real`, the imported
     real photographs' train split joins them (its own sequence-wise validation cut), those with a large box
-    `real_repeat_large` times."""
+    `real_repeat_large` times. An RGB-D detector's frames keep their depth."""
     if real_repeat_large < 1:
         raise ValueError(f"real_repeat_large must be >= 1, got {real_repeat_large}")
     from tqdm import tqdm
 
     parts, fps = [], []
+    with_depth = cfg.detector.depth_max_m is not None
     for root in data:
         n = len(BopDataset(root))
-        settings = {"max_side": MAX_SIDE, "max_frames": max_frames}
+        settings = {"max_side": MAX_SIDE, "max_frames": max_frames, **({"depth": True} if with_depth else {})}
         with tqdm(total=n if max_frames is None else min(n, max_frames), desc=f"frames {Path(root).name}",
                   unit="frame", disable=not progress, leave=False) as bar:
             s, fp = load_or_build("detector", root, settings, cache_dir,
-                                  lambda: build_detector_samples(root, MAX_SIDE, max_frames, bar.update))
+                                  lambda: build_detector_samples(root, MAX_SIDE, max_frames, bar.update, with_depth))
         parts.append(s)
         fps.append(fp)
     samples = DetectorSamples.concat(parts)
@@ -146,6 +152,7 @@ class DetectorTrainer:
             raise ValueError(f"loader_threads must be >= 1, got {loader_threads}")
         # OpenCV and numpy release the GIL on whole images: threads prepare a batch's frames side by side
         self.pool = ThreadPoolExecutor(loader_threads) if loader_threads > 1 else None
+        self.depth_max_m = cfg.detector.depth_max_m
         self.detector = build_detector(cfg.detector).to(self.device)
         self.loss = DetectorLoss(self.detector)
 
@@ -160,22 +167,28 @@ class DetectorTrainer:
     def batch(self, idx: np.ndarray, rng: np.random.Generator | None,
               input_hw: tuple[int, int] | None = None) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """Frames `idx` drawn into one input size (default: the first frame's), augmented (rng given) or
-        letterboxed as the runtime does: (B, 3, H, W) float in [0, 1], B targets (n_i, 5) cls+xyxy."""
+        letterboxed as the runtime does: (B, C, H, W) float in [0, 1] (C = 4 with depth), B targets (n_i, 5) cls+xyxy."""
         hw = input_hw or self.input_hw_of(int(idx[0]))
         # one seed per frame, drawn up front: the batch is the same whichever thread prepares which frame
         seeds = rng.integers(0, 2**63 - 1, size=len(idx)) if rng is not None else [None] * len(idx)
         jobs = [(int(i), hw, seed) for i, seed in zip(idx, seeds)]
         prepared = list(self.pool.map(self._prepare, jobs)) if self.pool else [self._prepare(j) for j in jobs]
-        images = [img for img, _ in prepared]
-        targets = [torch.from_numpy(t).to(self.device) for _, t in prepared]
-        x = torch.from_numpy(np.stack(images)).to(self.device).permute(0, 3, 1, 2).float().div_(255.0)
+        targets = [torch.from_numpy(t).to(self.device) for _, _, t in prepared]
+        x = torch.from_numpy(np.stack([img for img, _, _ in prepared])).to(self.device).permute(0, 3, 1, 2).float()
+        x = x.div_(255.0)
+        if self.depth_max_m is not None:   # the depth channel, already in [0, 1]
+            d = torch.from_numpy(np.stack([dc for _, dc, _ in prepared])).to(self.device).unsqueeze(1)
+            x = torch.cat((x, d), 1)
         return x.contiguous(), targets
 
-    def _prepare(self, job: tuple[int, tuple[int, int], int | None]) -> tuple[np.ndarray, np.ndarray]:
+    def _prepare(self, job: tuple[int, tuple[int, int], int | None]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Frame `i` drawn into input size `hw`: augmented with a generator of `seed`, or letterboxed as the
-        runtime does (seed None). :return: (H, W, 3) uint8 image, (n, 5) float32 targets class, x1, y1, x2, y2."""
+        runtime does (seed None). :return: (H, W, 3) uint8 image, the RGB-D detector's (H, W) float32 depth channel
+        (None for an RGB detector), (n, 5) float32 targets class, x1, y1, x2, y2."""
         i, hw, seed = job
         s = self.data.samples
+        rgbd = self.depth_max_m is not None
+        depth = s.depth_m(i) if rgbd else None
         # class -1: a pallet of unknown type (a real photograph's box); the class rides along as a 5th column
         cls = np.full(len(s.types[i]), -1.0) if self.data.real[i] else \
             self.class_of_type[np.asarray(s.types[i], np.int64)].astype(np.float64)
@@ -183,16 +196,24 @@ class DetectorTrainer:
         boxes = np.column_stack([np.asarray(s.boxes[i], np.float32).reshape(-1, 4), cls]).astype(np.float32)
         if seed is not None:
             a, rng = self.aug, np.random.default_rng(int(seed))
-            img, boxes = place_in_window(img, boxes, hw, rng, a.zoom_range, a.zoom_in_max, a.shift_fraction)
+            img, depth, boxes = place_rgbd_in_window(img, depth, boxes, hw, rng, a.zoom_range, a.zoom_in_max,
+                                                     a.shift_fraction)
             img = augment_rgb(img, rng, a)
+            if depth is not None:
+                depth = augment_depth(depth, rng, a) if rng.random() >= DEPTH_OFF_PROB else None
             if rng.random() < a.flip_prob:
                 img, boxes = flip_horizontal(img, boxes)
+                depth = None if depth is None else np.ascontiguousarray(depth[:, ::-1])
         else:
             img, lb = letterbox(img, hw)
+            depth = None if depth is None else letterbox_depth(depth, lb)
             boxes = boxes.copy()
             boxes[:, [0, 2]] = boxes[:, [0, 2]] * lb.scale_x + lb.pad_x
             boxes[:, [1, 3]] = boxes[:, [1, 3]] * lb.scale_y + lb.pad_y
-        return img, np.ascontiguousarray(boxes[:, [4, 0, 1, 2, 3]], np.float32)
+        channel = None
+        if rgbd:
+            channel = np.zeros(img.shape[:2], np.float32) if depth is None else depth_channel(depth, self.depth_max_m)
+        return img, channel, np.ascontiguousarray(boxes[:, [4, 0, 1, 2, 3]], np.float32)
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
         frames = self.data.train_idx[idx]
@@ -322,6 +343,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                                   lr=settings.lr, betas=(0.937, 0.999))
     provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
                   "input_sizes": [list(hw) for hw in trainer.input_sizes], "classes": list(cfg.detector.classes),
+                  "depth_max_m": cfg.detector.depth_max_m,
                   "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,

@@ -117,9 +117,9 @@ def load_init_weights(path: str | Path, nets: dict[str, torch.nn.Module]) -> dic
         if k not in ckpt:
             raise ValueError(f"--init {path} has no {k!r} weights (it is a {ckpt.get('stage')!r} checkpoint)")
         state = ckpt[k]
-        if k == "detector":   # a one-class detector starts every class of a typed one
-            from .detector import widen_class_outputs
-            state = widen_class_outputs(state, net)
+        if k == "detector":   # a one-class detector starts every class of a typed one; an RGB one an RGB-D one
+            from .detector import widen_class_outputs, widen_input_channels
+            state = widen_input_channels(widen_class_outputs(state, net), net)
         try:
             net.load_state_dict(state)
         except RuntimeError as exc:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Letterbox", "choose_input_hw", "letterbox", "to_nchw", "decode_yolov8", "nms", "undo_letterbox", "Detections"]
+__all__ = ["Letterbox", "choose_input_hw", "letterbox", "letterbox_depth", "depth_channel", "to_nchw", "decode_yolov8", "nms", "undo_letterbox", "Detections"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,42 @@ def letterbox(rgb: np.ndarray, input_hw: tuple[int, int], pad_value: int = 114,
     resized = rgb if (new_w, new_h) == (w, h) else cv2.resize(rgb, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
     out[pad_y:pad_y + new_h, pad_x:pad_x + new_w] = resized
     return out, Letterbox(new_w / w, new_h / h, pad_x, pad_y, (h, w), (h_in, w_in))
+
+
+def letterbox_depth(depth_m: np.ndarray, lb: Letterbox, out: np.ndarray | None = None) -> np.ndarray:
+    """Depth drawn into the detector input exactly where `letterbox` drew its colour image (nearest neighbour, so
+    no depth is invented between a pallet and the wall behind it), 0 (no data) in the padding.
+
+    :param depth_m: (H, W) float metres, 0 = no data, the image `lb` was made from.
+    :param out: optional (H_in, W_in) float32 buffer. :return: (H_in, W_in) float32 metres.
+    """
+    h, w = lb.image_hw
+    if depth_m.shape != (h, w):
+        raise ValueError(f"depth is {depth_m.shape}, the letterboxed image was {(h, w)}")
+    h_in, w_in = lb.input_hw
+    new_w, new_h = max(1, int(round(w * lb.scale_x))), max(1, int(round(h * lb.scale_y)))
+    if out is None or out.shape != (h_in, w_in) or out.dtype != np.float32:
+        out = np.empty((h_in, w_in), dtype=np.float32)
+    out[...] = 0.0
+    d = depth_m.astype(np.float32, copy=False)
+    resized = d if (new_w, new_h) == (w, h) else cv2.resize(d, (new_w, new_h), interpolation=cv2.INTER_NEAREST)
+    out[lb.pad_y:lb.pad_y + new_h, lb.pad_x:lb.pad_x + new_w] = resized
+    return out
+
+
+def depth_channel(depth_m: np.ndarray, depth_max_m: float, out: np.ndarray | None = None) -> np.ndarray:
+    """An RGB-D detector's depth input: depth / `depth_max_m` clipped to [0, 1]; no data (0, NaN) stays 0.
+
+    :param depth_m: (H, W) float metres. :param out: optional (H, W) float32 buffer. :return: (H, W) float32.
+    """
+    if not depth_max_m > 0:
+        raise ValueError(f"depth_max_m must be > 0, got {depth_max_m}")
+    if out is None or out.shape != depth_m.shape or out.dtype != np.float32:
+        out = np.empty(depth_m.shape, dtype=np.float32)
+    np.multiply(depth_m, np.float32(1.0 / depth_max_m), out=out, casting="unsafe")
+    np.nan_to_num(out, copy=False, nan=0.0)
+    np.clip(out, 0.0, 1.0, out=out)
+    return out
 
 
 def to_nchw(image: np.ndarray, mean: np.ndarray, std: np.ndarray, pixel_scale: float = 1.0 / 255.0,

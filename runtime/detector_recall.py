@@ -30,7 +30,7 @@ def recall_rows(est, data: str | Path, max_frames: int = 0) -> np.ndarray:
     rows = []
     for i in range(min(len(ds), max_frames) if max_frames else len(ds)):
         f = ds[i]
-        det = est.detect(f.rgb)
+        det = est.detect(f.rgb, f.depth_m)
         for g, counted in zip(f.gts, counted_pallets(f.gts)):
             if not counted:
                 continue

@@ -314,10 +314,19 @@ class PalletEstimator:
         """
         return self.estimate(rgb, depth, K, depth_scale).poses
 
-    def detect(self, rgb: np.ndarray) -> Detections:
+    def detect(self, rgb: np.ndarray, depth_m: np.ndarray | None = None) -> Detections:
         """The detector stage alone: boxes (image pixels, xyxy), scores and class ids after NMS, highest score
-        first, at most `max_pallets` (as `decode_yolov8` returns them). :param rgb: (H, W, 3) uint8 RGB."""
-        return self._detect(check_rgb(rgb), {})
+        first, at most `max_pallets` (as `decode_yolov8` returns them).
+
+        :param rgb: (H, W, 3) uint8 RGB. :param depth_m: (H, W) float metres aligned to rgb, or None: used by an
+            RGB-D detector (`detector.depth_max_m`), which without it sees "no depth"; an RGB detector ignores it.
+        """
+        rgb = check_rgb(rgb)
+        if depth_m is not None:
+            depth_m = np.asarray(depth_m)
+            if depth_m.shape != rgb.shape[:2]:
+                raise ValueError(f"depth_m is {depth_m.shape}, expected {rgb.shape[:2]} (the rgb image's H, W)")
+        return self._detect(rgb, {}, depth_m)
 
     def estimate(self, rgb, depth=None, K=None, depth_scale=None, T_vehicle_cam=None) -> FrameResult:
         """Like `predict`, but the whole `FrameResult` (accepted, rejected, timings).
@@ -330,7 +339,7 @@ class PalletEstimator:
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
         T_vc = _check_T_vehicle_cam(T_vehicle_cam)
         timings: dict[str, float] = {}
-        cands = self._run(rgb, depth_m, K, self._detect(rgb, timings), timings, deadline, T_vc)
+        cands = self._run(rgb, depth_m, K, self._detect(rgb, timings, depth_m), timings, deadline, T_vc)
         return self._result(cands, depth_m.shape, timings, t0)
 
     def estimate_boxes(self, rgb, depth=None, K=None, depth_scale=None, boxes_xyxy=None, scores=None,
@@ -355,7 +364,7 @@ class PalletEstimator:
         deadline = Deadline(self.options.time_budget_ms, clock=self.clock)
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
         timings = {} if timings is None else timings
-        det = self._detect(rgb, timings) if detections is None else detections
+        det = self._detect(rgb, timings, depth_m) if detections is None else detections
         return self._run(rgb, depth_m, K, det, timings, deadline, _check_T_vehicle_cam(T_vehicle_cam))
 
     def check_inputs(self, rgb, depth=None, K=None, depth_scale=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -373,9 +382,9 @@ class PalletEstimator:
         return check_rgbd(rgb, depth, K, depth_scale, self.options.nonfinite_depth)
 
     # -- the pipeline ---------------------------------------------------------------------------
-    def _detect(self, rgb: np.ndarray, timings: dict[str, float]) -> Detections:
+    def _detect(self, rgb: np.ndarray, timings: dict[str, float], depth_m: np.ndarray | None = None) -> Detections:
         t = time.perf_counter()
-        x, lb = self.detector.preprocess(rgb)
+        x, lb = self.detector.preprocess(rgb, depth_m)
         timings["preprocess"] = elapsed_ms(t)
         t = time.perf_counter()
         raw = self.detector.infer(x)

@@ -18,7 +18,9 @@ every file. How the bundle was made and what it scored live in `report.json` bes
         "rgb_mean": [0, 0, 0], "rgb_std": [1, 1, 1], "channel_order": "RGB",
         "layout": "yolov8",                            # output (B, 4 + nc, A): cx, cy, w, h (input px), scores
         "classes": ["epal", "eur3"],                   # class names, index = class id
-        "source": "pallet6d" | "external"              # an external graph's classes need not all be pallets
+        "source": "pallet6d" | "external",             # an external graph's classes need not all be pallets
+        "depth_max_m": 10.0                            # optional, RGB-D detector: a 4th input channel,
+                                                       # clip(depth_m / depth_max_m, 0, 1), 0 where no depth
       },
       "fusion": {
         "file": "fusion.onnx", "file_int8": "fusion.int8.onnx" | null,
@@ -56,6 +58,7 @@ reads as one pallet type (`upgrade_v1`). Every key is checked: unknown keys are 
 """
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass
 from typing import Any, Mapping
@@ -98,9 +101,12 @@ class DetectorSpec:
     source: str = "pallet6d"
     layout: str = "yolov8"
     input_sizes: tuple[tuple[int, int], ...] | None = None   # None: (input_hw,)
+    depth_max_m: float | None = None   # None: RGB in; else RGB-D (`detector.depth_channel`)
 
     def __post_init__(self) -> None:
         graph_file("file", self.file)
+        if self.depth_max_m is not None and not (math.isfinite(self.depth_max_m) and self.depth_max_m > 0):
+            raise FieldError("depth_max_m", f"must be a positive number of metres or absent, got {self.depth_max_m}")
         graph_file("file_int8", self.file_int8)
         _check_input_hw("input_hw", self.input_hw)
         sizes = (tuple(self.input_hw),) if self.input_sizes is None else \
@@ -138,6 +144,11 @@ class DetectorSpec:
         return len(self.classes)
 
     @property
+    def input_channels(self) -> int:
+        """3 (RGB), or 4 when the graph also takes depth."""
+        return 3 if self.depth_max_m is None else 4
+
+    @property
     def multi_size(self) -> bool:
         """Whether the graph takes more than one input size (then its height and width axes are dynamic)."""
         return len(self.input_sizes) > 1
@@ -149,7 +160,8 @@ class DetectorSpec:
                        letterbox_pad_value=d.int("letterbox_pad_value"), pixel_scale=d.num("pixel_scale"),
                        rgb_mean=d.nums("rgb_mean", 3), rgb_std=d.nums("rgb_std", 3),
                        channel_order=d.str("channel_order"), classes=d.names("classes"), source=d.str("source"),
-                       layout=d.str("layout"), input_sizes=d.int_rows("input_sizes", 2, None))
+                       layout=d.str("layout"), input_sizes=d.int_rows("input_sizes", 2, None),
+                       depth_max_m=_opt_num(d.get("depth_max_m", (int, float), None)))
 
     def to_dict(self) -> dict:
         """The section as written; `input_sizes` only when it lists more than `input_hw`, so a single-size
@@ -161,7 +173,13 @@ class DetectorSpec:
                "layout": self.layout, "classes": list(self.classes), "source": self.source}
         if self.multi_size:
             out["input_sizes"] = [list(hw) for hw in self.input_sizes]
+        if self.depth_max_m is not None:   # absent for RGB: older runtimes refuse unknown keys
+            out["depth_max_m"] = self.depth_max_m
         return out
+
+
+def _opt_num(v) -> float | None:
+    return None if v is None else float(v)
 
 
 def _check_input_hw(key: str, hw: tuple[int, ...]) -> None:

@@ -92,7 +92,7 @@ def estimate_in_roi(estimator, frame, roi: RegionOfInterest, T_vehicle_cam=None)
     the boxes kept (`T_vehicle_cam`: the camera's calibration, as `PalletEstimator.estimate` takes it)."""
     from .results import Rejection
 
-    det = estimator.detect(frame.rgb)
+    det = estimator.detect(frame.rgb, frame.depth_m)
     keep, why = roi_filter(det.boxes_xyxy, frame.depth_m, roi)
     result = estimator.estimate_boxes(frame, boxes_xyxy=det.boxes_xyxy[keep], scores=det.scores[keep],
                                       T_vehicle_cam=T_vehicle_cam)
