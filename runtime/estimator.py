@@ -292,6 +292,7 @@ class PalletEstimator:
                                 f"{what} is {value}")
 
         det, fusion, pose = self.detector.model, self.pose_network.fusion, self.pose_network.pose
+        expect(det, d.input_name, 1, d.input_channels, "detector input channels (3, or 4 with depth_max_m)")
         for i, (h, w) in enumerate(d.input_sizes):
             where = "detector.input_hw" if not d.multi_size else f"detector.input_sizes[{i}]"
             expect(det, d.input_name, 2, h, f"{where}[0]")

@@ -38,10 +38,6 @@ class DetectorStage:
         """The detector input (H_in, W_in) a frame of `image_hw` (H, W) is letterboxed to."""
         return choose_input_hw(image_hw, self.spec.input_sizes)
 
-    @property
-    def takes_depth(self) -> bool:
-        return self.spec.depth_max_m is not None
-
     def preprocess(self, rgb: np.ndarray, depth_m: np.ndarray | None = None) -> tuple[np.ndarray, Letterbox]:
         """(H, W, 3) uint8 RGB (and, for an RGB-D detector, (H, W) float32 depth in metres or None) -> the
         graph's (1, C, h, w) float32 input (a buffer reused by the next call of the same input size) and the

@@ -265,6 +265,16 @@ def test_bundle_that_disagrees_with_its_graphs(bundle_dir, tmp_path):
         PalletEstimator.from_bundle(bad)
 
 
+def test_rgb_detector_graph_under_a_manifest_that_says_depth(bundle_dir, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(bundle_dir, bad)
+    man = json.loads((bad / "manifest.json").read_text())
+    man["detector"]["depth_max_m"] = 10.0
+    (bad / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(BundleError, match="disagrees with its own graphs.*input channels"):
+        PalletEstimator.from_bundle(bad)
+
+
 def test_runtime_prediction_never_imports_torch(bundle_dir):
     code = textwrap.dedent(f"""
         import sys
