@@ -19,6 +19,10 @@ small pallets would otherwise dominate the real numbers).
 An RGB-D detector (`DetectorConfig.depth_max_m`) also reads each simulated frame's depth, drawn into the input
 with the same zoom and position, with stereo-like noise and holes; in `DEPTH_OFF_PROB` of the simulated frames, and
 in every real photograph (they have none), the depth channel is empty, so the detector also works without depth.
+In `DEPTH_MISMATCH_PROB` of the simulated frames the depth does not belong to the image (a plane, another frame's
+depth, the frame's own depth mirrored) and the frame has no pallet to find: valid depth that shows no pallet
+where the image shows one is not a pallet (the inputs the fit check also refuses), while no depth at all is
+"unknown", not "no pallet".
 
 Near pallets are few among the real photographs (LOCO is mostly far pallets): `real_repeat_large` repeats the
 real training photographs that hold a box at least 20 % of the image tall, and `select="near_f1"` keeps the
@@ -32,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import numpy as np
 import torch
 
@@ -56,6 +61,7 @@ NEAR_FRACTION = 0.08     # real boxes at least this fraction of the image tall c
 LARGE_FRACTION = 0.2     # real photographs with a box this tall are the ones `real_repeat_large` repeats
 SELECTIONS = ("loss", "near_f1")
 DEPTH_OFF_PROB = 0.3     # RGB-D detector: share of simulated training frames shown without depth
+DEPTH_MISMATCH_PROB = 0.15   # RGB-D detector: share of simulated frames shown with depth of another scene, no targets
 
 
 @dataclass
@@ -199,7 +205,9 @@ class DetectorTrainer:
             img, depth, boxes = place_rgbd_in_window(img, depth, boxes, hw, rng, a.zoom_range, a.zoom_in_max,
                                                      a.shift_fraction)
             img = augment_rgb(img, rng, a)
-            if depth is not None:
+            if depth is not None and rng.random() < DEPTH_MISMATCH_PROB:   # kept: without depth it has pallets
+                depth, boxes = augment_depth(self._mismatched_depth(depth, i, rng), rng, a), boxes[:0]
+            elif depth is not None:
                 depth = augment_depth(depth, rng, a) if rng.random() >= DEPTH_OFF_PROB else None
             if rng.random() < a.flip_prob:
                 img, boxes = flip_horizontal(img, boxes)
@@ -214,6 +222,25 @@ class DetectorTrainer:
         if rgbd:
             channel = np.zeros(img.shape[:2], np.float32) if depth is None else depth_channel(depth, self.depth_max_m)
         return img, channel, np.ascontiguousarray(boxes[:, [4, 0, 1, 2, 3]], np.float32)
+
+    def _mismatched_depth(self, depth_m: np.ndarray, i: int, rng: np.random.Generator) -> np.ndarray:
+        """A depth image of the window's size that does not belong to frame `i`'s image: a plane (a wall or a
+        floor seen at a slant), another simulated frame's depth stretched to the window, or the frame's own depth
+        mirrored. :param depth_m: (H, W) float32 metres, the frame's depth in the window."""
+        h, w = depth_m.shape
+        kind = int(rng.integers(3))
+        with_depth = np.flatnonzero(~self.data.real)
+        if kind == 1 and len(with_depth) > 1:
+            j = int(rng.choice(with_depth[with_depth != i]))
+            other = self.data.samples.depth_m(j)
+            if other is not None:
+                return cv2.resize(other, (w, h), interpolation=cv2.INTER_NEAREST)
+        if kind == 2:
+            return np.ascontiguousarray(depth_m[::-1] if rng.random() < 0.5 else depth_m[:, ::-1])
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        gx, gy = rng.uniform(-1.0, 1.0, 2) * np.float32(2.0 / max(h, w))
+        plane = np.float32(rng.uniform(0.8, 8.0)) * (1.0 + gx * (xx - w / 2) + gy * (yy - h / 2))
+        return np.where(plane > 0.1, plane, 0.0).astype(np.float32)
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
         frames = self.data.train_idx[idx]
@@ -344,6 +371,8 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
                   "input_sizes": [list(hw) for hw in trainer.input_sizes], "classes": list(cfg.detector.classes),
                   "depth_max_m": cfg.detector.depth_max_m,
+                  **({"depth_off_prob": DEPTH_OFF_PROB, "depth_mismatch_prob": DEPTH_MISMATCH_PROB}
+                     if cfg.detector.depth_max_m is not None else {}),
                   "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,

@@ -181,3 +181,30 @@ def test_an_rgbd_bundle_takes_depth_in_its_detector(rgbd_bundle):
         est.estimate(rgb, depth_m, K)   # the whole pipeline runs
         with pytest.raises(ValueError, match="depth_m is"):
             est.detect(rgb, depth_m[:10])
+
+
+def test_depth_that_does_not_belong_to_the_image_is_a_frame_without_pallets(sim_bop_dataset, monkeypatch):
+    import pallet6d.export.train_detector as td
+    from pallet6d.export.train_data import AugmentConfig
+
+    cfg = get_config("tiny")
+    cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, depth_max_m=10.0))
+    sim = build_detector_samples(sim_bop_dataset, 320, depth=True)
+    n = len(sim)
+    trainer = DetectorTrainer(cfg, DetectorData(sim, np.arange(n), np.arange(n), [], np.zeros(n, bool)),
+                              AugmentConfig(flip_prob=0.0))
+    frame = int(np.argmax([len(b) for b in sim.boxes]))
+    assert len(sim.boxes[frame])
+    monkeypatch.setattr(td, "DEPTH_MISMATCH_PROB", 1.0)
+    kinds = set()
+    for seed in range(12):
+        img, channel, targets = trainer._prepare((frame, (128, 320), seed))
+        assert len(targets) == 0 and channel is not None and channel.shape == img.shape[:2]
+        assert (channel > 0).mean() > 0.2                      # valid depth, never "no depth"
+        own = trainer._prepare((frame, (128, 320), seed))      # the same seed gives the same window
+        np.testing.assert_array_equal(own[1], channel)
+        kinds.add(round(float(np.median(channel[channel > 0])), 2))
+    assert len(kinds) > 3                                       # planes and other frames' depths, not one image
+    monkeypatch.setattr(td, "DEPTH_MISMATCH_PROB", 0.0)
+    _, _, targets = trainer._prepare((frame, (128, 320), 0))
+    assert len(targets)
