@@ -1,4 +1,4 @@
-"""The detector stage alone on BOP datasets: recall by the visible box's height, and what the misses are.
+"""The detector stage alone on BOP datasets: recall by the visible box's height and pallet type, and what the misses are.
 
     python benchmarks/detector_recall.py --bundle models/epal-default --data data/val/virtual-occluded [...]
 
@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pallet6d.runtime.detector_recall import recall_report, recall_rows
+from pallet6d.runtime.detector_recall import recall_report, recall_rows, type_names
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,7 +31,8 @@ def main(argv: list[str] | None = None) -> int:
                                       score_threshold=0.02, max_pallets=1000)
     parts = [f"# Detector recall: {args.bundle}{' (int8)' if args.int8 else ''}", ""]
     for data in args.data:
-        parts.append(recall_report(str(data), recall_rows(est, data, args.max_frames), args.score_threshold))
+        parts.append(recall_report(str(data), recall_rows(est, data, args.max_frames), args.score_threshold,
+                                   type_names(data)))
     text = "\n".join(parts)
     print(text)
     if args.out:

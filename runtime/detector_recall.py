@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["HEIGHT_BINS_PX", "recall_rows", "recall_report"]
+__all__ = ["HEIGHT_BINS_PX", "recall_rows", "recall_report", "type_names"]
 
 HEIGHT_BINS_PX = ((0, 15), (15, 25), (25, 40), (40, 100000))
 
@@ -21,7 +21,8 @@ def recall_rows(est, data: str | Path, max_frames: int = 0) -> np.ndarray:
     """One row per counted pallet of the dataset's frames (`max_frames` 0: all), with `est.detect`'s detections.
 
     :param est: a `PalletEstimator`.
-    :return: (n, 4) visible fraction, visible box height px, best IoU, that detection's score.
+    :return: (n, 5) visible fraction, visible box height px, best IoU, that detection's score, the pallet's
+        BOP object id.
     """
     from .bop import BopDataset
     from .evaluation import box_iou, counted_pallets
@@ -36,19 +37,27 @@ def recall_rows(est, data: str | Path, max_frames: int = 0) -> np.ndarray:
                 continue
             x, y, w, h = g.bbox_visib_xywh
             if len(det) == 0:
-                rows.append((g.visib_fract, h, 0.0, 0.0))
+                rows.append((g.visib_fract, h, 0.0, 0.0, g.obj_id))
                 continue
             iou = box_iou(det.boxes_xyxy, np.array([[x, y, x + w, y + h]], float))[:, 0]
             # the highest-scoring overlapping detection, else the best-overlapping one
             j = int(np.argmax(np.where(iou >= 0.5, det.scores, -1.0))) if (iou >= 0.5).any() else int(np.argmax(iou))
-            rows.append((g.visib_fract, h, iou[j], det.scores[j]))
-    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+            rows.append((g.visib_fract, h, iou[j], det.scores[j], g.obj_id))
+    return np.array(rows, dtype=np.float64).reshape(-1, 5)
 
 
-def recall_report(name: str, rows: np.ndarray, score_threshold: float) -> str:
-    """Markdown: recall at `score_threshold` overall and by visible box height, and the misses split by kind.
+def type_names(data: str | Path) -> dict[int, str]:
+    """BOP object id -> the pallet type's name in the dataset's `models_info.json` (the id itself when unnamed)."""
+    from .bop import BopDataset
 
-    :param rows: (n, 4) `recall_rows`.
+    return {int(k): str(v.get("name", k)) for k, v in BopDataset(data).models_info.items()}
+
+
+def recall_report(name: str, rows: np.ndarray, score_threshold: float, names: dict[int, str] | None = None) -> str:
+    """Markdown: recall at `score_threshold` overall, by visible box height and (when the rows hold more than one
+    object id) by pallet type, and the misses split by kind.
+
+    :param rows: (n, 5) `recall_rows`. :param names: object id -> type name (`type_names`).
     """
     found = (rows[:, 2] >= 0.5) & (rows[:, 3] >= score_threshold)
     miss = rows[~found]
@@ -58,6 +67,12 @@ def recall_report(name: str, rows: np.ndarray, score_threshold: float) -> str:
         sel = (rows[:, 1] >= lo) & (rows[:, 1] < hi)
         label = f"{lo}-{hi} px" if hi < 100000 else f">= {lo} px"
         lines.append(f"| {label} | {sel.sum()} | {found[sel].mean():.2f} |" if sel.any() else f"| {label} | 0 | - |")
+    ids = np.unique(rows[:, 4]).astype(int)
+    if len(ids) > 1:
+        lines += ["", "| pallet type | pallets | recall |", "|---|---|---|"]
+        for k in ids:
+            sel = rows[:, 4] == k
+            lines.append(f"| {(names or {}).get(int(k), int(k))} | {sel.sum()} | {found[sel].mean():.2f} |")
     lines += ["", f"misses: {np.sum(miss[:, 2] >= 0.5)} found with a score below {score_threshold}, "
               f"{np.sum((miss[:, 2] >= 0.3) & (miss[:, 2] < 0.5))} with a loose box (IoU 0.3-0.5), "
               f"{np.sum(miss[:, 2] < 0.3)} with nothing near", ""]
