@@ -1,4 +1,4 @@
-"""The detector stage alone on BOP datasets: recall by the visible box's height and pallet type, and what the misses are.
+"""The detector stage alone on BOP datasets: recall by visible box height and pallet type, and what the misses are.
 
     python benchmarks/detector_recall.py --bundle models/epal-default --data data/val/virtual-occluded [...]
 

@@ -150,8 +150,8 @@ def _synthetic(cfg: ModelConfig, frames: int, max_crops: int, seed: int,
 
     c_det = cfg.detector.input_channels
     images = np.stack([np.clip(smooth((H, W), c_det), 0, 1).transpose(2, 0, 1) for _ in range(frames)])
-    others = {hw: np.stack([np.clip(smooth(hw, c_det), 0, 1).transpose(2, 0, 1) for _ in range(frames)]).astype(np.float32)
-              for hw in other_sizes}
+    others = {hw: np.stack([np.clip(smooth(hw, c_det), 0, 1).transpose(2, 0, 1)
+                            for _ in range(frames)]).astype(np.float32) for hw in other_sizes}
     p = max_crops
     mean = np.asarray(spec.rgb_mean, np.float32).reshape(3, 1, 1)
     std = np.asarray(spec.rgb_std, np.float32).reshape(3, 1, 1)

@@ -179,7 +179,8 @@ class YoloDetector(nn.Module):
         self.head.init_biases(cfg.input_hw)
 
     def forward_raw(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """(B, C, H, W) in [0, 1] (C = 3 RGB, or 4 with depth) -> per-level raw maps (B, 4*reg_max + nc, H/s, W/s), s = 8, 16, 32."""
+        """(B, C, H, W) in [0, 1] (C = 3 RGB, or 4 with depth) -> per-level raw maps (B, 4*reg_max + nc, H/s, W/s),
+        s = 8, 16, 32."""
         x = self.c2f2(self.down2(self.stem(x)))
         p3 = self.c2f3(self.down3(x))
         p4 = self.c2f4(self.down4(p3))
@@ -215,7 +216,6 @@ def widen_class_outputs(state: dict[str, torch.Tensor], model: nn.Module) -> dic
                 and v.shape[1:] == t.shape[1:]):
             out[k] = v.repeat(t.shape[0], *([1] * (v.ndim - 1)))
     return out
-
 
 
 def widen_input_channels(state: dict[str, torch.Tensor], model: nn.Module) -> dict[str, torch.Tensor]:

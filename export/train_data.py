@@ -435,8 +435,9 @@ class DetectorSamples:
         return len(self.frame)
 
     def take(self, idx: np.ndarray) -> "DetectorSamples":
+        depths = None if self.depths is None else _objects([self.depths[i] for i in idx])
         return DetectorSamples(_objects([self.images[i] for i in idx]), self.boxes[idx], self.frame[idx],
-                               self.types[idx], None if self.depths is None else _objects([self.depths[i] for i in idx]))
+                               self.types[idx], depths)
 
     @staticmethod
     def concat(parts: Sequence["DetectorSamples"]) -> "DetectorSamples":

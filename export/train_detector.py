@@ -159,6 +159,7 @@ class DetectorTrainer:
         # OpenCV and numpy release the GIL on whole images: threads prepare a batch's frames side by side
         self.pool = ThreadPoolExecutor(loader_threads) if loader_threads > 1 else None
         self.depth_max_m = cfg.detector.depth_max_m
+        self._sim_frames = np.flatnonzero(~data.real)   # frames with depth, for `_mismatched_depth`
         self.detector = build_detector(cfg.detector).to(self.device)
         self.loss = DetectorLoss(self.detector)
 
@@ -173,7 +174,8 @@ class DetectorTrainer:
     def batch(self, idx: np.ndarray, rng: np.random.Generator | None,
               input_hw: tuple[int, int] | None = None) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """Frames `idx` drawn into one input size (default: the first frame's), augmented (rng given) or
-        letterboxed as the runtime does: (B, C, H, W) float in [0, 1] (C = 4 with depth), B targets (n_i, 5) cls+xyxy."""
+        letterboxed as the runtime does: (B, C, H, W) float in [0, 1] (C = 4 with depth), B targets (n_i, 5)
+        cls+xyxy."""
         hw = input_hw or self.input_hw_of(int(idx[0]))
         # one seed per frame, drawn up front: the batch is the same whichever thread prepares which frame
         seeds = rng.integers(0, 2**63 - 1, size=len(idx)) if rng is not None else [None] * len(idx)
@@ -187,7 +189,8 @@ class DetectorTrainer:
             x = torch.cat((x, d), 1)
         return x.contiguous(), targets
 
-    def _prepare(self, job: tuple[int, tuple[int, int], int | None]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    def _prepare(self, job: tuple[int, tuple[int, int], int | None]
+                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """Frame `i` drawn into input size `hw`: augmented with a generator of `seed`, or letterboxed as the
         runtime does (seed None). :return: (H, W, 3) uint8 image, the RGB-D detector's (H, W) float32 depth channel
         (None for an RGB detector), (n, 5) float32 targets class, x1, y1, x2, y2."""
@@ -229,9 +232,8 @@ class DetectorTrainer:
         mirrored. :param depth_m: (H, W) float32 metres, the frame's depth in the window."""
         h, w = depth_m.shape
         kind = int(rng.integers(3))
-        with_depth = np.flatnonzero(~self.data.real)
-        if kind == 1 and len(with_depth) > 1:
-            j = int(rng.choice(with_depth[with_depth != i]))
+        if kind == 1 and len(self._sim_frames) > 1:
+            j = int(rng.choice(self._sim_frames[self._sim_frames != i]))
             other = self.data.samples.depth_m(j)
             if other is not None:
                 return cv2.resize(other, (w, h), interpolation=cv2.INTER_NEAREST)

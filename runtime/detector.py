@@ -11,7 +11,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Letterbox", "choose_input_hw", "letterbox", "letterbox_depth", "depth_channel", "to_nchw", "decode_yolov8", "nms", "undo_letterbox", "Detections"]
+__all__ = ["Letterbox", "choose_input_hw", "letterbox", "letterbox_depth", "depth_channel", "to_nchw", "decode_yolov8",
+           "nms", "undo_letterbox", "Detections"]
 
 
 @dataclass(frozen=True)

@@ -105,9 +105,9 @@ class DetectorSpec:
 
     def __post_init__(self) -> None:
         graph_file("file", self.file)
+        graph_file("file_int8", self.file_int8)
         if self.depth_max_m is not None and not (math.isfinite(self.depth_max_m) and self.depth_max_m > 0):
             raise FieldError("depth_max_m", f"must be a positive number of metres or absent, got {self.depth_max_m}")
-        graph_file("file_int8", self.file_int8)
         _check_input_hw("input_hw", self.input_hw)
         sizes = (tuple(self.input_hw),) if self.input_sizes is None else \
             tuple(tuple(int(v) for v in hw) for hw in self.input_sizes)

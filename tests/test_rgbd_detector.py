@@ -126,8 +126,8 @@ def test_rgbd_training_batches_carry_depth_and_photographs_none(sim_bop_dataset)
     cfg = get_config("tiny")
     cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, depth_max_m=10.0))
     sim = build_detector_samples(sim_bop_dataset, 320, depth=True)
-    photo = DetectorSamples(_obj([np.full((120, 320, 3), 90, np.uint8)]), _obj([np.array([[5, 5, 60, 40]], np.float32)]),
-                            np.arange(1))
+    photo = DetectorSamples(_obj([np.full((120, 320, 3), 90, np.uint8)]),
+                            _obj([np.array([[5, 5, 60, 40]], np.float32)]), np.arange(1))
     samples = DetectorSamples.concat([sim, photo])
     n = len(samples)
     real = np.zeros(n, bool)
