@@ -3,8 +3,9 @@
     python .ci/wheel_contents.py DIST_DIR [--root REPO] [--max-runtime-mb 2]
 
 The runtime wheel (`pallet6d-*.whl`) must hold every file under each folder that `pyproject.toml` maps to a
-`pallet6d.<name>` package (`runtime/` -> `pallet6d/runtime/`, ...; `__pycache__` aside) and nothing else
-besides its `.dist-info`: no tests, benchmark results, training data or model bundles, and it must stay under
+`pallet6d.<name>` package (`runtime/` -> `pallet6d/runtime/`, ...; `__pycache__` aside; C sources are compiled,
+not shipped), each C extension that setup.py declares, compiled (`pallet6d/runtime/_icp_kernel.*.so`), and nothing
+else besides its `.dist-info`: no tests, benchmark results, training data or model bundles, and it must stay under
 `--max-runtime-mb`. The models wheel (`pallet6d_models-*.whl`) must hold `models/__init__.py` and every file
 of each bundle folder under `models/` (a folder with a manifest.json), and nothing else. Prints each wheel's
 size and file count; exits 1 listing what is missing or unexpected.
@@ -12,6 +13,7 @@ size and file count; exits 1 listing what is missing or unexpected.
 from __future__ import annotations
 
 import argparse
+import ast
 import sys
 import zipfile
 from pathlib import Path
@@ -24,13 +26,15 @@ else:
 RUNTIME_WHEEL = "pallet6d-*.whl"
 MODELS_WHEEL = "pallet6d_models-*.whl"
 MODELS_PACKAGE = "pallet6d_models"
+# C sources are built into extension modules; built modules in the tree (an editable install's) are not sources
+COMPILED_SUFFIXES = (".c", ".so", ".pyd")
 
 
 def _files_under(folder: Path) -> list[Path]:
     """Files below `folder`, relative to it, without bytecode caches and hidden files."""
     return sorted(p.relative_to(folder) for p in folder.rglob("*")
                   if p.is_file() and "__pycache__" not in p.parts and not p.name.startswith(".")
-                  and p.suffix != ".pyc")
+                  and p.suffix != ".pyc" and p.suffix not in COMPILED_SUFFIXES)
 
 
 def expected_runtime_files(root: Path) -> set[str]:
@@ -39,6 +43,31 @@ def expected_runtime_files(root: Path) -> set[str]:
         package_dir = tomllib.load(f)["tool"]["setuptools"]["package-dir"]
     return {f"{name.replace('.', '/')}/{rel.as_posix()}" for name, folder in package_dir.items()
             for rel in _files_under(root / folder)}
+
+
+def extension_modules(root: Path) -> list[str]:
+    """Import names of the C extensions setup.py declares (`Extension("pallet6d.runtime._icp_kernel", ...)`),
+    read from its source without running it."""
+    names = []
+    for node in ast.walk(ast.parse((root / "setup.py").read_text())):
+        if isinstance(node, ast.Call) and getattr(node.func, "id", None) == "Extension" and node.args \
+                and isinstance(node.args[0], ast.Constant):
+            names.append(str(node.args[0].value))
+    return sorted(names)
+
+
+def compiled_files(extensions: list[str], actual: set[str]) -> tuple[set[str], list[str]]:
+    """The wheel's built extension files (`name.<tag>.so` or `.pyd`), and a problem for each extension that has
+    none or several."""
+    found, problems = set(), []
+    for name in extensions:
+        stem = name.replace(".", "/") + "."
+        files = {f for f in actual if f.startswith(stem) and f.endswith((".so", ".pyd")) and "/" not in f[len(stem):]}
+        if len(files) != 1:
+            problems.append(f"missing compiled {name} (a C compiler is needed to build the wheel)" if not files
+                            else f"several builds of {name}: {sorted(files)}")
+        found |= files
+    return found, problems
 
 
 def expected_models_files(root: Path) -> set[str]:
@@ -74,7 +103,9 @@ def check(dist: Path, root: Path, max_runtime_mb: float) -> list[str]:
     """Every problem with the two wheels in `dist`; prints a summary of each."""
     runtime, models = _one(dist, RUNTIME_WHEEL), _one(dist, MODELS_WHEEL)
     runtime_files, models_files = wheel_files(runtime), wheel_files(models)
-    problems = compare(runtime.name, expected_runtime_files(root), runtime_files)
+    compiled, problems = compiled_files(extension_modules(root), runtime_files)
+    problems = [f"{runtime.name}: {p}" for p in problems]
+    problems += compare(runtime.name, expected_runtime_files(root), runtime_files - compiled)
     problems += compare(models.name, expected_models_files(root), models_files)
     runtime_mb = runtime.stat().st_size / 1e6
     if runtime_mb > max_runtime_mb:

@@ -208,7 +208,7 @@ class PalletEstimator:
     """Pallet 6D pose estimation on a model bundle. Not thread-safe: one estimator per thread.
 
     :param bundle: a loaded `Bundle`.
-    :param threads: onnxruntime intra-op threads per graph.
+    :param threads: onnxruntime intra-op threads per graph, and the compiled ICP kernel's threads.
     :param precision: "fp32" or "int8" (the bundle's quantized graphs).
     :param options: `EstimatorOptions`.
     :param clock: the monotonic clock (seconds) the time budget is measured on.
@@ -237,7 +237,7 @@ class PalletEstimator:
         self.pose_network = PoseNetworkStage(bundle, precision, self.threads, spec, o.seed, o.min_valid_points,
                                              lanes=self.threads if o.pallet_lanes is None else o.pallet_lanes)
         self._check_graphs_match_manifest()
-        self.refiner = RefinerStage(self.pallet_types, o)
+        self.refiner = RefinerStage(self.pallet_types, o, self.threads)
         self.type_choice = TypeChoiceStage(self.pallet_types, self._types_of_class, self.refiner, o.fit_tol_m,
                                            o.type_candidates, o.structure or StructureParams())
         self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure)

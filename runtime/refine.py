@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import icp_kernel
 from .fit import ModelPointIndex, check_poses, distance_to_boxes, fit_scores
 from .geometry import backproject_pixels, check_K, clamp_box, select_pixels, transform_points
 from .results import FitScore
@@ -274,7 +275,8 @@ def refine_pose(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarr
 def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, iterations: int = 20,
                  corr_start_m: float = 0.08, corr_end_m: float = 0.015, prior_rot_rad: float = 0.1,
                  prior_trans_m: float = 0.1, min_inliers: int = 30, tol: float = 1e-4,
-                 stop_near: np.ndarray | None = None, stop_near_m: float = 0.005) -> list[RefineResult]:
+                 stop_near: np.ndarray | None = None, stop_near_m: float = 0.005,
+                 compiled: bool = True) -> list[RefineResult]:
     """`refine_pose` from several starting poses on the same points at once (one numpy pass per step).
 
     Each start runs exactly as `refine_pose` would run it alone (its own prior, stopping and result).
@@ -283,6 +285,7 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     :param stop_near: optional (4, 4) pose, e.g. an ICP result the starts surround: a start that comes within
         `stop_near_m` of it (largest displacement of the model box's corners) stops there, flagged
         `stopped_near`, since it would only land on that pose again. Saves the rest of its iterations.
+    :param compiled: use the compiled kernel when the package has it (`icp_kernel`); False runs numpy.
     :return: m RefineResults, in the order of the starts.
     """
     T0 = check_poses(T_cam_pallet, "T_cam_pallet")
@@ -291,7 +294,7 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     m = len(T0)
     near = None if stop_near is None else np.broadcast_to(np.asarray(stop_near, dtype=np.float64), (m, 4, 4))
     run = _icp(T0, np.broadcast_to(pts, (m,) + pts.shape), np.full(m, len(pts)), boxes_m, iterations,
-               corr_start_m, corr_end_m, prior_rot_rad, prior_trans_m, min_inliers, tol, near, stop_near_m)
+               corr_start_m, corr_end_m, prior_rot_rad, prior_trans_m, min_inliers, tol, near, stop_near_m, compiled)
     return [RefineResult(run.T_cam_pallet[i], int(run.iterations[i]), int(run.n_inliers[i]), float(run.rms_m[i]),
                          float(np.linalg.norm(run.T_cam_pallet[i, :3, 3] - T0[i, :3, 3])), bool(run.converged[i]),
                          bool(run.stopped_near[i])) for i in range(m)]
@@ -328,8 +331,10 @@ class _IcpRun:
 
 def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, iterations: int,
          corr_start_m: float, corr_end_m: float, prior_rot_rad: float, prior_trans_m: float, min_inliers: int,
-         tol: float, stop_near: np.ndarray | None, stop_near_m: float) -> _IcpRun:
-    """`refine_pose` for P poses at once, each on its own points; one numpy pass per step for all.
+         tol: float, stop_near: np.ndarray | None, stop_near_m: float, compiled: bool = True,
+         threads: int = 1) -> _IcpRun:
+    """`refine_pose` for P poses at once, each on its own points: the compiled kernel (`icp_kernel`, the poses
+    shared among `threads` threads) when `compiled` and the package has it, else one numpy pass per step for all.
 
     :param T0: (P, 4, 4) starting poses. :param pts: (P, N, 3) camera frame, metres; pose i uses its first
     `n_pts[i]` rows. :param stop_near: None or (P, 4, 4), a pose per start at which it stops.
@@ -338,9 +343,16 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
     if not 0 < corr_end_m <= corr_start_m:
         raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
     boxes64 = _check_boxes(boxes_m)
+    m, n = pts.shape[:2]
+    # the prior's diagonal per pose: one value for all axes, 3 per pallet-frame axis (a level pallet: tight about x
+    # and y), or (P, 3), one row per pose
+    prior = np.concatenate([np.broadcast_to(np.asarray(prior_rot_rad, dtype=np.float64), (m, 3)) ** -2,
+                            np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (m, 3)) ** -2], axis=1)
+    if compiled and len(boxes64) <= icp_kernel.MAX_BOXES and icp_kernel.available():
+        return _IcpRun(*icp_kernel.icp(T0, pts, n_pts, boxes64, prior, iterations, corr_start_m, corr_end_m,
+                                       min_inliers, tol, stop_near, stop_near_m, threads))
     boxes = boxes64.astype(_ICP_DTYPE)
     extents = _extents(boxes)
-    m, n = pts.shape[:2]
     pts_f = np.asarray(pts, dtype=_ICP_DTYPE)
     valid = np.arange(n)[None] < np.asarray(n_pts)[:, None]                             # (P, N)
     model_lo, model_hi = boxes64[:, 0].min(0), boxes64[:, 1].max(0)
@@ -348,10 +360,6 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
     T_pal_cam = np.tile(np.eye(4), (m, 1, 1))
     T_pal_cam[:, :3, :3] = np.swapaxes(R0, 1, 2)
     T_pal_cam[:, :3, 3] = -(np.swapaxes(R0, 1, 2) @ t0[..., None])[..., 0]
-    # the prior's diagonal per pose: one value for all axes, 3 per pallet-frame axis (a level pallet: tight about x
-    # and y), or (P, 3), one row per pose
-    prior = np.concatenate([np.broadcast_to(np.asarray(prior_rot_rad, dtype=np.float64), (m, 3)) ** -2,
-                            np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (m, 3)) ** -2], axis=1)
     diag = np.arange(6)
     xi = np.zeros((m, 6))
     n_in, rms, done = np.zeros(m, dtype=np.int64), np.full(m, np.nan), np.zeros(m, dtype=np.int64)
@@ -509,6 +517,9 @@ class RefineOptions:
     :ivar select_tol_m: tolerance of the fit score that compares the starts' landings, metres.
     :ivar start_max_rms_m: a landing counts only when its ICP RMS is below this, metres.
     :ivar stop_near_m: a start that comes this close to the pose it surrounds stops (0: all run to the end).
+    :ivar compiled: ICP in the compiled kernel when the package has it (`icp_kernel`); False: in numpy (the
+        same algorithm, slower; poses within micrometres).
+    :ivar threads: the compiled kernel shares a frame's ICP runs among this many threads (same poses).
     """
 
     iterations: int = 20
@@ -519,8 +530,12 @@ class RefineOptions:
     select_tol_m: float = 0.015
     start_max_rms_m: float = 0.003
     stop_near_m: float = 0.005
+    compiled: bool = True
+    threads: int = 1
 
     def __post_init__(self) -> None:
+        if int(self.threads) < 1:
+            raise ValueError(f"threads must be >= 1, got {self.threads}")
         if int(self.iterations) < 0 or int(self.start_points) < 1:
             raise ValueError(f"iterations must be >= 0 and start_points >= 1, got {self.iterations}, "
                              f"{self.start_points}")
@@ -626,7 +641,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0)
+    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0, o.compiled, o.threads)
     T = T_net.copy()
     src = np.full(g, FROM_NETWORK)
     fit = np.full((g, 3), np.nan)
@@ -657,7 +672,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
         T_start = (T[run][:, None] @ offsets[None]).reshape(-1, 4, 4)                      # detection-major
         near = np.repeat(T[run], S, axis=0) if o.stop_near_m > 0 else None
         land = _icp(T_start, np.repeat(sub, S, axis=0), np.repeat(n_sub, S), geom.boxes_m, o.iterations,
-                    *_ICP_DEFAULTS, near, o.stop_near_m)
+                    *_ICP_DEFAULTS, near, o.stop_near_m, o.compiled, o.threads)
         trusted = ~land.stopped_near & np.isfinite(land.rms_m) & (land.rms_m < o.start_max_rms_m)
         cand = np.flatnonzero(trusted)                                                    # landing rows
         owner = np.concatenate([np.arange(len(run)), cand // S])                         # row in `run`

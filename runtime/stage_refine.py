@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from . import icp_kernel
 from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .geometry import backproject_pixels
@@ -35,12 +36,13 @@ class RefinerStage:
     :param geometries: the pallet types (a candidate's `type_index` points into them); a type without
         `boxes_m` is not refined.
     :param options: `EstimatorOptions` (the `refine*` and `fit_tol_m` fields).
+    :param threads: threads of the compiled ICP kernel (the estimator's `threads`).
 
     :ivar budget_chunk: under a time budget, candidates are refined this many at a time, highest score first,
         and the budget is checked before each group (1: the tightest bound, at the cost of batching).
     """
 
-    def __init__(self, geometries: tuple[PalletGeometry, ...], options) -> None:
+    def __init__(self, geometries: tuple[PalletGeometry, ...], options, threads: int = 1) -> None:
         self.geometries = tuple(geometries)
         self.options = o = options
         on = bool(o.refine and o.refine_iterations > 0)
@@ -54,8 +56,11 @@ class RefinerStage:
         self.refine_options = RefineOptions(
             iterations=o.refine_iterations, max_rms_m=o.refine_max_rms_m, margin=o.refine_margin,
             fit_tol_m=o.fit_tol_m, start_points=o.refine_start_points, select_tol_m=o.refine_select_tol_m,
-            start_max_rms_m=o.refine_start_max_rms_m)
+            start_max_rms_m=o.refine_start_max_rms_m, threads=max(int(threads), 1))
         self.budget_chunk = 2
+        if on and not icp_kernel.available():
+            log.warning("the compiled ICP kernel is not built (no C compiler when pallet6d was installed): "
+                        "refinement runs in numpy, several times slower")
 
     @property
     def refines_type(self) -> tuple[bool, ...]:

@@ -47,9 +47,12 @@ PYPROJECT = '[tool.setuptools.package-dir]\n"pallet6d.a" = "a"\n"pallet6d.b" = "
 
 @pytest.fixture
 def source(tmp_path):
-    """A project with two mapped folders, a nested subpackage, a data file and a folder without __init__.py."""
+    """A project with two mapped folders, a nested subpackage, a data file, a folder without __init__.py, and a
+    C extension (its source and an editable install's build of it in the tree)."""
     return _tree(tmp_path / "src", {
         "pyproject.toml": PYPROJECT,
+        "setup.py": 'from setuptools import Extension\nK = Extension("pallet6d.a._k", sources=["a/k.c"])\n',
+        "a/k.c": "", "a/_k.cpython-311-x86_64-linux-gnu.so": "",
         "a/__init__.py": "", "a/m.py": "", "a/py.typed": "",
         "a/sub/__init__.py": "", "a/sub/deep/__init__.py": "", "a/sub/deep/x.py": "",
         "a/scripts/tool.py": "",                      # not a package: setuptools ships no module here
@@ -114,13 +117,41 @@ def test_check_covers_both_wheels_and_the_size_limit(source, tmp_path, capsys):
     _tree(source, {"models/__init__.py": "", "models/pyproject.toml": "",
                    "models/m1/manifest.json": "{}", "models/m1/g.onnx": "", "models/notes/readme.md": ""})
     dist = tmp_path / "dist"
-    _wheel(dist / "pallet6d-0.1.0-py3-none-any.whl", sorted(wheel_contents.expected_runtime_files(source)))
+    _wheel(dist / "pallet6d-0.1.0-py3-none-any.whl", sorted(wheel_contents.expected_runtime_files(source))
+           + ["pallet6d/a/_k.cpython-310-x86_64-linux-gnu.so"])
     _wheel(dist / "pallet6d_models-0.1.0-py3-none-any.whl", ["pallet6d_models/__init__.py",
                                                              "pallet6d_models/m1/manifest.json"])
     problems = wheel_contents.check(dist, source, max_runtime_mb=1e-6)
     assert problems[0] == "pallet6d_models-0.1.0-py3-none-any.whl: missing pallet6d_models/m1/g.onnx"
     assert "over the 1e-06 MB limit" in problems[1] and len(problems) == 2
     assert "pallet6d-0.1.0-py3-none-any.whl" in capsys.readouterr().out
+
+
+def test_extensions_are_read_from_setup_py():
+    assert wheel_contents.extension_modules(REPO) == ["pallet6d.runtime._icp_kernel"]
+
+
+@pytest.mark.parametrize("files, problems", [
+    (["pallet6d/a/_k.cpython-311-x86_64-linux-gnu.so"], []),
+    (["pallet6d/a/_k.pyd"], []),
+    ([], ["missing compiled pallet6d.a._k (a C compiler is needed to build the wheel)"]),
+    (["pallet6d/a/_k/x.so"], ["missing compiled pallet6d.a._k (a C compiler is needed to build the wheel)"]),
+    (["pallet6d/a/_k.abi3.so", "pallet6d/a/_k.cpython-311-x86_64-linux-gnu.so"], ["several builds of pallet6d.a._k"]),
+], ids=["linux", "windows", "missing", "not-the-module", "twice"])
+def test_compiled_files_want_one_build_of_each_extension(files, problems):
+    found, got = wheel_contents.compiled_files(["pallet6d.a._k"], set(files) | {"pallet6d/a/m.py"})
+    assert [g.split(":")[0] for g in got] == problems
+    assert found == (set(files) if not problems else set(files) - {"pallet6d/a/_k/x.so"})
+
+
+def test_check_wants_the_compiled_extension(source, tmp_path):
+    _tree(source, {"models/__init__.py": "", "models/m1/manifest.json": "{}"})
+    dist = tmp_path / "dist"
+    _wheel(dist / "pallet6d-0.1.0-py3-none-any.whl", sorted(wheel_contents.expected_runtime_files(source)))
+    _wheel(dist / "pallet6d_models-0.1.0-py3-none-any.whl", ["pallet6d_models/__init__.py",
+                                                             "pallet6d_models/m1/manifest.json"])
+    assert wheel_contents.check(dist, source, max_runtime_mb=2.0) == [
+        "pallet6d-0.1.0-py3-none-any.whl: missing compiled pallet6d.a._k (a C compiler is needed to build the wheel)"]
 
 
 def test_check_wants_exactly_one_wheel_of_each(source, tmp_path):

@@ -1,0 +1,319 @@
+/* Robust point-to-plane ICP of observed points onto a union of axis-aligned boxes, compiled.
+
+   The same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
+   per step, every observed point near the model's bounding box is matched with the closest point on the
+   boxes' surface; matches within a correspondence distance that shrinks geometrically over the steps count,
+   each with a Tukey weight; one Gauss-Newton step with a prior on the starting pose follows. numpy needs
+   thousands of small calls per frame for this; here each pose is one loop. Per-point arithmetic in float
+   (as the numpy path), sums and the 6x6 solve in double.
+
+   Loaded with ctypes by `icp_kernel.py`; the package builds it as an optional extension (setup.py). */
+#include <math.h>
+#include <pthread.h>
+#include <stdatomic.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* max / min as comparisons: fmaxf / fminf are library calls unless NaN semantics are given up (the points and
+   boxes here are finite), these compile to single instructions and vectorise. */
+static inline float maxf(float a, float b) { return a > b ? a : b; }
+static inline float minf(float a, float b) { return a < b ? a : b; }
+
+enum { MAX_BOXES = 256 };
+
+/* Closest point on the surface of a union of boxes (structure of arrays: lo[a][k], hi[a][k]) to p, its
+   outward normal and distance. Inside a box, that box's nearest face; the first box wins ties, as argmin. */
+static void closest_on_boxes(const float p[3], const float lo[3][MAX_BOXES], const float hi[3][MAX_BOXES],
+                             int64_t k, float q[3], float nrm[3], float *dist) {
+    float o2[MAX_BOXES];
+    o2[0] = INFINITY;                                       /* overwritten below (k >= 1: pallet6d_icp checks it) */
+    for (int64_t b = 0; b < k; b++) {                       /* squared distance outside each box */
+        float g0 = maxf(maxf(lo[0][b] - p[0], p[0] - hi[0][b]), 0.0f);
+        float g1 = maxf(maxf(lo[1][b] - p[1], p[1] - hi[1][b]), 0.0f);
+        float g2 = maxf(maxf(lo[2][b] - p[2], p[2] - hi[2][b]), 0.0f);
+        o2[b] = g0 * g0 + g1 * g1 + g2 * g2;
+    }
+    int64_t j = 0;
+    for (int64_t b = 1; b < k; b++)
+        if (o2[b] < o2[j]) j = b;
+    int off = o2[j] > 0.0f;
+    float d = sqrtf(o2[j]);
+    if (!off) {
+        /* in a box: each box the point is in at the depth below its nearest face, the others at their outside
+           distance; the nearest wins */
+        float best_d = INFINITY;
+        for (int64_t b = 0; b < k; b++) {
+            float below = INFINITY;
+            for (int a = 0; a < 3; a++) below = minf(below, minf(p[a] - lo[a][b], hi[a][b] - p[a]));
+            float db = o2[b] > 0.0f ? sqrtf(o2[b]) : maxf(below, 0.0f);
+            if (db < best_d) { best_d = db; j = b; off = o2[b] > 0.0f; }
+        }
+        d = best_d;
+    }
+    for (int a = 0; a < 3; a++) q[a] = minf(maxf(p[a], lo[a][j]), hi[a][j]);
+    if (off) {
+        for (int a = 0; a < 3; a++) nrm[a] = (p[a] - q[a]) / d;
+    } else {
+        /* the nearest face, the first of -x -y -z +x +y +z */
+        int f = 0;
+        float fd = INFINITY;
+        for (int s = 0; s < 6; s++) {
+            int a = s % 3;
+            float g = s < 3 ? p[a] - lo[a][j] : hi[a][j] - p[a];
+            if (g < fd) { fd = g; f = s; }
+        }
+        int a = f % 3;
+        nrm[0] = nrm[1] = nrm[2] = 0.0f;
+        q[a] = f >= 3 ? hi[a][j] : lo[a][j];
+        nrm[a] = f >= 3 ? 1.0f : -1.0f;
+    }
+    *dist = d;
+}
+
+/* out = a @ b for 4x4 row-major matrices (out may not alias a or b). */
+static void mat4_mul(const double *a, const double *b, double *out) {
+    for (int r = 0; r < 4; r++)
+        for (int c = 0; c < 4; c++) {
+            double s = 0.0;
+            for (int i = 0; i < 4; i++) s += a[4 * r + i] * b[4 * i + c];
+            out[4 * r + c] = s;
+        }
+}
+
+/* Inverse of a rigid transform. */
+static void rigid_inverse(const double *T, double *out) {
+    memset(out, 0, 16 * sizeof(double));
+    for (int r = 0; r < 3; r++) {
+        for (int c = 0; c < 3; c++) out[4 * r + c] = T[4 * c + r];
+        out[4 * r + 3] = -(T[r] * T[3] + T[4 + r] * T[7] + T[8 + r] * T[11]);
+    }
+    out[15] = 1.0;
+}
+
+/* The transform of a small motion: rotation vector w = delta[0:3], translation delta[3:6] (as numpy's
+   `_exp_se3_batch`: Rodrigues' rotation, the translation taken as is). */
+static void exp_se3(const double delta[6], double *T) {
+    const double *w = delta;
+    double th = sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+    double a = 1.0, b = 0.0;
+    if (!(th < 1e-12)) { a = sin(th) / th; b = (1.0 - cos(th)) / (th * th); }
+    double Kx[9] = {0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0};
+    memset(T, 0, 16 * sizeof(double));
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++) {
+            double kk = 0.0;
+            for (int i = 0; i < 3; i++) kk += Kx[3 * r + i] * Kx[3 * i + c];
+            T[4 * r + c] = (r == c ? 1.0 : 0.0) + a * Kx[3 * r + c] + b * kk;
+        }
+    for (int r = 0; r < 3; r++) T[4 * r + 3] = delta[3 + r];
+    T[15] = 1.0;
+}
+
+/* Solve H x = g for a symmetric positive definite 6x6 H (Cholesky); returns 0 when H is not. */
+static int solve6(const double H[36], const double g[6], double x[6]) {
+    double L[36] = {0.0};
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j <= i; j++) {
+            double s = H[6 * i + j];
+            for (int k = 0; k < j; k++) s -= L[6 * i + k] * L[6 * j + k];
+            if (i == j) {
+                if (!(s > 0.0)) return 0;
+                L[6 * i + i] = sqrt(s);
+            } else {
+                L[6 * i + j] = s / L[6 * j + j];
+            }
+        }
+    double y[6];
+    for (int i = 0; i < 6; i++) {
+        double s = g[i];
+        for (int k = 0; k < i; k++) s -= L[6 * i + k] * y[k];
+        y[i] = s / L[6 * i + i];
+    }
+    for (int i = 5; i >= 0; i--) {
+        double s = y[i];
+        for (int k = i + 1; k < 6; k++) s -= L[6 * k + i] * x[k];
+        x[i] = s / L[6 * i + i];
+    }
+    return 1;
+}
+
+/* One call's inputs and outputs (see pallet6d_icp), the boxes as structure of arrays, and the next pose to run. */
+struct icp_job {
+    int64_t n_poses, n_max, k, steps, min_inliers;
+    const float *pts;
+    const int64_t *n_pts;
+    const double *T0, *prior, *stop_near;
+    double corr_start_m, corr_end_m, tol, stop_near_m;
+    float lo[3][MAX_BOXES], hi[3][MAX_BOXES];
+    double model_lo[3], model_hi[3], corners[8][3];
+    double *T_out, *rms_out;
+    int64_t *iters_out, *n_in_out;
+    uint8_t *converged_out, *stopped_out;
+    atomic_llong next;
+};
+
+/* ICP from pose i of the job. */
+static void icp_one(struct icp_job *job, int64_t i) {
+    const int64_t steps = job->steps, k = job->k, n_max = job->n_max, min_inliers = job->min_inliers;
+    const double *model_lo = job->model_lo, *model_hi = job->model_hi;
+    const double (*corners)[3] = (const double (*)[3])job->corners;
+    const double *stop_near = job->stop_near, corr_start_m = job->corr_start_m, corr_end_m = job->corr_end_m;
+    const double tol = job->tol, stop_near_m = job->stop_near_m;
+    const float *pts = job->pts;
+    const int64_t *n_pts = job->n_pts;
+    const double *T0 = job->T0, *prior = job->prior;
+    const float *P = pts + 3 * n_max * i;
+    const double *pr = prior + 6 * i;
+    double T_pal_cam[16], T_next[16], M[16], xi[6] = {0.0};
+    double corners_cam[8][3];
+    rigid_inverse(T0 + 16 * i, T_pal_cam);
+    if (stop_near) {
+        const double *S = stop_near + 16 * i;
+        for (int c = 0; c < 8; c++)
+            for (int r = 0; r < 3; r++)
+                corners_cam[c][r] = S[4 * r] * corners[c][0] + S[4 * r + 1] * corners[c][1]
+                                    + S[4 * r + 2] * corners[c][2] + S[4 * r + 3];
+    }
+    int64_t done = 0, n_in = 0;
+    double rms = NAN;
+    uint8_t converged = 0, stopped = 0;
+    for (int64_t it = 0; it < steps; it++) {
+        double thr = corr_start_m * pow(corr_end_m / corr_start_m, (double)it / (double)(steps > 1 ? steps - 1 : 1));
+        float thr_f = (float)thr;
+        float R[9], t[3];
+        for (int r = 0; r < 3; r++) {
+            for (int c = 0; c < 3; c++) R[3 * r + c] = (float)T_pal_cam[4 * r + c];
+            t[r] = (float)T_pal_cam[4 * r + 3];
+        }
+        double H[36] = {0.0}, g[6] = {0.0}, wsum = 0.0, wrr = 0.0;
+        int64_t n_use = 0;
+        for (int64_t j = 0; j < n_pts[i]; j++) {
+            const float *o = P + 3 * j;
+            float p[3];
+            for (int r = 0; r < 3; r++) p[r] = R[3 * r] * o[0] + R[3 * r + 1] * o[1] + R[3 * r + 2] * o[2] + t[r];
+            int near = 1;
+            for (int a = 0; a < 3; a++)
+                near &= (double)p[a] > model_lo[a] - thr && (double)p[a] < model_hi[a] + thr;
+            if (!near) continue;
+            float q[3], nrm[3], d;
+            closest_on_boxes(p, job->lo, job->hi, k, q, nrm, &d);
+            if (!((double)d < thr)) continue;
+            n_use++;
+            float u = minf(d, thr_f) / thr_f, w = (1.0f - u * u) * (1.0f - u * u);   /* Tukey biweight */
+            float res = (p[0] - q[0]) * nrm[0] + (p[1] - q[1]) * nrm[1] + (p[2] - q[2]) * nrm[2];
+            double J[6] = {p[1] * nrm[2] - p[2] * nrm[1], p[2] * nrm[0] - p[0] * nrm[2],
+                           p[0] * nrm[1] - p[1] * nrm[0], nrm[0], nrm[1], nrm[2]};
+            for (int r = 0; r < 6; r++) {
+                double wj = w * J[r];
+                for (int c = 0; c <= r; c++) H[6 * r + c] += wj * J[c];
+                g[r] += wj * res;
+            }
+            wsum += w;
+            wrr += (double)(w * res * res);
+        }
+        if (n_use < min_inliers || !(wsum > 0.0)) break;      /* too few matches: keep the pose so far */
+        double var = fmax(wrr / wsum, 0.002 * 0.002);         /* the data's noise, metres^2 */
+        double delta[6];
+        for (int r = 0; r < 6; r++) {
+            for (int c = 0; c <= r; c++) H[6 * r + c] = H[6 * c + r] = H[6 * r + c] / var;
+            H[6 * r + r] += pr[r];
+            g[r] = g[r] / var + xi[r] * pr[r];
+        }
+        if (!solve6(H, g, delta)) break;
+        double moved = 0.0;
+        for (int r = 0; r < 6; r++) {
+            delta[r] = -delta[r];
+            xi[r] += delta[r];
+            moved += fabs(delta[r]);
+        }
+        exp_se3(delta, M);
+        mat4_mul(M, T_pal_cam, T_next);
+        memcpy(T_pal_cam, T_next, sizeof T_pal_cam);
+        n_in = n_use;
+        rms = sqrt(wrr / wsum);
+        done = it + 1;
+        converged = moved < tol && it >= steps / 2;
+        if (stop_near) {
+            /* stop_near's corners taken into this pose's pallet frame come back unmoved when the poses agree */
+            double worst = 0.0;
+            for (int c = 0; c < 8; c++) {
+                double e2 = 0.0;
+                for (int r = 0; r < 3; r++) {
+                    const double *Tr = T_pal_cam + 4 * r;
+                    double h = Tr[0] * corners_cam[c][0] + Tr[1] * corners_cam[c][1] + Tr[2] * corners_cam[c][2]
+                               + Tr[3] - corners[c][r];
+                    e2 += h * h;
+                }
+                worst = fmax(worst, sqrt(e2));
+            }
+            stopped = worst < stop_near_m;
+        }
+        if (converged || stopped) break;
+    }
+    if (done > 0)
+        rigid_inverse(T_pal_cam, job->T_out + 16 * i);
+    else                                                    /* never stepped: the input pose, exactly */
+        memcpy(job->T_out + 16 * i, T0 + 16 * i, 16 * sizeof(double));
+    job->iters_out[i] = done;
+    job->n_in_out[i] = n_in;
+    job->rms_out[i] = rms;
+    job->converged_out[i] = converged;
+    job->stopped_out[i] = stopped;
+}
+
+/* Poses taken one at a time until none is left (the threads share the job). */
+static void *icp_worker(void *arg) {
+    struct icp_job *job = arg;
+    for (int64_t i = atomic_fetch_add(&job->next, 1); i < job->n_poses; i = atomic_fetch_add(&job->next, 1))
+        icp_one(job, i);
+    return NULL;
+}
+
+/* ICP for n_poses starting poses, each on its own points, on up to n_threads threads (poses are independent).
+
+   pts: (n_poses, n_max, 3) float, camera frame, metres; pose i uses its first n_pts[i] rows.
+   boxes: (k, 2, 3) double min/max corners, pallet frame. T0, stop_near: (n_poses, 4, 4) pallet -> camera
+   (stop_near may be NULL). prior: (n_poses, 6) inverse variances of the prior (rotation, translation).
+   Outputs per pose: T_out (4, 4) pallet -> camera, steps run, inliers and weighted RMS of the last step
+   (NaN when it never stepped), converged and stopped-near flags.
+   Returns 0, or -1 when k is out of range (the caller validates everything else). A thread that cannot be
+   started leaves its share to the others. */
+int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t *n_pts, int64_t k,
+                 const double *boxes, const double *T0, const double *prior, int64_t iterations,
+                 double corr_start_m, double corr_end_m, int64_t min_inliers, double tol,
+                 const double *stop_near, double stop_near_m, int64_t n_threads, double *T_out, int64_t *iters_out,
+                 int64_t *n_in_out, double *rms_out, uint8_t *converged_out, uint8_t *stopped_out) {
+    enum { MAX_THREADS = 16 };
+    if (k < 1 || k > MAX_BOXES) return -1;
+    struct icp_job *job = calloc(1, sizeof *job);
+    if (job == NULL) return -2;
+    job->n_poses = n_poses, job->n_max = n_max, job->k = k, job->steps = iterations > 0 ? iterations : 0;
+    job->min_inliers = min_inliers, job->pts = pts, job->n_pts = n_pts, job->T0 = T0, job->prior = prior;
+    job->stop_near = stop_near, job->corr_start_m = corr_start_m, job->corr_end_m = corr_end_m, job->tol = tol;
+    job->stop_near_m = stop_near_m;
+    job->T_out = T_out, job->rms_out = rms_out, job->iters_out = iters_out, job->n_in_out = n_in_out;
+    job->converged_out = converged_out, job->stopped_out = stopped_out;
+    atomic_init(&job->next, 0);
+    for (int a = 0; a < 3; a++) job->model_lo[a] = INFINITY, job->model_hi[a] = -INFINITY;
+    for (int64_t b = 0; b < k; b++)
+        for (int a = 0; a < 3; a++) {
+            job->lo[a][b] = (float)boxes[6 * b + a];
+            job->hi[a][b] = (float)boxes[6 * b + 3 + a];
+            job->model_lo[a] = fmin(job->model_lo[a], boxes[6 * b + a]);
+            job->model_hi[a] = fmax(job->model_hi[a], boxes[6 * b + 3 + a]);
+        }
+    for (int c = 0; c < 8; c++)
+        for (int a = 0; a < 3; a++) job->corners[c][a] = (c >> a) & 1 ? job->model_hi[a] : job->model_lo[a];
+
+    int64_t extra = (n_threads < n_poses ? n_threads : n_poses) - 1;
+    extra = extra < 0 ? 0 : extra > MAX_THREADS - 1 ? MAX_THREADS - 1 : extra;
+    pthread_t threads[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 0; t < extra; t++) started[t] = pthread_create(&threads[t], NULL, icp_worker, job) == 0;
+    icp_worker(job);
+    for (int64_t t = 0; t < extra; t++)
+        if (started[t]) pthread_join(threads[t], NULL);
+    free(job);
+    return 0;
+}
