@@ -22,35 +22,39 @@ static inline float minf(float a, float b) { return a < b ? a : b; }
 
 enum { MAX_BOXES = 256 };
 
-/* Closest point on the surface of a union of boxes (structure of arrays: lo[a][k], hi[a][k]) to p, its
-   outward normal and distance. Inside a box, that box's nearest face; the first box wins ties, as argmin. */
+/* Closest point on the surface of a union of boxes (structure of arrays: lo[a][b], hi[a][b]) to p, its outward
+   normal and distance, among the n boxes idx[0..n) (ascending; every box that can be the closest). Inside a box,
+   that box's nearest face; the first box wins ties, as argmin does. */
 static void closest_on_boxes(const float p[3], const float lo[3][MAX_BOXES], const float hi[3][MAX_BOXES],
-                             int64_t k, float q[3], float nrm[3], float *dist) {
+                             const uint8_t *idx, int64_t n, float q[3], float nrm[3], float *dist) {
     float o2[MAX_BOXES];
-    o2[0] = INFINITY;                                       /* overwritten below (k >= 1: pallet6d_icp checks it) */
-    for (int64_t b = 0; b < k; b++) {                       /* squared distance outside each box */
+    o2[0] = INFINITY;                                       /* overwritten below (n >= 1) */
+    for (int64_t i = 0; i < n; i++) {                       /* squared distance outside each box */
+        int b = idx[i];
         float g0 = maxf(maxf(lo[0][b] - p[0], p[0] - hi[0][b]), 0.0f);
         float g1 = maxf(maxf(lo[1][b] - p[1], p[1] - hi[1][b]), 0.0f);
         float g2 = maxf(maxf(lo[2][b] - p[2], p[2] - hi[2][b]), 0.0f);
-        o2[b] = g0 * g0 + g1 * g1 + g2 * g2;
+        o2[i] = g0 * g0 + g1 * g1 + g2 * g2;
     }
-    int64_t j = 0;
-    for (int64_t b = 1; b < k; b++)
-        if (o2[b] < o2[j]) j = b;
-    int off = o2[j] > 0.0f;
-    float d = sqrtf(o2[j]);
+    int64_t jj = 0;
+    for (int64_t i = 1; i < n; i++)
+        if (o2[i] < o2[jj]) jj = i;
+    int off = o2[jj] > 0.0f;
+    float d = sqrtf(o2[jj]);
     if (!off) {
         /* in a box: each box the point is in at the depth below its nearest face, the others at their outside
            distance; the nearest wins */
         float best_d = INFINITY;
-        for (int64_t b = 0; b < k; b++) {
+        for (int64_t i = 0; i < n; i++) {
+            int b = idx[i];
             float below = INFINITY;
             for (int a = 0; a < 3; a++) below = minf(below, minf(p[a] - lo[a][b], hi[a][b] - p[a]));
-            float db = o2[b] > 0.0f ? sqrtf(o2[b]) : maxf(below, 0.0f);
-            if (db < best_d) { best_d = db; j = b; off = o2[b] > 0.0f; }
+            float db = o2[i] > 0.0f ? sqrtf(o2[i]) : maxf(below, 0.0f);
+            if (db < best_d) { best_d = db; jj = i; off = o2[i] > 0.0f; }
         }
         d = best_d;
     }
+    int j = idx[jj];
     for (int a = 0; a < 3; a++) q[a] = minf(maxf(p[a], lo[a][j]), hi[a][j]);
     if (off) {
         for (int a = 0; a < 3; a++) nrm[a] = (p[a] - q[a]) / d;
@@ -147,6 +151,13 @@ struct icp_job {
     double corr_start_m, corr_end_m, tol, stop_near_m;
     float lo[3][MAX_BOXES], hi[3][MAX_BOXES];
     double model_lo[3], model_hi[3], corners[8][3];
+    uint8_t all_boxes[MAX_BOXES];                          /* 0 .. k-1: the candidates outside the grid */
+    /* optional grid over the model (pallet frame): the boxes that can be closest to a point of each cell */
+    const double *grid_origin;
+    double grid_inv_cell;
+    const int64_t *grid_dims;
+    const int32_t *grid_offsets;
+    const uint8_t *grid_lists;
     double *T_out, *rms_out;
     int64_t *iters_out, *n_in_out;
     uint8_t *converged_out, *stopped_out;
@@ -196,8 +207,22 @@ static void icp_one(struct icp_job *job, int64_t i) {
             for (int a = 0; a < 3; a++)
                 near &= (double)p[a] > model_lo[a] - thr && (double)p[a] < model_hi[a] + thr;
             if (!near) continue;
+            const uint8_t *cand = job->all_boxes;
+            int64_t n_cand = k;
+            if (job->grid_lists) {
+                int64_t c = 0, inside = 1;
+                for (int a = 0; a < 3; a++) {          /* truncation is floor on [0, dims) (floor is a call) */
+                    double x = ((double)p[a] - job->grid_origin[a]) * job->grid_inv_cell;
+                    inside &= x >= 0.0 && x < (double)job->grid_dims[a];
+                    c = c * job->grid_dims[a] + (inside ? (int64_t)x : 0);
+                }
+                if (inside) {
+                    cand = job->grid_lists + job->grid_offsets[c];
+                    n_cand = job->grid_offsets[c + 1] - job->grid_offsets[c];
+                }
+            }
             float q[3], nrm[3], d;
-            closest_on_boxes(p, job->lo, job->hi, k, q, nrm, &d);
+            closest_on_boxes(p, job->lo, job->hi, cand, n_cand, q, nrm, &d);
             if (!((double)d < thr)) continue;
             n_use++;
             float u = minf(d, thr_f) / thr_f, w = (1.0f - u * u) * (1.0f - u * u);   /* Tukey biweight */
@@ -277,12 +302,17 @@ static void *icp_worker(void *arg) {
    (stop_near may be NULL). prior: (n_poses, 6) inverse variances of the prior (rotation, translation).
    Outputs per pose: T_out (4, 4) pallet -> camera, steps run, inliers and weighted RMS of the last step
    (NaN when it never stepped), converged and stopped-near flags.
+   grid (optional, NULL grid_lists for none): origin (3,) and cell size of a grid over the boxes, pallet frame,
+   dims (3,), and per cell (x-major) the ascending indices of the boxes that can be closest to a point in it:
+   lists[offsets[c] .. offsets[c + 1]) (icp_kernel.box_grid); points outside it are measured against every box.
    Returns 0, or -1 when k is out of range (the caller validates everything else). A thread that cannot be
    started leaves its share to the others. */
 int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t *n_pts, int64_t k,
                  const double *boxes, const double *T0, const double *prior, int64_t iterations,
                  double corr_start_m, double corr_end_m, int64_t min_inliers, double tol,
-                 const double *stop_near, double stop_near_m, int64_t n_threads, double *T_out, int64_t *iters_out,
+                 const double *stop_near, double stop_near_m, const double *grid_origin, double grid_cell_m,
+                 const int64_t *grid_dims, const int32_t *grid_offsets, const uint8_t *grid_lists,
+                 int64_t n_threads, double *T_out, int64_t *iters_out,
                  int64_t *n_in_out, double *rms_out, uint8_t *converged_out, uint8_t *stopped_out) {
     enum { MAX_THREADS = 16 };
     if (k < 1 || k > MAX_BOXES) return -1;
@@ -292,6 +322,11 @@ int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t
     job->min_inliers = min_inliers, job->pts = pts, job->n_pts = n_pts, job->T0 = T0, job->prior = prior;
     job->stop_near = stop_near, job->corr_start_m = corr_start_m, job->corr_end_m = corr_end_m, job->tol = tol;
     job->stop_near_m = stop_near_m;
+    if (grid_lists != NULL && grid_cell_m > 0.0) {
+        job->grid_origin = grid_origin, job->grid_inv_cell = 1.0 / grid_cell_m, job->grid_dims = grid_dims;
+        job->grid_offsets = grid_offsets, job->grid_lists = grid_lists;
+    }
+    for (int64_t b = 0; b < k; b++) job->all_boxes[b] = (uint8_t)b;
     job->T_out = T_out, job->rms_out = rms_out, job->iters_out = iters_out, job->n_in_out = n_in_out;
     job->converged_out = converged_out, job->stopped_out = stopped_out;
     atomic_init(&job->next, 0);

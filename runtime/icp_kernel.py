@@ -11,10 +11,11 @@ import ctypes
 import functools
 import importlib.util
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "icp", "library_path", "MAX_BOXES"]
+__all__ = ["available", "box_grid", "BoxGrid", "icp", "library_path", "MAX_BOXES"]
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +25,7 @@ _f64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _f32 = np.ctypeslib.ndpointer(np.float32, flags="C_CONTIGUOUS")
 _i64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
 _u8 = np.ctypeslib.ndpointer(np.uint8, flags="C_CONTIGUOUS")
+_ptr = ctypes.c_void_p
 _i = ctypes.c_int64
 _d = ctypes.c_double
 
@@ -49,8 +51,8 @@ def _function():
         log.warning("compiled ICP kernel %s does not load (%s): refinement runs in numpy", path, e)
         return None
     fn.restype = ctypes.c_int
-    fn.argtypes = [_i, _i, _f32, _i64, _i, _f64, _f64, _f64, _i, _d, _d, _i, _d, ctypes.c_void_p, _d, _i,
-                   _f64, _i64, _i64, _f64, _u8, _u8]
+    fn.argtypes = [_i, _i, _f32, _i64, _i, _f64, _f64, _f64, _i, _d, _d, _i, _d, _ptr, _d,
+                   _ptr, _d, _ptr, _ptr, _ptr, _i, _f64, _i64, _i64, _f64, _u8, _u8]
     return fn
 
 
@@ -59,9 +61,61 @@ def available() -> bool:
     return _function() is not None
 
 
+@dataclass(frozen=True, eq=False)
+class BoxGrid:
+    """The boxes that can hold the closest surface point for any point of each cell of a grid over a pallet
+    model (pallet frame): ICP then measures a point against a few boards and blocks instead of all of them.
+
+    :ivar origin_m: (3,) the grid's lowest corner. :ivar cell_m: cell edge. :ivar dims: (3,) cells per axis.
+    :ivar offsets: (n_cells + 1,) int32: cell c (x-major) lists `lists[offsets[c]:offsets[c + 1]]`.
+    :ivar lists: uint8 box indices, ascending within a cell.
+    """
+
+    origin_m: np.ndarray
+    cell_m: float
+    dims: np.ndarray
+    offsets: np.ndarray
+    lists: np.ndarray
+
+
+def box_grid(boxes_m: np.ndarray, margin_m: float = 0.1, cell_m: float = 0.03) -> BoxGrid:
+    """The `BoxGrid` of a union of boxes, over their bounding box grown by `margin_m`.
+
+    A box is listed for a cell unless it is certainly farther from every point of the cell than some other box:
+    its smallest distance to the cell (0 where they overlap) exceeds the smallest, over the boxes, of the largest
+    distance from a point of the cell (outside distance at the cell's farthest corner; inside a box, at most half
+    its thinnest extent). The closest box, as the kernel measures it, is therefore always listed.
+
+    :param boxes_m: (k, 2, 3) min/max corners, 1 <= k <= MAX_BOXES. :param margin_m: points farther out are
+        measured against every box. :param cell_m: cell edge, metres.
+    """
+    boxes = np.asarray(boxes_m, dtype=np.float64)
+    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or not 1 <= len(boxes) <= MAX_BOXES:
+        raise ValueError(f"boxes_m must be (k, 2, 3) with 1 <= k <= {MAX_BOXES}, got shape {boxes.shape}")
+    if not (cell_m > 0 and margin_m >= 0):
+        raise ValueError(f"need cell_m > 0 and margin_m >= 0, got {cell_m}, {margin_m}")
+    origin = boxes[:, 0].min(0) - margin_m
+    dims = np.ceil((boxes[:, 1].max(0) + margin_m - origin) / cell_m).astype(np.int64)
+    idx = np.stack(np.meshgrid(*(np.arange(d) for d in dims), indexing="ij"), -1).reshape(-1, 3)
+    c_lo = (origin + idx * cell_m)[:, None]                                   # (cells, 1, 3)
+    c_hi = c_lo + cell_m
+    lo, hi = boxes[None, :, 0], boxes[None, :, 1]                             # (1, k, 3)
+    lower = np.sqrt((np.maximum(np.maximum(lo - c_hi, c_lo - hi), 0.0) ** 2).sum(-1))       # (cells, k)
+    gap_far = np.maximum(np.maximum(lo - c_lo, c_lo - hi), np.maximum(lo - c_hi, c_hi - hi))
+    upper = np.sqrt((np.maximum(gap_far, 0.0) ** 2).sum(-1))
+    upper = np.where(lower > 0.0, upper, np.maximum(upper, (hi - lo).min(-1) / 2))
+    # 1e-5 m: float32 rounding in the kernel (its points and boxes) can only add boxes, never drop the closest
+    listed = lower <= upper.min(1, keepdims=True) + 1e-5
+    offsets = np.zeros(len(listed) + 1, dtype=np.int32)
+    np.cumsum(listed.sum(1), out=offsets[1:])
+    lists = np.nonzero(listed)[1].astype(np.uint8)                            # row-major: ascending per cell
+    return BoxGrid(origin, float(cell_m), dims, offsets, lists)
+
+
 def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, prior: np.ndarray,
         iterations: int, corr_start_m: float, corr_end_m: float, min_inliers: int, tol: float,
-        stop_near: np.ndarray | None, stop_near_m: float, threads: int = 1) -> tuple[np.ndarray, ...]:
+        stop_near: np.ndarray | None, stop_near_m: float, threads: int = 1,
+        grid: BoxGrid | None = None) -> tuple[np.ndarray, ...]:
     """ICP from P poses at once, each on its own points (the arguments as `refine._icp` takes them).
 
     :param T0: (P, 4, 4) starting poses, pallet -> camera. :param pts: (P, N, 3) camera frame, metres; pose i
@@ -69,6 +123,7 @@ def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
     :param prior: (P, 6) the prior's inverse variances (rotation about, then translation along, x y z).
     :param stop_near: None or (P, 4, 4): a pose per start at which it stops.
     :param threads: the poses are shared among this many threads (each pose's result does not depend on it).
+    :param grid: `box_grid(boxes_m)`, or None to measure every point against every box (the same result).
     :return: (T_cam_pallet (P, 4, 4), iterations (P,), n_inliers (P,), rms_m (P,), converged (P,) bool,
         stopped_near (P,) bool).
     :raises RuntimeError: when the kernel is not available (check `available()` first).
@@ -91,9 +146,19 @@ def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
     done, n_in = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
     rms = np.empty(m)
     converged, stopped = np.empty(m, dtype=np.uint8), np.empty(m, dtype=np.uint8)
+    g = None if grid is None else (np.ascontiguousarray(grid.origin_m, dtype=np.float64),
+                                   np.ascontiguousarray(grid.dims, dtype=np.int64),
+                                   np.ascontiguousarray(grid.offsets, dtype=np.int32),
+                                   np.ascontiguousarray(grid.lists, dtype=np.uint8))
+    if g is not None and (g[0].shape != (3,) or g[1].shape != (3,) or len(g[2]) != int(np.prod(g[1])) + 1
+                          or g[2][-1] != len(g[3]) or (len(g[3]) and int(g[3].max()) >= len(boxes))):
+        raise ValueError("grid does not fit these boxes: build it with box_grid(boxes_m)")
     rc = fn(m, pts.shape[1], pts, n_pts, len(boxes), boxes, T0, prior, int(iterations), float(corr_start_m),
             float(corr_end_m), int(min_inliers), float(tol), None if near is None else near.ctypes.data,
-            float(stop_near_m), max(int(threads), 1), T_out, done, n_in, rms, converged, stopped)
+            float(stop_near_m), *((None, 0.0, None, None, None) if g is None else
+                                  (g[0].ctypes.data, grid.cell_m, g[1].ctypes.data, g[2].ctypes.data,
+                                   g[3].ctypes.data)),
+            max(int(threads), 1), T_out, done, n_in, rms, converged, stopped)
     if rc == -1:
         raise ValueError(f"the compiled ICP kernel takes 1 to {MAX_BOXES} boxes, got {len(boxes)}")
     if rc != 0:

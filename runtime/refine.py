@@ -1,4 +1,5 @@
-"""Pose refinement: robust point-to-plane ICP of the observed depth onto the pallet's box model (numpy only).
+"""Pose refinement: robust point-to-plane ICP of the observed depth onto the pallet's box model (numpy, and the
+same ICP compiled: `icp_kernel`).
 
 The network's pose is a good first guess (a few cm, a few degrees); the depth points of the detection then
 pin it down, as classical registration does after PoseCNN or DenseFusion. A pallet is a union of boards and
@@ -16,8 +17,8 @@ From 15-30 degrees or 10-20 cm off, ICP stops in a wrong minimum: `best_landing`
 starts around the pose (`start_offsets`, batched by `refine_poses`) and a fit score picks the landing.
 
 `refine_batch` does all of it for every detection of a frame at once: ICP from the network's poses, the
-gate, the starts and the landings' choice, each one numpy pass over padded arrays (docs/refinement.md).
-The work is then arithmetic on the points, not Python calls: per ICP step, every point's closest box.
+gate, the starts and the landings' choice, each one pass over padded arrays (docs/refinement.md). ICP itself
+runs in the compiled kernel when the package has it, else one numpy pass per step.
 """
 from __future__ import annotations
 
@@ -332,13 +333,14 @@ class _IcpRun:
 def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, iterations: int,
          corr_start_m: float, corr_end_m: float, prior_rot_rad: float, prior_trans_m: float, min_inliers: int,
          tol: float, stop_near: np.ndarray | None, stop_near_m: float, compiled: bool = True,
-         threads: int = 1) -> _IcpRun:
+         threads: int = 1, grid: icp_kernel.BoxGrid | None = None) -> _IcpRun:
     """`refine_pose` for P poses at once, each on its own points: the compiled kernel (`icp_kernel`, the poses
     shared among `threads` threads) when `compiled` and the package has it, else one numpy pass per step for all.
 
     :param T0: (P, 4, 4) starting poses. :param pts: (P, N, 3) camera frame, metres; pose i uses its first
     `n_pts[i]` rows. :param stop_near: None or (P, 4, 4), a pose per start at which it stops.
     :param prior_rot_rad, prior_trans_m: the prior's sigmas: a number, (3,) per pallet-frame axis, or (P, 3).
+    :param grid: the kernel's `icp_kernel.box_grid` of these boxes (fewer boxes measured per point), or None.
     """
     if not 0 < corr_end_m <= corr_start_m:
         raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
@@ -350,7 +352,7 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
                             np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (m, 3)) ** -2], axis=1)
     if compiled and len(boxes64) <= icp_kernel.MAX_BOXES and icp_kernel.available():
         return _IcpRun(*icp_kernel.icp(T0, pts, n_pts, boxes64, prior, iterations, corr_start_m, corr_end_m,
-                                       min_inliers, tol, stop_near, stop_near_m, threads))
+                                       min_inliers, tol, stop_near, stop_near_m, threads, grid))
     boxes = boxes64.astype(_ICP_DTYPE)
     extents = _extents(boxes)
     pts_f = np.asarray(pts, dtype=_ICP_DTYPE)
@@ -497,6 +499,12 @@ class RefineGeometry:
         """The boxes when they hold every model point (see `fit_scores`), else None."""
         return self.boxes_m if self.points_on_boxes else None
 
+    def icp_grid(self) -> icp_kernel.BoxGrid:
+        """The compiled ICP kernel's `icp_kernel.box_grid` of the boxes, built on first use (tens of ms)."""
+        if "icp_grid" not in self._indexes:
+            self._indexes["icp_grid"] = icp_kernel.box_grid(self.boxes_m)
+        return self._indexes["icp_grid"]
+
     def point_index(self, tol_m: float) -> ModelPointIndex:
         """The model points' `ModelPointIndex` for `tol_m`, built on first use."""
         key = float(tol_m)
@@ -641,7 +649,9 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0, o.compiled, o.threads)
+    grid = geom.icp_grid() if o.compiled and len(geom.boxes_m) <= icp_kernel.MAX_BOXES else None
+    base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0, o.compiled, o.threads,
+                grid)
     T = T_net.copy()
     src = np.full(g, FROM_NETWORK)
     fit = np.full((g, 3), np.nan)
@@ -672,7 +682,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
         T_start = (T[run][:, None] @ offsets[None]).reshape(-1, 4, 4)                      # detection-major
         near = np.repeat(T[run], S, axis=0) if o.stop_near_m > 0 else None
         land = _icp(T_start, np.repeat(sub, S, axis=0), np.repeat(n_sub, S), geom.boxes_m, o.iterations,
-                    *_ICP_DEFAULTS, near, o.stop_near_m, o.compiled, o.threads)
+                    *_ICP_DEFAULTS, near, o.stop_near_m, o.compiled, o.threads, grid)
         trusted = ~land.stopped_near & np.isfinite(land.rms_m) & (land.rms_m < o.start_max_rms_m)
         cand = np.flatnonzero(trusted)                                                    # landing rows
         owner = np.concatenate([np.arange(len(run)), cand // S])                         # row in `run`

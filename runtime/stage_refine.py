@@ -61,6 +61,10 @@ class RefinerStage:
         if on and not icp_kernel.available():
             log.warning("the compiled ICP kernel is not built (no C compiler when pallet6d was installed): "
                         "refinement runs in numpy, several times slower")
+        elif on:
+            for g in self._refine_geometry:         # the kernel's box grids now, not on the first frame
+                if g is not None and len(g.boxes_m) <= icp_kernel.MAX_BOXES:
+                    g.icp_grid()
 
     @property
     def refines_type(self) -> tuple[bool, ...]:

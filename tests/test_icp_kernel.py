@@ -203,3 +203,52 @@ def test_without_the_kernel_the_estimator_warns_and_gives_the_same_poses(monkeyp
     assert len(compiled.poses) == len(numpy.poses) >= 3
     for a, b in zip(compiled.poses, numpy.poses):
         np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet, atol=1e-4)
+
+
+@pytest.mark.parametrize("model", ["epal", "gma"])
+def test_box_grid_lists_the_closest_box_of_every_point(model):
+    """Random points over the grid (and on cell borders): the box `closest_on_boxes` picks is in the cell's list."""
+    from pallet6d.runtime.refine import _closest, _extents
+
+    boxes = get_pallet_model(model).boxes_m
+    grid = icp_kernel.box_grid(boxes, margin_m=0.1, cell_m=0.03)
+    rng = np.random.default_rng(4)
+    ext = grid.dims * grid.cell_m
+    pts = grid.origin_m + rng.uniform(0, 1, (20000, 3)) * ext
+    pts[:2000] = grid.origin_m + np.round(pts[:2000] / grid.cell_m) * grid.cell_m - grid.origin_m % grid.cell_m
+    pts = pts[np.all((pts >= grid.origin_m) & (pts < grid.origin_m + ext), axis=1)]
+    q, _, d = _closest(pts, boxes, _extents(boxes))
+    cell = np.floor((pts - grid.origin_m) / grid.cell_m).astype(np.int64)
+    flat = np.ravel_multi_index(cell.T, tuple(grid.dims))
+    for i in range(len(pts)):
+        listed = grid.lists[grid.offsets[flat[i]]:grid.offsets[flat[i] + 1]]
+        lo, hi = boxes[listed, 0], boxes[listed, 1]
+        on_listed = np.all((q[i] >= lo - 1e-9) & (q[i] <= hi + 1e-9), axis=1)
+        assert on_listed.any(), f"point {pts[i]}: its closest point {q[i]} is on no listed box {listed}"
+    assert np.all(np.diff(grid.offsets) >= 1) and np.diff(grid.offsets).mean() < 0.25 * len(boxes)
+
+
+@needs_kernel
+def test_kernel_with_the_grid_gives_the_same_runs(icp_inputs):
+    T0, pts, n_pts = icp_inputs
+    args = (T0, pts, n_pts, EPAL.boxes_m, np.full((len(T0), 6), 100.0), 20, 0.08, 0.015, 30, 1e-4, None, 0.0)
+    plain = icp_kernel.icp(*args)
+    gridded = icp_kernel.icp(*args, grid=icp_kernel.box_grid(EPAL.boxes_m))
+    for a, b in zip(plain, gridded):
+        np.testing.assert_array_equal(a, b)
+
+
+@needs_kernel
+def test_kernel_refuses_a_grid_of_other_boxes():
+    grid = icp_kernel.box_grid(EPAL.boxes_m)
+    with pytest.raises(ValueError, match="grid"):
+        icp_kernel.icp(np.eye(4)[None], np.zeros((1, 5, 3)), np.array([5]), EPAL.boxes_m[:3], np.ones(6), 5, 0.08,
+                       0.015, 3, 1e-4, None, 0.0, grid=grid)
+
+
+@pytest.mark.parametrize("boxes, kwargs, match", [
+    (np.zeros((0, 2, 3)), {}, "boxes_m"), (np.zeros((2, 3)), {}, "boxes_m"),
+    (EPAL.boxes_m, {"cell_m": 0.0}, "cell_m"), (EPAL.boxes_m, {"margin_m": -1.0}, "margin_m")])
+def test_box_grid_bad_input(boxes, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        icp_kernel.box_grid(boxes, **kwargs)
