@@ -188,8 +188,8 @@ def to_markdown(res: dict) -> str:
     lines = [f"# Batched refinement vs detection by detection ({res['bundle']}, {res['precision']})", "",
              "All paths on the same recorded network poses and points; CPU time per frame of the refinement stage "
              "alone (ICP, starts, fit scores), milliseconds, one process on a shared 2-core machine (noisy; the "
-             "paths alternate frame by frame, so they see the same load). max dt / drot / dfit: the batch's "
-             "largest difference from the per-detection path."
+             "paths alternate frame by frame, so they see the same load; the compiled ICP kernel's threads count "
+             "together). max dt / drot / dfit: the batch's largest difference from the per-detection path."
              + (f" baseline: `refine_batch` as of `{base}`, with its largest pose difference from the batch." if base
                 else ""), "",
              "| set | pallets | frames | max dt mm | max drot deg | max dfit | per-detection p50 | batch p50 | "
