@@ -97,15 +97,22 @@ def box_grid(boxes_m: np.ndarray, margin_m: float = 0.1, cell_m: float = 0.03) -
     origin = boxes[:, 0].min(0) - margin_m
     dims = np.ceil((boxes[:, 1].max(0) + margin_m - origin) / cell_m).astype(np.int64)
     idx = np.stack(np.meshgrid(*(np.arange(d) for d in dims), indexing="ij"), -1).reshape(-1, 3)
-    c_lo = (origin + idx * cell_m)[:, None]                                   # (cells, 1, 3)
+    c_lo = origin + idx * cell_m                                              # (cells, 3)
     c_hi = c_lo + cell_m
-    lo, hi = boxes[None, :, 0], boxes[None, :, 1]                             # (1, k, 3)
-    lower = np.sqrt((np.maximum(np.maximum(lo - c_hi, c_lo - hi), 0.0) ** 2).sum(-1))       # (cells, k)
-    gap_far = np.maximum(np.maximum(lo - c_lo, c_lo - hi), np.maximum(lo - c_hi, c_hi - hi))
-    upper = np.sqrt((np.maximum(gap_far, 0.0) ** 2).sum(-1))
-    upper = np.where(lower > 0.0, upper, np.maximum(upper, (hi - lo).min(-1) / 2))
+
+    def bounds(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(cells,) smallest and largest distance, as the kernel measures it, from the cells' points to one box."""
+        lower = np.sqrt((np.maximum(np.maximum(lo - c_hi, c_lo - hi), 0.0) ** 2).sum(-1))
+        gap_far = np.maximum(np.maximum(lo - c_lo, c_lo - hi), np.maximum(lo - c_hi, c_hi - hi))
+        upper = np.sqrt((np.maximum(gap_far, 0.0) ** 2).sum(-1))
+        return lower, np.where(lower > 0.0, upper, np.maximum(upper, (hi - lo).min() / 2))
+
+    # one box at a time: (cells, k, 3) temporaries would cost tens of MB of peak memory on a forklift computer
+    nearest_far = np.full(len(idx), np.inf)
+    for lo, hi in boxes:
+        nearest_far = np.minimum(nearest_far, bounds(lo, hi)[1])
     # 1e-5 m: float32 rounding in the kernel (its points and boxes) can only add boxes, never drop the closest
-    listed = lower <= upper.min(1, keepdims=True) + 1e-5
+    listed = np.stack([bounds(lo, hi)[0] <= nearest_far + 1e-5 for lo, hi in boxes], 1)     # (cells, k)
     offsets = np.zeros(len(listed) + 1, dtype=np.int32)
     np.cumsum(listed.sum(1), out=offsets[1:])
     lists = np.nonzero(listed)[1].astype(np.uint8)                            # row-major: ascending per cell
