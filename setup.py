@@ -3,8 +3,9 @@
 `pyproject.toml`'s `[tool.setuptools.package-dir]` maps each top-level folder to `pallet6d.<name>`
 (`pallet6d.runtime` -> `runtime/`, ...). setuptools' own discovery cannot add that prefix, so this file
 finds every package under each mapped folder (a folder with `__init__.py`) and names it under its
-mapping: a new subpackage ships in every install without a list to update. It also declares the one compiled part, refinement's ICP kernel (`runtime/icp_kernel.c`, loaded with ctypes
-by `pallet6d.runtime.icp_kernel`): an optional extension, so that an install without a C compiler still works
+mapping: a new subpackage ships in every install without a list to update. It also declares the one compiled
+part, the refinement kernel (`runtime/refine_kernel.c`: ICP and fit scores, loaded with ctypes by
+`pallet6d.runtime.refine_kernel`): an optional extension, so that an install without a C compiler still works
 (refinement then runs in numpy). Everything else about the distribution is in `pyproject.toml`.
 """
 from __future__ import annotations
@@ -42,10 +43,10 @@ def discover_packages(root: Path = ROOT) -> list[str]:
 # Plain C, no Python C API. -ffp-contract=off: no fused multiply-adds, so the kernel's float arithmetic rounds as
 # the numpy path's does on every machine; no floating-point exceptions or errno (nothing reads them), which lets
 # the compiler vectorise the comparisons and inline sqrt.
-ICP_KERNEL = Extension("pallet6d.runtime._icp_kernel", sources=["runtime/icp_kernel.c"], libraries=["m", "pthread"],
-                       extra_compile_args=["-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno"],
-                       optional=True)
+REFINE_KERNEL = Extension("pallet6d.runtime._refine_kernel", sources=["runtime/refine_kernel.c"],
+                          libraries=["m", "pthread"], optional=True,
+                          extra_compile_args=["-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno"])
 
 
 if __name__ == "__main__":
-    setup(packages=discover_packages(), ext_modules=[ICP_KERNEL])
+    setup(packages=discover_packages(), ext_modules=[REFINE_KERNEL])

@@ -1,8 +1,8 @@
 """Latency of the runtime per stage and end to end, on this machine's cores (never run by the tests).
 
 For each bundle x precision (fp32, int8) x threads (1, 2) x pallets (1, 4) [x extra ICP starts,
-`--refine-starts 0 6 10`, default the estimator's] [x refinement's ICP, `--icp compiled numpy`: the compiled kernel
-or numpy, default the kernel]: `--frames` frames of a
+`--refine-starts 0 6 10`, default the estimator's] [x refinement's ICP and fit scores, `--kernel compiled numpy`: the
+compiled kernel or numpy, default the kernel]: `--frames` frames of a
 1224x370 synthetic warehouse scene with at least P pallets (`_scene`); the detector runs on the whole frame, and
 the pose stage gets exactly P pallets (the scene's P most visible ground-truth boxes, so the count does not
 depend on a random-init detector). Reports p50/p95/p99 in milliseconds per stage and end to end, the same
@@ -71,15 +71,15 @@ def _detector_ms(est, rgb) -> dict[str, float]:
 
 
 def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes,
-                  refine_starts: int, pallet_lanes: int = 1, icp: str = "compiled") -> dict:
+                  refine_starts: int, pallet_lanes: int = 1, kernel: str = "compiled") -> dict:
     from dataclasses import replace
 
     from pallet6d.runtime.estimator import PalletEstimator
 
     est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
                                       refine_starts=refine_starts, pallet_lanes=pallet_lanes)
-    # "numpy": the refinement's ICP without the compiled kernel (the same poses), to compare in one run
-    est.refiner.refine_options = replace(est.refiner.refine_options, compiled=icp == "compiled")
+    # "numpy": refinement (ICP and fit scores) without the compiled kernel (the same poses), to compare in one run
+    est.refiner.refine_options = replace(est.refiner.refine_options, compiled=kernel == "compiled")
     scores = np.linspace(0.9, 0.5, pallets)
     samples: dict[str, list[float]] = {s: [] for s in STAGES}
     for i in range(frames + 5):
@@ -168,7 +168,7 @@ def run_info(bundles: list[str]) -> dict:
 
     import onnxruntime
 
-    from pallet6d.runtime import icp_kernel
+    from pallet6d.runtime import refine_kernel
     from pallet6d.runtime.bundle import load_bundle
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -177,7 +177,7 @@ def run_info(bundles: list[str]) -> dict:
             "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "git_commit": commit,
             "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(),
             "python": platform.python_version(), "onnxruntime": onnxruntime.__version__, "numpy": np.__version__,
-            "icp_kernel": icp_kernel.available(),
+            "refine_kernel": refine_kernel.available(),
             "bundles": {b.config: {"name": b.name, "random_init": bool(b.provenance.get("random_init"))}
                         for b in map(load_bundle, bundles)}}
 
@@ -187,10 +187,10 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
                         for c, v in info["bundles"].items())
     lines = ["# Runtime latency (ms, 1224x370, this machine)", "",
              f"`{info['command']}` at {info['git_commit']} on {info['date_utc']}; {info['cpus']} CPUs, "
-             f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}, compiled ICP kernel "
-             f"{'built' if info.get('icp_kernel') else 'not built'}. Weights: {weights} "
+             f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}, compiled refinement kernel "
+             f"{'built' if info.get('refine_kernel') else 'not built'}. Weights: {weights} "
              "(latency does not depend on the weights' values).", "",
-             "| bundle | precision | threads | lanes | pallets | ICP | ICP starts | "
+             "| bundle | precision | threads | lanes | pallets | kernel | ICP starts | "
              + " | ".join(f"{s} p50" for s in STAGES[:-1])
              + " | total p50 | total p95 | total p99 | torch eager nets p50 | onnx nets p50 | torch/onnx |",
              "|" + "---|" * (7 + len(STAGES) - 1 + 6)]
@@ -199,7 +199,7 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
         nets = s["detector"]["p50"] + s["fusion"]["p50"] + s["pose"]["p50"]
         t = r.get("torch_eager_nets")
         lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r.get('pallet_lanes', 1)} | "
-                     f"{r['pallets']} | {r.get('icp', 'numpy')} | {r['refine_starts']} | "
+                     f"{r['pallets']} | {r.get('kernel', 'numpy')} | {r['refine_starts']} | "
                      + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
                      + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
                      + (f"{t['p50']:.1f} | {nets:.1f} | {t['p50'] / nets:.2f} |" if t else f"- | {nets:.1f} | - |"))
@@ -223,13 +223,14 @@ def main() -> int:
                     help="extra ICP starts to measure (default: EstimatorOptions.refine_starts)")
     ap.add_argument("--pallet-lanes", type=int, nargs="+", default=[1],
                     help="EstimatorOptions.pallet_lanes to measure (default 1)")
-    ap.add_argument("--icp", nargs="+", choices=["compiled", "numpy"], default=["compiled"],
-                    help="refinement's ICP: the compiled kernel (when built) and/or numpy (default compiled)")
+    ap.add_argument("--kernel", nargs="+", choices=["compiled", "numpy"], default=["compiled"],
+                    help="refinement (ICP, fit scores) in the compiled kernel (when built) and/or numpy "
+                         "(default compiled)")
     ap.add_argument("--no-torch", action="store_true", help="skip the torch eager comparison")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = ap.parse_args()
 
-    from pallet6d.runtime import icp_kernel
+    from pallet6d.runtime import refine_kernel
     from pallet6d.runtime.bundle import load_bundle
     from pallet6d.runtime.estimator import EstimatorOptions
 
@@ -243,13 +244,13 @@ def main() -> int:
                 continue
             footprints[f"{b.config}|{precision}"] = footprint(bundle, precision, max(args.pallets))
             for threads in args.threads:
-                for pallets, starts, lanes, icp in itertools.product(args.pallets, starts_list, args.pallet_lanes,
-                                                                     args.icp):
+                for pallets, starts, lanes, kernel in itertools.product(args.pallets, starts_list, args.pallet_lanes,
+                                                                        args.kernel):
                     frame, boxes = _scene(pallets)
                     stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes, starts,
-                                           lanes, icp)
+                                           lanes, kernel)
                     r = {"bundle": b.config, "precision": precision, "threads": threads, "pallet_lanes": lanes,
-                         "pallets": pallets, "icp": icp if icp_kernel.available() else "numpy",
+                         "pallets": pallets, "kernel": kernel if refine_kernel.available() else "numpy",
                          "refine_starts": starts, "frames": args.frames, "stages": stages}
                     if not args.no_torch and precision == "fp32":
                         r["torch_eager_nets"] = bench_torch(b.config, threads, pallets, max(20, args.frames // 4))

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import refine_kernel
 from .geometry import check_K
 from .results import FitScore
 
@@ -171,8 +172,11 @@ def check_poses(T: np.ndarray, name: str) -> np.ndarray:
 def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarray | None, model_pts: np.ndarray,
                depth_m: np.ndarray, K: np.ndarray, tol_m: float = 0.04,
                model_boxes_m: np.ndarray | None = None, points_in_boxes_m: np.ndarray | None = None,
-               point_index: ModelPointIndex | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`fit_score` of P poses at once, each against its own observed points (one numpy pass).
+               point_index: ModelPointIndex | None = None,
+               compiled: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`fit_score` of P poses at once, each against its own observed points: in the compiled kernel
+    (`refine_kernel.fit`) when `compiled`, the package has it and `depth_m` is C-contiguous float32 (as the
+    estimator's is), else one numpy pass (the same scores, up to rounding at the tolerances' edges).
 
     :param T_cam_model: (P, 4, 4) poses to check.
     :param pts_obs_cam: (P, N, 3) observed points per pose, camera frame, metres; pose i uses its first
@@ -197,17 +201,25 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
     N = obs.shape[1]
     n_obs = np.full(P, N) if n_obs is None else np.asarray(n_obs, dtype=np.int64).reshape(P)
     model = np.asarray(model_pts, dtype=np.float64).reshape(-1, 3)
+    if model_boxes_m is not None:
+        boxes = np.asarray(model_boxes_m, dtype=np.float64)
+        lo, hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
+    else:
+        lo, hi = model.min(0), model.max(0)
+    depth = np.asarray(depth_m)
+    if compiled and depth.dtype == np.float32 and depth.ndim == 2 and depth.flags.c_contiguous \
+            and refine_kernel.available():
+        index = point_index if point_index is not None and point_index.tol_m >= tol_m else None
+        inlier, violation = refine_kernel.fit(T, obs, n_obs, model, lo, hi, model_boxes_m,
+                                           None if model_boxes_m is not None else points_in_boxes_m, index, depth,
+                                           K, tol_m)
+        return inlier, violation, inlier * (1.0 - violation)
 
     R, t = T[:, :3, :3], T[:, :3, 3]
     obs_model = (obs - t[:, None]) @ R                                      # (P, N, 3) model frame
     valid = np.arange(N)[None] < n_obs[:, None]
     # only points within tol_m of the model's bounding box can be inliers: the rest of the box's
     # background skips the exact distance
-    if model_boxes_m is not None:
-        boxes = np.asarray(model_boxes_m, dtype=np.float64)
-        lo, hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
-    else:
-        lo, hi = model.min(0), model.max(0)
     gap = np.maximum(np.maximum(lo - obs_model, obs_model - hi), 0.0)
     cand = valid & ((gap * gap).sum(-1) <= (tol_m + 1e-6) ** 2)
     if model_boxes_m is None and points_in_boxes_m is not None and cand.any():

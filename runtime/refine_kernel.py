@@ -1,9 +1,10 @@
-"""The compiled ICP kernel (`icp_kernel.c`): refinement's point-to-plane ICP at compiled speed.
+"""The compiled refinement kernel (`refine_kernel.c`): refinement's point-to-plane ICP (`icp`) and the fit
+scores (`fit`) at compiled speed.
 
 The package builds it as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
 a library of a few tens of kB, loaded in well under a millisecond. Where no C compiler was at hand when the
-package was built, `available()` is False and `refine` runs the same algorithm in numpy (several times
-slower; the estimator logs a warning then, and the latency benchmark says which one ran).
+package was built, `available()` is False and `refine` and `fit` run the same algorithms in numpy (several
+times slower; the estimator logs a warning then, and the latency benchmark says which one ran).
 """
 from __future__ import annotations
 
@@ -15,12 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "box_grid", "BoxGrid", "icp", "library_path", "MAX_BOXES"]
+__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES"]
 
 log = logging.getLogger(__name__)
 
-_MODULE = "pallet6d.runtime._icp_kernel"
-MAX_BOXES = 256                      # boxes of one pallet model the kernel takes (icp_kernel.c)
+_MODULE = "pallet6d.runtime._refine_kernel"
+MAX_BOXES = 256                      # boxes of one pallet model the kernel takes (refine_kernel.c)
 _f64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _f32 = np.ctypeslib.ndpointer(np.float32, flags="C_CONTIGUOUS")
 _i64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
@@ -48,11 +49,23 @@ def _function():
     try:
         fn = ctypes.CDLL(path).pallet6d_icp
     except (OSError, AttributeError) as e:
-        log.warning("compiled ICP kernel %s does not load (%s): refinement runs in numpy", path, e)
+        log.warning("compiled refinement kernel %s does not load (%s): refinement runs in numpy", path, e)
         return None
     fn.restype = ctypes.c_int
     fn.argtypes = [_i, _i, _f32, _i64, _i, _f64, _f64, _f64, _i, _d, _d, _i, _d, _ptr, _d,
                    _ptr, _d, _ptr, _ptr, _ptr, _i, _f64, _i64, _i64, _f64, _u8, _u8]
+    return fn
+
+
+@functools.lru_cache(maxsize=1)
+def _fit_function():
+    """The kernel's fit-score function with its argument types, or None (see `_function`)."""
+    if _function() is None:
+        return None
+    fn = ctypes.CDLL(library_path()).pallet6d_fit
+    fn.restype = ctypes.c_int
+    fn.argtypes = [_i, _i, _f64, _i64, _f64, _i, _f64, _f64, _f64, _i, _ptr, _i, _ptr, _ptr, _d, _ptr, _ptr, _ptr,
+                   _i, _f32, _i, _i, _f64, _d, _i, _f64, _f64]
     return fn
 
 
@@ -137,7 +150,7 @@ def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
     """
     fn = _function()
     if fn is None:
-        raise RuntimeError("the compiled ICP kernel is not built (pallet6d.runtime.icp_kernel.available())")
+        raise RuntimeError("the compiled refinement kernel is not built (pallet6d.runtime.refine_kernel.available())")
     T0 = np.ascontiguousarray(T0, dtype=np.float64)
     m = len(T0)
     pts = np.ascontiguousarray(pts, dtype=np.float32)
@@ -167,7 +180,49 @@ def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
                                    g[3].ctypes.data)),
             max(int(threads), 1), T_out, done, n_in, rms, converged, stopped)
     if rc == -1:
-        raise ValueError(f"the compiled ICP kernel takes 1 to {MAX_BOXES} boxes, got {len(boxes)}")
+        raise ValueError(f"the compiled refinement kernel takes 1 to {MAX_BOXES} boxes, got {len(boxes)}")
     if rc != 0:
-        raise MemoryError("the compiled ICP kernel could not allocate its work area")
+        raise MemoryError("the compiled refinement kernel could not allocate its work area")
     return T_out, done, n_in, rms, converged.astype(bool), stopped.astype(bool)
+
+
+def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+        boxes_m: np.ndarray | None, in_boxes_m: np.ndarray | None, index, depth_m: np.ndarray, K: np.ndarray,
+        tol_m: float, cell_px: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """`fit.fit_scores`' inlier fractions and free-space violations of P poses (its arguments, checked there).
+
+    :param T: (P, 4, 4) model -> camera. :param obs: (P, N, 3) camera frame; pose i uses its first `n_obs[i]` rows.
+    :param model_pts: (m, 3) model frame. :param lo, hi: (3,) the box around the model for the inlier pre-test.
+    :param boxes_m: (k, 2, 3) distances to these boxes, or None for distances to the points (then `in_boxes_m`,
+        optional, a pre-test, and `index`, an optional `fit.ModelPointIndex`, the search).
+    :param depth_m: (H, W) float32 metres, C-contiguous (the caller converts). :param K: (3, 3).
+    :return: (inlier_fraction (P,), free_space_violation (P,)).
+    """
+    fn = _fit_function()
+    if fn is None:
+        raise RuntimeError("the compiled kernel is not built (pallet6d.runtime.refine_kernel.available())")
+    c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
+    T, obs, model, lo, hi, K = c64(T), c64(obs), c64(model_pts), c64(lo), c64(hi), c64(K)
+    n_obs = np.ascontiguousarray(n_obs, dtype=np.int64)
+    if depth_m.dtype != np.float32 or not depth_m.flags.c_contiguous:
+        raise ValueError("depth_m must be C-contiguous float32")
+    keep = []                                              # arrays passed by address must outlive the call
+
+    def ptr(a, dtype=np.float64):
+        if a is None:
+            return None
+        a = np.ascontiguousarray(a, dtype=dtype)
+        keep.append(a)
+        return a.ctypes.data
+
+    P = len(T)
+    inlier, violation = np.empty(P), np.empty(P)
+    idx = (None, 0.0, None, None, None, 0) if index is None else (
+        ptr(index.origin), float(index.tol_m), ptr(index.shape, np.int64), ptr(index.row, np.int64),
+        ptr(index.points), int(index.points.shape[1]))
+    rc = fn(P, obs.shape[1], obs, n_obs, T, len(model), model, lo, hi, 0 if boxes_m is None else len(boxes_m),
+            ptr(boxes_m), 0 if in_boxes_m is None else len(in_boxes_m), ptr(in_boxes_m), *idx, depth_m,
+            depth_m.shape[0], depth_m.shape[1], K, float(tol_m), int(cell_px), inlier, violation)
+    if rc != 0:
+        raise MemoryError("the compiled fit-score kernel could not allocate its z-buffer")
+    return inlier, violation

@@ -1,13 +1,14 @@
-/* Robust point-to-plane ICP of observed points onto a union of axis-aligned boxes, compiled.
+/* Refinement's inner loops, compiled: robust point-to-plane ICP of observed points onto a union of axis-aligned
+   boxes (pallet6d_icp), and the fit scores of posed models against the depth (pallet6d_fit).
 
-   The same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
+   ICP is the same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
    per step, every observed point near the model's bounding box is matched with the closest point on the
    boxes' surface; matches within a correspondence distance that shrinks geometrically over the steps count,
    each with a Tukey weight; one Gauss-Newton step with a prior on the starting pose follows. numpy needs
    thousands of small calls per frame for this; here each pose is one loop. Per-point arithmetic in float
    (as the numpy path), sums and the 6x6 solve in double.
 
-   Loaded with ctypes by `icp_kernel.py`; the package builds it as an optional extension (setup.py). */
+   Loaded with ctypes by `refine_kernel.py`; the package builds it as an optional extension (setup.py). */
 #include <math.h>
 #include <pthread.h>
 #include <stdatomic.h>
@@ -304,7 +305,7 @@ static void *icp_worker(void *arg) {
    (NaN when it never stepped), converged and stopped-near flags.
    grid (optional, NULL grid_lists for none): origin (3,) and cell size of a grid over the boxes, pallet frame,
    dims (3,), and per cell (x-major) the ascending indices of the boxes that can be closest to a point in it:
-   lists[offsets[c] .. offsets[c + 1]) (icp_kernel.box_grid); points outside it are measured against every box.
+   lists[offsets[c] .. offsets[c + 1]) (refine_kernel.box_grid); points outside it are measured against every box.
    Returns 0, or -1 when k is out of range (the caller validates everything else). A thread that cannot be
    started leaves its share to the others. */
 int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t *n_pts, int64_t k,
@@ -351,4 +352,150 @@ int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t
         if (started[t]) pthread_join(threads[t], NULL);
     free(job);
     return 0;
+}
+
+/* ---- fit scores ------------------------------------------------------------------------------------------ */
+
+/* Distance from p to a solid union of boxes (0 inside), as fit.distance_to_boxes. */
+static double distance_to_boxes(const double p[3], const double *boxes, int64_t k) {
+    double best = INFINITY;
+    for (int64_t b = 0; b < k; b++) {
+        const double *lo = boxes + 6 * b, *hi = lo + 3;
+        double d2 = 0.0;
+        for (int a = 0; a < 3; a++) {
+            double g = lo[a] - p[a], g2 = p[a] - hi[a];
+            g = g > g2 ? g : g2;
+            g = g > 0.0 ? g : 0.0;
+            d2 += g * g;
+        }
+        best = d2 < best ? d2 : best;
+    }
+    return sqrt(best);
+}
+
+/* The fit score's inputs (see pallet6d_fit). */
+struct fit_model {
+    int64_t m, k, k_in;
+    const double *points, *boxes, *in_boxes, *lo, *hi;
+    const double *idx_origin, *idx_points;            /* ModelPointIndex: padded rows of L points per cell */
+    double idx_cell;
+    const int64_t *idx_shape, *idx_row;
+    int64_t idx_len;
+};
+
+/* Whether model-frame point p is within tol of the model (fit_scores' inlier test, same branches). */
+static int is_inlier(const struct fit_model *f, const double p[3], double tol) {
+    double d2 = 0.0;
+    for (int a = 0; a < 3; a++) {
+        double g = f->lo[a] - p[a], g2 = p[a] - f->hi[a];
+        g = g > g2 ? g : g2;
+        g = g > 0.0 ? g : 0.0;
+        d2 += g * g;
+    }
+    if (!(d2 <= (tol + 1e-6) * (tol + 1e-6))) return 0;  /* beyond the model's bounding box */
+    if (f->boxes) return distance_to_boxes(p, f->boxes, f->k) <= tol;
+    if (f->in_boxes && !(distance_to_boxes(p, f->in_boxes, f->k_in) <= tol + 1e-6)) return 0;
+    double best = INFINITY;
+    if (f->idx_points) {
+        int64_t c = 0;
+        for (int a = 0; a < 3; a++) {
+            double x = floor((p[a] - f->idx_origin[a]) / f->idx_cell);
+            if (!(x >= 0.0 && x < (double)f->idx_shape[a])) return 0;   /* outside the index: no point within */
+            c = c * f->idx_shape[a] + (int64_t)x;
+        }
+        const double *row = f->idx_points + 3 * f->idx_len * f->idx_row[c];
+        for (int64_t j = 0; j < f->idx_len; j++) {
+            double e2 = 0.0;
+            for (int a = 0; a < 3; a++) {
+                double e = row[3 * j + a] - p[a];
+                e2 += e * e;
+            }
+            best = e2 < best ? e2 : best;
+        }
+    } else {
+        for (int64_t j = 0; j < f->m; j++) {
+            double e2 = 0.0;
+            for (int a = 0; a < 3; a++) {
+                double e = f->points[3 * j + a] - p[a];
+                e2 += e * e;
+            }
+            best = e2 < best ? e2 : best;
+        }
+    }
+    return sqrt(best) <= tol;
+}
+
+/* Fit scores of P poses (fit.fit_scores): the fraction of each pose's observed points within tol of the posed
+   model, and the fraction of the model's camera-facing points (a z-buffer of the model on cell_px cells) that
+   lie more than tol in front of valid depth.
+
+   obs: (P, N, 3) camera frame, pose i uses its first n_obs[i]; T: (P, 4, 4) model -> camera; model points (m, 3);
+   lo, hi: (3,) the box around the model for the inlier pre-test; boxes (k, 2, 3): distances to the boxes, or NULL
+   for distances to the points (in_boxes (k_in, 2, 3) or NULL: a pre-test; the index arrays or NULL idx_points: a
+   search over all points); depth (H, W) float metres, 0 = no data; K (3, 3).
+   Returns 0, or -2 when a z-buffer cannot be allocated. */
+int pallet6d_fit(int64_t P, int64_t N, const double *obs, const int64_t *n_obs, const double *T, int64_t m,
+                 const double *points, const double *lo, const double *hi, int64_t k, const double *boxes,
+                 int64_t k_in, const double *in_boxes, const double *idx_origin, double idx_cell,
+                 const int64_t *idx_shape, const int64_t *idx_row, const double *idx_points, int64_t idx_len,
+                 const float *depth, int64_t H, int64_t W, const double *K, double tol, int64_t cell_px,
+                 double *inlier_out, double *violation_out) {
+    struct fit_model f = {m, k, k_in, points, boxes, in_boxes, lo, hi, idx_origin, idx_points, idx_cell, idx_shape,
+                          idx_row, idx_len};
+    const int64_t cells_w = (W + cell_px - 1) / cell_px;
+    int64_t *uv = malloc((size_t)(m > 0 ? m : 1) * 2 * sizeof(int64_t));
+    double *zs = malloc((size_t)(m > 0 ? m : 1) * sizeof(double));
+    if (uv == NULL || zs == NULL) { free(uv); free(zs); return -2; }
+    int rc = 0;
+    for (int64_t i = 0; i < P && rc == 0; i++) {
+        const double *Ti = T + 16 * i;
+        /* inliers: observed points in the model frame, R^T (p - t) */
+        int64_t n_in = 0;
+        for (int64_t j = 0; j < n_obs[i]; j++) {
+            const double *o = obs + 3 * (N * i + j);
+            double d[3] = {o[0] - Ti[3], o[1] - Ti[7], o[2] - Ti[11]}, p[3];
+            for (int a = 0; a < 3; a++) p[a] = d[0] * Ti[a] + d[1] * Ti[4 + a] + d[2] * Ti[8 + a];
+            n_in += is_inlier(&f, p, tol);
+        }
+        inlier_out[i] = n_obs[i] > 0 ? (double)n_in / (double)n_obs[i] : 0.0;
+        /* free space: project the posed model, keep the pixels inside the image */
+        int64_t n = 0, cell_lo = INT64_MAX, cell_hi = -1;
+        for (int64_t j = 0; j < m; j++) {
+            const double *q = points + 3 * j;
+            double c[3];
+            for (int r = 0; r < 3; r++)
+                c[r] = Ti[4 * r] * q[0] + Ti[4 * r + 1] * q[1] + Ti[4 * r + 2] * q[2] + Ti[4 * r + 3];
+            if (!(c[2] > 1e-6)) continue;
+            double u = nearbyint(c[0] * K[0] / c[2] + K[2]), v = nearbyint(c[1] * K[4] / c[2] + K[5]);
+            if (!(u >= 0.0 && u < (double)W && v >= 0.0 && v < (double)H)) continue;
+            uv[2 * n] = (int64_t)u, uv[2 * n + 1] = (int64_t)v, zs[n] = c[2];
+            int64_t cell = (uv[2 * n + 1] / cell_px) * cells_w + uv[2 * n] / cell_px;
+            cell_lo = cell < cell_lo ? cell : cell_lo;
+            cell_hi = cell > cell_hi ? cell : cell_hi;
+            n++;
+        }
+        if (n == 0) { violation_out[i] = 0.0; continue; }
+        int64_t span = cell_hi - cell_lo + 1;
+        double *z_near = malloc((size_t)span * sizeof(double));
+        if (z_near == NULL) { rc = -2; break; }
+        for (int64_t c = 0; c < span; c++) z_near[c] = INFINITY;
+        for (int64_t j = 0; j < n; j++) {
+            int64_t c = (uv[2 * j + 1] / cell_px) * cells_w + uv[2 * j] / cell_px - cell_lo;
+            z_near[c] = zs[j] < z_near[c] ? zs[j] : z_near[c];
+        }
+        int64_t n_use = 0, n_bad = 0;
+        for (int64_t j = 0; j < n; j++) {
+            int64_t c = (uv[2 * j + 1] / cell_px) * cells_w + uv[2 * j] / cell_px - cell_lo;
+            float d_obs = depth[uv[2 * j + 1] * W + uv[2 * j]];
+            if (zs[j] <= z_near[c] + tol && d_obs > 0.0f) {
+                n_use++;
+                n_bad += zs[j] < (double)(d_obs - (float)tol);   /* float32, as numpy subtracts from float32 depth */
+            }
+        }
+        free(z_near);
+        violation_out[i] = n_use > 0 ? (double)n_bad / (double)n_use : 0.0;
+    }
+    free(uv);
+    free(zs);
+    return rc;
 }

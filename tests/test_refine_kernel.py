@@ -1,4 +1,4 @@
-"""The compiled ICP kernel: built where a C compiler is, the same results as refinement's numpy path."""
+"""The compiled refinement kernel: built where a C compiler is, the same results as refinement's numpy path."""
 import logging
 import shutil
 from pathlib import Path
@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pallet6d.runtime import icp_kernel
+from pallet6d.runtime import refine_kernel
 from pallet6d.runtime.geometry import make_T, quat_to_rot
 from pallet6d.runtime.refine import (_ICP_DEFAULTS, RefineGeometry, RefineOptions, _icp, box_points, default_starts,
                                      offsets_from_starts, refine_batch)
@@ -17,7 +17,8 @@ from pallet6d.sim.presets import get_preset  # noqa: E402
 
 EPAL = get_pallet_model("epal")
 GEOM = RefineGeometry(EPAL.surface_points(1000, seed=0), EPAL.boxes_m)
-needs_kernel = pytest.mark.skipif(not icp_kernel.available(), reason="the compiled ICP kernel is not built here")
+needs_kernel = pytest.mark.skipif(not refine_kernel.available(),
+                                  reason="the compiled refinement kernel is not built here")
 
 
 def test_the_kernel_is_built_where_a_c_compiler_is():
@@ -25,13 +26,13 @@ def test_the_kernel_is_built_where_a_c_compiler_is():
     numpy is only for machines without one."""
     if shutil.which("cc") is None and shutil.which("gcc") is None:
         pytest.skip("no C compiler on this machine")
-    path = icp_kernel.library_path()
-    assert path is not None, "pip install -e . did not build pallet6d.runtime._icp_kernel"
-    assert icp_kernel.available()
-    source = Path(icp_kernel.__file__).with_name("icp_kernel.c")
+    path = refine_kernel.library_path()
+    assert path is not None, "pip install -e . did not build pallet6d.runtime._refine_kernel"
+    assert refine_kernel.available()
+    source = Path(refine_kernel.__file__).with_name("refine_kernel.c")
     if source.is_file():                      # a source checkout: the library must be built from today's source
         assert Path(path).stat().st_mtime >= source.stat().st_mtime, \
-            "runtime/icp_kernel.c is newer than its build: run make setup (or pip install -e .)"
+            "runtime/refine_kernel.c is newer than its build: run make setup (or pip install -e .)"
 
 
 def _turn(yaw_deg, shift_m):
@@ -162,17 +163,17 @@ def test_refine_batch_compiled_equals_numpy():
 def test_kernel_bad_input():
     T0 = np.eye(4)[None]
     with pytest.raises(ValueError, match="boxes"):
-        icp_kernel.icp(T0, np.zeros((1, 5, 3)), np.array([5]), np.zeros((icp_kernel.MAX_BOXES + 1, 2, 3)),
+        refine_kernel.icp(T0, np.zeros((1, 5, 3)), np.array([5]), np.zeros((refine_kernel.MAX_BOXES + 1, 2, 3)),
                        np.ones(6), 5, 0.08, 0.015, 3, 1e-4, None, 0.0)
     with pytest.raises(ValueError, match="n_pts"):
-        icp_kernel.icp(T0, np.zeros((1, 5, 3)), np.array([6]), EPAL.boxes_m, np.ones(6), 5, 0.08, 0.015, 3, 1e-4,
+        refine_kernel.icp(T0, np.zeros((1, 5, 3)), np.array([6]), EPAL.boxes_m, np.ones(6), 5, 0.08, 0.015, 3, 1e-4,
                        None, 0.0)
 
 
 def test_more_boxes_than_the_kernel_takes_run_in_numpy():
     """A pallet model of more boards than the kernel's limit still refines (numpy); so does every model
     where the kernel is not built."""
-    boxes = np.repeat(EPAL.boxes_m, icp_kernel.MAX_BOXES // len(EPAL.boxes_m) + 1, axis=0)
+    boxes = np.repeat(EPAL.boxes_m, refine_kernel.MAX_BOXES // len(EPAL.boxes_m) + 1, axis=0)
     T0 = make_T(np.eye(3), np.array([0.0, 0.0, 3.0]))[None]
     rng = np.random.default_rng(3)
     pts_pal = EPAL.surface_points(300, seed=1)
@@ -195,10 +196,10 @@ def test_without_the_kernel_the_estimator_warns_and_gives_the_same_poses(monkeyp
     frame = sim_generate.generate_frame(get_preset("virtual-clean"), seed=0)
     compiled = PalletEstimator.from_bundle(bundle, threads=2, precision="int8").estimate(frame.rgb, frame.depth_m,
                                                                                           frame.K)
-    monkeypatch.setattr(icp_kernel, "available", lambda: False)
+    monkeypatch.setattr(refine_kernel, "available", lambda: False)
     with caplog.at_level(logging.WARNING, logger="pallet6d.runtime.stage_refine"):
         est = PalletEstimator.from_bundle(bundle, threads=2, precision="int8")
-    assert "compiled ICP kernel is not built" in caplog.text
+    assert "compiled refinement kernel is not built" in caplog.text
     numpy = est.estimate(frame.rgb, frame.depth_m, frame.K)
     assert len(compiled.poses) == len(numpy.poses) >= 3
     for a, b in zip(compiled.poses, numpy.poses):
@@ -211,7 +212,7 @@ def test_box_grid_lists_the_closest_box_of_every_point(model):
     from pallet6d.runtime.refine import _closest, _extents
 
     boxes = get_pallet_model(model).boxes_m
-    grid = icp_kernel.box_grid(boxes, margin_m=0.1, cell_m=0.03)
+    grid = refine_kernel.box_grid(boxes, margin_m=0.1, cell_m=0.03)
     rng = np.random.default_rng(4)
     ext = grid.dims * grid.cell_m
     pts = grid.origin_m + rng.uniform(0, 1, (20000, 3)) * ext
@@ -232,17 +233,17 @@ def test_box_grid_lists_the_closest_box_of_every_point(model):
 def test_kernel_with_the_grid_gives_the_same_runs(icp_inputs):
     T0, pts, n_pts = icp_inputs
     args = (T0, pts, n_pts, EPAL.boxes_m, np.full((len(T0), 6), 100.0), 20, 0.08, 0.015, 30, 1e-4, None, 0.0)
-    plain = icp_kernel.icp(*args)
-    gridded = icp_kernel.icp(*args, grid=icp_kernel.box_grid(EPAL.boxes_m))
+    plain = refine_kernel.icp(*args)
+    gridded = refine_kernel.icp(*args, grid=refine_kernel.box_grid(EPAL.boxes_m))
     for a, b in zip(plain, gridded):
         np.testing.assert_array_equal(a, b)
 
 
 @needs_kernel
 def test_kernel_refuses_a_grid_of_other_boxes():
-    grid = icp_kernel.box_grid(EPAL.boxes_m)
+    grid = refine_kernel.box_grid(EPAL.boxes_m)
     with pytest.raises(ValueError, match="grid"):
-        icp_kernel.icp(np.eye(4)[None], np.zeros((1, 5, 3)), np.array([5]), EPAL.boxes_m[:3], np.ones(6), 5, 0.08,
+        refine_kernel.icp(np.eye(4)[None], np.zeros((1, 5, 3)), np.array([5]), EPAL.boxes_m[:3], np.ones(6), 5, 0.08,
                        0.015, 3, 1e-4, None, 0.0, grid=grid)
 
 
@@ -251,4 +252,53 @@ def test_kernel_refuses_a_grid_of_other_boxes():
     (EPAL.boxes_m, {"cell_m": 0.0}, "cell_m"), (EPAL.boxes_m, {"margin_m": -1.0}, "margin_m")])
 def test_box_grid_bad_input(boxes, kwargs, match):
     with pytest.raises(ValueError, match=match):
-        icp_kernel.box_grid(boxes, **kwargs)
+        refine_kernel.box_grid(boxes, **kwargs)
+
+
+@pytest.fixture(scope="module")
+def fit_inputs():
+    """Poses of a frame's pallets (right, and 5-20 cm / degrees off) with the box's depth points as observations,
+    and last a pose behind the camera without observations."""
+    frame = sim_generate.generate_frame(get_preset("virtual-occluded"), seed=2)
+    rng = np.random.default_rng(6)
+    T, rows = [], []
+    for g in [g for g in frame.pallets if g.bbox_visib_xywh is not None and g.visib_fract >= 0.1][:4]:
+        x, y, w, h = g.bbox_visib_xywh
+        pts = box_points(frame.depth_m, frame.K, np.array([x, y, x + w, y + h], float), 600, (0.1, 10.0))
+        for yaw, shift in ((0.0, 0.0), (5.0, 0.05), (20.0, 0.2)):
+            T.append(g.T_cam_pallet @ _turn(rng.choice([-1, 1]) * yaw, rng.uniform(-shift, shift, 3)))
+            rows.append(pts[rng.integers(0, len(pts), 256)])
+    T.append(make_T(np.eye(3), np.array([0.0, 0.0, -3.0])))
+    rows.append(rows[0])
+    n_obs = np.array([256] * (len(rows) - 1) + [0])
+    return np.stack(T), np.stack(rows), n_obs, frame.depth_m.astype(np.float32), frame.K
+
+
+@needs_kernel
+@pytest.mark.parametrize("mode", ["boxes", "index", "index-and-boxes-pretest", "all-points"])
+def test_fit_kernel_scores_as_numpy_does(fit_inputs, mode):
+    from pallet6d.runtime.fit import fit_scores
+
+    T, obs, n_obs, depth_m, K = fit_inputs
+    kw = {"boxes": {"model_boxes_m": EPAL.boxes_m},
+          "index": {"point_index": GEOM.point_index(0.04)},
+          "index-and-boxes-pretest": {"point_index": GEOM.point_index(0.04), "points_in_boxes_m": GEOM.in_boxes},
+          "all-points": {}}[mode]
+    args = (T, obs, n_obs, GEOM.model_points_m, depth_m, K, 0.04)
+    kernel = fit_scores(*args, **kw)
+    numpy = fit_scores(*args, **kw, compiled=False)
+    np.testing.assert_allclose(kernel[0], numpy[0], atol=1.5 / 256)           # at most one point at the edge
+    np.testing.assert_allclose(kernel[1], numpy[1], atol=0.002)
+    assert kernel[0][-1] == 0.0 and kernel[1][-1] == 0.0       # behind the camera, no observations
+    assert kernel[0][:-1].max() > 0.5 and kernel[1][:-1].max() > 0.05         # the scores say something
+
+
+def test_fit_scores_take_numpy_for_other_depth_types(fit_inputs):
+    """float64 depth (or a view that is not contiguous) is scored in numpy: the kernel reads float32 only."""
+    from pallet6d.runtime.fit import fit_scores
+
+    T, obs, n_obs, depth_m, K = fit_inputs
+    a = fit_scores(T, obs, n_obs, GEOM.model_points_m, depth_m.astype(np.float64), K, 0.04, EPAL.boxes_m)
+    b = fit_scores(T, obs, n_obs, GEOM.model_points_m, depth_m, K, 0.04, EPAL.boxes_m, compiled=False)
+    for x, y in zip(a, b):
+        np.testing.assert_allclose(x, y, atol=0.002)
