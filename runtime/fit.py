@@ -188,6 +188,7 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
         `tol_m` from these boxes is farther from every model point too and skips the nearest-point search.
     :param point_index: optional `ModelPointIndex` of `model_pts` for at least `tol_m`: distances to the
         points come from it instead of a search over all of them (same inliers).
+    :param compiled: False scores in numpy even where the compiled kernel could.
     :return: (inlier_fraction, free_space_violation, score), each (P,).
     """
     if not tol_m > 0:
@@ -200,6 +201,8 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
         raise ValueError(f"pts_obs_cam must be ({P}, N, 3), got shape {obs.shape}")
     N = obs.shape[1]
     n_obs = np.full(P, N) if n_obs is None else np.asarray(n_obs, dtype=np.int64).reshape(P)
+    if np.any(n_obs < 0) or np.any(n_obs > N):
+        raise ValueError(f"n_obs must be in [0, {N}] (the rows of pts_obs_cam), got {n_obs.min()}..{n_obs.max()}")
     model = np.asarray(model_pts, dtype=np.float64).reshape(-1, 3)
     if model_boxes_m is not None:
         boxes = np.asarray(model_boxes_m, dtype=np.float64)

@@ -278,7 +278,8 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
                  prior_trans_m: float = 0.1, min_inliers: int = 30, tol: float = 1e-4,
                  stop_near: np.ndarray | None = None, stop_near_m: float = 0.005,
                  compiled: bool = True) -> list[RefineResult]:
-    """`refine_pose` from several starting poses on the same points at once (one numpy pass per step).
+    """`refine_pose` from several starting poses on the same points at once (one kernel call, or one numpy pass
+    per step).
 
     Each start runs exactly as `refine_pose` would run it alone (its own prior, stopping and result).
 
@@ -525,8 +526,8 @@ class RefineOptions:
     :ivar select_tol_m: tolerance of the fit score that compares the starts' landings, metres.
     :ivar start_max_rms_m: a landing counts only when its ICP RMS is below this, metres.
     :ivar stop_near_m: a start that comes this close to the pose it surrounds stops (0: all run to the end).
-    :ivar compiled: ICP in the compiled kernel when the package has it (`refine_kernel`); False: in numpy (the
-        same algorithm, slower; poses within micrometres).
+    :ivar compiled: ICP and fit scores in the compiled kernel when the package has it (`refine_kernel`); False: in
+        numpy (the same algorithms, slower; poses within micrometres).
     :ivar threads: the compiled kernel shares a frame's ICP runs among this many threads (same poses).
     """
 

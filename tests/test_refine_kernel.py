@@ -302,3 +302,13 @@ def test_fit_scores_take_numpy_for_other_depth_types(fit_inputs):
     b = fit_scores(T, obs, n_obs, GEOM.model_points_m, depth_m, K, 0.04, EPAL.boxes_m, compiled=False)
     for x, y in zip(a, b):
         np.testing.assert_allclose(x, y, atol=0.002)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("n_obs", [[257], [-1]])
+def test_fit_scores_refuse_counts_beyond_the_rows(fit_inputs, compiled, n_obs):
+    from pallet6d.runtime.fit import fit_scores
+
+    T, obs, _, depth_m, K = fit_inputs
+    with pytest.raises(ValueError, match="n_obs"):
+        fit_scores(T[:1], obs[:1], np.array(n_obs), GEOM.model_points_m, depth_m, K, 0.04, compiled=compiled)
