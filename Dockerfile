@@ -12,7 +12,7 @@
 
 # --- the wheels, built and checked as `make wheels` does -------------------------------------------------
 FROM python:3.11-slim-bookworm AS wheels
-# a C compiler for the refinement kernel (runtime/refine_kernel.c); the edge image gets the built wheel only
+# a C compiler for the runtime's kernels (runtime/kernels.c); the edge image gets the built wheel only
 RUN apt-get update \
     && apt-get install -y --no-install-recommends gcc libc6-dev \
     && rm -rf /var/lib/apt/lists/*

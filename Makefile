@@ -7,7 +7,7 @@ PY        := .venv/bin/python
 STAMP     := .venv/.installed
 SUDO      := $(shell [ "$$(id -u)" = "0" ] || echo sudo)
 # Debian packages: what the Python dependencies need at import time (pyrealsense2 -> libusb), and a C compiler for
-# the refinement kernel (without one the install still works, with refinement in numpy).
+# the runtime's compiled kernels (without one the install still works, with refinement in numpy).
 DEB_PKGS  := libusb-1.0-0 gcc libc6-dev
 RUN_OUT   ?= out/demo
 BUNDLE    ?= models/epal-default
@@ -21,8 +21,8 @@ DEMO_REC  := $(RUN_OUT)/recording
 
 setup: $(STAMP)
 
-# setup.py and the C source: the editable install builds the refinement kernel in place (runtime/*.so)
-$(STAMP): pyproject.toml setup.py runtime/refine_kernel.c
+# setup.py and the C source: the editable install builds the compiled kernels in place (runtime/*.so)
+$(STAMP): pyproject.toml setup.py runtime/kernels.c
 	@$(MAKE) --no-print-directory sys-deps
 	@test -x $(PY) || python3 -m venv .venv
 	@# torch first, pinned: it resolves to the local CPU wheel, not the multi-GB CUDA build.

@@ -4,8 +4,9 @@
 (`pallet6d.runtime` -> `runtime/`, ...). setuptools' own discovery cannot add that prefix, so this file
 finds every package under each mapped folder (a folder with `__init__.py`) and names it under its
 mapping: a new subpackage ships in every install without a list to update. It also declares the one compiled
-part, the refinement kernel (`runtime/refine_kernel.c`: ICP and fit scores, loaded with ctypes by
-`pallet6d.runtime.refine_kernel`): an optional extension, so that an install without a C compiler still works
+part, the runtime's kernels (`runtime/kernels.c`: refinement's ICP and fit scores, the registration test's
+pair counts; loaded with ctypes by
+`pallet6d.runtime.kernels`): an optional extension, so that an install without a C compiler still works
 (refinement then runs in numpy). Everything else about the distribution is in `pyproject.toml`.
 """
 from __future__ import annotations
@@ -43,10 +44,10 @@ def discover_packages(root: Path = ROOT) -> list[str]:
 # Plain C, no Python C API. -ffp-contract=off: no fused multiply-adds, so the kernel's float arithmetic rounds as
 # the numpy path's does on every machine; no floating-point exceptions or errno (nothing reads them), which lets
 # the compiler vectorise the comparisons and inline sqrt.
-REFINE_KERNEL = Extension("pallet6d.runtime._refine_kernel", sources=["runtime/refine_kernel.c"],
-                          libraries=["m", "pthread"], optional=True,
-                          extra_compile_args=["-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno"])
+KERNELS = Extension("pallet6d.runtime._kernels", sources=["runtime/kernels.c"], libraries=["m", "pthread"],
+                    optional=True,
+                    extra_compile_args=["-O3", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno"])
 
 
 if __name__ == "__main__":
-    setup(packages=discover_packages(), ext_modules=[REFINE_KERNEL])
+    setup(packages=discover_packages(), ext_modules=[KERNELS])

@@ -4,7 +4,7 @@
 
 The runtime wheel (`pallet6d-*.whl`) must hold every file under each folder that `pyproject.toml` maps to a
 `pallet6d.<name>` package (`runtime/` -> `pallet6d/runtime/`, ...; `__pycache__` aside; C sources are compiled,
-not shipped), each C extension that setup.py declares, compiled (`pallet6d/runtime/_refine_kernel.*.so`), and nothing
+not shipped), each C extension that setup.py declares, compiled (`pallet6d/runtime/_kernels.*.so`), and nothing
 else besides its `.dist-info`: no tests, benchmark results, training data or model bundles, and it must stay under
 `--max-runtime-mb`. The models wheel (`pallet6d_models-*.whl`) must hold `models/__init__.py` and every file
 of each bundle folder under `models/` (a folder with a manifest.json), and nothing else. Prints each wheel's
@@ -46,7 +46,7 @@ def expected_runtime_files(root: Path) -> set[str]:
 
 
 def extension_modules(root: Path) -> list[str]:
-    """Import names of the C extensions setup.py declares (`Extension("pallet6d.runtime._refine_kernel", ...)`),
+    """Import names of the C extensions setup.py declares (`Extension("pallet6d.runtime._kernels", ...)`),
     read from its source without running it."""
     names = []
     for node in ast.walk(ast.parse((root / "setup.py").read_text())):

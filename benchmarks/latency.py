@@ -168,7 +168,7 @@ def run_info(bundles: list[str]) -> dict:
 
     import onnxruntime
 
-    from pallet6d.runtime import refine_kernel
+    from pallet6d.runtime import kernels
     from pallet6d.runtime.bundle import load_bundle
 
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -177,7 +177,7 @@ def run_info(bundles: list[str]) -> dict:
             "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "git_commit": commit,
             "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(),
             "python": platform.python_version(), "onnxruntime": onnxruntime.__version__, "numpy": np.__version__,
-            "refine_kernel": refine_kernel.available(),
+            "kernels": kernels.available(),
             "bundles": {b.config: {"name": b.name, "random_init": bool(b.provenance.get("random_init"))}
                         for b in map(load_bundle, bundles)}}
 
@@ -187,8 +187,8 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
                         for c, v in info["bundles"].items())
     lines = ["# Runtime latency (ms, 1224x370, this machine)", "",
              f"`{info['command']}` at {info['git_commit']} on {info['date_utc']}; {info['cpus']} CPUs, "
-             f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}, compiled refinement kernel "
-             f"{'built' if info.get('refine_kernel') else 'not built'}. Weights: {weights} "
+             f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}, compiled kernels "
+             f"{'built' if info.get('kernels') else 'not built'}. Weights: {weights} "
              "(latency does not depend on the weights' values).", "",
              "| bundle | precision | threads | lanes | pallets | kernel | ICP starts | "
              + " | ".join(f"{s} p50" for s in STAGES[:-1])
@@ -230,7 +230,7 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = ap.parse_args()
 
-    from pallet6d.runtime import refine_kernel
+    from pallet6d.runtime import kernels
     from pallet6d.runtime.bundle import load_bundle
     from pallet6d.runtime.estimator import EstimatorOptions
 
@@ -250,7 +250,7 @@ def main() -> int:
                     stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes, starts,
                                            lanes, kernel)
                     r = {"bundle": b.config, "precision": precision, "threads": threads, "pallet_lanes": lanes,
-                         "pallets": pallets, "kernel": kernel if refine_kernel.available() else "numpy",
+                         "pallets": pallets, "kernel": kernel if kernels.available() else "numpy",
                          "refine_starts": starts, "frames": args.frames, "stages": stages}
                     if not args.no_torch and precision == "fp32":
                         r["torch_eager_nets"] = bench_torch(b.config, threads, pallets, max(20, args.frames // 4))

@@ -188,7 +188,7 @@ def to_markdown(res: dict) -> str:
     lines = [f"# Batched refinement vs detection by detection ({res['bundle']}, {res['precision']})", "",
              "All paths on the same recorded network poses and points; CPU time per frame of the refinement stage "
              "alone (ICP, starts, fit scores), milliseconds, one process on a shared 2-core machine (noisy; the "
-             "paths alternate frame by frame, so they see the same load; the compiled refinement kernel's threads count "
+             "paths alternate frame by frame, so they see the same load; the compiled kernels' threads count "
              "together). max dt / drot / dfit: the batch's largest difference from the per-detection path."
              + (f" baseline: `refine_batch` as of `{base}`, with its largest pose difference from the batch." if base
                 else ""), "",

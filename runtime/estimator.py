@@ -208,7 +208,7 @@ class PalletEstimator:
     """Pallet 6D pose estimation on a model bundle. Not thread-safe: one estimator per thread.
 
     :param bundle: a loaded `Bundle`.
-    :param threads: onnxruntime intra-op threads per graph, and the compiled refinement kernel's threads.
+    :param threads: onnxruntime intra-op threads per graph, and the compiled kernels' threads.
     :param precision: "fp32" or "int8" (the bundle's quantized graphs).
     :param options: `EstimatorOptions`.
     :param clock: the monotonic clock (seconds) the time budget is measured on.

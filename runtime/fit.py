@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import refine_kernel
+from . import kernels
 from .geometry import check_K
 from .results import FitScore
 
@@ -175,7 +175,7 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
                point_index: ModelPointIndex | None = None,
                compiled: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`fit_score` of P poses at once, each against its own observed points: in the compiled kernel
-    (`refine_kernel.fit`) when `compiled`, the package has it and `depth_m` is C-contiguous float32 (as the
+    (`kernels.fit`) when `compiled`, the package has it and `depth_m` is C-contiguous float32 (as the
     estimator's is), else one numpy pass (the same scores, up to rounding at the tolerances' edges).
 
     :param T_cam_model: (P, 4, 4) poses to check.
@@ -211,9 +211,9 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
         lo, hi = model.min(0), model.max(0)
     depth = np.asarray(depth_m)
     if compiled and depth.dtype == np.float32 and depth.ndim == 2 and depth.flags.c_contiguous \
-            and refine_kernel.available():
+            and kernels.available():
         index = point_index if point_index is not None and point_index.tol_m >= tol_m else None
-        inlier, violation = refine_kernel.fit(T, obs, n_obs, model, lo, hi, model_boxes_m,
+        inlier, violation = kernels.fit(T, obs, n_obs, model, lo, hi, model_boxes_m,
                                            None if model_boxes_m is not None else points_in_boxes_m, index, depth,
                                            K, tol_m)
         return inlier, violation, inlier * (1.0 - violation)

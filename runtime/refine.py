@@ -1,5 +1,5 @@
 """Pose refinement: robust point-to-plane ICP of the observed depth onto the pallet's box model (numpy, and the
-same ICP compiled: `refine_kernel`).
+same ICP compiled: `kernels`).
 
 The network's pose is a good first guess (a few cm, a few degrees); the depth points of the detection then
 pin it down, as classical registration does after PoseCNN or DenseFusion. A pallet is a union of boards and
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import refine_kernel
+from . import kernels
 from .fit import ModelPointIndex, check_poses, distance_to_boxes, fit_scores
 from .geometry import backproject_pixels, check_K, clamp_box, select_pixels, transform_points
 from .results import FitScore
@@ -287,7 +287,7 @@ def refine_poses(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndar
     :param stop_near: optional (4, 4) pose, e.g. an ICP result the starts surround: a start that comes within
         `stop_near_m` of it (largest displacement of the model box's corners) stops there, flagged
         `stopped_near`, since it would only land on that pose again. Saves the rest of its iterations.
-    :param compiled: use the compiled kernel when the package has it (`refine_kernel`); False runs numpy.
+    :param compiled: use the compiled kernel when the package has it (`kernels`); False runs numpy.
     :return: m RefineResults, in the order of the starts.
     """
     T0 = check_poses(T_cam_pallet, "T_cam_pallet")
@@ -334,14 +334,14 @@ class _IcpRun:
 def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, iterations: int,
          corr_start_m: float, corr_end_m: float, prior_rot_rad: float, prior_trans_m: float, min_inliers: int,
          tol: float, stop_near: np.ndarray | None, stop_near_m: float, compiled: bool = True,
-         threads: int = 1, grid: refine_kernel.BoxGrid | None = None) -> _IcpRun:
-    """`refine_pose` for P poses at once, each on its own points: the compiled kernel (`refine_kernel`, the poses
+         threads: int = 1, grid: kernels.BoxGrid | None = None) -> _IcpRun:
+    """`refine_pose` for P poses at once, each on its own points: the compiled kernel (`kernels`, the poses
     shared among `threads` threads) when `compiled` and the package has it, else one numpy pass per step for all.
 
     :param T0: (P, 4, 4) starting poses. :param pts: (P, N, 3) camera frame, metres; pose i uses its first
     `n_pts[i]` rows. :param stop_near: None or (P, 4, 4), a pose per start at which it stops.
     :param prior_rot_rad, prior_trans_m: the prior's sigmas: a number, (3,) per pallet-frame axis, or (P, 3).
-    :param grid: the kernel's `refine_kernel.box_grid` of these boxes (fewer boxes measured per point), or None.
+    :param grid: the kernel's `kernels.box_grid` of these boxes (fewer boxes measured per point), or None.
     """
     if not 0 < corr_end_m <= corr_start_m:
         raise ValueError(f"need 0 < corr_end_m <= corr_start_m, got {corr_end_m}, {corr_start_m}")
@@ -351,8 +351,8 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
     # and y), or (P, 3), one row per pose
     prior = np.concatenate([np.broadcast_to(np.asarray(prior_rot_rad, dtype=np.float64), (m, 3)) ** -2,
                             np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (m, 3)) ** -2], axis=1)
-    if compiled and len(boxes64) <= refine_kernel.MAX_BOXES and refine_kernel.available():
-        return _IcpRun(*refine_kernel.icp(T0, pts, n_pts, boxes64, prior, iterations, corr_start_m, corr_end_m,
+    if compiled and len(boxes64) <= kernels.MAX_BOXES and kernels.available():
+        return _IcpRun(*kernels.icp(T0, pts, n_pts, boxes64, prior, iterations, corr_start_m, corr_end_m,
                                        min_inliers, tol, stop_near, stop_near_m, threads, grid))
     boxes = boxes64.astype(_ICP_DTYPE)
     extents = _extents(boxes)
@@ -500,10 +500,10 @@ class RefineGeometry:
         """The boxes when they hold every model point (see `fit_scores`), else None."""
         return self.boxes_m if self.points_on_boxes else None
 
-    def icp_grid(self) -> refine_kernel.BoxGrid:
-        """The compiled refinement kernel's `refine_kernel.box_grid` of the boxes, built on first use (tens of ms)."""
+    def icp_grid(self) -> kernels.BoxGrid:
+        """The compiled kernels's `kernels.box_grid` of the boxes, built on first use (tens of ms)."""
         if "icp_grid" not in self._indexes:
-            self._indexes["icp_grid"] = refine_kernel.box_grid(self.boxes_m)
+            self._indexes["icp_grid"] = kernels.box_grid(self.boxes_m)
         return self._indexes["icp_grid"]
 
     def point_index(self, tol_m: float) -> ModelPointIndex:
@@ -526,7 +526,7 @@ class RefineOptions:
     :ivar select_tol_m: tolerance of the fit score that compares the starts' landings, metres.
     :ivar start_max_rms_m: a landing counts only when its ICP RMS is below this, metres.
     :ivar stop_near_m: a start that comes this close to the pose it surrounds stops (0: all run to the end).
-    :ivar compiled: ICP and fit scores in the compiled kernel when the package has it (`refine_kernel`); False: in
+    :ivar compiled: ICP and fit scores in the compiled kernel when the package has it (`kernels`); False: in
         numpy (the same algorithms, slower; poses within micrometres).
     :ivar threads: the compiled kernel shares a frame's ICP runs among this many threads (same poses).
     """
@@ -650,7 +650,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    grid = geom.icp_grid() if o.compiled and len(geom.boxes_m) <= refine_kernel.MAX_BOXES else None
+    grid = geom.icp_grid() if o.compiled and len(geom.boxes_m) <= kernels.MAX_BOXES else None
     base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0, o.compiled, o.threads,
                 grid)
     T = T_net.copy()

@@ -22,7 +22,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["RegistrationScore", "registration_region", "registration_score", "pair_auc"]
+from . import kernels
+
+__all__ = ["auc_of_counts", "RegistrationScore", "registration_region", "registration_score", "pair_auc"]
 
 _COLOUR_LEVELS = 3 * 255 + 1
 
@@ -74,8 +76,15 @@ def pair_auc(colour_diff: np.ndarray, jump: np.ndarray, min_pairs: int) -> float
     :param min_pairs: fewer jumping or fewer other pairs -> NaN.
     :return: AUC in [0, 1] or NaN.
     """
-    pos = np.bincount(colour_diff[jump], minlength=_COLOUR_LEVELS)
-    neg = np.bincount(colour_diff[~jump], minlength=_COLOUR_LEVELS)
+    return auc_of_counts(np.bincount(colour_diff[jump], minlength=_COLOUR_LEVELS),
+                         np.bincount(colour_diff[~jump], minlength=_COLOUR_LEVELS), min_pairs)
+
+
+def auc_of_counts(pos: np.ndarray, neg: np.ndarray, min_pairs: int) -> float:
+    """`pair_auc` from the histograms of the jumping pairs' colour differences (pos) and the others' (neg).
+
+    :param pos, neg: (levels,) counts per colour difference.
+    """
     n_pos, n_neg = int(pos.sum()), int(neg.sum())
     if n_pos < min_pairs or n_neg < min_pairs:
         return float("nan")
@@ -110,8 +119,8 @@ def registration_region(boxes_xyxy: np.ndarray, shape_hw: tuple[int, int], margi
 
 def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndarray, *, shift_px: int = 24,
                        pair_px: int = 3, margin_of_box: float = 0.5, max_samples: int = 16384, tol_m: float = 0.02,
-                       tol_quad_per_m: float = 0.004, min_pairs: int = 50, colour_edge: int = 30, blur_px: int = 3
-                       ) -> RegistrationScore:
+                       tol_quad_per_m: float = 0.004, min_pairs: int = 50, colour_edge: int = 30, blur_px: int = 3,
+                       compiled: bool = True) -> RegistrationScore:
     """AUC(0) and the largest AUC with the depth shifted by +-`shift_px` along rows and columns, over the
     candidates' dilated boxes.
 
@@ -128,6 +137,7 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
     :param colour_edge: a pair whose colour difference (sum of absolute RGB differences) is at least this counts
         as a colour edge; an image without enough of them (constant, dark) cannot judge.
     :param blur_px: the colour image is box-filtered over this many pixels first (1: not at all).
+    :param compiled: count the pairs in the compiled kernel when the package has it (the same counts); False: numpy.
     :return: the frame's `RegistrationScore`.
     """
     depth = np.asarray(depth_m)
@@ -177,8 +187,16 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
         """(ny, nx) depth at the grid's pixels + (dy, dx)."""
         return pad[m + dy:m + dy + ny * step:step, m + dx:m + dx + nx * step:step]
 
+    compiled = compiled and kernels.available()
+    inside_u8 = inside.astype(np.uint8)
+
     def auc(dy: int, dx: int) -> tuple[float, int, int]:
         """AUC with the depth read at the image's pixel + (dy, dx), and the pair counts."""
+        if compiled:
+            pos, neg = kernels.registration_counts(pad, m, step, inside_u8, diff_x, diff_y, a, dy, dx, tol_m,
+                                                         tol_quad_per_m, _COLOUR_LEVELS)
+            n_jump = int(pos.sum())
+            return auc_of_counts(pos, neg, min_pairs), n_jump, int(neg.sum())
         d, j = [], []
         for (ey, ex), diff in (((0, 1), diff_x), ((1, 0), diff_y)):
             z_b, z0, z1, z_a = (z_at(dy + k * a * ey, dx + k * a * ex) for k in (-1, 0, 1, 2))

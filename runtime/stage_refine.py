@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from . import refine_kernel
+from . import kernels
 from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .geometry import backproject_pixels
@@ -36,7 +36,7 @@ class RefinerStage:
     :param geometries: the pallet types (a candidate's `type_index` points into them); a type without
         `boxes_m` is not refined.
     :param options: `EstimatorOptions` (the `refine*` and `fit_tol_m` fields).
-    :param threads: threads of the compiled refinement kernel (the estimator's `threads`).
+    :param threads: threads of the compiled kernels (the estimator's `threads`).
 
     :ivar budget_chunk: under a time budget, candidates are refined this many at a time, highest score first,
         and the budget is checked before each group (1: the tightest bound, at the cost of batching).
@@ -58,12 +58,12 @@ class RefinerStage:
             fit_tol_m=o.fit_tol_m, start_points=o.refine_start_points, select_tol_m=o.refine_select_tol_m,
             start_max_rms_m=o.refine_start_max_rms_m, threads=max(int(threads), 1))
         self.budget_chunk = 2
-        if on and not refine_kernel.available():
-            log.warning("the compiled refinement kernel is not built (no C compiler when pallet6d was installed): "
+        if on and not kernels.available():
+            log.warning("the compiled kernels are not built (no C compiler when pallet6d was installed): "
                         "refinement runs in numpy, several times slower")
         elif on:
             for g in self._refine_geometry:         # the kernel's box grids now, not on the first frame
-                if g is not None and len(g.boxes_m) <= refine_kernel.MAX_BOXES:
+                if g is not None and len(g.boxes_m) <= kernels.MAX_BOXES:
                     g.icp_grid()
 
     @property

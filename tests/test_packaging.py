@@ -128,7 +128,7 @@ def test_check_covers_both_wheels_and_the_size_limit(source, tmp_path, capsys):
 
 
 def test_extensions_are_read_from_setup_py():
-    assert wheel_contents.extension_modules(REPO) == ["pallet6d.runtime._refine_kernel"]
+    assert wheel_contents.extension_modules(REPO) == ["pallet6d.runtime._kernels"]
 
 
 @pytest.mark.parametrize("files, problems", [

@@ -1,10 +1,11 @@
-"""The compiled refinement kernel (`refine_kernel.c`): refinement's point-to-plane ICP (`icp`) and the fit
-scores (`fit`) at compiled speed.
+"""The runtime's compiled kernels (`kernels.c`): refinement's point-to-plane ICP (`icp`), the fit scores (`fit`)
+and the registration test's pair counts (`registration_counts`), the per-point loops that numpy runs as thousands
+of small calls a frame.
 
-The package builds it as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
+The package builds them as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
 a library of a few tens of kB, loaded in well under a millisecond. Where no C compiler was at hand when the
-package was built, `available()` is False and `refine` and `fit` run the same algorithms in numpy (several
-times slower; the estimator logs a warning then, and the latency benchmark says which one ran).
+package was built, `available()` is False and `refine`, `fit` and `registration` run the same algorithms in numpy
+(several times slower; the estimator logs a warning then, and the latency benchmark says which one ran).
 """
 from __future__ import annotations
 
@@ -16,12 +17,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES"]
+__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES", "registration_counts"]
 
 log = logging.getLogger(__name__)
 
-_MODULE = "pallet6d.runtime._refine_kernel"
-MAX_BOXES = 256                      # boxes of one pallet model the kernel takes (refine_kernel.c)
+_MODULE = "pallet6d.runtime._kernels"
+MAX_BOXES = 256                      # boxes of one pallet model the kernel takes (kernels.c)
 _f64 = np.ctypeslib.ndpointer(np.float64, flags="C_CONTIGUOUS")
 _f32 = np.ctypeslib.ndpointer(np.float32, flags="C_CONTIGUOUS")
 _i64 = np.ctypeslib.ndpointer(np.int64, flags="C_CONTIGUOUS")
@@ -49,11 +50,22 @@ def _function():
     try:
         fn = ctypes.CDLL(path).pallet6d_icp
     except (OSError, AttributeError) as e:
-        log.warning("compiled refinement kernel %s does not load (%s): refinement runs in numpy", path, e)
+        log.warning("the compiled kernels %s do not load (%s): refinement runs in numpy", path, e)
         return None
     fn.restype = ctypes.c_int
     fn.argtypes = [_i, _i, _f32, _i64, _i, _f64, _f64, _f64, _i, _d, _d, _i, _d, _ptr, _d,
                    _ptr, _d, _ptr, _ptr, _ptr, _i, _f64, _i64, _i64, _f64, _u8, _u8]
+    return fn
+
+
+@functools.lru_cache(maxsize=1)
+def _registration_function():
+    """The kernel's registration pair-count function with its argument types, or None (see `_function`)."""
+    if _function() is None:
+        return None
+    fn = ctypes.CDLL(library_path()).pallet6d_registration_counts
+    fn.restype = ctypes.c_int
+    fn.argtypes = [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64, _i64]
     return fn
 
 
@@ -150,7 +162,7 @@ def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
     """
     fn = _function()
     if fn is None:
-        raise RuntimeError("the compiled refinement kernel is not built (pallet6d.runtime.refine_kernel.available())")
+        raise RuntimeError("the compiled kernels are not built (pallet6d.runtime.kernels.available())")
     T0 = np.ascontiguousarray(T0, dtype=np.float64)
     m = len(T0)
     pts = np.ascontiguousarray(pts, dtype=np.float32)
@@ -180,9 +192,9 @@ def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
                                    g[3].ctypes.data)),
             max(int(threads), 1), T_out, done, n_in, rms, converged, stopped)
     if rc == -1:
-        raise ValueError(f"the compiled refinement kernel takes 1 to {MAX_BOXES} boxes, got {len(boxes)}")
+        raise ValueError(f"the compiled ICP kernel takes 1 to {MAX_BOXES} boxes, got {len(boxes)}")
     if rc != 0:
-        raise MemoryError("the compiled refinement kernel could not allocate its work area")
+        raise MemoryError("the compiled ICP kernel could not allocate its work area")
     return T_out, done, n_in, rms, converged.astype(bool), stopped.astype(bool)
 
 
@@ -200,7 +212,7 @@ def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray
     """
     fn = _fit_function()
     if fn is None:
-        raise RuntimeError("the compiled kernel is not built (pallet6d.runtime.refine_kernel.available())")
+        raise RuntimeError("the compiled kernel is not built (pallet6d.runtime.kernels.available())")
     c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
     T, obs, model, lo, hi, K = c64(T), c64(obs), c64(model_pts), c64(lo), c64(hi), c64(K)
     n_obs = np.ascontiguousarray(n_obs, dtype=np.int64)
@@ -226,3 +238,31 @@ def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray
     if rc != 0:
         raise MemoryError("the compiled fit-score kernel could not allocate its z-buffer")
     return inlier, violation
+
+
+def registration_counts(pad: np.ndarray, m: int, step: int, inside: np.ndarray, diff_x: np.ndarray,
+                        diff_y: np.ndarray, a: int, dy: int, dx: int, tol_m: float, tol_quad_per_m: float,
+                        levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """`registration.registration_score`'s pair counts at one shift of the depth: histograms of the colour
+    differences of the pairs whose depth jumps and of the others (its arguments, named as there).
+
+    :param pad: (H', W') float32 depth around the grid; grid pixel (iy, ix) at (m + iy * step, m + ix * step).
+    :param inside: (ny, nx) uint8 grid mask. :param diff_x, diff_y: (ny, nx) int64 colour differences in [0, levels).
+    :return: (pos (levels,), neg (levels,)) int64 counts.
+    """
+    fn = _registration_function()
+    if fn is None:
+        raise RuntimeError("the compiled kernel is not built (pallet6d.runtime.kernels.available())")
+    pad = np.ascontiguousarray(pad, dtype=np.float32)
+    inside = np.ascontiguousarray(inside, dtype=np.uint8)
+    diff_x = np.ascontiguousarray(diff_x, dtype=np.int64)
+    diff_y = np.ascontiguousarray(diff_y, dtype=np.int64)
+    if not (inside.shape == diff_x.shape == diff_y.shape and inside.ndim == 2 and pad.ndim == 2):
+        raise ValueError(f"inside, diff_x, diff_y must share one (ny, nx) shape, got {inside.shape}, "
+                         f"{diff_x.shape}, {diff_y.shape}")
+    pos, neg = np.zeros(levels, dtype=np.int64), np.zeros(levels, dtype=np.int64)
+    rc = fn(pad, pad.shape[0], pad.shape[1], int(m), int(step), inside.shape[0], inside.shape[1], inside, diff_x,
+            diff_y, int(a), int(dy), int(dx), float(tol_m), float(tol_quad_per_m), int(levels), pos, neg)
+    if rc != 0:
+        raise ValueError("registration_counts: a read leaves the padded depth or a colour difference is out of range")
+    return pos, neg

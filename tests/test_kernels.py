@@ -1,4 +1,5 @@
-"""The compiled refinement kernel: built where a C compiler is, the same results as refinement's numpy path."""
+"""The compiled kernels: built where a C compiler is, the same results as refinement's numpy path."""
+import dataclasses
 import logging
 import shutil
 from pathlib import Path
@@ -6,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pallet6d.runtime import refine_kernel
+from pallet6d.runtime import kernels
 from pallet6d.runtime.geometry import make_T, quat_to_rot
 from pallet6d.runtime.refine import (_ICP_DEFAULTS, RefineGeometry, RefineOptions, _icp, box_points, default_starts,
                                      offsets_from_starts, refine_batch)
@@ -17,8 +18,8 @@ from pallet6d.sim.presets import get_preset  # noqa: E402
 
 EPAL = get_pallet_model("epal")
 GEOM = RefineGeometry(EPAL.surface_points(1000, seed=0), EPAL.boxes_m)
-needs_kernel = pytest.mark.skipif(not refine_kernel.available(),
-                                  reason="the compiled refinement kernel is not built here")
+needs_kernel = pytest.mark.skipif(not kernels.available(),
+                                  reason="the compiled kernels are not built here")
 
 
 def test_the_kernel_is_built_where_a_c_compiler_is():
@@ -26,13 +27,13 @@ def test_the_kernel_is_built_where_a_c_compiler_is():
     numpy is only for machines without one."""
     if shutil.which("cc") is None and shutil.which("gcc") is None:
         pytest.skip("no C compiler on this machine")
-    path = refine_kernel.library_path()
-    assert path is not None, "pip install -e . did not build pallet6d.runtime._refine_kernel"
-    assert refine_kernel.available()
-    source = Path(refine_kernel.__file__).with_name("refine_kernel.c")
+    path = kernels.library_path()
+    assert path is not None, "pip install -e . did not build pallet6d.runtime._kernels"
+    assert kernels.available()
+    source = Path(kernels.__file__).with_name("kernels.c")
     if source.is_file():                      # a source checkout: the library must be built from today's source
         assert Path(path).stat().st_mtime >= source.stat().st_mtime, \
-            "runtime/refine_kernel.c is newer than its build: run make setup (or pip install -e .)"
+            "runtime/kernels.c is newer than its build: run make setup (or pip install -e .)"
 
 
 def _turn(yaw_deg, shift_m):
@@ -163,17 +164,17 @@ def test_refine_batch_compiled_equals_numpy():
 def test_kernel_bad_input():
     T0 = np.eye(4)[None]
     with pytest.raises(ValueError, match="boxes"):
-        refine_kernel.icp(T0, np.zeros((1, 5, 3)), np.array([5]), np.zeros((refine_kernel.MAX_BOXES + 1, 2, 3)),
+        kernels.icp(T0, np.zeros((1, 5, 3)), np.array([5]), np.zeros((kernels.MAX_BOXES + 1, 2, 3)),
                        np.ones(6), 5, 0.08, 0.015, 3, 1e-4, None, 0.0)
     with pytest.raises(ValueError, match="n_pts"):
-        refine_kernel.icp(T0, np.zeros((1, 5, 3)), np.array([6]), EPAL.boxes_m, np.ones(6), 5, 0.08, 0.015, 3, 1e-4,
+        kernels.icp(T0, np.zeros((1, 5, 3)), np.array([6]), EPAL.boxes_m, np.ones(6), 5, 0.08, 0.015, 3, 1e-4,
                        None, 0.0)
 
 
 def test_more_boxes_than_the_kernel_takes_run_in_numpy():
     """A pallet model of more boards than the kernel's limit still refines (numpy); so does every model
     where the kernel is not built."""
-    boxes = np.repeat(EPAL.boxes_m, refine_kernel.MAX_BOXES // len(EPAL.boxes_m) + 1, axis=0)
+    boxes = np.repeat(EPAL.boxes_m, kernels.MAX_BOXES // len(EPAL.boxes_m) + 1, axis=0)
     T0 = make_T(np.eye(3), np.array([0.0, 0.0, 3.0]))[None]
     rng = np.random.default_rng(3)
     pts_pal = EPAL.surface_points(300, seed=1)
@@ -196,10 +197,10 @@ def test_without_the_kernel_the_estimator_warns_and_gives_the_same_poses(monkeyp
     frame = sim_generate.generate_frame(get_preset("virtual-clean"), seed=0)
     compiled = PalletEstimator.from_bundle(bundle, threads=2, precision="int8").estimate(frame.rgb, frame.depth_m,
                                                                                           frame.K)
-    monkeypatch.setattr(refine_kernel, "available", lambda: False)
+    monkeypatch.setattr(kernels, "available", lambda: False)
     with caplog.at_level(logging.WARNING, logger="pallet6d.runtime.stage_refine"):
         est = PalletEstimator.from_bundle(bundle, threads=2, precision="int8")
-    assert "compiled refinement kernel is not built" in caplog.text
+    assert "compiled kernels are not built" in caplog.text
     numpy = est.estimate(frame.rgb, frame.depth_m, frame.K)
     assert len(compiled.poses) == len(numpy.poses) >= 3
     for a, b in zip(compiled.poses, numpy.poses):
@@ -212,7 +213,7 @@ def test_box_grid_lists_the_closest_box_of_every_point(model):
     from pallet6d.runtime.refine import _closest, _extents
 
     boxes = get_pallet_model(model).boxes_m
-    grid = refine_kernel.box_grid(boxes, margin_m=0.1, cell_m=0.03)
+    grid = kernels.box_grid(boxes, margin_m=0.1, cell_m=0.03)
     rng = np.random.default_rng(4)
     ext = grid.dims * grid.cell_m
     pts = grid.origin_m + rng.uniform(0, 1, (20000, 3)) * ext
@@ -233,17 +234,17 @@ def test_box_grid_lists_the_closest_box_of_every_point(model):
 def test_kernel_with_the_grid_gives_the_same_runs(icp_inputs):
     T0, pts, n_pts = icp_inputs
     args = (T0, pts, n_pts, EPAL.boxes_m, np.full((len(T0), 6), 100.0), 20, 0.08, 0.015, 30, 1e-4, None, 0.0)
-    plain = refine_kernel.icp(*args)
-    gridded = refine_kernel.icp(*args, grid=refine_kernel.box_grid(EPAL.boxes_m))
+    plain = kernels.icp(*args)
+    gridded = kernels.icp(*args, grid=kernels.box_grid(EPAL.boxes_m))
     for a, b in zip(plain, gridded):
         np.testing.assert_array_equal(a, b)
 
 
 @needs_kernel
 def test_kernel_refuses_a_grid_of_other_boxes():
-    grid = refine_kernel.box_grid(EPAL.boxes_m)
+    grid = kernels.box_grid(EPAL.boxes_m)
     with pytest.raises(ValueError, match="grid"):
-        refine_kernel.icp(np.eye(4)[None], np.zeros((1, 5, 3)), np.array([5]), EPAL.boxes_m[:3], np.ones(6), 5, 0.08,
+        kernels.icp(np.eye(4)[None], np.zeros((1, 5, 3)), np.array([5]), EPAL.boxes_m[:3], np.ones(6), 5, 0.08,
                        0.015, 3, 1e-4, None, 0.0, grid=grid)
 
 
@@ -252,7 +253,7 @@ def test_kernel_refuses_a_grid_of_other_boxes():
     (EPAL.boxes_m, {"cell_m": 0.0}, "cell_m"), (EPAL.boxes_m, {"margin_m": -1.0}, "margin_m")])
 def test_box_grid_bad_input(boxes, kwargs, match):
     with pytest.raises(ValueError, match=match):
-        refine_kernel.box_grid(boxes, **kwargs)
+        kernels.box_grid(boxes, **kwargs)
 
 
 @pytest.fixture(scope="module")
@@ -312,3 +313,33 @@ def test_fit_scores_refuse_counts_beyond_the_rows(fit_inputs, compiled, n_obs):
     T, obs, _, depth_m, K = fit_inputs
     with pytest.raises(ValueError, match="n_obs"):
         fit_scores(T[:1], obs[:1], np.array(n_obs), GEOM.model_points_m, depth_m, K, 0.04, compiled=compiled)
+
+
+@needs_kernel
+@pytest.mark.parametrize("case", ["registered", "other frame", "shifted", "holes and noise", "near the border"])
+def test_registration_counts_in_the_kernel_equal_numpy(case):
+    """The registration test's scores and pair counts, compiled and in numpy, on simulated frames: exactly equal."""
+    from pallet6d.runtime.registration import registration_score
+
+    frame = sim_generate.generate_frame(get_preset("virtual-occluded"), seed=2)
+    other = sim_generate.generate_frame(get_preset("virtual-occluded"), seed=3)
+    depth = frame.depth_m.astype(np.float32)
+    boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (g.bbox_visib_xywh for g in frame.pallets
+                                                             if g.bbox_visib_xywh is not None)], float)
+    rng = np.random.default_rng(0)
+    if case == "other frame":
+        depth = other.depth_m.astype(np.float32)
+    elif case == "shifted":
+        depth = np.roll(depth, 24, axis=1)
+    elif case == "holes and noise":
+        depth = depth + rng.normal(0, 0.02, depth.shape).astype(np.float32)
+        depth[rng.uniform(size=depth.shape) < 0.2] = 0.0
+    elif case == "near the border":
+        boxes = np.array([[0.0, 0.0, 60.0, 40.0], [depth.shape[1] - 50.0, depth.shape[0] - 30.0, depth.shape[1],
+                                                   depth.shape[0]]])
+    kernel = registration_score(depth, frame.rgb, boxes)
+    numpy = registration_score(depth, frame.rgb, boxes, compiled=False)
+    assert kernel == numpy or (dataclasses.astuple(kernel)[2:] == dataclasses.astuple(numpy)[2:]
+                               and np.allclose(dataclasses.astuple(kernel)[:2], dataclasses.astuple(numpy)[:2],
+                                               equal_nan=True, rtol=0, atol=1e-12))
+    assert case == "near the border" or kernel.judged

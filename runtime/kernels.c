@@ -1,5 +1,6 @@
-/* Refinement's inner loops, compiled: robust point-to-plane ICP of observed points onto a union of axis-aligned
-   boxes (pallet6d_icp), and the fit scores of posed models against the depth (pallet6d_fit).
+/* The runtime's per-point loops, compiled: robust point-to-plane ICP of observed points onto a union of
+   axis-aligned boxes (pallet6d_icp), the fit scores of posed models against the depth (pallet6d_fit), and the
+   registration test's pair counts (pallet6d_registration_counts).
 
    ICP is the same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
    per step, every observed point near the model's bounding box is matched with the closest point on the
@@ -8,7 +9,7 @@
    thousands of small calls per frame for this; here each pose is one loop. Per-point arithmetic in float
    (as the numpy path), sums and the 6x6 solve in double.
 
-   Loaded with ctypes by `refine_kernel.py`; the package builds it as an optional extension (setup.py). */
+   Loaded with ctypes by `kernels.py`; the package builds it as an optional extension (setup.py). */
 #include <math.h>
 #include <pthread.h>
 #include <stdatomic.h>
@@ -305,7 +306,7 @@ static void *icp_worker(void *arg) {
    (NaN when it never stepped), converged and stopped-near flags.
    grid (optional, NULL grid_lists for none): origin (3,) and cell size of a grid over the boxes, pallet frame,
    dims (3,), and per cell (x-major) the ascending indices of the boxes that can be closest to a point in it:
-   lists[offsets[c] .. offsets[c + 1]) (refine_kernel.box_grid); points outside it are measured against every box.
+   lists[offsets[c] .. offsets[c + 1]) (kernels.box_grid); points outside it are measured against every box.
    Returns 0, or -1 when k is out of range (the caller validates everything else). A thread that cannot be
    started leaves its share to the others. */
 int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t *n_pts, int64_t k,
@@ -498,4 +499,49 @@ int pallet6d_fit(int64_t P, int64_t N, const double *obs, const int64_t *n_obs, 
     free(uv);
     free(zs);
     return rc;
+}
+
+/* ---- the registration test's pair counts ------------------------------------------------------------------- */
+
+/* Histograms of the colour differences of pairs whose depth jumps (pos) and of the other pairs (neg), with the
+   depth read at the image's grid pixels shifted by (dy, dx) (registration.registration_score's `auc`).
+
+   pad: (pad_h, pad_w) float metres around the grid, 0 = no data, the grid's pixel (iy, ix) at pad row
+   m + iy * step, column m + ix * step; inside, diff_x, diff_y: (ny, nx) the grid's mask and the colour differences
+   of the pairs along x and y (integers in [0, levels)); a: pixels between a pair's two pixels. Float arithmetic as
+   numpy's on float32 depth. pos, neg: (levels,) counts, added to. Returns 0, or -1 when a read would leave pad or a
+   difference is out of range. */
+int pallet6d_registration_counts(const float *pad, int64_t pad_h, int64_t pad_w, int64_t m, int64_t step,
+                                 int64_t ny, int64_t nx, const uint8_t *inside, const int64_t *diff_x,
+                                 const int64_t *diff_y, int64_t a, int64_t dy, int64_t dx, double tol_m,
+                                 double tol_quad_per_m, int64_t levels, int64_t *pos, int64_t *neg) {
+    const float tol = (float)tol_m, quad = (float)tol_quad_per_m;
+    for (int dir = 0; dir < 2; dir++) {
+        const int64_t ey = dir, ex = 1 - dir;
+        const int64_t *diff = dir == 0 ? diff_x : diff_y;
+        /* the four reads of a pair: before it, its two pixels, after it */
+        int64_t off[4];
+        for (int k = 0; k < 4; k++) {
+            int64_t ry = m + dy + (k - 1) * a * ey, rx = m + dx + (k - 1) * a * ex;
+            if (ry < 0 || rx < 0 || ry + (ny - 1) * step >= pad_h || rx + (nx - 1) * step >= pad_w) return -1;
+            off[k] = ry * pad_w + rx;
+        }
+        for (int64_t iy = 0; iy < ny; iy++)
+            for (int64_t ix = 0; ix < nx; ix++) {
+                if (!inside[iy * nx + ix]) continue;
+                const int64_t at = iy * step * pad_w + ix * step;
+                const float z_b = pad[off[0] + at], z0 = pad[off[1] + at];
+                const float z1 = pad[off[2] + at], z_a = pad[off[3] + at];
+                if (!(z0 > 0.0f && z1 > 0.0f)) continue;
+                const float far = z0 > z1 ? z0 : z1, step_m = fabsf(z0 - z1);
+                const int jump = step_m > 2.0f * (tol + quad * far * far);
+                /* a surface's end is a step between flatter flanks; a noise spike changes as much beside it */
+                const int flat = fabsf(z_b - z0) < 0.5f * step_m && fabsf(z_a - z1) < 0.5f * step_m;
+                if (jump && !flat) continue;
+                const int64_t d = diff[iy * nx + ix];
+                if (d < 0 || d >= levels) return -1;
+                (jump ? pos : neg)[d]++;
+            }
+    }
+    return 0;
 }
