@@ -41,49 +41,45 @@ def library_path() -> str | None:
     return spec.origin if spec is not None and spec.origin else None
 
 
+# each C function's argument types (all return an int status)
+_ARGTYPES = {
+    "pallet6d_icp": [_i, _i, _f32, _i64, _i, _f64, _f64, _f64, _i, _d, _d, _i, _d, _ptr, _d,
+                     _ptr, _d, _ptr, _ptr, _ptr, _i, _f64, _i64, _i64, _f64, _u8, _u8],
+    "pallet6d_fit": [_i, _i, _f64, _i64, _f64, _i, _f64, _f64, _f64, _i, _ptr, _i, _ptr, _ptr, _d, _ptr, _ptr, _ptr,
+                     _i, _f32, _i, _i, _f64, _d, _i, _f64, _f64],
+    "pallet6d_registration_counts": [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64,
+                                     _i64],
+}
+
+
 @functools.lru_cache(maxsize=1)
-def _function():
-    """The kernel's C function with its argument types, or None when the library is missing or will not load."""
+def _functions() -> dict | None:
+    """The library's C functions with their argument types, or None when it is missing or will not load."""
     path = library_path()
     if path is None:
         return None
     try:
-        fn = ctypes.CDLL(path).pallet6d_icp
+        lib = ctypes.CDLL(path)
+        out = {name: getattr(lib, name) for name in _ARGTYPES}
     except (OSError, AttributeError) as e:
         log.warning("the compiled kernels %s do not load (%s): refinement runs in numpy", path, e)
         return None
-    fn.restype = ctypes.c_int
-    fn.argtypes = [_i, _i, _f32, _i64, _i, _f64, _f64, _f64, _i, _d, _d, _i, _d, _ptr, _d,
-                   _ptr, _d, _ptr, _ptr, _ptr, _i, _f64, _i64, _i64, _f64, _u8, _u8]
-    return fn
+    for name, fn in out.items():
+        fn.restype, fn.argtypes = ctypes.c_int, _ARGTYPES[name]
+    return out
 
 
-@functools.lru_cache(maxsize=1)
-def _registration_function():
-    """The kernel's registration pair-count function with its argument types, or None (see `_function`)."""
-    if _function() is None:
-        return None
-    fn = ctypes.CDLL(library_path()).pallet6d_registration_counts
-    fn.restype = ctypes.c_int
-    fn.argtypes = [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64, _i64]
-    return fn
-
-
-@functools.lru_cache(maxsize=1)
-def _fit_function():
-    """The kernel's fit-score function with its argument types, or None (see `_function`)."""
-    if _function() is None:
-        return None
-    fn = ctypes.CDLL(library_path()).pallet6d_fit
-    fn.restype = ctypes.c_int
-    fn.argtypes = [_i, _i, _f64, _i64, _f64, _i, _f64, _f64, _f64, _i, _ptr, _i, _ptr, _ptr, _d, _ptr, _ptr, _ptr,
-                   _i, _f32, _i, _i, _f64, _d, _i, _f64, _f64]
-    return fn
+def _function(name: str):
+    """One C function of the library; RuntimeError when the kernels are not available."""
+    fns = _functions()
+    if fns is None:
+        raise RuntimeError("the compiled kernels are not built (pallet6d.runtime.kernels.available())")
+    return fns[name]
 
 
 def available() -> bool:
-    """Whether the compiled kernel is built and loads."""
-    return _function() is not None
+    """Whether the compiled kernels are built and load."""
+    return _functions() is not None
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,9 +156,7 @@ def icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
         stopped_near (P,) bool).
     :raises RuntimeError: when the kernel is not available (check `available()` first).
     """
-    fn = _function()
-    if fn is None:
-        raise RuntimeError("the compiled kernels are not built (pallet6d.runtime.kernels.available())")
+    fn = _function("pallet6d_icp")
     T0 = np.ascontiguousarray(T0, dtype=np.float64)
     m = len(T0)
     pts = np.ascontiguousarray(pts, dtype=np.float32)
@@ -210,9 +204,7 @@ def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray
     :param depth_m: (H, W) float32 metres, C-contiguous (the caller converts). :param K: (3, 3).
     :return: (inlier_fraction (P,), free_space_violation (P,)).
     """
-    fn = _fit_function()
-    if fn is None:
-        raise RuntimeError("the compiled kernel is not built (pallet6d.runtime.kernels.available())")
+    fn = _function("pallet6d_fit")
     c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
     T, obs, model, lo, hi, K = c64(T), c64(obs), c64(model_pts), c64(lo), c64(hi), c64(K)
     n_obs = np.ascontiguousarray(n_obs, dtype=np.int64)
@@ -250,9 +242,7 @@ def registration_counts(pad: np.ndarray, m: int, step: int, inside: np.ndarray, 
     :param inside: (ny, nx) uint8 grid mask. :param diff_x, diff_y: (ny, nx) int64 colour differences in [0, levels).
     :return: (pos (levels,), neg (levels,)) int64 counts.
     """
-    fn = _registration_function()
-    if fn is None:
-        raise RuntimeError("the compiled kernel is not built (pallet6d.runtime.kernels.available())")
+    fn = _function("pallet6d_registration_counts")
     pad = np.ascontiguousarray(pad, dtype=np.float32)
     inside = np.ascontiguousarray(inside, dtype=np.uint8)
     diff_x = np.ascontiguousarray(diff_x, dtype=np.int64)
