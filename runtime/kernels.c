@@ -225,7 +225,7 @@ static void icp_one(struct icp_job *job, int64_t i) {
             }
             float q[3], nrm[3], d;
             closest_on_boxes(p, job->lo, job->hi, cand, n_cand, q, nrm, &d);
-            if (!((double)d < thr)) continue;
+            if (!(d < thr_f)) continue;                 /* in float32, as numpy compares float32 with a float */
             n_use++;
             float u = minf(d, thr_f) / thr_f, w = (1.0f - u * u) * (1.0f - u * u);   /* Tukey biweight */
             float res = (p[0] - q[0]) * nrm[0] + (p[1] - q[1]) * nrm[1] + (p[2] - q[2]) * nrm[2];
