@@ -214,8 +214,8 @@ def fit_scores(T_cam_model: np.ndarray, pts_obs_cam: np.ndarray, n_obs: np.ndarr
             and kernels.available():
         index = point_index if point_index is not None and point_index.tol_m >= tol_m else None
         inlier, violation = kernels.fit(T, obs, n_obs, model, lo, hi, model_boxes_m,
-                                           None if model_boxes_m is not None else points_in_boxes_m, index, depth,
-                                           K, tol_m)
+                                        None if model_boxes_m is not None else points_in_boxes_m, index, depth,
+                                        K, tol_m)
         return inlier, violation, inlier * (1.0 - violation)
 
     R, t = T[:, :3, :3], T[:, :3, 3]

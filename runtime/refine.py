@@ -353,7 +353,7 @@ def _icp(T0: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray
                             np.broadcast_to(np.asarray(prior_trans_m, dtype=np.float64), (m, 3)) ** -2], axis=1)
     if compiled and len(boxes64) <= kernels.MAX_BOXES and kernels.available():
         return _IcpRun(*kernels.icp(T0, pts, n_pts, boxes64, prior, iterations, corr_start_m, corr_end_m,
-                                       min_inliers, tol, stop_near, stop_near_m, threads, grid))
+                                    min_inliers, tol, stop_near, stop_near_m, threads, grid))
     boxes = boxes64.astype(_ICP_DTYPE)
     extents = _extents(boxes)
     pts_f = np.asarray(pts, dtype=_ICP_DTYPE)
@@ -650,7 +650,9 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    grid = geom.icp_grid() if o.compiled and len(geom.boxes_m) <= kernels.MAX_BOXES else None
+    # the kernel's box grid, only where the kernel runs (numpy never reads it)
+    use_grid = o.compiled and len(geom.boxes_m) <= kernels.MAX_BOXES and kernels.available()
+    grid = geom.icp_grid() if use_grid else None
     base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0, o.compiled, o.threads,
                 grid)
     T = T_net.copy()

@@ -188,13 +188,13 @@ def registration_score(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
         return pad[m + dy:m + dy + ny * step:step, m + dx:m + dx + nx * step:step]
 
     compiled = compiled and kernels.available()
-    inside_u8 = inside.astype(np.uint8)
+    inside_u8 = inside.astype(np.uint8) if compiled else None
 
     def auc(dy: int, dx: int) -> tuple[float, int, int]:
         """AUC with the depth read at the image's pixel + (dy, dx), and the pair counts."""
         if compiled:
             pos, neg = kernels.registration_counts(pad, m, step, inside_u8, diff_x, diff_y, a, dy, dx, tol_m,
-                                                         tol_quad_per_m, _COLOUR_LEVELS)
+                                                   tol_quad_per_m, _COLOUR_LEVELS)
             n_jump = int(pos.sum())
             return auc_of_counts(pos, neg, min_pairs), n_jump, int(neg.sum())
         d, j = [], []
