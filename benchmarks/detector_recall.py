@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pallet6d.runtime.detector_recall import recall_report, recall_rows, type_names
+from pallet6d.runtime.detector_recall import class_types, recall_report, recall_rows, type_names
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parts = [f"# Detector recall: {args.bundle}{' (int8)' if args.int8 else ''}", ""]
     for data in args.data:
         parts.append(recall_report(str(data), recall_rows(est, data, args.max_frames), args.score_threshold,
-                                   type_names(data)))
+                                   type_names(data), class_types(est)))
     text = "\n".join(parts)
     print(text)
     if args.out:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["HEIGHT_BINS_PX", "recall_rows", "recall_report", "type_names"]
+__all__ = ["HEIGHT_BINS_PX", "class_types", "recall_rows", "recall_report", "type_names"]
 
 HEIGHT_BINS_PX = ((0, 15), (15, 25), (25, 40), (40, 100000))
 
@@ -21,8 +21,8 @@ def recall_rows(est, data: str | Path, max_frames: int = 0) -> np.ndarray:
     """One row per counted pallet of the dataset's frames (`max_frames` 0: all), with `est.detect`'s detections.
 
     :param est: a `PalletEstimator`.
-    :return: (n, 5) visible fraction, visible box height px, best IoU, that detection's score, the pallet's
-        BOP object id.
+    :return: (n, 6) visible fraction, visible box height px, best IoU, that detection's score, the pallet's
+        BOP object id, that detection's class id (-1: no detection).
     """
     from .bop import BopDataset
     from .evaluation import box_iou, counted_pallets
@@ -37,13 +37,13 @@ def recall_rows(est, data: str | Path, max_frames: int = 0) -> np.ndarray:
                 continue
             x, y, w, h = g.bbox_visib_xywh
             if len(det) == 0:
-                rows.append((g.visib_fract, h, 0.0, 0.0, g.obj_id))
+                rows.append((g.visib_fract, h, 0.0, 0.0, g.obj_id, -1))
                 continue
             iou = box_iou(det.boxes_xyxy, np.array([[x, y, x + w, y + h]], float))[:, 0]
             # the highest-scoring overlapping detection, else the best-overlapping one
             j = int(np.argmax(np.where(iou >= 0.5, det.scores, -1.0))) if (iou >= 0.5).any() else int(np.argmax(iou))
-            rows.append((g.visib_fract, h, iou[j], det.scores[j], g.obj_id))
-    return np.array(rows, dtype=np.float64).reshape(-1, 5)
+            rows.append((g.visib_fract, h, iou[j], det.scores[j], g.obj_id, det.class_ids[j]))
+    return np.array(rows, dtype=np.float64).reshape(-1, 6)
 
 
 def type_names(data: str | Path) -> dict[int, str]:
@@ -53,11 +53,21 @@ def type_names(data: str | Path) -> dict[int, str]:
     return {int(k): str(v.get("name", k)) for k, v in BopDataset(data).models_info.items()}
 
 
-def recall_report(name: str, rows: np.ndarray, score_threshold: float, names: dict[int, str] | None = None) -> str:
-    """Markdown: recall at `score_threshold` overall, by visible box height and (when the rows hold more than one
-    object id) by pallet type, and the misses split by kind.
+def class_types(est) -> dict[int, str]:
+    """Detector class id -> the pallet type it reports, for the classes of an estimator that report one type each
+    (a typed detector); a class that reports several (the depth tells them apart) is absent."""
+    return {c: est.pallet_types[t[0]].name for c, t in est.type_choice.types_of_class.items()
+            if len(t) == 1}
 
-    :param rows: (n, 5) `recall_rows`. :param names: object id -> type name (`type_names`).
+
+def recall_report(name: str, rows: np.ndarray, score_threshold: float, names: dict[int, str] | None = None,
+                  classes: dict[int, str] | None = None) -> str:
+    """Markdown: recall at `score_threshold` overall, by visible box height and (when the rows hold more than one
+    object id) by pallet type, and the misses split by kind. With `classes`, the type table also says how many of
+    the found pallets the detector gave their own type, and which type it gave the others.
+
+    :param rows: (n, 6) `recall_rows`. :param names: object id -> type name (`type_names`).
+    :param classes: detector class id -> the type it reports (`class_types`).
     """
     found = (rows[:, 2] >= 0.5) & (rows[:, 3] >= score_threshold)
     miss = rows[~found]
@@ -69,10 +79,20 @@ def recall_report(name: str, rows: np.ndarray, score_threshold: float, names: di
         lines.append(f"| {label} | {sel.sum()} | {found[sel].mean():.2f} |" if sel.any() else f"| {label} | 0 | - |")
     ids = np.unique(rows[:, 4]).astype(int)
     if len(ids) > 1:
-        lines += ["", "| pallet type | pallets | recall |", "|---|---|---|"]
+        typed = bool(classes)
+        lines += ["", "| pallet type | pallets | recall |" + (" type right | typed as (the others) |" if typed else ""),
+                  "|---|---|---|" + ("---|---|" if typed else "")]
         for k in ids:
             sel = rows[:, 4] == k
-            lines.append(f"| {(names or {}).get(int(k), int(k))} | {sel.sum()} | {found[sel].mean():.2f} |")
+            name = (names or {}).get(int(k), str(int(k)))
+            line = f"| {name} | {sel.sum()} | {found[sel].mean():.2f} |"
+            if typed:
+                given = [classes.get(int(c), str(int(c))) for c in rows[sel & found, 5]]
+                wrong = [t for t in given if t != name]
+                right = f"{1 - len(wrong) / len(given):.2f}" if given else "-"
+                others = ", ".join(f"{t} {wrong.count(t)}" for t in sorted(set(wrong), key=lambda t: -wrong.count(t)))
+                line += f" {right} | {others} |"
+            lines.append(line)
     lines += ["", f"misses: {np.sum(miss[:, 2] >= 0.5)} found with a score below {score_threshold}, "
               f"{np.sum((miss[:, 2] >= 0.3) & (miss[:, 2] < 0.5))} with a loose box (IoU 0.3-0.5), "
               f"{np.sum(miss[:, 2] < 0.3)} with nothing near", ""]

@@ -12,19 +12,52 @@ def test_rows_count_every_pallet_at_least_10_percent_visible(bundle_dir, sim_bop
     rows = recall_rows(est, sim_bop_dataset, 0)
     ds = BopDataset(sim_bop_dataset)
     n = sum(1 for i in range(len(ds)) for g in ds[i].gts if g.bbox_visib_xywh is not None and g.visib_fract >= 0.1)
-    assert rows.shape == (n, 5) and n > 0
+    assert rows.shape == (n, 6) and n > 0
     assert np.all(rows[:, 0] >= 0.1) and np.all((rows[:, 2] >= 0) & (rows[:, 2] <= 1))
 
 
 def test_report_splits_the_misses():
     # visible fraction, box height px, best IoU, its score
-    rows = np.array([[0.9, 50, 0.8, 0.9, 1],     # found
-                     [0.9, 50, 0.8, 0.1, 1],     # overlapping box, low score
-                     [0.5, 20, 0.4, 0.9, 2],     # loose box
-                     [0.2, 10, 0.0, 0.0, 2]])    # nothing near
+    rows = np.array([[0.9, 50, 0.8, 0.9, 1, 0],     # found
+                     [0.9, 50, 0.8, 0.1, 1, 0],     # overlapping box, low score
+                     [0.5, 20, 0.4, 0.9, 2, 0],     # loose box
+                     [0.2, 10, 0.0, 0.0, 2, -1]])   # nothing near
     text = recall_report("x", rows, 0.25, {1: "epal", 2: "gma"})
     assert "4 pallets, recall 0.250" in text
     assert "1 found with a score below 0.25, 1 with a loose box (IoU 0.3-0.5), 1 with nothing near" in text
     assert "| >= 40 px | 2 | 0.50 |" in text and "| 0-15 px | 1 | 0.00 |" in text
     assert "| epal | 2 | 0.50 |" in text and "| gma | 2 | 0.00 |" in text
     assert "pallet type" not in recall_report("one type", rows[:2], 0.25)
+
+
+def test_report_says_which_type_a_typed_detector_gave():
+    # epal found 3 times: twice as epal (class 0), once as gma (class 1); gma found once, as gma
+    rows = np.array([[0.9, 50, 0.8, 0.9, 1, 0], [0.9, 50, 0.8, 0.9, 1, 0], [0.9, 50, 0.8, 0.9, 1, 1],
+                     [0.9, 50, 0.8, 0.9, 2, 1], [0.9, 50, 0.1, 0.9, 2, 0]])
+    text = recall_report("x", rows, 0.25, {1: "epal", 2: "gma"}, {0: "epal", 1: "gma"})
+    assert "| epal | 3 | 1.00 | 0.67 | gma 1 |" in text
+    assert "| gma | 2 | 0.50 | 1.00 |  |" in text
+    assert "type right" not in recall_report("untyped", rows, 0.25, {1: "epal", 2: "gma"})
+
+
+def test_class_types_lists_classes_of_one_type(bundle_dir):
+    import dataclasses
+
+    from pallet6d.runtime.bundle import PalletType, load_bundle
+    from pallet6d.runtime.detector_recall import class_types
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.runtime.pallet_geometry import default_refine_starts
+    from pallet6d.sim.pallets import get_pallet_model
+
+    def typ(name, class_id):
+        m = get_pallet_model(name)
+        return PalletType(name=name, class_id=class_id, size_m=tuple(m.size_m), diameter_m=m.diameter_m,
+                          points_file=f"{name}_points.npy", symmetries=m.symmetries, boxes_m=m.boxes_m,
+                          refine_starts=default_refine_starts(m.size_m), points_m=m.surface_points(300, seed=0))
+
+    bundle = load_bundle(bundle_dir)
+    c = bundle.pallet_types[0].class_id
+    typed = dataclasses.replace(bundle, pallet_types=(typ("epal", c), typ("gma", c + 1)))
+    assert class_types(PalletEstimator(typed, threads=1)) == {c: "epal", c + 1: "gma"}
+    shared = dataclasses.replace(bundle, pallet_types=(typ("epal", c), typ("gma", c)))   # the depth decides
+    assert class_types(PalletEstimator(shared, threads=1)) == {}
