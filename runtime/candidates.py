@@ -9,6 +9,8 @@ Fields (n rows, N sampled points per row):
 
 - `boxes_xyxy` (n, 4) float64 image pixels; `scores` (n,) float64; `class_ids` (n,) int64 detector classes;
 - `type_index` (n,) int64: the row's pallet type, an index into the estimator's `pallet_types`;
+- `type_options` (n,) object: each row's tuple of the type indexes it may be (the type choice picks one where
+  there are several);
 - `n_valid` (n,) int64 valid depth pixels in the box; `points_cam` (n, N, 3) float64 the sampled points,
   camera frame, metres; `pixels` (n,) object: each row's candidate depth pixels, a (v, u) pair of int64
   arrays (rows, columns; row-major), selected once and reused by the refiner;
@@ -34,6 +36,7 @@ class Candidates:
     scores: np.ndarray
     class_ids: np.ndarray
     type_index: np.ndarray
+    type_options: np.ndarray
     n_valid: np.ndarray
     points_cam: np.ndarray
     pixels: np.ndarray
@@ -45,8 +48,9 @@ class Candidates:
     detail: np.ndarray
 
     @classmethod
-    def new(cls, boxes_xyxy, scores, class_ids, type_index, num_points: int) -> "Candidates":
-        """Rows for detections (n, 4) boxes, (n,) scores, (n,) class ids, (n,) type indexes; the rest empty."""
+    def new(cls, boxes_xyxy, scores, class_ids, type_index, num_points: int, type_options=None) -> "Candidates":
+        """Rows for detections (n, 4) boxes, (n,) scores, (n,) class ids, (n,) type indexes, and n tuples of the
+        type indexes each row may be (None: its type index alone); the rest empty."""
         boxes = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
         n = len(boxes)
         scores = np.asarray(scores, dtype=np.float64).reshape(-1)
@@ -55,11 +59,17 @@ class Candidates:
         if not len(scores) == len(class_ids) == len(type_index) == n:
             raise ValueError(f"Candidates: {n} boxes but {len(scores)} scores, {len(class_ids)} class ids, "
                              f"{len(type_index)} type indexes")
+        options = [(int(t),) for t in type_index] if type_options is None else \
+            [tuple(int(j) for j in o) for o in type_options]
+        if len(options) != n or any(int(t) not in o for t, o in zip(type_index, options)):
+            raise ValueError(f"Candidates: {n} boxes need {n} type options, each with its row's type index "
+                             f"{type_index.tolist()}, got {options}")
         eye = np.tile(np.eye(4), (n, 1, 1))
-        pixels = np.empty(n, dtype=object)
+        pixels, type_options = np.empty(n, dtype=object), np.empty(n, dtype=object)
         for i in range(n):
             pixels[i] = (np.zeros(0, np.int64), np.zeros(0, np.int64))
-        return cls(boxes, scores, class_ids, type_index, n_valid=np.zeros(n, np.int64),
+            type_options[i] = options[i]
+        return cls(boxes, scores, class_ids, type_index, type_options, n_valid=np.zeros(n, np.int64),
                    points_cam=np.zeros((n, int(num_points), 3)), pixels=pixels, T_net=eye,
                    confidence=np.zeros(n), T_cam_pallet=eye.copy(), fit=np.full((n, 3), np.nan),
                    reason=np.full(n, "", dtype=object), detail=np.full(n, "", dtype=object))

@@ -133,11 +133,14 @@ class Detections:
     :ivar boxes_xyxy: (n, 4) float64 x1, y1, x2, y2 (pixels of the image they refer to).
     :ivar scores: (n,) float64.
     :ivar class_ids: (n,) int64.
+    :ivar class_scores: (n, nc) float64 every class's score of each detection (the detector's, before NMS), or
+        None where only the best class is known (boxes from elsewhere).
     """
 
     boxes_xyxy: np.ndarray
     scores: np.ndarray
     class_ids: np.ndarray
+    class_scores: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         boxes = np.asarray(self.boxes_xyxy, dtype=np.float64).reshape(-1, 4) if np.size(self.boxes_xyxy) == 0 \
@@ -151,6 +154,12 @@ class Detections:
         object.__setattr__(self, "boxes_xyxy", boxes)
         object.__setattr__(self, "scores", scores)
         object.__setattr__(self, "class_ids", class_ids)
+        if self.class_scores is not None:
+            cs = np.asarray(self.class_scores, dtype=np.float64)
+            cs = cs.reshape(len(boxes), -1) if cs.size == 0 else cs
+            if cs.ndim != 2 or len(cs) != len(boxes):
+                raise ValueError(f"Detections.class_scores: expected ({len(boxes)}, nc), got {cs.shape}")
+            object.__setattr__(self, "class_scores", cs)
 
     def __len__(self) -> int:
         return len(self.scores)
@@ -160,7 +169,8 @@ class Detections:
         return cls(np.zeros((0, 4)), np.zeros(0), np.zeros(0, dtype=np.int64))
 
     def take(self, idx: np.ndarray) -> "Detections":
-        return Detections(self.boxes_xyxy[idx], self.scores[idx], self.class_ids[idx])
+        return Detections(self.boxes_xyxy[idx], self.scores[idx], self.class_ids[idx],
+                          None if self.class_scores is None else self.class_scores[idx])
 
 
 def nms(boxes_xyxy: np.ndarray, scores: np.ndarray, iou_threshold: float) -> np.ndarray:
@@ -201,7 +211,7 @@ def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: flo
     :param max_detections: at most this many, highest score first.
     :param agnostic: NMS across classes: classes that are kinds of one object (pallet types) never give one
         object two boxes.
-    :return: `Detections` in detector-input pixels.
+    :return: `Detections` in detector-input pixels, with every class's score.
     """
     out = np.asarray(output)
     if out.ndim == 3:
@@ -225,7 +235,7 @@ def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: flo
     # Class-aware NMS in one pass: shift each class's boxes to a disjoint region.
     offset = 0.0 if agnostic else best[:, None] * (np.abs(boxes).max() + 1.0)
     idx = nms(boxes + offset, score, iou_threshold)[:max_detections]
-    return Detections(boxes[idx], score[idx], best[idx])
+    return Detections(boxes[idx], score[idx], best[idx], cls_scores[:, keep][:, idx].T)
 
 
 def undo_letterbox(boxes_xyxy: np.ndarray, lb: Letterbox, clip: bool = True) -> np.ndarray:

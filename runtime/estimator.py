@@ -99,6 +99,9 @@ class EstimatorOptions:
     :ivar type_candidates: where one detector class reports several pallet types, the candidate is refined
         with this many of them, those that best fit the depth and show their boards and openings at the
         network's pose, and the refined pose that does so best decides its type (`stage_type.py`).
+    :ivar type_score_ratio: a detector with a class per pallet type can be unsure between look-alike types: a
+        pallet class that scores a detection at least this fraction of its best class's score offers its types
+        too, and the type choice above decides by the depth. 1: the best class's types alone.
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's
@@ -150,6 +153,7 @@ class EstimatorOptions:
     refine_select_tol_m: float = 0.015
     refine_start_max_rms_m: float = 0.003
     type_candidates: int = 2
+    type_score_ratio: float = 0.5
     nonfinite_depth: str = "raise"
     seed: int = 0
     structure: StructureParams | None = StructureParams()
@@ -192,6 +196,8 @@ class EstimatorOptions:
             raise ValueError(f"refine_start_max_rms_m must be positive, got {self.refine_start_max_rms_m}")
         if int(self.type_candidates) < 1:
             raise ValueError(f"type_candidates must be >= 1, got {self.type_candidates}")
+        if not 0.0 < self.type_score_ratio <= 1.0:
+            raise ValueError(f"type_score_ratio must be in (0, 1], got {self.type_score_ratio}")
         if self.time_budget_ms is not None and not self.time_budget_ms >= 0:
             raise ValueError(f"time_budget_ms must be >= 0 or None, got {self.time_budget_ms}")
         if self.pallet_lanes is not None and int(self.pallet_lanes) < 1:
@@ -418,16 +424,16 @@ class PalletEstimator:
         for s in STAGES:
             timings.setdefault(s, 0.0)
         det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
-        type_index = [self._types_of_class[int(c)][0] for c in det.class_ids]   # the type choice may change it
-        cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points)
+        options = self._type_options(det)
+        type_index = [o[0] for o in options]   # the type choice may change it
+        cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points, options)
         if self.options.roi is not None:
             keep, why = roi_filter(cands.boxes_xyxy, depth_m, self.options.roi)
             drop = np.flatnonzero(~keep)
             cands.reject(drop, "outside_roi", [why[i] for i in drop])
         if len(cands):
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
-            if self.type_choice.needed:
-                self.type_choice(cands, depth_m, K, timings, deadline)
+            self.type_choice(cands, depth_m, K, timings, deadline)
             self.refiner(cands, depth_m, K, timings, deadline)
             up_cam = None
             if T_vehicle_cam is not None and self.options.level is not None:
@@ -435,6 +441,20 @@ class PalletEstimator:
                 up_cam = up_in_camera(T_vehicle_cam)
             self.fit_check(cands, depth_m, K, timings, rgb, up_cam)
         return cands
+
+    def _type_options(self, det: Detections) -> list[tuple[int, ...]]:
+        """Each detection's type indexes: its class's types first, then those of the pallet classes that score it
+        at least `type_score_ratio` of its score (where the detector's class scores are known)."""
+        out = []
+        for i, c in enumerate(det.class_ids):
+            types = list(self._types_of_class[int(c)])
+            if det.class_scores is not None and self.options.type_score_ratio < 1.0:
+                row = det.class_scores[i]
+                for other in sorted(self._types_of_class, key=lambda k: -row[k] if k < len(row) else 0.0):
+                    if other != c and other < len(row) and row[other] >= self.options.type_score_ratio * row[c]:
+                        types += [j for j in self._types_of_class[other] if j not in types]
+            out.append(tuple(types))
+        return out
 
     def _level(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
                timings: dict[str, float]) -> None:

@@ -68,4 +68,4 @@ class DetectorStage:
         type may score one pallet as two types), highest score first, at most `max_detections`."""
         det = decode_yolov8(raw, self.score_threshold, self.iou_threshold, self.class_ids, self.max_detections,
                             agnostic=True)
-        return Detections(undo_letterbox(det.boxes_xyxy, lb), det.scores, det.class_ids)
+        return Detections(undo_letterbox(det.boxes_xyxy, lb), det.scores, det.class_ids, det.class_scores)

@@ -1,9 +1,11 @@
-"""Type choice stage: which of the pallet types its detector class reports is each candidate? (numpy only)
+"""Type choice stage: which of the pallet types it may be is each candidate? (numpy only)
 
 A detector trained on photographs that carry no type label has one class, "pallet", for every type of the
-bundle; the depth then tells the types apart, as their sizes and boards differ (0.8 x 0.6 m to 1.22 x 1.02 m,
-blocks, stringers, legs, runners, closed decks). The pose network poses every type in the same frame (the
-centre of its bounding box, x along the length, z up), so per candidate whose class reports several types:
+bundle; a detector with a class per type can still be unsure between look-alike types (its runner-up classes,
+`EstimatorOptions.type_score_ratio`). The depth then tells the types apart, as their sizes and boards differ
+(0.8 x 0.6 m to 1.22 x 1.02 m, blocks, stringers, legs, runners, closed decks). The pose network poses every type
+in the same frame (the centre of its bounding box, x along the length, z up), so per candidate that may be of
+several types (`Candidates.type_options`):
 
 1. every such type is scored at the network's pose: its fit to the candidate's sampled points (`fit.fit_scores`:
    inlier fraction times one minus the free-space violation) times the structure check's agreement with its
@@ -33,7 +35,7 @@ __all__ = ["TypeChoiceStage"]
 
 
 class TypeChoiceStage:
-    """Picks the pallet type of candidates whose detector class reports several types.
+    """Picks the pallet type of candidates that may be of several types.
 
     :param geometries: the bundle's pallet types. :param types_of_class: detector class -> its type indexes.
     :param refiner: the estimator's `RefinerStage` (its refinement decides between the kept types).
@@ -59,10 +61,10 @@ class TypeChoiceStage:
 
     def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
         """Fit score times structure agreement of each type at the network's pose of each row (-inf for the types
-        its class does not report). :return: (len(rows), number of types)."""
+        not among its options). :return: (len(rows), number of types)."""
         score = np.full((len(rows), len(self.geometries)), -np.inf)
         for j, g in enumerate(self.geometries):
-            mine = np.flatnonzero([j in self.types_of_class[int(c)] for c in cands.class_ids[rows]])
+            mine = np.flatnonzero([j in o for o in cands.type_options[rows]])
             if len(mine) == 0:
                 continue
             r = rows[mine]
@@ -113,12 +115,14 @@ class TypeChoiceStage:
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
                  deadline: Deadline | None = None) -> None:
-        """The stage on the alive rows of multi-type classes. Its time counts as refinement. Under a time budget
-        the rows go `refiner.budget_chunk` at a time, highest score first; those left when it expires keep
-        their class's first type, unrefined (the refiner stage then rejects them for the budget)."""
-        t = time.perf_counter()
-        multi = np.array([len(self.types_of_class.get(int(c), ())) > 1 for c in cands.class_ids], bool)
+        """The stage on the alive rows with several type options. Its time counts as refinement. Under a time
+        budget the rows go `refiner.budget_chunk` at a time, highest score first; those left when it expires keep
+        their first type, unrefined (the refiner stage then rejects them for the budget)."""
+        multi = np.array([len(o) > 1 for o in cands.type_options], bool)
         rows = np.flatnonzero(cands.alive & multi)
+        if len(rows) == 0:
+            return
+        t = time.perf_counter()
         budget = deadline is not None and deadline.budget_ms is not None
         step = self.refiner.budget_chunk if budget else max(len(rows), 1)
         for k in range(0, len(rows), step):

@@ -47,6 +47,8 @@ def test_reject_sets_reasons_and_details_and_alive_follows():
 @pytest.mark.parametrize("kwargs, error, match", [
     (dict(scores=[0.5]), ValueError, "2 boxes but 1 scores"),
     (dict(type_index=[0, 0, 0]), ValueError, "3 type indexes"),
+    (dict(type_options=[(0, 1)]), ValueError, "2 boxes need 2 type options"),
+    (dict(type_options=[(0, 1), (1, 2)]), ValueError, "each with its row's type index"),
 ])
 def test_new_checks_row_counts(kwargs, error, match):
     args = dict(boxes_xyxy=np.zeros((2, 4)), scores=[0.5, 0.4], class_ids=[0, 0], type_index=[0, 0], num_points=3)

@@ -88,6 +88,15 @@ def test_nms_iou_threshold_boundary():
     assert list(nms(np.zeros((0, 4)), np.zeros(0), 0.5)) == []
 
 
+def test_decode_keeps_every_class_score_of_each_detection():
+    boxes = [(100, 100, 40, 40), (102, 101, 40, 40), (300, 100, 40, 40)]
+    scores = [(0.9, 0.5), (0.8, 0.1), (0.2, 0.6)]
+    det = decode_yolov8(_yolo_output(boxes, scores), 0.5, 0.5, agnostic=True)
+    np.testing.assert_allclose(det.class_scores, [(0.9, 0.5), (0.2, 0.6)])   # the second box lost the NMS
+    np.testing.assert_allclose(det.take(np.array([1])).class_scores, [(0.2, 0.6)])
+    assert det.class_scores.dtype == np.float64
+
+
 def test_decode_max_detections_and_empty():
     boxes = [(50 * i + 20, 20, 10, 10) for i in range(10)]
     det = decode_yolov8(_yolo_output(boxes, [(0.5 + 0.04 * i, 0) for i in range(10)]), 0.4, 0.5, max_detections=3)
@@ -110,7 +119,9 @@ def test_decode_rejects_bad_layouts(shape):
 def test_detections_validate_lengths():
     with pytest.raises(ValueError, match="2 boxes, 1 scores"):
         Detections(np.zeros((2, 4)), np.zeros(1), np.zeros(2))
-    assert len(Detections.empty()) == 0
+    with pytest.raises(ValueError, match=r"class_scores: expected \(2, nc\), got \(3, 2\)"):
+        Detections(np.zeros((2, 4)), np.zeros(2), np.zeros(2), np.zeros((3, 2)))
+    assert len(Detections.empty()) == 0 and Detections.empty().class_scores is None
 
 
 SIZES = [(192, 640), (256, 480), (288, 416), (320, 384)]

@@ -310,7 +310,10 @@ def test_the_depth_picks_the_type_among_a_classes_types(bundle_dir, truth, refin
     assert p.model_name == truth and p.visib_fract > 0.5
     x, y, w, h = p.bbox_visib_xywh
     rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
-    c = Candidates.new(np.array([[x, y, x + w, y + h]], float), [0.9], [0], [0], est.spec.num_points)
+    box = np.array([[x, y, x + w, y + h]], float)
+    options = est._type_options(Detections(box, [0.9], [0]))
+    assert options == [(0, 1, 2, 3)]                 # the class's types
+    c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=options)
     est.pose_network(rgb, depth_m, K, c, {})
     T = p.T_cam_pallet.copy()
     T[:3, 3] += [0.01, -0.01, 0.01]                   # a network pose near the truth
@@ -322,6 +325,54 @@ def test_the_depth_picks_the_type_among_a_classes_types(bundle_dir, truth, refin
         assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.02
 
 
+@pytest.fixture
+def typed(bundle_dir):
+    """Makes an estimator whose detector has a class per type (epal 0, eur6 1, gma 2) with the given options."""
+    bundle = dataclasses.replace(load_bundle(bundle_dir), pallet_types=tuple(
+        _catalogue_type(n, c) for c, n in enumerate(("epal", "eur6", "gma"))))
+    return lambda options: PalletEstimator(bundle, threads=1, options=EstimatorOptions(
+        **{k: v for k, v in KW.items() if k != "threads"}, **options))
+
+
+@pytest.mark.parametrize("class_scores, ratio, expected", [
+    ([0.9, 0.1, 0.0], 0.5, (0,)),                    # sure: its class's type alone
+    ([0.9, 0.5, 0.0], 0.5, (0, 1)),                  # a runner-up at >= half its score
+    ([0.6, 0.4, 0.5], 0.5, (0, 2, 1)),               # runner-ups by score
+    ([0.6, 0.4, 0.5], 1.0, (0,)),                    # ratio 1: the best class only
+    (None, 0.5, (0,)),                               # boxes from elsewhere: no class scores
+])
+def test_a_typed_detectors_runner_up_classes_offer_their_types(typed, class_scores, ratio, expected):
+    est = typed(dict(type_score_ratio=ratio))
+    assert not est.type_choice.needed                # every class reports one type
+    det = Detections([[10, 10, 60, 40]], [0.9], [0], None if class_scores is None else [class_scores])
+    assert est._type_options(det) == [expected]
+
+
+def test_the_depth_overrules_a_typed_detectors_wrong_class(typed):
+    est = typed(dict(type_score_ratio=0.5))
+    f = _scene_of("epal")
+    p = max(f.pallets, key=lambda p: p.visib_fract)
+    x, y, w, h = p.bbox_visib_xywh
+    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
+    box = np.array([[x, y, x + w, y + h]], float)
+    # the detector calls the EPAL an EUR 6 (class 1), with the EPAL (class 0) a close second
+    options = est._type_options(Detections(box, [0.8], [1], [[0.7, 0.8, 0.1]]))
+    assert options == [(1, 0)]
+    c = Candidates.new(box, [0.8], [1], [1], est.spec.num_points, type_options=options)
+    est.pose_network(rgb, depth_m, K, c, {})
+    T = p.T_cam_pallet.copy()
+    T[:3, 3] += [0.01, -0.01, 0.01]                  # a network pose near the truth
+    c.assign([0], T_net=T[None], T_cam_pallet=T[None])
+    est.type_choice(c, depth_m, K, {})
+    assert est.pallet_types[int(c.type_index[0])].name == "epal"
+    # sure of its wrong class, nothing is left to choose: the row stays an EUR 6
+    sure = Candidates.new(box, [0.8], [1], [1], est.spec.num_points,
+                          type_options=est._type_options(Detections(box, [0.8], [1], [[0.1, 0.8, 0.1]])))
+    sure.assign([0], T_net=T[None], T_cam_pallet=T[None])
+    est.type_choice(sure, depth_m, K, {})
+    assert est.pallet_types[int(sure.type_index[0])].name == "eur6"
+
+
 def test_types_may_share_a_detector_class(bundle_dir):
     bundle = load_bundle(bundle_dir)
     shared = dataclasses.replace(bundle.manifest, pallet_types=(bundle.pallet_types[0], _catalogue_type("eur6", 0)),
@@ -329,6 +380,9 @@ def test_types_may_share_a_detector_class(bundle_dir):
     assert [t.class_id for t in shared.pallet_types] == [0, 0]
     with pytest.raises(ValueError, match="type_candidates"):
         EstimatorOptions(type_candidates=0)
+    for ratio in (0.0, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="type_score_ratio"):
+            EstimatorOptions(type_score_ratio=ratio)
 
 
 def test_site_pallet_types_narrow_the_type_choice(bundle_dir):
