@@ -114,6 +114,9 @@ def main(argv=None) -> int:
     ap.add_argument("--pallet-types", default=None,
                     help="comma-separated pallet types the site uses (EstimatorOptions.pallet_types; the paper presets "
                          "hold EPAL pallets only: epal); default: every type of the bundle")
+    ap.add_argument("--type-candidates", type=int, default=None,
+                    help="types refined per detection where its class reports several (EstimatorOptions."
+                         "type_candidates)")
     ap.add_argument("--structure", default=None,
                     help="StructureParams overrides as JSON, e.g. '{\"min_registration_peak\": 0}' (the structure "
                          "check's thresholds; default: the estimator's)")
@@ -126,8 +129,8 @@ def main(argv=None) -> int:
     from pallet6d.runtime.eval_cli import evaluate_dataset, format_table
 
     precision = "int8" if args.int8 else "fp32"
-    options = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets))
-               if v is not None}
+    options = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
+                                 ("type_candidates", args.type_candidates)) if v is not None}
     if args.pallet_types:
         options["pallet_types"] = tuple(t.strip() for t in args.pallet_types.split(",") if t.strip())
     if args.structure is not None:
@@ -152,6 +155,7 @@ def main(argv=None) -> int:
         + (f", at most {args.max_pallets} pallets per frame" if args.max_pallets is not None else "") \
         + (f", sampling seed {args.seed}" if args.seed else "") \
         + (f", site pallet types {args.pallet_types}" if args.pallet_types else "") \
+        + (f", {args.type_candidates} types refined" if args.type_candidates is not None else "") \
         + (f", structure check {args.structure}" if args.structure is not None else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")

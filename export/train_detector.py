@@ -258,7 +258,8 @@ class DetectorTrainer:
     def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
         """Validation loss over all validation frames; precision/recall over the simulated ones, and (`_real`)
         over the real ones when there are any, with the recall of the real near boxes; with several classes, the
-        share of found simulated boxes given their own type (`type_accuracy`); `metric` by `select`."""
+        share of found simulated boxes given their own type, averaged over the types (`type_accuracy`; the worst type's
+        in `type_accuracy_min`); `metric` by `select`."""
         idx_all = self.data.val_idx
         sizes = [self.input_hw_of(int(i)) for i in idx_all]
         groups = [idx_all[[k for k, hw in enumerate(sizes) if hw == size]] for size in dict.fromkeys(sizes)]
@@ -266,7 +267,8 @@ class DetectorTrainer:
         total = 0.0
         counts = {False: [0, 0, 0], True: [0, 0, 0]}   # real? -> tp, n_pred, n_gt
         near = [0, 0]                                   # real boxes >= NEAR_FRACTION tall: found, all
-        types = [0, 0]                                  # found boxes of a known type: of the right type, all
+        nc = self.detector.head.nc
+        types = np.zeros((2, nc), np.int64)             # found boxes of a known type, per type: right type, all
         for idx in chunks:
             x, targets = self.batch(idx, None)
             raw = self.detector.forward_raw(x)
@@ -285,8 +287,9 @@ class DetectorTrainer:
                 c[0] += int(found.sum())
                 gt_cls = t[:, 0].cpu().numpy()
                 typed = found & (gt_cls >= 0) if self.detector.head.nc > 1 else np.zeros(len(gt), bool)
-                types[0] += int((det.class_ids[matched[typed]] == gt_cls[typed]).sum())
-                types[1] += int(typed.sum())
+                truth = gt_cls[typed].astype(np.int64)
+                np.add.at(types[0], truth, det.class_ids[matched[typed]] == truth)
+                np.add.at(types[1], truth, 1)
                 if real:   # near: tall relative to the letterboxed image's own height
                     content_h = letterboxed_height(self.data.samples.images[idx[k]].shape[:2], tuple(x.shape[2:]))
                     is_near = (gt[:, 3] - gt[:, 1]) >= NEAR_FRACTION * content_h
@@ -296,8 +299,9 @@ class DetectorTrainer:
         out = {"metric": loss, "loss": loss}
         if near[1]:
             out.update({"recall_real_near": near[0] / near[1], "n_gt_real_near": near[1]})
-        if types[1]:
-            out.update({"type_accuracy": types[0] / types[1], "n_typed": types[1]})
+        if types[1].any():
+            mean, worst = balanced_type_accuracy(types[0], types[1])
+            out.update({"type_accuracy": mean, "type_accuracy_min": worst, "n_typed": int(types[1].sum())})
         for is_real, suffix in ((False, ""), (True, "_real")):
             tp, n_pred, n_gt = counts[is_real]
             if is_real and n_gt == 0 and n_pred == 0:
@@ -309,6 +313,17 @@ class DetectorTrainer:
             out["near_f1"] = 2 * r * p / (r + p) if r + p > 0 else 0.0
             out["metric"] = 1.0 - out["near_f1"]
         return out
+
+
+def balanced_type_accuracy(right: np.ndarray, found: np.ndarray) -> tuple[float, float]:
+    """The share of found boxes given their own type, averaged over the types found at least once (a common type
+    cannot hide the others: a detector that calls every pallet an EPAL scores 1 / types, not the EPAL's share),
+    and the worst type's share. :param right, found: (nc,) counts per true type."""
+    seen = np.asarray(found) > 0
+    if not seen.any():
+        raise ValueError("balanced_type_accuracy: no typed box was found")
+    per_type = np.asarray(right, np.float64)[seen] / np.asarray(found, np.float64)[seen]
+    return float(per_type.mean()), float(per_type.min())
 
 
 def detector_class_of_type(classes: Sequence[str], data: DetectorData) -> np.ndarray:

@@ -16,7 +16,8 @@ from pallet6d.export.pallet_types import class_ids_for_types
 from pallet6d.export.train_cli import detector_classes
 from pallet6d.export.train_data import (NO_AUGMENT, AugmentConfig, DetectorSamples, build_detector_samples,
                                         flip_horizontal, load_or_build, place_in_window)
-from pallet6d.export.train_detector import DetectorData, DetectorTrainer, detector_class_of_type
+from pallet6d.export.train_detector import (DetectorData, DetectorTrainer, balanced_type_accuracy,
+                                           detector_class_of_type)
 from pallet6d.sim.pallets import PALLET_MODELS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -78,6 +79,19 @@ def test_augmentation_carries_a_class_column_with_its_box():
     _, kept = place_in_window(img, boxes, (64, 128), np.random.default_rng(1), 0.0, 3.0, 0.5)
     assert set(kept[:, 4].tolist()) <= {3.0, 7.0}
     assert place_in_window(img, np.zeros((0, 4)), (64, 128), rng, 0.0, 1.0, 0.0)[1].shape == (0, 4)
+
+
+@pytest.mark.parametrize("right, found, expected", [
+    ([90, 0, 0], [90, 5, 5], (1 / 3, 0.0)),          # every pallet called an EPAL: 90 % of the boxes, 1 of 3 types
+    ([9, 4, 0], [10, 5, 0], ((0.9 + 0.8) / 2, 0.8)),  # a type never found does not count
+])
+def test_type_accuracy_is_balanced_over_the_types(right, found, expected):
+    assert balanced_type_accuracy(np.array(right), np.array(found)) == pytest.approx(expected)
+
+
+def test_type_accuracy_needs_a_typed_box():
+    with pytest.raises(ValueError, match="no typed box"):
+        balanced_type_accuracy(np.zeros(3), np.zeros(3))
 
 
 def test_class_of_each_type():
