@@ -315,6 +315,12 @@ class DetectorTrainer:
         return out
 
 
+def class_output_names(detector: torch.nn.Module) -> set[str]:
+    """Parameter names of the detector head's last class convs (one output channel per class, at every level)."""
+    last = {f"head.cls.{k}.{len(seq) - 1}" for k, seq in enumerate(detector.head.cls)}
+    return {n for n, _ in detector.named_parameters() if n.rsplit(".", 1)[0] in last}
+
+
 def balanced_type_accuracy(right: np.ndarray, found: np.ndarray) -> tuple[float, float]:
     """The share of found boxes given their own type, averaged over the types found at least once (a common type
     cannot hide the others: a detector that calls every pallet an EPAL scores 1 / types, not the EPAL's share),
@@ -370,9 +376,16 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                    val_fraction: float = 0.1, max_frames: int | None = None, command: str = "",
                    progress: bool = True, init: str | Path | None = None, real: str | Path | None = None,
                    real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None,
-                   real_repeat_large: int = 1, select: str = "loss", loader_threads: int = 1) -> dict:
+                   real_repeat_large: int = 1, select: str = "loss", loader_threads: int = 1,
+                   class_lr_mult: float = 1.0) -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
-    checkpoints and the log go to `run_dir`. Returns the last log entry."""
+    checkpoints and the log go to `run_dir`. Returns the last log entry.
+
+    :param class_lr_mult: the learning rate of the class outputs (`class_output_names`) relative to the rest: a
+        detector given a class per type from a one-class one starts every class alike, and Adam moves each weight
+        by about the rate per step, too slowly for the new classes to part at a fine-tuning rate."""
+    if not class_lr_mult > 0:
+        raise ValueError(f"class_lr_mult must be positive, got {class_lr_mult}")
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
@@ -380,11 +393,15 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                             val_fraction, max_frames, progress, real, real_max_images, real_repeat_large)
     trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes,
                               select=select, loader_threads=loader_threads)
-    # YOLOv8 practice: no weight decay on BatchNorm weights and biases
-    decay = [p for n, p in trainer.detector.named_parameters() if p.ndim > 1]
-    no_decay = [p for n, p in trainer.detector.named_parameters() if p.ndim <= 1]
-    optimizer = torch.optim.AdamW([{"params": decay, "weight_decay": 5e-4}, {"params": no_decay, "weight_decay": 0.0}],
-                                  lr=settings.lr, betas=(0.937, 0.999))
+    # YOLOv8 practice: no weight decay on BatchNorm weights and biases; the class outputs at their own rate
+    params = dict(trainer.detector.named_parameters())
+    class_out = [n for n in params if n in class_output_names(trainer.detector)] if class_lr_mult != 1.0 else []
+    rest = [n for n in params if n not in class_out]
+    groups = [{"params": [params[n] for n in rest if params[n].ndim > 1], "weight_decay": 5e-4},
+              {"params": [params[n] for n in rest if params[n].ndim <= 1], "weight_decay": 0.0}]
+    if class_out:
+        groups.append({"params": [params[n] for n in class_out], "weight_decay": 0.0, "lr_mult": float(class_lr_mult)})
+    optimizer = torch.optim.AdamW(groups, lr=settings.lr, betas=(0.937, 0.999))
     provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
                   "input_sizes": [list(hw) for hw in trainer.input_sizes], "classes": list(cfg.detector.classes),
                   "depth_max_m": cfg.detector.depth_max_m,
@@ -393,7 +410,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                   "seed": settings.seed, "command": command,
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,
-                  "real_repeat_large": real_repeat_large, "select": select,
+                  "real_repeat_large": real_repeat_large, "select": select, "class_lr_mult": class_lr_mult,
                   "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx)),
                               "real": int(dd.real.sum())},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}

@@ -198,7 +198,7 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
         for k, idx in enumerate(bar):
             lr = lr_at(s, epoch + k / len(batches))
             for g in optimizer.param_groups:
-                g["lr"] = lr
+                g["lr"] = lr * g.get("lr_mult", 1.0)
             loss, parts = step(idx, rng)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"{stage} loss became {float(loss)} at epoch {epoch + 1}, batch {k}; "

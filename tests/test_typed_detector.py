@@ -164,3 +164,29 @@ def test_detector_classes_option(sim_bop_dataset):
     for bad in ("epal,chep", "", "epal,epal"):
         with pytest.raises(ValueError, match="detector-classes"):
             detector_classes(bad, [])
+
+
+def test_class_outputs_learn_at_their_own_rate(sim_bop_dataset, tmp_path):
+    from pallet6d.export.train_detector import class_output_names, train_detector
+    from pallet6d.export.train_loop import LoopSettings, load_checkpoint
+
+    cfg = get_config("tiny")
+    cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, classes=detector_classes("types", [sim_bop_dataset])))
+    names = class_output_names(build_detector(cfg.detector))
+    assert names == {f"head.cls.{k}.2.{p}" for k in range(3) for p in ("weight", "bias")}
+    settings = LoopSettings(epochs=1, batch=2, lr=1e-5, seed=0)
+    moved = {}
+    for mult in (1.0, 1000.0):
+        torch.manual_seed(0)                          # train_detector's own seeding: the same start
+        start = build_detector(cfg.detector).state_dict()
+        train_detector(cfg, [sim_bop_dataset], tmp_path / f"run{mult}", settings, aug=NO_AUGMENT, progress=False,
+                       class_lr_mult=mult, cache_dir=tmp_path / "cache")
+        end = load_checkpoint(tmp_path / f"run{mult}" / "last.pt")["detector"]
+        moved[mult] = {n: float((end[n].float() - start[n].float()).abs().max())
+                       for n in (*names, "head.cls.0.0.conv.weight")}
+        assert load_checkpoint(tmp_path / f"run{mult}" / "last.pt")["provenance"]["class_lr_mult"] == mult
+    # the class outputs move far more at 1000x; the rest of the network about as much
+    assert all(moved[1000.0][n] > 20 * moved[1.0][n] for n in names)
+    assert moved[1000.0]["head.cls.0.0.conv.weight"] < 20 * moved[1.0]["head.cls.0.0.conv.weight"] + 1e-6
+    with pytest.raises(ValueError, match="class_lr_mult"):
+        train_detector(cfg, [sim_bop_dataset], tmp_path / "bad", settings, progress=False, class_lr_mult=0.0)
