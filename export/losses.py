@@ -147,9 +147,15 @@ class DetectorLoss:
         self.topk, self.alpha, self.beta = topk, alpha, beta
         self.gains = (box_gain, cls_gain, dfl_gain)
 
-    def _assign(self, scores, pred_boxes, anchors, gt_labels, gt_boxes, gt_mask):
-        """All in pixels. scores (B, A, nc) sigmoid; gt_* padded to (B, G, ...), label -1 = any type.
-        Returns target boxes, target scores, fg mask (B, A) and the class-loss mask (B, A, nc)."""
+    def _assign(self, scores, pred_boxes, anchors, gt_labels, gt_boxes, gt_mask, strides=None):
+        """All in pixels. scores (B, A, nc) sigmoid; gt_* padded to (B, G, ...), label -1 = any type; strides (A, 1)
+        each anchor's stride (None: every anchor is a candidate for the boxes it lies in).
+        Returns target boxes, target scores, fg mask (B, A) and the class-loss mask (B, A, nc).
+
+        A candidate anchor lies inside the box and, given `strides`, can reach its edges: the distance bins span
+        reg_max - 1 strides, so a fine level cannot draw a large box. Without that rule a level whose scores fell
+        early is never picked again (TAL ranks by score) and large boxes go to anchors that can only draw them too
+        small; a box that no anchor can reach keeps every anchor inside it."""
         b, a, _ = scores.shape
         g = gt_boxes.shape[1]
         if g == 0:
@@ -157,7 +163,11 @@ class DetectorLoss:
                     torch.zeros(b, a, dtype=torch.bool, device=scores.device), torch.ones_like(scores))
         lt = anchors[None, None] - gt_boxes[:, :, None, :2]
         rb = gt_boxes[:, :, None, 2:] - anchors[None, None]
-        in_gt = torch.cat((lt, rb), -1).amin(-1) > 1e-9                                   # (B, G, A)
+        ltrb = torch.cat((lt, rb), -1)
+        in_gt = ltrb.amin(-1) > 1e-9                                                      # (B, G, A)
+        if strides is not None:
+            reaches = in_gt & (ltrb.amax(-1) <= (self.reg_max - 1) * strides[:, 0])
+            in_gt = torch.where(reaches.any(-1, keepdim=True), reaches, in_gt)
         valid = in_gt & gt_mask[:, :, None]
         overlaps = _box_iou_pairwise(gt_boxes, pred_boxes) * valid
         untyped = gt_labels < 0                                                           # (B, G)
@@ -206,7 +216,7 @@ class DetectorLoss:
                 gt_mask[i, :len(t)] = True
         t_boxes, t_scores, fg, cls_mask = self._assign(pred_logits.detach().sigmoid(),
                                                        pred_boxes.detach() * strides, anchors * strides,
-                                                       gt[..., 0], gt[..., 1:], gt_mask)
+                                                       gt[..., 0], gt[..., 1:], gt_mask, strides)
         t_sum = t_scores.sum().clamp(min=1.0)
         loss_cls = (F.binary_cross_entropy_with_logits(pred_logits, t_scores, reduction="none") * cls_mask).sum() \
             / t_sum
