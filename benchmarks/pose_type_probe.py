@@ -49,8 +49,9 @@ def global_features(ckpt: Path, config: str, data: list[str], cache_dir: Path, s
     return feats, np.searchsorted(ids, pd.samples.obj_id), pd.train_idx, pd.val_idx, [pd.type_names[int(o)] for o in ids]
 
 
-def probe(feats, rows, train, val, hidden: int, seed: int) -> np.ndarray:
-    """Class probabilities of the held-out samples from a classifier trained on the training ones. :return: (len(val), T)."""
+def probe(feats, rows, train, val, hidden: int, seed: int, epochs: int = 60, lr: float = 1e-3) -> np.ndarray:
+    """Class probabilities of the held-out samples from a classifier trained on the training ones (AdamW, batches of
+    256). :return: (len(val), T)."""
     import torch
 
     torch.manual_seed(seed)
@@ -61,9 +62,9 @@ def probe(feats, rows, train, val, hidden: int, seed: int) -> np.ndarray:
     weight = torch.tensor(counts.sum() / (n_types * np.maximum(counts, 1)), dtype=torch.float32)
     net = torch.nn.Linear(x.shape[1], n_types) if hidden == 0 else torch.nn.Sequential(
         torch.nn.Linear(x.shape[1], hidden), torch.nn.ReLU(), torch.nn.Dropout(0.2), torch.nn.Linear(hidden, n_types))
-    opt = torch.optim.AdamW(net.parameters(), 1e-3, weight_decay=1e-3)
+    opt = torch.optim.AdamW(net.parameters(), lr, weight_decay=1e-3)
     order = torch.from_numpy(train)
-    for _ in range(60):
+    for _ in range(epochs):
         net.train()
         perm = order[torch.randperm(len(order))]
         for i in range(0, len(perm), 256):
