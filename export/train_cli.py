@@ -121,8 +121,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector: its classes: 'types' (one per pallet type of the training data, so the "
                              "detector reports the type), or names of pallet types; default one class, 'pallet'")
     parser.add_argument("--class-lr-mult", type=float, default=1.0, metavar="X",
-                        help="detector: learning rate of the class outputs, times --lr (e.g. 20 when a one-class "
-                             "detector starts a detector with a class per type)")
+                        help="detector: learning rate of the class outputs, times --lr (default 1)")
     parser.add_argument("--real-repeat-large", type=int, default=1, metavar="K",
                         help="detector: train real photographs holding a box >= 20%% of the image tall K times (1)")
     parser.add_argument("--loader-threads", type=int, default=1,

@@ -381,9 +381,9 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry.
 
-    :param class_lr_mult: the learning rate of the class outputs (`class_output_names`) relative to the rest: a
-        detector given a class per type from a one-class one starts every class alike, and Adam moves each weight
-        by about the rate per step, too slowly for the new classes to part at a fine-tuning rate."""
+    :param class_lr_mult: the learning rate of the class outputs (`class_output_names`) relative to the rest (a
+        detector given a class per type from a one-class one starts every class alike). 20x alone did not part the
+        types in two CPU epochs (docs/experiments/pallet-types.md): the features below must learn them too."""
     if not class_lr_mult > 0:
         raise ValueError(f"class_lr_mult must be positive, got {class_lr_mult}")
     run_dir = Path(run_dir)
