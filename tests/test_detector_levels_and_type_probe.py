@@ -36,7 +36,7 @@ def test_detector_levels_reports_each_level_and_every_counted_pallet(bundle_dir,
 
 
 def test_type_probe_separates_separable_features_and_not_noise():
-    torch = pytest.importorskip("torch")   # noqa: F841
+    pytest.importorskip("torch")
     probe = _module("pose_type_probe")
     rng = np.random.default_rng(0)
     n = 3000
