@@ -6,6 +6,7 @@ import json
 import logging
 import shlex
 import sys
+from dataclasses import replace
 
 from .config import CONFIGS, get_config
 
@@ -48,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pallet-types",
                         help="comma-separated pallet types of pallet6d.sim.pallets the bundle carries (default: the "
                              "config's one, epal); with several, the detector gets one class per type")
+    parser.add_argument("--num-points", type=int, default=None,
+                        help="points sampled per pallet (default: the config's); the pose network's weights do not "
+                             "depend on it, so a trained network can be exported for fewer points (less work per "
+                             "pallet) and measured")
     parser.add_argument("--name", help="bundle name (default: the output folder's name)")
     parser.add_argument("--out", required=True, help="output folder (new or empty), e.g. models/edge")
 
@@ -75,7 +80,12 @@ def main(args: argparse.Namespace) -> int:
     command = "pallet6d export " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if len(sys.argv) > 2 else ""
     try:
         types = parse_pallet_types(args.pallet_types) if args.pallet_types else None
-        exported = export_bundle(get_config(args.config), args.out, seed=args.seed, checkpoint=args.checkpoint,
+        cfg = get_config(args.config)
+        if args.num_points is not None:
+            if args.num_points < 1:
+                raise ExportError(f"--num-points must be a positive integer, got {args.num_points}")
+            cfg = replace(cfg, pose=replace(cfg.pose, num_points=args.num_points))
+        exported = export_bundle(cfg, args.out, seed=args.seed, checkpoint=args.checkpoint,
                                  random_init=args.random_init, int8=args.int8, detector_onnx=args.detector_onnx,
                                  classes=classes, name=args.name, command=command, calib_frames=args.calib_frames,
                                  calib_crops=args.calib_crops, calib_presets=tuple(

@@ -248,6 +248,23 @@ def test_export_cli_refuses_unknown_pallet_types(tmp_path, capsys):
     assert "named twice" in capsys.readouterr().err
 
 
+def test_export_cli_num_points_sets_the_graphs_and_manifest(tmp_path, capsys):
+    import onnxruntime as ort
+
+    from pallet6d.runtime import cli
+
+    out = tmp_path / "n24"
+    assert cli.main(["export", "--config", "tiny", "--random-init", "--torch-threads", "1", "--calib-frames", "2",
+                     "--num-points", "24", "--out", str(out)]) == 0
+    bundle = load_bundle(out)
+    assert bundle.manifest.pose.num_points == 24 != get_config("tiny").pose.num_points
+    shapes = {i.name: i.shape for i in ort.InferenceSession(str(out / "pose.onnx")).get_inputs()}
+    assert shapes["points"][1:] == [24, 3]
+    assert cli.main(["export", "--config", "tiny", "--random-init", "--num-points", "0",
+                     "--out", str(tmp_path / "n0")]) == 1
+    assert "--num-points must be a positive integer, got 0" in capsys.readouterr().err
+
+
 def test_checkpoint_round_trip_and_external_detector(tmp_path, tiny_bundle):
     cfg = get_config("tiny")
     torch.manual_seed(1)
