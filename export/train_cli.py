@@ -88,6 +88,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch", type=int, help="samples per step (default: the recipe)")
     parser.add_argument("--lr", type=float, help="peak learning rate (default: the recipe)")
     parser.add_argument("--variants", type=int, help="pose: augmented views prepared per pallet (default 2)")
+    parser.add_argument("--num-points", type=int, metavar="N",
+                        help="pose: train on N points per pallet (a random subset of the config's, re-centred); "
+                             "export the result with the same `pallet6d export --num-points N`")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
     parser.add_argument("--init", type=Path,
@@ -270,10 +273,13 @@ def main(args: argparse.Namespace) -> int:
         if args.resume and not (args.out / "last.pt").exists():
             print(f"pallet6d train: --resume but {args.out / 'last.pt'} does not exist", file=sys.stderr)
             return 2
+        if args.num_points is not None and args.stage != "pose":
+            print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
+            return 2
         if args.stage == "pose":
             from .train_pose import train_pose
             entry = train_pose(cfg, args.data, args.out, settings, variants=args.variants or recipe["variants"],
-                               aug=AugmentConfig(), **common)
+                               aug=AugmentConfig(), num_points=args.num_points, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

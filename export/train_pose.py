@@ -33,7 +33,7 @@ from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or
 from .train_loop import LoopSettings, autocast, train_epochs
 from .warm_start import init_config, warm_start
 
-__all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "train_pose"]
+__all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "subsample_points", "train_pose"]
 
 log = logging.getLogger(__name__)
 
@@ -113,12 +113,33 @@ def gather_points(features: torch.Tensor, choose: torch.Tensor) -> torch.Tensor:
     return torch.gather(flat, 2, choose[:, None, :].expand(-1, c, -1)).transpose(1, 2)
 
 
+def subsample_points(points: torch.Tensor, choose: torch.Tensor, T_gt: torch.Tensor,
+                     n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The first `n` of each sample's points (a uniform random subset: they are sampled in random order),
+    re-centred on their mean as the runtime centres the points it samples; the target moves with them.
+
+    :param points: (B, N, 3) centred points. :param choose: (B, N). :param T_gt: (B, 4, 4) in the points' frame.
+    :return: points (B, n, 3) with zero mean, choose (B, n), T_gt (B, 4, 4) in the new frame.
+    """
+    points, choose = points[:, :n], choose[:, :n]
+    shift = points.mean(1)
+    T_gt = T_gt.clone()
+    T_gt[:, :3, 3] -= shift
+    return points - shift[:, None], choose, T_gt
+
+
 class PoseTrainer:
     """Fusion + pose networks, and the loss/metric on a batch of `PoseData` samples."""
 
     def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015,
-                 amp: bool = False) -> None:
+                 amp: bool = False, num_points: int | None = None) -> None:
+        """:param num_points: use this many of each sample's points (fewer than prepared: the first ones, a
+            uniform random subset since the points are sampled in random order), re-centred on their mean."""
         self.cfg, self.data, self.device, self.w, self.amp = cfg, data, torch.device(device), w, amp
+        prepared = data.samples.points.shape[1]
+        if num_points is not None and not 0 < num_points <= prepared:
+            raise ValueError(f"num_points must be in [1, {prepared}] (the points prepared per sample), got {num_points}")
+        self.num_points = num_points if num_points is not None else prepared
         self.fusion = build_fusion(cfg.fusion).to(self.device)
         self.pose = build_pose(cfg.pose, cfg.fusion.feature_dim).to(self.device)
         # per-type geometry as tables indexed by a sample's row in `obj_ids`
@@ -139,6 +160,8 @@ class PoseTrainer:
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
         rgb, depth, pts, choose = t(s.rgb_crops[idx]), t(s.depth_crops[idx]), t(s.points[idx]), t(s.choose[idx])
         T_gt, obj = t(s.T_gt[idx]), s.obj_id[idx]
+        if self.num_points < pts.shape[1]:
+            pts, choose, T_gt = subsample_points(pts, choose, T_gt, self.num_points)
         with autocast(self.device.type, amp):
             if self.cfg.fusion.sampled:
                 point_feats = self.fusion(rgb, depth, choose)
@@ -175,19 +198,25 @@ class PoseTrainer:
 def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
                variants: int = 2, aug: AugmentConfig | None = None, resume: bool = False,
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
-               command: str = "", progress: bool = True, init: str | Path | None = None) -> dict:
-    """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry."""
+               command: str = "", progress: bool = True, init: str | Path | None = None,
+               num_points: int | None = None) -> dict:
+    """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
+
+    :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
+        (and cached) at the config's count and cut to a random `num_points` of them (`PoseTrainer`).
+    """
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
     pd = load_pose_data(cfg, data, variants, settings.seed, aug, cache_dir if cache_dir is not None else run_dir / "cache",
                         val_fraction, max_frames, progress)
-    trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp)
+    trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points)
     params = list(trainer.fusion.parameters()) + list(trainer.pose.parameters())
     optimizer = torch.optim.Adam(params, lr=settings.lr)
     provenance = {"stage": "pose", "config": cfg.name, "seed": settings.seed, "command": command,
                   "data": pd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
-                  "variants": variants, "augment": aug.to_dict(), "val_fraction": val_fraction,
+                  "variants": variants, "num_points": trainer.num_points, "augment": aug.to_dict(),
+                  "val_fraction": val_fraction,
                   "samples": {"train": int(len(pd.train_idx)), "val": int(len(pd.val_idx))},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__),
                   "pallet_types": {str(k): v for k, v in sorted(pd.type_names.items())}}

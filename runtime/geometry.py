@@ -53,7 +53,8 @@ def check_K(K: np.ndarray, image_hw: tuple[int, int] | None = None) -> np.ndarra
         raise ValueError(f"intrinsics K must be 3x3, got shape {K.shape}")
     if not np.all(np.isfinite(K)):
         raise ValueError(f"intrinsics K must be finite, got {K.tolist()}")
-    if not (np.allclose(K[2], [0.0, 0.0, 1.0], rtol=0, atol=1e-6) and abs(K[1, 0]) <= 1e-6):
+    # scalar tests: called by several stages per frame, where np.allclose's overhead adds up
+    if not (abs(K[2, 0]) <= 1e-6 and abs(K[2, 1]) <= 1e-6 and abs(K[2, 2] - 1.0) <= 1e-6 and abs(K[1, 0]) <= 1e-6):
         raise ValueError(f"intrinsics K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]] (transposed?), got {K.tolist()}")
     fx, fy = K[0, 0], K[1, 1]
     if fx <= 0 or fy <= 0:

@@ -176,7 +176,12 @@ def prepare_pose_inputs(rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, box
     if len(rngs) != len(boxes) or not all(isinstance(r, np.random.Generator) for r in rngs):
         raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)) or one per box "
                         f"({len(boxes)}), got {type(rng)}")
-    depth_m = geometry.depth_to_metres(depth_m)  # float32 copy with NaN/inf/negative -> 0
+    # clean float32 depth (the estimator's, already validated) is only read; anything else becomes a float32 copy
+    # with NaN/inf/negative -> 0 (NaN fails the min test)
+    depth_m = np.asarray(depth_m)
+    if depth_m.dtype != np.float32 or not (depth_m.size and float(depth_m.min()) >= 0
+                                           and np.isfinite(float(depth_m.max()))):
+        depth_m = geometry.depth_to_metres(depth_m)
     b, (h, w), n = len(boxes), spec.crop_hw, spec.num_points
     rgb_crops = np.zeros((b, 3, h, w), np.float32)
     depth_crops = np.zeros((b, 1, h, w), np.float32)

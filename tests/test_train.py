@@ -16,7 +16,7 @@ from pallet6d.export.train_data import (NO_AUGMENT, AugmentConfig, augment_depth
                                         place_in_window)
 from pallet6d.export.train_detector import DetectorTrainer, load_detector_data  # noqa: E402
 from pallet6d.export.train_loop import LoopSettings, load_checkpoint, load_init_weights, lr_at  # noqa: E402
-from pallet6d.export.train_pose import PoseTrainer, load_pose_data, train_pose  # noqa: E402
+from pallet6d.export.train_pose import PoseTrainer, load_pose_data, subsample_points, train_pose  # noqa: E402
 
 CFG = get_config("tiny")
 
@@ -68,6 +68,34 @@ def test_pose_training_reduces_loss_on_a_tiny_batch(pose_data):
     idx = pose_data.train_idx[:4]
     first, last = _overfit(trainer, lambda: trainer.forward_loss(idx)[0], 30, 2e-3)
     assert last < 0.7 * first, (first, last)
+
+
+def test_subsampled_points_are_recentred_with_their_target(pose_data):
+    s = pose_data.samples
+    idx = pose_data.train_idx[:3]
+    pts, choose, T = (torch.from_numpy(np.ascontiguousarray(a)) for a in (s.points[idx], s.choose[idx], s.T_gt[idx]))
+    n = pts.shape[1] // 2
+    sub, sub_choose, sub_T = subsample_points(pts, choose, T, n)
+    assert sub.shape == (3, n, 3) and torch.allclose(sub.mean(1), torch.zeros(3, 3), atol=1e-6)
+    assert torch.equal(sub_choose, choose[:, :n])
+    model = torch.randn(50, 3, dtype=torch.float64)
+    for k in range(3):   # the model lies where it lay relative to the points: both moved by the same shift
+        shift = pts[k, :n].double().mean(0)
+        before = model @ T[k, :3, :3].double().T + T[k, :3, 3].double()
+        after = model @ sub_T[k, :3, :3].double().T + sub_T[k, :3, 3].double()
+        assert torch.allclose(after + shift, before, atol=1e-5)
+        assert torch.allclose(sub[k].double() + shift, pts[k, :n].double(), atol=1e-6)
+    assert torch.equal(T, torch.from_numpy(s.T_gt[idx]))   # the caller's targets are not changed
+
+
+def test_pose_trainer_takes_fewer_points_than_prepared(pose_data):
+    prepared = pose_data.samples.points.shape[1]
+    trainer = PoseTrainer(CFG, pose_data, num_points=prepared // 2)
+    loss, d, conf = trainer.forward_loss(pose_data.train_idx[:2])
+    assert d.shape == conf.shape == (2, prepared // 2) and torch.isfinite(loss)
+    for bad in (0, prepared + 1):
+        with pytest.raises(ValueError, match="num_points must be in"):
+            PoseTrainer(CFG, pose_data, num_points=bad)
 
 
 def test_detector_training_reduces_loss_on_a_tiny_batch(sim_bop_dataset, tmp_path):
