@@ -117,6 +117,9 @@ def main(argv=None) -> int:
     ap.add_argument("--type-candidates", type=int, default=None,
                     help="types refined per detection where its class reports several (EstimatorOptions."
                          "type_candidates)")
+    ap.add_argument("--type-margin", type=float, default=None,
+                    help="how much better another type must fit to replace a detection's first type "
+                         "(EstimatorOptions.type_margin)")
     ap.add_argument("--structure", default=None,
                     help="StructureParams overrides as JSON, e.g. '{\"min_registration_peak\": 0}' (the structure "
                          "check's thresholds; default: the estimator's)")
@@ -130,7 +133,8 @@ def main(argv=None) -> int:
 
     precision = "int8" if args.int8 else "fp32"
     options = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
-                                 ("type_candidates", args.type_candidates)) if v is not None}
+                                 ("type_candidates", args.type_candidates), ("type_margin", args.type_margin))
+               if v is not None}
     if args.pallet_types:
         options["pallet_types"] = tuple(t.strip() for t in args.pallet_types.split(",") if t.strip())
     if args.structure is not None:
@@ -156,6 +160,7 @@ def main(argv=None) -> int:
         + (f", sampling seed {args.seed}" if args.seed else "") \
         + (f", site pallet types {args.pallet_types}" if args.pallet_types else "") \
         + (f", {args.type_candidates} types refined" if args.type_candidates is not None else "") \
+        + (f", type margin {args.type_margin}" if args.type_margin is not None else "") \
         + (f", structure check {args.structure}" if args.structure is not None else "")
     md.write_text(markdown(results, str(args.bundle), variant, args.frames))
     print(f"wrote {md} and {', '.join(p.name for p in paths)}")

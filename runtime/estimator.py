@@ -102,6 +102,9 @@ class EstimatorOptions:
     :ivar type_score_ratio: a detector with a class per pallet type can be unsure between look-alike types: a
         pallet class that scores a detection at least this fraction of its best class's score offers its types
         too, and the type choice above decides by the depth. 1: the best class's types alone.
+    :ivar type_margin: in that choice, a candidate keeps the first of its types (its class's first type in the
+        bundle's order, e.g. the EPAL) unless another type's score (fit times structure agreement, 0-1) is higher by
+        more than this: types that look alike from the pallet's side then keep the common one.
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's
@@ -154,6 +157,7 @@ class EstimatorOptions:
     refine_start_max_rms_m: float = 0.003
     type_candidates: int = 2
     type_score_ratio: float = 0.5
+    type_margin: float = 0.0
     nonfinite_depth: str = "raise"
     seed: int = 0
     structure: StructureParams | None = StructureParams()
@@ -198,6 +202,8 @@ class EstimatorOptions:
             raise ValueError(f"type_candidates must be >= 1, got {self.type_candidates}")
         if not 0.0 < self.type_score_ratio <= 1.0:
             raise ValueError(f"type_score_ratio must be in (0, 1], got {self.type_score_ratio}")
+        if not 0.0 <= self.type_margin < 1.0:
+            raise ValueError(f"type_margin must be in [0, 1), got {self.type_margin}")
         if self.time_budget_ms is not None and not self.time_budget_ms >= 0:
             raise ValueError(f"time_budget_ms must be >= 0 or None, got {self.time_budget_ms}")
         if self.pallet_lanes is not None and int(self.pallet_lanes) < 1:
@@ -245,7 +251,7 @@ class PalletEstimator:
         self._check_graphs_match_manifest()
         self.refiner = RefinerStage(self.pallet_types, o, self.threads)
         self.type_choice = TypeChoiceStage(self.pallet_types, self._types_of_class, self.refiner, o.fit_tol_m,
-                                           o.type_candidates, o.structure or StructureParams())
+                                           o.type_candidates, o.structure or StructureParams(), o.type_margin)
         self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure)
 
     @classmethod

@@ -29,6 +29,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--type-candidates", type=int, default=None,
                         help="where one detector class reports several pallet types, refine each pallet with this "
                              "many of them and keep the best fit (default: EstimatorOptions.type_candidates, 2)")
+    parser.add_argument("--type-margin", type=float, default=None,
+                        help="where the depth chooses among several types, how much better (fit score 0-1) another "
+                             "type must be to replace a detection's first type (default: EstimatorOptions.type_margin)")
     parser.add_argument("--pallet-types", type=lambda v: tuple(t.strip() for t in v.split(",") if t.strip()),
                         default=None, help="comma-separated pallet types this site uses, e.g. epal: only these are "
                                            "posed (default: every type of the bundle)")
@@ -58,6 +61,7 @@ def load_estimator(args: argparse.Namespace, command: str):
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
         extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
                                    ("type_candidates", args.type_candidates),
+                                   ("type_margin", args.type_margin),
                                    ("pallet_types", args.pallet_types or None),
                                    ("time_budget_ms", args.time_budget_ms),
                                    ("pallet_lanes", args.pallet_lanes)) if v is not None}

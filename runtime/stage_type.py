@@ -16,6 +16,9 @@ several types (`Candidates.type_options`):
    type whose refined pose scores best the same way wins, with that pose and fit: the refiner stage then leaves
    the row as it is. Types without boards, or refinement off: step 1's best type wins, unrefined.
 
+In both steps every type but the candidate's first option (its class's first type) has `margin` taken off its score,
+so a look-alike type must fit clearly better to replace the common one.
+
 Cost: a structure check per type and one refinement per kept type, instead of one refinement per candidate.
 """
 from __future__ import annotations
@@ -42,10 +45,12 @@ class TypeChoiceStage:
     :param tol_m: tolerance of the fit score that ranks the types at the network's pose, metres.
     :param keep: how many of a candidate's best-ranked types are refined (>= 1).
     :param structure: the structure check's ray parameters for the agreement.
+    :param margin: how much better (score 0-1) another type must be than the candidate's first option.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], types_of_class: dict[int, tuple[int, ...]],
-                 refiner: RefinerStage, tol_m: float, keep: int, structure: StructureParams = StructureParams()) -> None:
+                 refiner: RefinerStage, tol_m: float, keep: int, structure: StructureParams = StructureParams(),
+                 margin: float = 0.0) -> None:
         if int(keep) < 1:
             raise ValueError(f"keep must be >= 1, got {keep}")
         self.geometries = tuple(geometries)
@@ -53,6 +58,7 @@ class TypeChoiceStage:
         self.refiner = refiner
         self.tol_m, self.keep = float(tol_m), int(keep)
         self.structure = structure
+        self.margin = float(margin)
 
     @property
     def needed(self) -> bool:
@@ -71,6 +77,7 @@ class TypeChoiceStage:
             score[mine, j] = fit_scores(cands.T_net[r], cands.points_cam[r], None, g.points_m, depth_m, K, self.tol_m,
                                         model_boxes_m=g.boxes_m)[2] * self.agreement(
                 cands.T_net[r], cands.boxes_xyxy[r], np.full(len(r), j), depth_m, K)
+            score[mine, j] -= self.margin * np.array([o[0] != j for o in cands.type_options[r]])
         return score
 
     def agreement(self, T: np.ndarray, boxes_xyxy: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
@@ -107,7 +114,9 @@ class TypeChoiceStage:
         box_obs = {int(i): self.refiner.box_points(cands.pixels[i], depth_m, K) for i in np.unique(src)}
         T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
                                      pair_type, depth_m, K)
-        select = fit[:, 2] * self.agreement(T, cands.boxes_xyxy[src], pair_type, depth_m, K)
+        first = np.array([cands.type_options[i][0] for i in src])
+        select = fit[:, 2] * self.agreement(T, cands.boxes_xyxy[src], pair_type, depth_m, K) \
+            - self.margin * (pair_type != first)
         for k in np.unique(pair_row):
             mine = np.flatnonzero(pair_row == k)
             win = mine[int(np.argmax(select[mine]))]

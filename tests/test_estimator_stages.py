@@ -325,6 +325,29 @@ def test_the_depth_picks_the_type_among_a_classes_types(bundle_dir, truth, refin
         assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.02
 
 
+@pytest.mark.parametrize("margin, expected", [(0.0, "eur6"), (0.9, "epal")])
+def test_type_margin_keeps_the_first_type_unless_another_fits_clearly_better(bundle_dir, margin, expected):
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6"))
+    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
+    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
+        k: v for k, v in KW.items() if k != "threads"}, type_candidates=2, type_margin=margin))
+    f = _scene_of("eur6")
+    p = max(f.pallets, key=lambda p: p.visib_fract)
+    x, y, w, h = p.bbox_visib_xywh
+    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
+    box = np.array([[x, y, x + w, y + h]], float)
+    c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=est._type_options(
+        Detections(box, [0.9], [0])))
+    est.pose_network(rgb, depth_m, K, c, {})
+    T = p.T_cam_pallet.copy()
+    c.assign([0], T_net=T[None], T_cam_pallet=T[None])
+    est.type_choice(c, depth_m, K, {})
+    assert est.pallet_types[int(c.type_index[0])].name == expected   # an EUR 6 fits far better than an EPAL,
+    for bad in (-0.1, 1.0, float("nan")):                               # but not by 0.9 of the 0-1 score
+        with pytest.raises(ValueError, match="type_margin"):
+            EstimatorOptions(type_margin=bad)
+
+
 @pytest.fixture
 def typed(bundle_dir):
     """Makes an estimator whose detector has a class per type (epal 0, eur6 1, gma 2) with the given options."""
