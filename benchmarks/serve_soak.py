@@ -169,13 +169,16 @@ def main() -> int:
     ap.add_argument("--rss-every-s", type=float, default=10.0)
     ap.add_argument("--port", type=int, default=18600)
     ap.add_argument("--cpus", default="", help="pin the daemon to these cores, e.g. 0,1 (taskset)")
+    ap.add_argument("--max-rate-hz", type=float, default=0.0,
+                    help="the daemon's camera.max_rate_hz (0: every frame it keeps up with)")
     args = ap.parse_args()
 
     args.out.mkdir(parents=True, exist_ok=True)
     replay = args.replay or make_replay(args.out)
     config = args.out / "serve.toml"
     # camera-frame poses: the replay has no calibration (the vehicle frame costs the API nothing more)
-    config.write_text(f'[camera]\nsource = "replay:{replay}"\n[model]\nbundle = "{args.bundle}"\n'
+    config.write_text(f'[camera]\nsource = "replay:{replay}"\nmax_rate_hz = {args.max_rate_hz}\n'
+                      f'[model]\nbundle = "{args.bundle}"\n'
                       f'precision = "{args.precision}"\n[api]\nport = {args.port}\n'
                       f'[output]\nframe = "camera"\n[snapshot]\ndir = "{args.out / "snapshots"}"\n')
     cmd = [sys.executable, "-m", "pallet6d.runtime.cli", "serve", "--config", str(config)]

@@ -53,6 +53,8 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     ("[camera]\nframe_timeout_s = '5'\n", "expected float, got str"),
     ("[camera]\nrealtime = 1\n", "camera.realtime: expected bool"),
     ("[camera]\nreconnect_min_s = 20.0\n", "camera.reconnect_min_s"),
+    ("[camera]\nmax_rate_hz = -1.0\n", "camera.max_rate_hz"),
+    ("[camera]\nmax_rate_hz = 0.01\n", "camera.max_rate_hz"),
     ("[model]\nprecision = 'fp16'\n", "model.precision"),
     ("[model]\nthreads = 0\n", "model.threads"),
     ("[model]\nthreads = true\n", "model.threads: expected int"),

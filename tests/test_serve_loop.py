@@ -57,9 +57,10 @@ class FakeEstimator:
         return FrameResult.empty(frame.rgb.shape[:2], {"detector": 1.0, "total": 2.0})
 
 
-def make_loop(estimator, sources, mode="continuous"):
+def make_loop(estimator, sources, mode="continuous", max_rate_hz=0.0):
     cfg = ServeConfig.from_dict({"camera": {"source": "realsense", "mode": mode, "reconnect_min_s": 0.05,
-                                            "reconnect_max_s": 0.1, "frame_timeout_s": 1.0},
+                                            "reconnect_max_s": 0.1, "frame_timeout_s": 1.0,
+                                            "max_rate_hz": max_rate_hz},
                                  "output": {"frame": "camera"}}, environ={})
     it = iter(sources)
     return CameraLoop(cfg, estimator, Metrics(), FrameRing(3), source_factory=lambda _spec: next(it))
@@ -89,6 +90,20 @@ def test_estimator_failures_are_counted_and_the_loop_goes_on():
     finally:
         loop.stop()
     assert not loop.alive(60.0)
+
+
+def test_max_rate_hz_bounds_the_frames_taken():
+    # the source makes about 200 frames a second; the loop may take at most 20
+    loop = make_loop(FakeEstimator(), [FakeSource()], max_rate_hz=20.0).start()
+    try:
+        wait_for(lambda: sample(loop, "pallet6d_frames_total") >= 1)
+        t0, n0 = time.monotonic(), sample(loop, "pallet6d_frames_total")
+        wait_for(lambda: sample(loop, "pallet6d_frames_total") >= n0 + 5)
+        n, elapsed_s = sample(loop, "pallet6d_frames_total") - n0, time.monotonic() - t0
+        assert n <= 20.0 * elapsed_s + 1
+        assert sample(loop, "pallet6d_frames_dropped_total") >= 1   # the frames of the waits were replaced
+    finally:
+        loop.stop()
 
 
 def test_a_disconnect_is_followed_by_a_reconnect():

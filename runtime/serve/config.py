@@ -8,6 +8,8 @@ the file, the key and what is allowed, before any model or camera is opened.
     reconnect_min_s = 0.5         # first wait before reopening a failed camera, doubled up to reconnect_max_s
     reconnect_max_s = 10.0
     realtime = true               # recordings (replay:, bop:) only: play at the recorded rate, start over at the end
+    max_rate_hz = 0.0             # take at most this many frames a second (0: every frame the estimator keeps up
+                                  # with); leaves the cores' remaining time to the vehicle's other software
 
     [model]
     bundle = ""                   # "" = the default bundle ($PALLET6D_BUNDLE, the installed pallet6d-models, ...)
@@ -81,6 +83,7 @@ class CameraConfig:
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 10.0
     realtime: bool = True
+    max_rate_hz: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -185,6 +188,8 @@ class ServeConfig:
         if not 0 < c.reconnect_min_s <= c.reconnect_max_s:
             raise bad("camera.reconnect_min_s", f"must be positive and <= reconnect_max_s, got "
                                                 f"{c.reconnect_min_s} and {c.reconnect_max_s}")
+        if not (c.max_rate_hz == 0 or 0.1 <= c.max_rate_hz <= 1000):
+            raise bad("camera.max_rate_hz", f"must be 0 (no limit) or in 0.1..1000, got {c.max_rate_hz}")
         if m.precision not in ("fp32", "int8"):
             raise bad("model.precision", f"must be 'fp32' or 'int8', got {m.precision!r}")
         if not 1 <= m.threads <= 64:

@@ -259,9 +259,15 @@ class CameraLoop:
     def _frames(self, grab: LatestFrame):
         """Frames from the grabber until stop; raises `CameraError` on a failed, silent or ended source."""
         timeout_s = self.config.camera.frame_timeout_s
-        last = time.monotonic()
+        period_s = 1.0 / self.config.camera.max_rate_hz if self.config.camera.max_rate_hz > 0 else 0.0
+        last = next_s = time.monotonic()
         while not self._stop.is_set():
             self.heartbeat = time.monotonic()
+            if period_s:
+                # the grabber keeps only the newest frame: the frames of the wait are dropped (and counted)
+                self._sleep(next_s - time.monotonic())
+                if self._stop.is_set():
+                    return
             try:
                 frame = grab.get(timeout_s=TICK_S)
             except CameraTimeout:
@@ -273,6 +279,9 @@ class CameraLoop:
                     return
                 raise CameraError("the source ended")
             last = time.monotonic()
+            # the next slot one period on; after a stall (no frame for longer), the schedule restarts here rather
+            # than catching up with a burst
+            next_s = max(next_s + period_s, last) if period_s else last
             if not self.camera_up:
                 log.info("%s: streaming", self.config.camera.source)
             self.camera_up, self.last_error = True, ""
