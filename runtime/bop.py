@@ -9,6 +9,8 @@ Layout (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_form
                                rgb/{im_id:06d}.png|.jpg   (or gray/)
                                depth/{im_id:06d}.png      uint16, depth_mm = value * depth_scale
                                mask/{im_id:06d}_{gt_idx:06d}.png, mask_visib/... (optional)
+                               scene_forklift.json  per image: {cam_R_c2v, cam_t_c2v (mm) or null, ...} (optional;
+                                                    this project's forklift views, docs/sim-scenes.md)
 
 Depth units: the writer stores millimetres (`depth_scale` 1.0): 1 mm steps, up to 65.535 m; pixels
 beyond that are stored as 0 (no data). The reader honours any `depth_scale` (e.g. 0.1 in some BOP sets).
@@ -75,6 +77,7 @@ class BopFrame:
 
     depth_units: (H, W) uint16, the depth image as stored, in units of `depth_scale_mm` millimetres (a camera
     source hands these out unchanged); None when the frame was not read from a dataset.
+    T_vehicle_cam: (4, 4) metres, the camera's calibration on its vehicle (scene_forklift.json), else None.
     """
 
     scene_id: int
@@ -86,6 +89,7 @@ class BopFrame:
     gts: list[BopGT]
     T_cam_world: np.ndarray | None = None
     depth_units: np.ndarray | None = None
+    T_vehicle_cam: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         h, w = self.depth_m.shape
@@ -436,7 +440,17 @@ class BopDataset:
                            for key in ("px_count_all", "px_count_visib", "px_count_valid")},
                     })
                 info[im_id] = items
-        return {"dir": d, "camera": camera, "gt": gt, "info": info}
+        vehicle: dict[int, np.ndarray] = {}
+        forklift_path = d / "scene_forklift.json"
+        if forklift_path.exists():
+            for im_id, e in _read_image_map(forklift_path).items():
+                if isinstance(e, dict) and e.get("cam_R_c2v") is not None:
+                    where = f"image {im_id}"
+                    R = _field(e, "cam_R_c2v", forklift_path, where, 9).reshape(3, 3)
+                    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3) or np.linalg.det(R) < 0:
+                        raise BopFormatError(f"{forklift_path}: {where}: field 'cam_R_c2v' is not a rotation matrix")
+                    vehicle[im_id] = _pose_from_mm(R, _field(e, "cam_t_c2v", forklift_path, where, 3))
+        return {"dir": d, "camera": camera, "gt": gt, "info": info, "vehicle": vehicle}
 
     def __len__(self) -> int:
         return len(self._index)
@@ -471,7 +485,7 @@ class BopDataset:
                 px_count_valid=info.get("px_count_valid")))
         return BopFrame(scene_id=scene_id, im_id=im_id, rgb=rgb, depth_m=depth_m, K=K.copy(), depth_scale_mm=scale,
                         gts=gts, T_cam_world=None if T_cam_world is None else T_cam_world.copy(),
-                        depth_units=depth_units)
+                        depth_units=depth_units, T_vehicle_cam=s["vehicle"].get(im_id))
 
     def model_symmetries(self, obj_id: int) -> np.ndarray:
         """(S, 4, 4) symmetry transforms of a model in metres, identity first."""

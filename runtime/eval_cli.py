@@ -32,13 +32,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt-boxes", action="store_true",
                         help="skip the detector: feed the ground-truth visible boxes to the pose stage "
                              "(scores the pose stage alone)")
+    parser.add_argument("--calibrated", action="store_true",
+                        help="give the estimator each frame's camera calibration on its vehicle where the dataset "
+                             "has one (scene_forklift.json: the generator's forklift views), as a forklift's "
+                             "calibrated camera does: poses stand level on its floor")
 
 
 def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_frames: int = 0,
-                     progress: bool = False, gt_boxes: bool = False) -> dict:
+                     progress: bool = False, gt_boxes: bool = False, calibrated: bool = False) -> dict:
     """Run `estimator` on a BOP dataset and score it.
 
     :param gt_boxes: give the pose stage the visible boxes of the counted pallets instead of detections.
+    :param calibrated: pass each frame's `T_vehicle_cam` (where the dataset has one) to the estimator.
 
     :return: {"summary": summarize(...) + frames/seconds, "records": per-pallet dicts}.
     :raises ValueError: not a BOP dataset, or a frame the estimator rejects.
@@ -51,7 +56,7 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
     models = dataset_models(ds, estimator.pallet_types)   # each ground truth scored with its own model
     n = len(ds) if not max_frames else min(len(ds), max_frames)
     tally = ScoreTally()
-    n_no_box = 0
+    n_no_box = n_calibrated = 0
     t0 = time.perf_counter()
     frames = range(n)
     if progress:
@@ -61,16 +66,22 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
         f = ds[i]
         gts, skipped = ground_truths_from_bop(f.gts, f.rgb.shape[:2])
         n_no_box += skipped
+        T_vc = f.T_vehicle_cam if calibrated else None
+        n_calibrated += T_vc is not None
         if gt_boxes:
             boxes = np.array([g.box_visib_xyxy for g, c in zip(gts, counted_pallets(gts)) if c]).reshape(-1, 4)
-            result = estimator.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
+            result = estimator.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
         else:
-            result = estimator.estimate(f.rgb, f.depth_m, f.K)
+            result = estimator.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
         tally.add(evaluate_poses(i, result.poses, gts, estimator.model_points_m, estimator.symmetries, models=models))
     if n_no_box:
         log.warning("%s: %d annotations without a visible box (no scene_gt_info.json entry) were not scored",
                     data, n_no_box)
+    if calibrated and n_calibrated < n:
+        log.warning("%s: %d of %d frames have no vehicle calibration (scene_forklift.json): estimated without one",
+                    data, n - n_calibrated, n)
     summary = {"frames": n, "detector": "ground-truth boxes" if gt_boxes else "bundle",
+               "calibrated_frames": n_calibrated,
                "seconds": round(time.perf_counter() - t0, 2), **tally.summary(),
                "true_positives": tally.true_positives, "false_positives": tally.false_positives}
     return {"summary": summary, "records": records_to_dicts(tally.records)}
@@ -148,7 +159,8 @@ def main(args: argparse.Namespace) -> int:
     if est is None:
         return 2
     try:
-        out = evaluate_dataset(est, args.data, args.split, args.max_frames, progress=True, gt_boxes=args.gt_boxes)
+        out = evaluate_dataset(est, args.data, args.split, args.max_frames, progress=True, gt_boxes=args.gt_boxes,
+                               calibrated=args.calibrated)
     except (ValueError, OSError) as exc:
         print(f"pallet6d eval: {args.data}: {exc}", file=sys.stderr)
         return 1

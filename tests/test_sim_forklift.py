@@ -186,6 +186,11 @@ def test_new_presets_write_bop_data_the_reader_reads(tmp_path, preset):
             R = np.array(entry["cam_R_c2v"]).reshape(3, 3)
             np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
             assert 100 <= entry["cam_t_c2v"][2] <= 2500
+            # the reader hands the calibration out with the frame, in metres
+            np.testing.assert_allclose(frame.T_vehicle_cam[:3, :3], R)
+            np.testing.assert_allclose(frame.T_vehicle_cam[:3, 3], np.array(entry["cam_t_c2v"]) / 1000.0)
+        else:
+            assert frame.T_vehicle_cam is None
     again = generate_frame(cfg, 5, 0)
     assert json.loads(json.dumps([f.to_json() for f in again.faces])) == [
         {k: v for k, v in p.items() if k not in ("gt_index", "obj_id", "target")} for p in side[0]["pallets"]]
