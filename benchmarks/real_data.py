@@ -32,7 +32,8 @@ from pallet6d.export.real_data_report import RealDataReport, markdown   # numpy 
 
 
 def sim_negative_frame(preset: str, seed: int, index: int):
-    """(rgb, depth_m, K) of a simulated scene of `preset` without any pallet (its loads and racks stay)."""
+    """(rgb, depth_m, K, T_vehicle_cam) of a simulated scene of `preset` without any pallet (its loads and racks
+    stay); T_vehicle_cam (the camera's calibration on its vehicle) is None but in forklift views."""
     from pallet6d.sim.generate import render_scene
     from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel
     from pallet6d.sim.presets import get_preset
@@ -57,19 +58,21 @@ def sim_negative_frame(preset: str, seed: int, index: int):
         rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*cfg.exposure),
                                    noise_sigma=sensor_rng.uniform(*cfg.rgb_noise_sigma))
         f = render_scene(scene, depth_model, rgb_model, sensor_rng)
-        return f.rgb, f.depth_m, f.K
+        vehicle = getattr(scene, "vehicle", None)
+        return f.rgb, f.depth_m, f.K, None if vehicle is None else vehicle.T_vehicle_cam
     raise SceneError(f"no valid pallet-free scene of {preset} (seed {seed}, frame {index})")
 
 
-def sim_negatives(est, presets: list[str], n_frames: int, seed: int) -> dict:
-    """Accepted poses and detections per frame on simulated pallet-free frames, per preset."""
+def sim_negatives(est, presets: list[str], n_frames: int, seed: int, calibrated: bool = False) -> dict:
+    """Accepted poses and detections per frame on simulated pallet-free frames, per preset; `calibrated`: the
+    forklift views' camera calibration goes to the estimator, as a forklift's would."""
     out = {}
     for preset in presets:
         accepted = detections = 0
         fits = []
         for i in range(n_frames):
-            rgb, depth_m, K = sim_negative_frame(preset, seed, i)
-            res = est.estimate(rgb, depth_m.astype(np.float32), K)
+            rgb, depth_m, K, T_vc = sim_negative_frame(preset, seed, i)
+            res = est.estimate(rgb, depth_m.astype(np.float32), K, T_vehicle_cam=T_vc if calibrated else None)
             accepted += len(res.poses)
             detections += len(est.detect(rgb))
             fits += [float(p.fit.score) for p in res.poses]
@@ -153,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="also N simulated pallet-free RGB-D frames per preset through the whole estimator")
     ap.add_argument("--sim-presets", default="virtual-clean,virtual-occluded,indoor-noisy")
     ap.add_argument("--sim-seed", type=int, default=9100, help="seed of the simulated pallet-free frames")
+    ap.add_argument("--sim-calibrated", action="store_true",
+                    help="give the estimator the forklift views' camera calibration (poses levelled on the floor)")
     ap.add_argument("--out", type=Path, help="write OUT.md and OUT.json")
     ap.add_argument("--examples", type=Path,
                     help="also write overlays of the photographs where the detector fails most, per source, here")
@@ -178,10 +183,10 @@ def main(argv: list[str] | None = None) -> int:
         full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32")
         report["sim_negatives"] = sim_negatives(full, args.sim_presets.split(","), args.sim_negatives,
-                                                args.sim_seed)
+                                                args.sim_seed, args.sim_calibrated)
     settings = {"bundle": str(args.bundle), "precision": "int8" if args.int8 else "fp32", "split": args.split,
                 "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data),
-                "augmented_copies": args.include_augmented}
+                "augmented_copies": args.include_augmented, "sim_calibrated": args.sim_calibrated}
     text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)
     for preset, r in report.get("sim_negatives", {}).items():
         text += (f"Simulated pallet-free {preset} (seed {args.sim_seed}): {r['frames']} frames, "
