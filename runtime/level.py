@@ -192,9 +192,13 @@ def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, bo
         ray = (pts[i, ok[i]] / rng_m[i, ok[i], None]).mean(0)
         ray /= np.linalg.norm(ray)
         if on_floor[i]:
-            # horizontally, by as much as moves the surface by shift_m along the ray
+            # horizontally, by as much as moves the surface by shift_m along the ray; seen steeply from above (rays
+            # more than 45 degrees down) the depth is the deck's height, which a horizontal move cannot explain
             flat = ray - (ray @ up) * up
-            out[i, :3, 3] += shift_m * flat / max(float(flat @ flat), 1e-6)
+            if flat @ flat < 0.5:
+                continue
+            move = shift_m * flat / float(flat @ flat)
         else:
-            out[i, :3, 3] += shift_m * ray
+            move = shift_m * ray
+        out[i, :3, 3] += move
     return out

@@ -259,3 +259,14 @@ def test_the_levelled_pose_is_not_pulled_towards_the_camera_by_depth_noise(dista
 def test_level_params_ray_window_is_validated(window_m):
     with pytest.raises(ValueError, match="ray_window_m"):
         LevelParams(ray_window_m=window_m)
+
+
+def test_a_pallet_seen_steeply_from_above_is_not_moved_along_the_rays():
+    # rays 60 degrees down see the deck, whose depth a horizontal move cannot explain: the pose keeps the ICP's place
+    T_vc, T_vp = camera(height_m=2.5, pitch_deg=60.0), pallet_pose(0.8, 0.0)
+    depth = render(T_vc, T_vp)
+    noisy = np.where(depth > 0, depth + 0.03 * np.random.default_rng(0).standard_normal(depth.shape), 0.0)
+    T_cp, box = invert_T(T_vc) @ _tilted(T_vp, 1.0), np.array([0.0, 0.0, depth.shape[1] - 1, depth.shape[0] - 1])
+    out = [vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(level=LevelParams(ray_window_m=w)), EPAL.boxes_m,
+                        noisy.astype(np.float32), K, box) for w in (0.0, 0.2)]
+    np.testing.assert_allclose(out[1], out[0], atol=1e-12)
