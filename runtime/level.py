@@ -179,17 +179,20 @@ def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, bo
     """
     R_pc = np.swapaxes(T_cam_pallet[:, :3, :3], 1, 2)                               # camera -> pallet
     origin = -(R_pc @ T_cam_pallet[:, :3, 3, None])[..., 0]                         # the camera, pallet frame
-    dirs = pts @ np.swapaxes(R_pc, 1, 2)                                            # point - origin, pallet frame
-    s, _ = cast_rays_boxes(origin, dirs, boxes_m)                                   # (P, N): 1 = at the point
-    rng_m = np.linalg.norm(pts, axis=2)
-    with np.errstate(invalid="ignore"):
-        res = (1.0 - s) * rng_m                                  # > 0: the point lies beyond the pallet's surface
-    ok = (np.arange(pts.shape[1])[None] < n_pts[:, None]) & np.isfinite(res) & (np.abs(res) < window_m)
     out = T_cam_pallet.copy()
     up = T_vc[2, :3]                                                                # vehicle up, camera frame
-    for i in np.flatnonzero(ok.sum(1) >= _MIN_INLIERS):
-        shift_m = float(np.median(res[i, ok[i]]))
-        ray = (pts[i, ok[i]] / rng_m[i, ok[i], None]).mean(0)
+    for i in range(len(T_cam_pallet)):
+        # one pose at a time: the (boxes, points) arrays of a pose stay in cache (16 poses at once: 3x slower)
+        p = pts[i, :n_pts[i]]
+        s, _ = cast_rays_boxes(origin[i:i + 1], (p @ R_pc[i].T)[None], boxes_m)      # 1 = at the point
+        rng_m = np.linalg.norm(p, axis=1)
+        with np.errstate(invalid="ignore"):
+            res = (1.0 - s[0]) * rng_m                           # > 0: the point lies beyond the pallet's surface
+        ok = np.isfinite(res) & (np.abs(res) < window_m)
+        if ok.sum() < _MIN_INLIERS:
+            continue
+        shift_m = float(np.median(res[ok]))
+        ray = (p[ok] / rng_m[ok, None]).mean(0)
         ray /= np.linalg.norm(ray)
         if on_floor[i]:
             # horizontally, by as much as moves the surface by shift_m along the ray; seen steeply from above (rays
