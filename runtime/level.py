@@ -50,7 +50,7 @@ class LevelParams:
         60.0 % with 20; `docs/experiments/forklift.md`).
     :ivar ray_window_m: after the ICP, the pose moves along the viewing rays by the median depth residual of the
         points within this of the posed surface along their rays (step 4 of the module docstring); 0: it does not.
-        Forklift views of all types, D435-like depth, ground-truth boxes and types, 40 validation frames: poses
+        Forklift views of all types, D435-like depth, ground-truth boxes and types, 40 validation frames: positions
         within 5 cm 72 -> 99 / 105 / 105 of 211 pallets at 0.1 / 0.2 / 0.3 m; exact depth 145 -> 146
         (`docs/experiments/forklift.md`).
     """
