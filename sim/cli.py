@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pallet6d.sim.presets import PRESETS, get_preset
 from pallet6d.sim.scene import SceneError
+from pallet6d.sim.sensors import SENSORS
 
 HELP = "generate synthetic warehouse RGB-D scenes (BOP format)"
 log = logging.getLogger(__name__)
@@ -30,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pallet-types", default=None,
                         help="comma-separated pallet types the scenes draw from, instead of the preset's (e.g. epal; "
                              "the catalogue: pallet6d.sim.pallets.PALLET_MODELS)")
+    parser.add_argument("--sensor", default=None, choices=sorted(SENSORS),
+                        help="every frame's depth from this sensor model instead of the preset's (ideal: exact depth; "
+                             "the scenes stay the same, the sensor's noise has its own random stream)")
     parser.add_argument("--preview", action="store_true",
                         help="also write PNGs with each pallet's GT 3D box and axes, and the depth")
 
@@ -59,6 +63,10 @@ def main(args: argparse.Namespace) -> int:
                       f"{', '.join(PALLET_MODELS)}", file=sys.stderr)
                 return 2
             config = replace(config, pallet_models=names)
+        if args.sensor:
+            from dataclasses import replace
+
+            config = replace(config, sensor=args.sensor, sensor_model=None, sensor_mix=())
         if args.frames < 1 or args.start < 0:
             print("pallet6d sim: --frames must be >= 1 and --start >= 0", file=sys.stderr)
             return 2

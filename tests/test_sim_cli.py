@@ -52,3 +52,22 @@ def test_sim_cli_pallet_types_choose_the_catalogue(tmp_path, capsys):
     assert {g.obj_id for i in range(len(ds)) for g in ds[i].gts} == {obj_id_of("gma")}
     assert cli.main(["sim", "--frames", "1", "--pallet-types", "epal,crate", "--out", str(tmp_path / "x")]) == 2
     assert "unknown pallet type(s) ['crate']" in capsys.readouterr().err
+
+
+def test_sim_cli_sensor_renders_the_same_scenes_with_another_depth_sensor(tmp_path):
+    import json
+
+    import numpy as np
+
+    outs = {}
+    for sensor in (None, "ideal"):
+        out = tmp_path / (sensor or "preset")
+        extra = ["--sensor", sensor] if sensor else []
+        assert cli.main(["sim", "--preset", "forklift-approach", "--frames", "1", "--seed", "3", "--size", "212x120",
+                         "--out", str(out), *extra]) == 0
+        outs[sensor] = out / "train" / "000000"
+    gt = [json.loads((d / "scene_gt.json").read_text()) for d in outs.values()]
+    assert gt[0] == gt[1]                                       # the same pallets at the same poses
+    depth = [BopDataset(d.parent.parent)[0].depth_m for d in outs.values()]
+    assert not np.array_equal(depth[0], depth[1])               # the preset's D435-like depth is noisy, ideal is not
+    assert (depth[1] > 0).mean() >= (depth[0] > 0).mean()       # exact depth has no stereo holes
