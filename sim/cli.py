@@ -32,8 +32,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated pallet types the scenes draw from, instead of the preset's (e.g. epal; "
                              "the catalogue: pallet6d.sim.pallets.PALLET_MODELS)")
     parser.add_argument("--sensor", default=None, choices=sorted(SENSORS),
-                        help="every frame's depth from this sensor model instead of the preset's (ideal: exact depth; "
-                             "the scenes stay the same, the sensor's noise has its own random stream)")
+                        help="every frame's depth from this sensor model instead of the preset's (ideal: exact depth); "
+                             "the scenes and their ground truth stay the same, the camera noise is drawn again")
     parser.add_argument("--preview", action="store_true",
                         help="also write PNGs with each pallet's GT 3D box and axes, and the depth")
 
