@@ -5,6 +5,7 @@ import argparse
 import logging
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from pallet6d.sim.presets import PRESETS, get_preset
@@ -53,8 +54,6 @@ def main(args: argparse.Namespace) -> int:
                 return 2
             config = config.with_image_size(w, h)
         if args.pallet_types:
-            from dataclasses import replace
-
             from pallet6d.sim.pallets import PALLET_MODELS
             names = tuple(t.strip() for t in args.pallet_types.split(",") if t.strip())
             unknown = [t for t in names if t not in PALLET_MODELS]
@@ -64,8 +63,6 @@ def main(args: argparse.Namespace) -> int:
                 return 2
             config = replace(config, pallet_models=names)
         if args.sensor:
-            from dataclasses import replace
-
             config = replace(config, sensor=args.sensor, sensor_model=None, sensor_mix=())
         if args.frames < 1 or args.start < 0:
             print("pallet6d sim: --frames must be >= 1 and --start >= 0", file=sys.stderr)
