@@ -21,24 +21,16 @@ from pathlib import Path
 import numpy as np
 
 
-def box_iou(a: np.ndarray, b: np.ndarray) -> float:
-    """IoU of two (4,) x1, y1, x2, y2 boxes."""
-    w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = w * h
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
-
-
 def outcome(gt, poses, rejected, models, names) -> tuple[str, bool | None]:
     """(outcome label, whether the accepted pose has the pallet's type; None when not posed)."""
+    from pallet6d.runtime.evaluation import box_iou
     from pallet6d.runtime.metrics import add_sym
 
-    cands = [(box_iou(gt.box_visib_xyxy, p.box_xyxy), p, True) for p in poses] + \
-            [(box_iou(gt.box_visib_xyxy, r.box_xyxy), r, False) for r in rejected]
-    if not cands or max(c[0] for c in cands) < 0.5:
+    cands = [(p, True) for p in poses] + [(r, False) for r in rejected]
+    iou = box_iou(gt.box_visib_xyxy, np.array([c.box_xyxy for c, _ in cands]))[0] if cands else np.zeros(0)
+    if len(iou) == 0 or iou.max() < 0.5:
         return "not detected", None
-    _, best, accepted = max(cands, key=lambda c: c[0])
+    best, accepted = cands[int(np.argmax(iou))]
     if not accepted:
         return f"rejected: {best.reason}", None
     pts, syms = models[gt.obj_id]
