@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import multiprocessing
 import os
 import signal
 import statistics
@@ -78,55 +79,100 @@ def frames_total(client: httpx.Client) -> float:
 
 
 class Load:
-    """Pollers and one stream client on an asyncio loop in a thread of this process."""
+    """Pollers and one stream client, in a process of their own.
+
+    The pollers speak HTTP/1.1 over asyncio streams (keep-alive, one connection each) rather than through a
+    client library: a poller's own CPU per request (a library parses more than the status line and the length)
+    and this process's other threads (RSS sampling, metrics scrapes) would otherwise add their wait for a core to
+    every latency it reports. The stream client reads Server-Sent Events with httpx.
+    """
 
     def __init__(self, url: str, clients: int, poll_hz: float) -> None:
         self.url, self.clients, self.period = url, clients, 1.0 / poll_hz
         self.latencies_ms: list[float] = []
         self.errors: dict[str, int] = {}
         self.events = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=lambda: asyncio.run(self._main()), daemon=True)
+        ctx = multiprocessing.get_context("spawn")
+        self._stop = ctx.Event()
+        self._results = ctx.Queue()
+        self._proc = ctx.Process(target=_load_process, args=(url, clients, self.period, self._stop, self._results),
+                                 daemon=True)
 
     def start(self) -> None:
-        self._thread.start()
+        self._proc.start()
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(60)
+        self.latencies_ms, self.errors, self.events = self._results.get(timeout=120)
+        self._proc.join(60)
 
-    async def _main(self) -> None:
-        tasks = [asyncio.create_task(self._poll(i)) for i in range(self.clients)]
-        tasks.append(asyncio.create_task(self._stream()))
-        while not self._stop.is_set():
-            await asyncio.sleep(0.2)
-        for t in tasks:
-            t.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
 
-    async def _poll(self, i: int) -> None:
-        await asyncio.sleep(self.period * i / self.clients)   # spread the clients over one period
-        async with httpx.AsyncClient(base_url=self.url, timeout=10) as client:
-            next_t = time.perf_counter()
-            while True:
-                t0 = time.perf_counter()
-                try:
-                    r = await client.get("/v1/pallets")
-                    if r.status_code == 200:
-                        self.latencies_ms.append(1000 * (time.perf_counter() - t0))
-                    else:
-                        self.errors[str(r.status_code)] = self.errors.get(str(r.status_code), 0) + 1
-                except httpx.HTTPError as exc:
-                    self.errors[type(exc).__name__] = self.errors.get(type(exc).__name__, 0) + 1
-                next_t += self.period
-                await asyncio.sleep(max(0.0, next_t - time.perf_counter()))
+def _load_process(url: str, clients: int, period: float, stop, results) -> None:
+    state = {"lat": [], "errors": {}, "events": 0}
+    asyncio.run(_load_main(url, clients, period, stop, state))
+    results.put((state["lat"], state["errors"], state["events"]))
 
-    async def _stream(self) -> None:
-        async with httpx.AsyncClient(base_url=self.url, timeout=None) as client:
-            async with client.stream("GET", "/v1/stream") as r:
-                async for line in r.aiter_lines():
-                    if line.startswith("data: "):
-                        self.events += 1
+
+async def _load_main(url: str, clients: int, period: float, stop, state: dict) -> None:
+    host, port = url.split("://", 1)[1].rsplit(":", 1)
+    tasks = [asyncio.create_task(_poll(host, int(port), period, i / clients, state)) for i in range(clients)]
+    tasks.append(asyncio.create_task(_stream(url, state)))
+    while not stop.is_set():
+        await asyncio.sleep(0.2)
+    for t in tasks:
+        t.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
+
+
+def _count(errors: dict, key: str) -> None:
+    errors[key] = errors.get(key, 0) + 1
+
+
+async def _get(reader, writer, request: bytes) -> int:
+    """One keep-alive GET; returns the status code once the whole body is read."""
+    writer.write(request)
+    head = await reader.readuntil(b"\r\n\r\n")
+    lines = head.split(b"\r\n")
+    status = int(lines[0].split()[1])
+    length = next((int(x.split(b":", 1)[1]) for x in lines[1:] if x.lower().startswith(b"content-length:")), None)
+    if length is None:
+        raise ValueError("response without Content-Length")
+    await reader.readexactly(length)
+    return status
+
+
+async def _poll(host: str, port: int, period: float, phase: float, state: dict) -> None:
+    await asyncio.sleep(period * phase)   # spread the clients over one period
+    request = f"GET /v1/pallets HTTP/1.1\r\nHost: {host}:{port}\r\n\r\n".encode()
+    reader = writer = None
+    next_t = time.perf_counter()
+    while True:
+        try:
+            if writer is None:
+                reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), 10)
+            t0 = time.perf_counter()
+            status = await asyncio.wait_for(_get(reader, writer, request), 10)
+            if status == 200:
+                state["lat"].append(1000 * (time.perf_counter() - t0))
+            else:
+                _count(state["errors"], str(status))
+        except asyncio.CancelledError:
+            raise
+        except (OSError, ValueError, asyncio.TimeoutError, asyncio.IncompleteReadError) as exc:
+            _count(state["errors"], type(exc).__name__)
+            if writer is not None:
+                writer.close()
+            reader = writer = None
+        next_t += period
+        await asyncio.sleep(max(0.0, next_t - time.perf_counter()))
+
+
+async def _stream(url: str, state: dict) -> None:
+    async with httpx.AsyncClient(base_url=url, timeout=None) as client:
+        async with client.stream("GET", "/v1/stream") as r:
+            async for line in r.aiter_lines():
+                if line.startswith("data: "):
+                    state["events"] += 1
 
 
 def server_buckets(client: httpx.Client, route: str = "/v1/pallets") -> dict[float, float]:
