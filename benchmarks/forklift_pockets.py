@@ -195,11 +195,12 @@ def main() -> None:
     ap.add_argument("--all", action="store_true", help="every pallet with its face in view, not only targets")
     ap.add_argument("--gt-boxes", action="store_true",
                     help="with --estimator: pose the ground truth's visible boxes (no detector)")
+    ap.add_argument("--score-threshold", type=float, default=0.25, help="with --estimator: the detector's")
     args = ap.parse_args()
     est = None
     if args.estimator:
         from pallet6d.runtime.estimator import PalletEstimator
-        est = PalletEstimator.from_bundle(args.estimator)
+        est = PalletEstimator.from_bundle(args.estimator, score_threshold=args.score_threshold)
     frames = npz_frames(args.frames) if args.frames else bop_frames(args.bop, args.split, args.max_frames)
     out = evaluate(frames, ForkliftParams(), est, args.all, args.gt_boxes)
     for name, res in out.items():
