@@ -81,13 +81,13 @@ def main(argv: list[str] | None = None) -> int:
             r = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
             poses, rejected = list(r.poses), list(r.rejected)
         elif args.known_type:
+            # one call per type with all its boxes: the frame-level registration test pools its candidates' boxes
             poses, rejected = [], []
-            for g in gts:
-                name = names.get(g.obj_id)
+            for name in sorted({names.get(g.obj_id) for g in gts}, key=str):
                 if name not in by_type:
-                    raise SystemExit(f"pallet type {name!r} (obj_id {g.obj_id}) is not in {args.bundle}")
-                r = by_type[name].estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=g.box_visib_xyxy[None],
-                                                 T_vehicle_cam=T_vc)
+                    raise SystemExit(f"pallet type {name!r} is not in {args.bundle}")
+                boxes = np.array([g.box_visib_xyxy for g in gts if names.get(g.obj_id) == name]).reshape(-1, 4)
+                r = by_type[name].estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
                 poses += r.poses
                 rejected += r.rejected
         else:
