@@ -88,14 +88,13 @@ class Load:
     """
 
     def __init__(self, url: str, clients: int, poll_hz: float) -> None:
-        self.url, self.clients, self.period = url, clients, 1.0 / poll_hz
         self.latencies_ms: list[float] = []
         self.errors: dict[str, int] = {}
         self.events = 0
         ctx = multiprocessing.get_context("spawn")
         self._stop = ctx.Event()
         self._results = ctx.Queue()
-        self._proc = ctx.Process(target=_load_process, args=(url, clients, self.period, self._stop, self._results),
+        self._proc = ctx.Process(target=_load_process, args=(url, clients, 1.0 / poll_hz, self._stop, self._results),
                                  daemon=True)
 
     def start(self) -> None:
