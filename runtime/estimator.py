@@ -472,7 +472,8 @@ class PalletEstimator:
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
             pts = [self.refiner.box_points(cands.pixels[i], depth_m, K) for i in rows]   # the refiner's ICP points
             T_vp = level_poses(cands.T_cam_pallet[rows], T_vehicle_cam, np.array([g.size_m[2] for g in geoms]),
-                               self.options.level, [g.boxes_m for g in geoms], pts_cam=pts)
+                               self.options.level, [g.boxes_m for g in geoms], pts_cam=pts,
+                               threads=self.refiner.refine_options.threads)
             T_cp = invert_T(T_vehicle_cam) @ T_vp
             moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
             cands.assign(rows, T_cam_pallet=T_cp)

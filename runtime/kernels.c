@@ -1,6 +1,7 @@
 /* The runtime's per-point loops, compiled: robust point-to-plane ICP of observed points onto a union of
-   axis-aligned boxes (pallet6d_icp), the fit scores of posed models against the depth (pallet6d_fit), and the
-   registration test's pair counts (pallet6d_registration_counts).
+   axis-aligned boxes (pallet6d_icp), the fit scores of posed models against the depth (pallet6d_fit), the
+   registration test's pair counts (pallet6d_registration_counts) and the ray scores of posed pallets
+   (pallet6d_ray_scores).
 
    ICP is the same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
    per step, every observed point near the model's bounding box is matched with the closest point on the
@@ -542,6 +543,64 @@ int pallet6d_registration_counts(const float *pad, int64_t pad_h, int64_t pad_w,
                 if (d < 0 || d >= levels) return -1;
                 (jump ? pos : neg)[d]++;
             }
+    }
+    return 0;
+}
+
+/* ---- ray scores of posed pallets ---------------------------------------------------------------------------- */
+
+/* Slab test of the ray o + s d (inv = 1 / d per axis) against the box lo..hi: 1 when it meets it at some s > 0,
+   with *entry the first such s (0 when o is inside). */
+static int ray_box(const double o[3], const double inv[3], const double lo[3], const double hi[3], double *entry) {
+    double near = -INFINITY, far = INFINITY;
+    for (int r = 0; r < 3; r++) {
+        const double t1 = (lo[r] - o[r]) * inv[r], t2 = (hi[r] - o[r]) * inv[r];
+        const double a = t1 < t2 ? t1 : t2, z = t1 < t2 ? t2 : t1;
+        near = a > near ? a : near;
+        far = z < far ? z : far;
+    }
+    *entry = near > 0 ? near : 0.0;
+    return near <= far && far > 0;
+}
+
+/* How well each of P poses explains m observed points along their viewing rays (level.ray_scores' numpy path is the
+   specification): the ray from the camera to each point meets the posed model's boxes first at s times the
+   point's distance (s = 1: at the point); its residual (1 - s) * |p| is the point's depth beyond the model's
+   surface. out[i] = (points within window_m of the surface - points beyond it by window_m or more) / m; a ray
+   that misses the model counts neither way. T: (P, 4, 4) pallet -> camera; pts: (m, 3) camera frame; boxes:
+   (k, 2, 3) min / max corners, pallet frame. Double arithmetic, as numpy's. Returns 0. */
+int pallet6d_ray_scores(int64_t P, const double *T, int64_t m, const double *pts, int64_t k, const double *boxes,
+                        double window_m, double *out) {
+    double blo[3] = {INFINITY, INFINITY, INFINITY}, bhi[3] = {-INFINITY, -INFINITY, -INFINITY};
+    for (int64_t b = 0; b < k; b++)
+        for (int r = 0; r < 3; r++) {
+            blo[r] = boxes[6 * b + r] < blo[r] ? boxes[6 * b + r] : blo[r];
+            bhi[r] = boxes[6 * b + 3 + r] > bhi[r] ? boxes[6 * b + 3 + r] : bhi[r];
+        }
+    for (int64_t i = 0; i < P; i++) {
+        const double *Ti = T + 16 * i;
+        double R_pc[9], o[3];
+        for (int r = 0; r < 3; r++)
+            for (int c = 0; c < 3; c++) R_pc[3 * r + c] = Ti[4 * c + r];
+        for (int r = 0; r < 3; r++)
+            o[r] = -(R_pc[3 * r] * Ti[3] + R_pc[3 * r + 1] * Ti[7] + R_pc[3 * r + 2] * Ti[11]);
+        int64_t inl = 0, beyond = 0;
+        for (int64_t j = 0; j < m; j++) {
+            const double *p = pts + 3 * j;
+            double inv[3], s = INFINITY, e;
+            for (int r = 0; r < 3; r++) {
+                const double d = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
+                inv[r] = fabs(d) > 1e-12 ? 1.0 / d : 1e12;
+            }
+            if (!ray_box(o, inv, blo, bhi, &e)) continue;        /* misses the boxes' bounding box: every box */
+            for (int64_t b = 0; b < k; b++)
+                if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) s = e;
+            if (!isfinite(s)) continue;
+            const double res = (1.0 - s) * sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+            if (fabs(res) < window_m) inl++;
+            else if (res >= window_m) beyond++;
+        }
+        out[i] = m > 0 ? (double)(inl - beyond) / (double)m : 0.0;
     }
     return 0;
 }

@@ -1,6 +1,6 @@
-"""The runtime's compiled kernels (`kernels.c`): refinement's point-to-plane ICP (`icp`), the fit scores (`fit`)
-and the registration test's pair counts (`registration_counts`), the per-point loops that numpy runs as thousands
-of small calls a frame.
+"""The runtime's compiled kernels (`kernels.c`): refinement's point-to-plane ICP (`icp`), the fit scores (`fit`),
+the levelled search's ray scores (`ray_scores`) and the registration test's pair counts (`registration_counts`), the
+per-point loops that numpy runs as thousands of small calls a frame.
 
 The package builds them as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
 a library of a few tens of kB, loaded in well under a millisecond. Where no C compiler was at hand when the
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES", "registration_counts"]
+__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES", "ray_scores", "registration_counts"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +49,7 @@ _ARGTYPES = {
                      _i, _f32, _i, _i, _f64, _d, _i, _f64, _f64],
     "pallet6d_registration_counts": [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64,
                                      _i64],
+    "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _f64],
 }
 
 
@@ -230,6 +231,20 @@ def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray
     if rc != 0:
         raise MemoryError("the compiled fit-score kernel could not allocate its z-buffer")
     return inlier, violation
+
+
+def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float) -> np.ndarray:
+    """`level`'s ray scores of P poses on the same observed points (`pallet6d_ray_scores` in kernels.c).
+
+    :param T_cam_pallet: (P, 4, 4). :param pts_cam: (m, 3) camera frame, metres. :param boxes_m: (k, 2, 3).
+    :return: (P,) scores in [-1, 1].
+    """
+    fn = _function("pallet6d_ray_scores")
+    c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
+    T, pts, boxes = c64(T_cam_pallet).reshape(-1, 4, 4), c64(pts_cam).reshape(-1, 3), c64(boxes_m).reshape(-1, 2, 3)
+    out = np.empty(len(T))
+    fn(len(T), T, len(pts), pts, len(boxes), boxes, float(window_m), out)
+    return out
 
 
 def registration_counts(pad: np.ndarray, m: int, step: int, inside: np.ndarray, diff_x: np.ndarray,

@@ -1,4 +1,4 @@
-"""Pallet poses on a calibrated camera's floor: levelled, set on the floor, refined in yaw and position (numpy only).
+"""Pallet poses on a calibrated camera's floor: levelled, set on the floor, refined in yaw and position.
 
 Pallets stand level on floors, rack beams and truck beds. An estimate's tilt (a degree or two on stereo depth) moves
 each fork pocket by centimetres, and noisy stereo depth pins down 3 or 4 degrees of freedom far better than 6. With
@@ -8,7 +8,10 @@ the camera's calibration (`T_vehicle_cam`; vehicle frame: z up, the floor at z =
    x axis the horizontal direction nearest to the estimated one, its bounding-box centre stays;
 2. sets it on the floor when its underside is then within `floor_snap_m` of z = 0;
 3. refines it by point-to-plane ICP (`refine._icp`) on its detection box's depth with roll and pitch held (and the
-   height, on the floor): yaw and position only. All poses of one pallet type in one pass;
+   height, on the floor): yaw and position only. All poses of one pallet type in one pass. The network's yaw is
+   often 30-90 degrees off on the forklift's oblique and close views, outside ICP's reach: the ICP also starts from
+   the best few of a grid of turns and slides of the pose (`search_*`), each scored by how well it explains the
+   depth along the viewing rays (`ray_scores`); after step 4 the landing that scores best wins;
 4. moves it along the viewing rays by the median of its points' depth residuals against the posed pallet along each
    point's own ray (the model's first surface on that ray). Stereo and ToF depth is noisy along the ray: matched to
    their closest surface, the points behind a board's front go to its sides, back or the blocks beside it while those
@@ -27,7 +30,7 @@ import numpy as np
 from .geometry import check_K, invert_T
 from .structure import cast_rays_boxes
 
-__all__ = ["LevelParams", "level_poses", "up_in_camera"]
+__all__ = ["LevelParams", "level_poses", "ray_scores", "up_in_camera"]
 
 # 1 sigma of the held degrees of freedom (radians, metres): held, not frozen; the free ones keep the refiner's own
 _HELD = 1e-3
@@ -44,22 +47,36 @@ class LevelParams:
     """:ivar max_tilt_deg: a pose tilted at most this much from the vertical is levelled; 0: none is.
     :ivar floor_snap_m: a levelled pallet whose underside is within this of the floor is set on it; 0: never.
     :ivar refine_points: a levelled pose is refined on at most this many depth points of its box; 0: not refined.
-    :ivar refine_iterations: its ICP steps; few, as the correspondence distance then shrinks from 8 to 1.5 cm in few
-        steps (on EPAL forklift views, D435-like depth, 40 validation frames: pockets within 2 cm and 1 degree
-        12.5 % unrefined, 22.5 / 20.0 / 17.5 / 15.0 % with 3 / 5 / 8 / 20 steps; exact depth 62.5 % throughout but
-        60.0 % with 20; `docs/experiments/forklift.md`).
+    :ivar refine_iterations: its ICP steps (from the pose and from each search start); the correspondence distance
+        shrinks from 8 to 1.5 cm over them. With the search, on EPAL forklift views (40 validation frames, pockets
+        within 2 cm and 1 degree, exact / D435-like depth) 72.5 / 45.0 % with 5 steps, 72.5 / 47.5 % with 10, and
+        on the all-type forklift views (ground-truth boxes and types, D435-like depth) 119 / 127 of 211 pallets
+        within 5 cm: a start half a grid step off in yaw needs the steps (`docs/experiments/forklift.md`).
     :ivar ray_window_m: after the ICP, the pose moves along the viewing rays by the median depth residual of the
         points within this of the posed surface along their rays (step 4 of the module docstring); 0: it does not.
         Forklift views of all types, D435-like depth, ground-truth boxes and types, 40 validation frames: positions
         within 5 cm 72 -> 99 / 105 / 105 of 211 pallets at 0.1 / 0.2 / 0.3 m; exact depth 145 -> 146
         (`docs/experiments/forklift.md`).
+    :ivar search_yaw_step_deg: before the ICP, a search over yaw and position (step 3 of the module docstring):
+        turns by this step over a full turn (half a turn for a pallet that looks the same turned half way round);
+        0: no search (the ICP from the pose alone).
+    :ivar search_shifts_m: and slides of the centre by these along the pose's x and y (every pair).
+    :ivar search_keep: the ICP also runs from this many of the best-scoring turns and slides.
+    :ivar search_points: the turns and slides are scored on at most this many of the points (an even subset).
+    :ivar search_window_m: a point within this of the posed surface along its ray supports a pose; one seen
+        beyond it by as much contradicts it (`ray_scores`).
     """
 
     max_tilt_deg: float = 8.0
     floor_snap_m: float = 0.04
     refine_points: int = 600
-    refine_iterations: int = 5
+    refine_iterations: int = 10
     ray_window_m: float = 0.2
+    search_yaw_step_deg: float = 15.0
+    search_shifts_m: tuple = (-0.2, -0.1, 0.0, 0.1, 0.2)
+    search_keep: int = 3
+    search_points: int = 100
+    search_window_m: float = 0.05
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.max_tilt_deg < 90.0:
@@ -68,6 +85,15 @@ class LevelParams:
             raise ValueError(f"floor_snap_m must be >= 0, got {self.floor_snap_m}")
         if not 0.0 <= self.ray_window_m <= 1.0:
             raise ValueError(f"ray_window_m must be in [0, 1], got {self.ray_window_m}")
+        if not 0.0 <= self.search_yaw_step_deg <= 180.0:
+            raise ValueError(f"search_yaw_step_deg must be in [0, 180], got {self.search_yaw_step_deg}")
+        sh = np.asarray(self.search_shifts_m, dtype=np.float64)
+        if sh.ndim != 1 or len(sh) == 0 or not np.all(np.abs(sh) <= 1.0):
+            raise ValueError(f"search_shifts_m must be a non-empty sequence of shifts within 1 m, got "
+                             f"{self.search_shifts_m}")
+        if int(self.search_keep) < 1 or int(self.search_points) < 1 or not 0.0 < self.search_window_m <= 1.0:
+            raise ValueError(f"need search_keep >= 1, search_points >= 1 and search_window_m in (0, 1], got "
+                             f"{self.search_keep}, {self.search_points}, {self.search_window_m}")
         if int(self.refine_points) < 0 or int(self.refine_iterations) < 1:
             raise ValueError(f"refine_points must be >= 0 and refine_iterations >= 1, got {self.refine_points}, "
                              f"{self.refine_iterations}")
@@ -93,7 +119,7 @@ def _level(R: np.ndarray) -> np.ndarray:
 def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: np.ndarray,
                 params: LevelParams = LevelParams(), boxes_m: list | None = None, depth_m: np.ndarray | None = None,
                 K: np.ndarray | None = None, boxes_xyxy: np.ndarray | None = None,
-                pts_cam: list | None = None) -> np.ndarray:
+                pts_cam: list | None = None, threads: int = 1) -> np.ndarray:
     """`T_vehicle_pallet` of n posed pallets, levelled, set on the floor and refined (see the module docstring).
 
     :param T_cam_pallet: (n, 4, 4) the estimated poses. :param T_vehicle_cam: (4, 4) from the calibration.
@@ -103,6 +129,7 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
         levelled poses are refined (`params.refine_points` > 0).
     :param pts_cam: n arrays (m_i, 3), each pose's depth points (camera frame, metres) when the caller has them
         already (the estimator's refiner): used instead of reading `depth_m` in `boxes_xyxy`.
+    :param threads: the compiled ICP shares the starts among this many threads (the same poses).
     :return: (n, 4, 4) vehicle frame.
     """
     T_vc = np.asarray(T_vehicle_cam, dtype=np.float64)
@@ -132,7 +159,8 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
             pts = [box_points(depth_m, K, boxes_xyxy[i], int(params.refine_points), _DEPTH_RANGE_M) for i in refine]
         else:
             return out
-        out[refine] = _refine(out[refine], on_floor[refine], T_vc, [boxes_m[i] for i in refine], pts, params)
+        out[refine] = _refine(out[refine], on_floor[refine], T_vc, [boxes_m[i] for i in refine], pts, params,
+                              threads)
         out[refine, :3, :3] = _level(out[refine, :3, :3])             # what the held tilt let through (< 0.1 deg)
         snap = refine[on_floor[refine]]
         out[snap, 2, 3] = half_h[snap]
@@ -140,7 +168,7 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
 
 
 def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: list, pts: list,
-            params: LevelParams) -> np.ndarray:
+            params: LevelParams, threads: int = 1) -> np.ndarray:
     """ICP with the tilt held, one pass per pallet type; poses without depth points stay."""
     from .refine import _icp          # here: refine -> results -> forklift -> this module
 
@@ -155,17 +183,88 @@ def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: l
         padded = np.zeros((len(idx), counts.max(), 3))
         for k, i in enumerate(idx):
             padded[k, :counts[k]] = pts[i]
-        rot = np.tile([_HELD, _HELD, _FREE_ROT_RAD], (len(idx), 1))
-        trans = np.tile([_FREE_TRANS_M, _FREE_TRANS_M, _FREE_TRANS_M], (len(idx), 1))
-        trans[on_floor[idx], 2] = _HELD                              # pallet frame z: the vertical once levelled
-        run = _icp(T_cv @ T_vp[idx], padded, counts, boxes_m[idx[0]], int(params.refine_iterations), _CORR_START_M,
-                   _CORR_END_M, rot, trans, _MIN_INLIERS, 1e-4, None, 0.0)
+        P = len(idx)
+        T0, H = T_vp[idx], 1
+        if params.search_yaw_step_deg > 0:
+            T0, H = _search_starts(T_vp[idx], T_cv, [pts[i] for i in idx], boxes_m[idx[0]], params)
+        padded_h, counts_h, floor_h = np.repeat(padded, H, 0), np.repeat(counts, H), np.repeat(on_floor[idx], H)
+        rot = np.tile([_HELD, _HELD, _FREE_ROT_RAD], (P * H, 1))
+        trans = np.tile([_FREE_TRANS_M, _FREE_TRANS_M, _FREE_TRANS_M], (P * H, 1))
+        trans[floor_h, 2] = _HELD                                    # pallet frame z: the vertical once levelled
+        run = _icp(T_cv @ T0, padded_h, counts_h, boxes_m[idx[0]], int(params.refine_iterations), _CORR_START_M,
+                   _CORR_END_M, rot, trans, _MIN_INLIERS, 1e-4, None, 0.0, threads=threads)
         T_cp = run.T_cam_pallet
         if params.ray_window_m > 0:
             for _ in range(_RAY_ROUNDS):
-                T_cp = _along_rays(T_cp, padded, counts, boxes_m[idx[0]], params.ray_window_m, T_vc, on_floor[idx])
+                T_cp = _along_rays(T_cp, padded_h, counts_h, boxes_m[idx[0]], params.ray_window_m, T_vc, floor_h)
+        if H > 1:
+            # the best landing of each pose (ties: the pose's own), scored after the move along the rays: a 2-3 cm
+            # pull towards the camera (noisy depth) would otherwise weigh in the 5 cm window
+            T_cp = T_cp.reshape(P, H, 4, 4)
+            for k, i in enumerate(idx):
+                sc = ray_scores(T_cp[k], pts[i], boxes_m[idx[0]], params.search_window_m)
+                T_cp[k, 0] = T_cp[k, int(np.argmax(sc))]
+            T_cp = T_cp[:, 0]
         out[idx] = T_vc @ T_cp
     return out
+
+
+def _search_starts(T_vp: np.ndarray, T_cv: np.ndarray, pts: list, boxes_m: np.ndarray,
+                   params: LevelParams) -> tuple[np.ndarray, int]:
+    """ICP starts of P levelled poses: each pose, then its `search_keep` best turns and slides (step 3 of the
+    module docstring). :param T_vp: (P, 4, 4) vehicle frame. :param pts: P arrays (m_i, 3), camera frame, each
+    pose's points for the scores. :return: ((P * H, 4, 4) vehicle frame, pose i's starts at rows i * H .. i * H +
+    H - 1; H)."""
+    from .pallet_geometry import asymmetric
+
+    turn = np.diag([-1.0, -1.0, 1.0, 1.0])                   # a pallet that looks the same turned half way round
+    span = 180.0 if not asymmetric(turn[None], boxes_m) else 360.0  # needs half the turns
+    yaws = np.deg2rad(np.arange(0.0, span - 1e-9, params.search_yaw_step_deg))
+    sx, sy = np.meshgrid(np.asarray(params.search_shifts_m, dtype=np.float64),
+                         np.asarray(params.search_shifts_m, dtype=np.float64), indexing="ij")
+    a = np.repeat(yaws, sx.size)
+    grid = np.tile(np.eye(4), (len(a), 1, 1))                    # pallet frame: slid, then turned about the new centre
+    grid[:, 0, 0], grid[:, 0, 1], grid[:, 1, 0], grid[:, 1, 1] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
+    grid[:, 0, 3], grid[:, 1, 3] = np.tile(sx.ravel(), len(yaws)), np.tile(sy.ravel(), len(yaws))
+    keep = min(int(params.search_keep), len(grid))
+    out = np.repeat(T_vp[:, None], keep + 1, axis=1)
+    for i in range(len(T_vp)):
+        p = np.asarray(pts[i], dtype=np.float64).reshape(-1, 3)
+        p = p[np.linspace(0, len(p) - 1, min(len(p), int(params.search_points))).round().astype(np.int64)]
+        cand = T_vp[i] @ grid
+        sc = ray_scores(T_cv @ cand, p, boxes_m, params.search_window_m)
+        out[i, 1:] = cand[np.argsort(-sc, kind="stable")[:keep]]
+    return out.reshape(-1, 4, 4), keep + 1
+
+
+def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float,
+               compiled: bool = True) -> np.ndarray:
+    """How well each of P poses explains the same observed points along their viewing rays.
+
+    A point's residual is its depth beyond the posed model's first surface on the point's own ray (the projective
+    association of depth-camera trackers); the score is the fraction of points within `window_m` of the surface
+    minus the fraction seen beyond it by `window_m` or more (the camera sees through where the model is solid).
+    Points whose rays miss the model count neither way. In the compiled kernel when `compiled` and the package has
+    it (the same scores), else in numpy.
+
+    :param T_cam_pallet: (P, 4, 4). :param pts_cam: (m, 3) camera frame, metres. :param boxes_m: (k, 2, 3) the
+        pallet's boards and blocks. :return: (P,) scores in [-1, 1]; 0 for no points.
+    """
+    from . import kernels
+
+    T = np.asarray(T_cam_pallet, dtype=np.float64).reshape(-1, 4, 4)
+    p = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
+    if len(p) == 0:
+        return np.zeros(len(T))
+    if compiled and kernels.available():
+        return kernels.ray_scores(T, p, boxes_m, window_m)
+    R_pc = np.swapaxes(T[:, :3, :3], 1, 2)
+    origin = -(R_pc @ T[:, :3, 3, None])[..., 0]
+    s, _ = cast_rays_boxes(origin, np.einsum("nij,mj->nmi", R_pc, p), boxes_m)      # 1 = at the point
+    with np.errstate(invalid="ignore"):
+        res = (1.0 - s) * np.linalg.norm(p, axis=1)[None]
+    hit = np.isfinite(res)
+    return (np.sum(hit & (np.abs(res) < window_m), 1) - np.sum(hit & (res >= window_m), 1)) / len(p)
 
 
 def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, window_m: float,

@@ -197,6 +197,35 @@ def test_the_levelled_pose_is_refined_on_the_depth_in_yaw_and_position(yaw_err_d
     np.testing.assert_allclose(no_depth, levelled_only, atol=1e-12)
 
 
+@pytest.mark.parametrize("yaw_err_deg, shift_m", [(90.0, (0.0, 0.0)), (-60.0, (0.1, 0.05)), (135.0, (-0.15, 0.0))])
+def test_the_levelled_search_finds_a_pose_whose_yaw_is_far_off(yaw_err_deg, shift_m):
+    # the network's yaw 60-135 degrees off, outside ICP's reach: the search over turns and slides finds the pallet
+    T_vc, T_vp = camera(), pallet_pose(2.5, 10.0, lateral_m=0.2)
+    est = _tilted(T_vp, yaw_err_deg, (0.0, 0.0, 1.0))
+    est[:3, 3] += [shift_m[0], shift_m[1], 0.0]
+    T_cp, depth, box = invert_T(T_vc) @ _tilted(est, 1.0), render(T_vc, T_vp), _box_of(T_vc, T_vp)
+
+    def yaw_err(T):                                     # the EPAL looks the same turned by 180 degrees
+        return np.degrees(np.arccos(np.clip(abs(T[:3, 0] @ T_vp[:3, 0]), -1, 1)))
+
+    out = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(), EPAL.boxes_m, depth, K, box)
+    assert yaw_err(out) < 0.5 and np.linalg.norm(out[:2, 3] - T_vp[:2, 3]) < 0.01
+    no_search = ForkliftParams(level=LevelParams(search_yaw_step_deg=0))
+    alone = vehicle_pose(T_cp, T_vc, EPAL.size_m, no_search, EPAL.boxes_m, depth, K, box)
+    assert yaw_err(alone) > 10.0                                                 # ICP alone stays far off
+
+
+@pytest.mark.parametrize("kwargs, match", [({"search_yaw_step_deg": -1}, "search_yaw_step_deg"),
+                                           ({"search_yaw_step_deg": 200}, "search_yaw_step_deg"),
+                                           ({"search_shifts_m": ()}, "search_shifts_m"),
+                                           ({"search_shifts_m": (0.0, 2.0)}, "search_shifts_m"),
+                                           ({"search_keep": 0}, "search_keep"),
+                                           ({"search_window_m": 0.0}, "search_window_m")])
+def test_level_params_search_is_validated(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        LevelParams(**kwargs)
+
+
 def test_level_poses_refines_a_frames_poses_together_as_one_by_one():
     from pallet6d.runtime.level import level_poses
 
@@ -246,13 +275,16 @@ def test_the_levelled_pose_is_not_pulled_towards_the_camera_by_depth_noise(dista
     T_cp, box = invert_T(T_vc) @ _tilted(T_vp, 1.0), _box_of(T_vc, T_vp)   # tilted: not level yet, so refined
     err = {}
     for window_m in (0.0, LevelParams().ray_window_m):
-        out = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(level=LevelParams(ray_window_m=window_m)),
-                           EPAL.boxes_m, noisy, K, box)
+        # the ICP from the pose alone (no search): the search's choice among its landings would blur the bias
+        level = LevelParams(ray_window_m=window_m, search_yaw_step_deg=0)
+        out = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(level=level), EPAL.boxes_m, noisy, K, box)
         err[window_m] = out[:2, 3] - T_vp[:2, 3]                  # x: along the forks, towards the pallet
     assert err[0.0][0] < -0.015
     assert np.all(np.abs(err[LevelParams().ray_window_m]) < 0.012)
     exact = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(), EPAL.boxes_m, depth, K, box)
     assert np.linalg.norm(exact[:2, 3] - T_vp[:2, 3]) < 0.002
+    searched = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(), EPAL.boxes_m, noisy, K, box)
+    assert np.all(np.abs(searched[:2, 3] - T_vp[:2, 3]) < 0.012)                # the defaults, search included
 
 
 @pytest.mark.parametrize("window_m", [-0.1, 1.5, float("nan")])

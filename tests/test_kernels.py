@@ -343,3 +343,25 @@ def test_registration_counts_in_the_kernel_equal_numpy(case):
                                and np.allclose(dataclasses.astuple(kernel)[:2], dataclasses.astuple(numpy)[:2],
                                                equal_nan=True, rtol=0, atol=1e-12))
     assert case == "near the border" or kernel.judged
+
+
+@needs_kernel
+def test_ray_scores_in_the_kernel_equal_numpy():
+    """The levelled search's ray scores, compiled and in numpy: equal for poses that hit, graze and miss the
+    points, and for points on the model's boards, in its openings and beyond it."""
+    from pallet6d.runtime.level import ray_scores
+
+    rng = np.random.default_rng(3)
+    T_true = make_T(quat_to_rot([0.5, -0.5, 0.5, -0.5]), [0.1, 0.2, 3.0])        # pallet x across the view
+    pts_pallet = EPAL.surface_points(300, seed=1)
+    pts = pts_pallet @ T_true[:3, :3].T + T_true[:3, 3]
+    pts = np.concatenate([pts, pts[:50] + [0.0, 0.0, 0.3], rng.uniform([-1, -1, 2], [1, 1, 4], (50, 3))])
+    poses = [T_true] + [T_true @ _turn(yaw, (dx, 0.0, 0.0)) for yaw, dx in ((30.0, 0.0), (90.0, 0.1), (0.0, 0.4))]
+    poses.append(make_T(np.eye(3), [5.0, 0.0, 3.0]))                                 # the rays miss it
+    T = np.stack(poses)
+    for window_m in (0.02, 0.05, 0.2):
+        kernel = ray_scores(T, pts, EPAL.boxes_m, window_m)
+        numpy = ray_scores(T, pts, EPAL.boxes_m, window_m, compiled=False)
+        np.testing.assert_array_equal(kernel, numpy)
+    assert kernel[0] == kernel.max() and kernel[-1] == 0.0
+    assert ray_scores(T, np.zeros((0, 3)), EPAL.boxes_m, 0.05).tolist() == [0.0] * len(T)

@@ -136,6 +136,20 @@ def test_tilt_against_an_up_vector():
     assert np.isnan(_check().tilt_deg)
 
 
+def test_a_levelled_pose_must_agree_as_the_calibrated_threshold_says():
+    # with a calibration (up_cam) the poses are levelled and searched: min_agreement_levelled applies instead
+    up_cam = R_CAM_PALLET[:, 2]
+    slid = make_T(R_CAM_PALLET, T_TRUE[:3, 3] + R_CAM_PALLET @ np.array([0.06, 0.0, 0.0]))
+    agreement = _check(T=slid).agreement
+    assert 0.0 < agreement < 1.0
+    between = (StructureParams(min_agreement=agreement - 0.01, min_agreement_levelled=agreement + 0.01),
+               StructureParams(min_agreement=agreement + 0.01, min_agreement_levelled=agreement - 0.01))
+    assert _check(T=slid, params=between[0]).reason != "structure_mismatch"
+    assert _check(T=slid, params=between[0], up_cam=up_cam).reason == "structure_mismatch"
+    assert _check(T=slid, params=between[1]).reason == "structure_mismatch"
+    assert _check(T=slid, params=between[1], up_cam=up_cam).reason != "structure_mismatch"
+
+
 def test_empty_and_batched():
     assert structure_check(np.zeros((0, 4, 4)), EPAL.boxes_m, DEPTH, K, np.zeros((0, 4))) == []
     T2 = np.stack([T_TRUE, make_T(R_CAM_PALLET, T_TRUE[:3, 3] + np.array([0.3, 0, 0]))])
