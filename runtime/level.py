@@ -27,7 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kernels
 from .geometry import check_K, invert_T
+from .pallet_geometry import asymmetric
 from .structure import cast_rays_boxes
 
 __all__ = ["LevelParams", "level_poses", "ray_scores", "up_in_camera"]
@@ -48,10 +50,10 @@ class LevelParams:
     :ivar floor_snap_m: a levelled pallet whose underside is within this of the floor is set on it; 0: never.
     :ivar refine_points: a levelled pose is refined on at most this many depth points of its box; 0: not refined.
     :ivar refine_iterations: its ICP steps (from the pose and from each search start); the correspondence distance
-        shrinks from 8 to 1.5 cm over them. With the search, on EPAL forklift views (40 validation frames, pockets
-        within 2 cm and 1 degree, exact / D435-like depth) 72.5 / 45.0 % with 5 steps, 72.5 / 47.5 % with 10, and
-        on the all-type forklift views (ground-truth boxes and types, D435-like depth) 119 / 127 of 211 pallets
-        within 5 cm: a start half a grid step off in yaw needs the steps (`docs/experiments/forklift.md`).
+        shrinks from 8 to 1.5 cm over them. With a search on a 30-degree grid, on EPAL forklift views (40 validation
+        frames, pockets within 2 cm and 1 degree, exact / D435-like depth) 72.5 / 45.0 % with 5 steps, 72.5 / 47.5 %
+        with 10, and on the all-type forklift views (ground-truth boxes and types, D435-like depth) 119 / 127 of 211
+        pallets within 5 cm: a start half a grid step off in yaw needs the steps (`docs/experiments/forklift.md`).
     :ivar ray_window_m: after the ICP, the pose moves along the viewing rays by the median depth residual of the
         points within this of the posed surface along their rays (step 4 of the module docstring); 0: it does not.
         Forklift views of all types, D435-like depth, ground-truth boxes and types, 40 validation frames: positions
@@ -75,7 +77,7 @@ class LevelParams:
     search_yaw_step_deg: float = 15.0
     search_shifts_m: tuple = (-0.2, -0.1, 0.0, 0.1, 0.2)
     search_keep: int = 3
-    search_points: int = 100
+    search_points: int = 150
     search_window_m: float = 0.05
 
     def __post_init__(self) -> None:
@@ -215,8 +217,6 @@ def _search_starts(T_vp: np.ndarray, T_cv: np.ndarray, pts: list, boxes_m: np.nd
     module docstring). :param T_vp: (P, 4, 4) vehicle frame. :param pts: P arrays (m_i, 3), camera frame, each
     pose's points for the scores. :return: ((P * H, 4, 4) vehicle frame, pose i's starts at rows i * H .. i * H +
     H - 1; H)."""
-    from .pallet_geometry import asymmetric
-
     turn = np.diag([-1.0, -1.0, 1.0, 1.0])                   # a pallet that looks the same turned half way round
     span = 180.0 if not asymmetric(turn[None], boxes_m) else 360.0  # needs half the turns
     yaws = np.deg2rad(np.arange(0.0, span - 1e-9, params.search_yaw_step_deg))
@@ -250,8 +250,6 @@ def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarra
     :param T_cam_pallet: (P, 4, 4). :param pts_cam: (m, 3) camera frame, metres. :param boxes_m: (k, 2, 3) the
         pallet's boards and blocks. :return: (P,) scores in [-1, 1]; 0 for no points.
     """
-    from . import kernels
-
     T = np.asarray(T_cam_pallet, dtype=np.float64).reshape(-1, 4, 4)
     p = np.asarray(pts_cam, dtype=np.float64).reshape(-1, 3)
     if len(p) == 0:
