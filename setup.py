@@ -4,9 +4,10 @@
 (`pallet6d.runtime` -> `runtime/`, ...). setuptools' own discovery cannot add that prefix, so this file
 finds every package under each mapped folder (a folder with `__init__.py`) and names it under its
 mapping: a new subpackage ships in every install without a list to update. It also declares the one compiled
-part, the runtime's kernels (`runtime/kernels.c`: refinement's ICP and fit scores, the levelled search's ray
-scores, the registration test's pair counts; loaded with ctypes by `pallet6d.runtime.kernels`): an optional extension, so that an install without a C compiler still works
-(refinement then runs in numpy). Everything else about the distribution is in `pyproject.toml`.
+part, the runtime's kernels (`runtime/kernels.c`: refinement's ICP and fit scores, the levelled refinement's ray
+hits and scores, the registration test's pair counts; loaded with ctypes by `pallet6d.runtime.kernels`): an
+optional extension, so that an install without a C compiler still works (refinement then runs in numpy).
+Everything else about the distribution is in `pyproject.toml`.
 """
 from __future__ import annotations
 

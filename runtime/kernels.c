@@ -1,7 +1,7 @@
 /* The runtime's per-point loops, compiled: robust point-to-plane ICP of observed points onto a union of
    axis-aligned boxes (pallet6d_icp), the fit scores of posed models against the depth (pallet6d_fit), the
-   registration test's pair counts (pallet6d_registration_counts) and the ray scores of posed pallets
-   (pallet6d_ray_scores).
+   registration test's pair counts (pallet6d_registration_counts) and the viewing rays' hits and scores of posed
+   pallets (pallet6d_ray_hits, pallet6d_ray_scores).
 
    ICP is the same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
    per step, every observed point near the model's bounding box is matched with the closest point on the
@@ -563,6 +563,59 @@ static int ray_box(const double o[3], const double inv[3], const double lo[3], c
     return near <= far && far > 0;
 }
 
+/* The boxes' bounding box: blo, bhi (3,) from (k, 2, 3) min / max corners. */
+static void boxes_bounds(const double *boxes, int64_t k, double blo[3], double bhi[3]) {
+    for (int r = 0; r < 3; r++) {
+        blo[r] = INFINITY;
+        bhi[r] = -INFINITY;
+    }
+    for (int64_t b = 0; b < k; b++)
+        for (int r = 0; r < 3; r++) {
+            blo[r] = boxes[6 * b + r] < blo[r] ? boxes[6 * b + r] : blo[r];
+            bhi[r] = boxes[6 * b + 3 + r] > bhi[r] ? boxes[6 * b + 3 + r] : bhi[r];
+        }
+}
+
+/* The camera -> pallet rotation R_pc (row-major 3x3) and the camera's position o in the pallet frame of the
+   pallet -> camera transform T (row-major 4x4). */
+static void camera_in_pallet(const double *T, double R_pc[9], double o[3]) {
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++) R_pc[3 * r + c] = T[4 * c + r];
+    for (int r = 0; r < 3; r++) o[r] = -(R_pc[3 * r] * T[3] + R_pc[3 * r + 1] * T[7] + R_pc[3 * r + 2] * T[11]);
+}
+
+/* The first s > 0 at which the ray o + s R_pc p (s = 1: at the camera-frame point p) meets one of the k boxes,
+   INFINITY when none (a ray that misses their bounding box misses every box). */
+static double first_hit(const double R_pc[9], const double o[3], const double *p, const double blo[3],
+                        const double bhi[3], const double *boxes, int64_t k) {
+    double inv[3], s = INFINITY, e;
+    for (int r = 0; r < 3; r++) {
+        const double d = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
+        inv[r] = fabs(d) > 1e-12 ? 1.0 / d : 1e12;
+    }
+    if (!ray_box(o, inv, blo, bhi, &e)) return INFINITY;
+    for (int64_t b = 0; b < k; b++)
+        if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) s = e;
+    return s;
+}
+
+/* The first hit of each point's viewing ray with its pose's boxes: s_out[i * N + j] = first_hit of pose i's point j
+   for its first n_pts[i] points (the rest is left as it is). T: (P, 4, 4) pallet -> camera; pts: (P, N, 3) camera
+   frame; boxes: (k, 2, 3), pallet frame. Double arithmetic, as numpy's (structure.cast_rays_boxes). Returns 0. */
+int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, const int64_t *n_pts, int64_t k,
+                      const double *boxes, double *s_out) {
+    double blo[3], bhi[3];
+    boxes_bounds(boxes, k, blo, bhi);
+    for (int64_t i = 0; i < P; i++) {
+        double R_pc[9], o[3];
+        camera_in_pallet(T + 16 * i, R_pc, o);
+        const int64_t n = n_pts[i] < N ? n_pts[i] : N;
+        for (int64_t j = 0; j < n; j++)
+            s_out[i * N + j] = first_hit(R_pc, o, pts + 3 * (i * N + j), blo, bhi, boxes, k);
+    }
+    return 0;
+}
+
 /* How well each of P poses explains m observed points along their viewing rays (level.ray_scores' numpy path is the
    specification): the ray from the camera to each point meets the posed model's boxes first at s times the
    point's distance (s = 1: at the point); its residual (1 - s) * |p| is the point's depth beyond the model's
@@ -571,30 +624,15 @@ static int ray_box(const double o[3], const double inv[3], const double lo[3], c
    (k, 2, 3) min / max corners, pallet frame. Double arithmetic, as numpy's. Returns 0. */
 int pallet6d_ray_scores(int64_t P, const double *T, int64_t m, const double *pts, int64_t k, const double *boxes,
                         double window_m, double *out) {
-    double blo[3] = {INFINITY, INFINITY, INFINITY}, bhi[3] = {-INFINITY, -INFINITY, -INFINITY};
-    for (int64_t b = 0; b < k; b++)
-        for (int r = 0; r < 3; r++) {
-            blo[r] = boxes[6 * b + r] < blo[r] ? boxes[6 * b + r] : blo[r];
-            bhi[r] = boxes[6 * b + 3 + r] > bhi[r] ? boxes[6 * b + 3 + r] : bhi[r];
-        }
+    double blo[3], bhi[3];
+    boxes_bounds(boxes, k, blo, bhi);
     for (int64_t i = 0; i < P; i++) {
-        const double *Ti = T + 16 * i;
         double R_pc[9], o[3];
-        for (int r = 0; r < 3; r++)
-            for (int c = 0; c < 3; c++) R_pc[3 * r + c] = Ti[4 * c + r];
-        for (int r = 0; r < 3; r++)
-            o[r] = -(R_pc[3 * r] * Ti[3] + R_pc[3 * r + 1] * Ti[7] + R_pc[3 * r + 2] * Ti[11]);
+        camera_in_pallet(T + 16 * i, R_pc, o);
         int64_t inl = 0, beyond = 0;
         for (int64_t j = 0; j < m; j++) {
             const double *p = pts + 3 * j;
-            double inv[3], s = INFINITY, e;
-            for (int r = 0; r < 3; r++) {
-                const double d = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
-                inv[r] = fabs(d) > 1e-12 ? 1.0 / d : 1e12;
-            }
-            if (!ray_box(o, inv, blo, bhi, &e)) continue;        /* misses the boxes' bounding box: every box */
-            for (int64_t b = 0; b < k; b++)
-                if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) s = e;
+            const double s = first_hit(R_pc, o, p, blo, bhi, boxes, k);
             if (!isfinite(s)) continue;
             const double res = (1.0 - s) * sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
             if (fabs(res) < window_m) inl++;

@@ -1,6 +1,6 @@
 """The runtime's compiled kernels (`kernels.c`): refinement's point-to-plane ICP (`icp`), the fit scores (`fit`),
-the levelled search's ray scores (`ray_scores`) and the registration test's pair counts (`registration_counts`), the
-per-point loops that numpy runs as thousands of small calls a frame.
+the levelled refinement's ray hits and scores (`ray_hits`, `ray_scores`) and the registration test's pair counts
+(`registration_counts`), the per-point loops that numpy runs as thousands of small calls a frame.
 
 The package builds them as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
 a library of a few tens of kB, loaded in well under a millisecond. Where no C compiler was at hand when the
@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES", "ray_scores", "registration_counts"]
+__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES", "ray_hits", "ray_scores",
+           "registration_counts"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,7 @@ _ARGTYPES = {
     "pallet6d_registration_counts": [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64,
                                      _i64],
     "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _f64],
+    "pallet6d_ray_hits": [_i, _f64, _i, _f64, _i64, _i, _f64, _f64],
 }
 
 
@@ -231,6 +233,22 @@ def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray
     if rc != 0:
         raise MemoryError("the compiled fit-score kernel could not allocate its z-buffer")
     return inlier, violation
+
+
+def ray_hits(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray) -> np.ndarray:
+    """Where each pose's points' viewing rays first meet its boxes (`pallet6d_ray_hits` in kernels.c).
+
+    :param T_cam_pallet: (P, 4, 4). :param pts_cam: (P, N, 3) camera frame, metres; pose i uses its first `n_pts[i]`
+        rows. :param boxes_m: (k, 2, 3). :return: (P, N) ray parameters (1 = at the point, inf = no hit; inf too for
+        the rows past `n_pts[i]`).
+    """
+    fn = _function("pallet6d_ray_hits")
+    c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
+    T, pts, boxes = c64(T_cam_pallet).reshape(-1, 4, 4), c64(pts_cam), c64(boxes_m).reshape(-1, 2, 3)
+    n = np.ascontiguousarray(np.minimum(n_pts, pts.shape[1]), dtype=np.int64)
+    out = np.full(pts.shape[:2], np.inf)
+    fn(len(T), T, pts.shape[1], pts, n, len(boxes), boxes, out)
+    return out
 
 
 def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float) -> np.ndarray:

@@ -266,25 +266,30 @@ def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarra
 
 
 def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, window_m: float,
-                T_vc: np.ndarray, on_floor: np.ndarray) -> np.ndarray:
+                T_vc: np.ndarray, on_floor: np.ndarray, compiled: bool = True) -> np.ndarray:
     """Step 4 of the module docstring, once, for P poses of one pallet type.
 
     :param T_cam_pallet: (P, 4, 4). :param pts: (P, N, 3) camera frame, metres; pose i uses its first `n_pts[i]` rows.
     :param boxes_m: (k, 2, 3) the type's boards and blocks. :param on_floor: (P,) bool: move those horizontally only
-        (in the vehicle frame), keeping them on the floor.
+        (in the vehicle frame), keeping them on the floor. :param compiled: the rays' hits in the compiled kernel when
+        the package has it (`kernels.ray_hits`, the same hits), else in numpy.
     :return: (P, 4, 4) the poses moved; a pose with fewer than `_MIN_INLIERS` points within the window stays.
     """
     R_pc = np.swapaxes(T_cam_pallet[:, :3, :3], 1, 2)                               # camera -> pallet
     origin = -(R_pc @ T_cam_pallet[:, :3, 3, None])[..., 0]                         # the camera, pallet frame
     out = T_cam_pallet.copy()
     up = T_vc[2, :3]                                                                # vehicle up, camera frame
+    hits = kernels.ray_hits(T_cam_pallet, pts, n_pts, boxes_m) if compiled and kernels.available() else None
     for i in range(len(T_cam_pallet)):
-        # one pose at a time: the (boxes, points) arrays of a pose stay in cache (16 poses at once: 3x slower)
         p = pts[i, :n_pts[i]]
-        s, _ = cast_rays_boxes(origin[i:i + 1], (p @ R_pc[i].T)[None], boxes_m)      # 1 = at the point
+        if hits is not None:
+            s = hits[i, :n_pts[i]]                                                  # 1 = at the point
+        else:
+            # one pose at a time: the (boxes, points) arrays of a pose stay in cache (16 poses at once: 3x slower)
+            s = cast_rays_boxes(origin[i:i + 1], (p @ R_pc[i].T)[None], boxes_m)[0][0]
         rng_m = np.linalg.norm(p, axis=1)
         with np.errstate(invalid="ignore"):
-            res = (1.0 - s[0]) * rng_m                           # > 0: the point lies beyond the pallet's surface
+            res = (1.0 - s) * rng_m                              # > 0: the point lies beyond the pallet's surface
         ok = np.isfinite(res) & (np.abs(res) < window_m)
         if ok.sum() < _MIN_INLIERS:
             continue

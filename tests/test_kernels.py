@@ -365,3 +365,33 @@ def test_ray_scores_in_the_kernel_equal_numpy():
         np.testing.assert_array_equal(kernel, numpy)
     assert kernel[0] == kernel.max() and kernel[-1] == 0.0
     assert ray_scores(T, np.zeros((0, 3)), EPAL.boxes_m, 0.05).tolist() == [0.0] * len(T)
+
+
+@needs_kernel
+def test_ray_hits_and_the_move_along_the_rays_in_the_kernel_equal_numpy():
+    """The viewing rays' first hits (`kernels.ray_hits`) and the levelled refinement's move along the rays built
+    on them, compiled and in numpy: the same up to rounding, padding rows left unhit."""
+    from pallet6d.runtime.level import _along_rays
+    from pallet6d.runtime.structure import cast_rays_boxes
+
+    rng = np.random.default_rng(4)
+    T_true = make_T(quat_to_rot([0.5, -0.5, 0.5, -0.5]), [0.1, 0.2, 3.0])
+    T = np.stack([T_true, T_true @ _turn(20.0, (0.05, 0.02, 0.0)), T_true @ _turn(0.0, (0.0, 0.0, 0.3))])
+    surface = EPAL.surface_points(400, seed=2) @ T_true[:3, :3].T + T_true[:3, 3]
+    pts = np.zeros((3, 450, 3))
+    n_pts = np.array([450, 400, 120])
+    pts[0] = np.concatenate([surface, rng.uniform([-1, -1, 2], [1, 1, 4], (50, 3))])
+    pts[1, :400] = surface + rng.normal(0.0, 0.02, surface.shape)
+    pts[2, :120] = surface[:120]
+    hits = kernels.ray_hits(T, pts, n_pts, EPAL.boxes_m)
+    for i in range(3):
+        R_pc = T[i, :3, :3].T
+        s, _ = cast_rays_boxes((-R_pc @ T[i, :3, 3])[None], (pts[i, :n_pts[i]] @ R_pc.T)[None], EPAL.boxes_m)
+        np.testing.assert_allclose(hits[i, :n_pts[i]], s[0], rtol=1e-12, atol=0)
+        assert np.all(np.isinf(hits[i, n_pts[i]:]))
+    T_vc = make_T(np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float), [0.0, 0.0, 0.5])
+    for on_floor in (np.zeros(3, bool), np.array([True, False, True])):
+        kernel = _along_rays(T, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor)
+        numpy = _along_rays(T, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor, compiled=False)
+        np.testing.assert_allclose(kernel, numpy, rtol=0, atol=1e-12)
+    assert not np.allclose(kernel[1], T[1])                                       # the noisy pose did move
