@@ -621,24 +621,52 @@ int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, 
    point's distance (s = 1: at the point); its residual (1 - s) * |p| is the point's depth beyond the model's
    surface. out[i] = (points within window_m of the surface - points beyond it by window_m or more) / m; a ray
    that misses the model counts neither way. T: (P, 4, 4) pallet -> camera; pts: (m, 3) camera frame; boxes:
-   (k, 2, 3) min / max corners, pallet frame. Double arithmetic, as numpy's. Returns 0. */
+   (k, 2, 3) min / max corners, pallet frame. Double arithmetic, as numpy's. The poses are shared among up to
+   n_threads threads, 8 at a time (a thread that cannot be started leaves its share to the others). Returns 0. */
+struct ray_score_job {
+    const double *T, *pts, *boxes, *blo, *bhi;
+    int64_t P, m, k, chunk;
+    double window_m, *out;
+    atomic_long next;
+};
+
+/* Chunks of poses taken one at a time until none is left (the threads share the job). */
+static void *ray_score_worker(void *arg) {
+    struct ray_score_job *job = arg;
+    for (int64_t i0 = atomic_fetch_add(&job->next, job->chunk); i0 < job->P;
+         i0 = atomic_fetch_add(&job->next, job->chunk))
+        for (int64_t i = i0; i < i0 + job->chunk && i < job->P; i++) {
+            double R_pc[9], o[3];
+            camera_in_pallet(job->T + 16 * i, R_pc, o);
+            int64_t inl = 0, beyond = 0;
+            for (int64_t j = 0; j < job->m; j++) {
+                const double *p = job->pts + 3 * j;
+                const double s = first_hit(R_pc, o, p, job->blo, job->bhi, job->boxes, job->k);
+                if (!isfinite(s)) continue;
+                const double res = (1.0 - s) * sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+                if (fabs(res) < job->window_m) inl++;
+                else if (res >= job->window_m) beyond++;
+            }
+            job->out[i] = job->m > 0 ? (double)(inl - beyond) / (double)job->m : 0.0;
+        }
+    return NULL;
+}
+
 int pallet6d_ray_scores(int64_t P, const double *T, int64_t m, const double *pts, int64_t k, const double *boxes,
-                        double window_m, double *out) {
+                        double window_m, int64_t n_threads, double *out) {
+    enum { MAX_THREADS = 16 };
     double blo[3], bhi[3];
     boxes_bounds(boxes, k, blo, bhi);
-    for (int64_t i = 0; i < P; i++) {
-        double R_pc[9], o[3];
-        camera_in_pallet(T + 16 * i, R_pc, o);
-        int64_t inl = 0, beyond = 0;
-        for (int64_t j = 0; j < m; j++) {
-            const double *p = pts + 3 * j;
-            const double s = first_hit(R_pc, o, p, blo, bhi, boxes, k);
-            if (!isfinite(s)) continue;
-            const double res = (1.0 - s) * sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
-            if (fabs(res) < window_m) inl++;
-            else if (res >= window_m) beyond++;
-        }
-        out[i] = m > 0 ? (double)(inl - beyond) / (double)m : 0.0;
-    }
+    struct ray_score_job job = {.T = T, .pts = pts, .boxes = boxes, .blo = blo, .bhi = bhi, .P = P, .m = m, .k = k,
+                                .chunk = 8, .window_m = window_m, .out = out};
+    atomic_init(&job.next, 0);
+    int64_t extra = (n_threads < (P + job.chunk - 1) / job.chunk ? n_threads : (P + job.chunk - 1) / job.chunk) - 1;
+    extra = extra < 0 ? 0 : extra > MAX_THREADS - 1 ? MAX_THREADS - 1 : extra;
+    pthread_t threads[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 0; t < extra; t++) started[t] = pthread_create(&threads[t], NULL, ray_score_worker, &job) == 0;
+    ray_score_worker(&job);
+    for (int64_t t = 0; t < extra; t++)
+        if (started[t]) pthread_join(threads[t], NULL);
     return 0;
 }

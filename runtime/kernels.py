@@ -50,7 +50,7 @@ _ARGTYPES = {
                      _i, _f32, _i, _i, _f64, _d, _i, _f64, _f64],
     "pallet6d_registration_counts": [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64,
                                      _i64],
-    "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _f64],
+    "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _i, _f64],
     "pallet6d_ray_hits": [_i, _f64, _i, _f64, _i64, _i, _f64, _f64],
 }
 
@@ -251,17 +251,19 @@ def ray_hits(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, b
     return out
 
 
-def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float) -> np.ndarray:
+def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float,
+               threads: int = 1) -> np.ndarray:
     """`level`'s ray scores of P poses on the same observed points (`pallet6d_ray_scores` in kernels.c).
 
     :param T_cam_pallet: (P, 4, 4). :param pts_cam: (m, 3) camera frame, metres. :param boxes_m: (k, 2, 3).
+    :param threads: the poses are shared among this many threads (the same scores).
     :return: (P,) scores in [-1, 1].
     """
     fn = _function("pallet6d_ray_scores")
     c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
     T, pts, boxes = c64(T_cam_pallet).reshape(-1, 4, 4), c64(pts_cam).reshape(-1, 3), c64(boxes_m).reshape(-1, 2, 3)
     out = np.empty(len(T))
-    fn(len(T), T, len(pts), pts, len(boxes), boxes, float(window_m), out)
+    fn(len(T), T, len(pts), pts, len(boxes), boxes, float(window_m), max(int(threads), 1), out)
     return out
 
 

@@ -131,7 +131,8 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
         levelled poses are refined (`params.refine_points` > 0).
     :param pts_cam: n arrays (m_i, 3), each pose's depth points (camera frame, metres) when the caller has them
         already (the estimator's refiner): used instead of reading `depth_m` in `boxes_xyxy`.
-    :param threads: the compiled ICP shares the starts among this many threads (the same poses).
+    :param threads: the compiled ICP and the search's scores share their work among this many threads (the same
+        poses).
     :return: (n, 4, 4) vehicle frame.
     """
     T_vc = np.asarray(T_vehicle_cam, dtype=np.float64)
@@ -188,7 +189,7 @@ def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: l
         P = len(idx)
         T0, H = T_vp[idx], 1
         if params.search_yaw_step_deg > 0:
-            T0, H = _search_starts(T_vp[idx], T_cv, [pts[i] for i in idx], boxes_m[idx[0]], params)
+            T0, H = _search_starts(T_vp[idx], T_cv, [pts[i] for i in idx], boxes_m[idx[0]], params, threads)
         padded_h, counts_h, floor_h = np.repeat(padded, H, 0), np.repeat(counts, H), np.repeat(on_floor[idx], H)
         rot = np.tile([_HELD, _HELD, _FREE_ROT_RAD], (P * H, 1))
         trans = np.tile([_FREE_TRANS_M, _FREE_TRANS_M, _FREE_TRANS_M], (P * H, 1))
@@ -212,7 +213,7 @@ def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: l
 
 
 def _search_starts(T_vp: np.ndarray, T_cv: np.ndarray, pts: list, boxes_m: np.ndarray,
-                   params: LevelParams) -> tuple[np.ndarray, int]:
+                   params: LevelParams, threads: int = 1) -> tuple[np.ndarray, int]:
     """ICP starts of P levelled poses: each pose, then its `search_keep` best turns and slides (step 3 of the
     module docstring). :param T_vp: (P, 4, 4) vehicle frame. :param pts: P arrays (m_i, 3), camera frame, each
     pose's points for the scores. :return: ((P * H, 4, 4) vehicle frame, pose i's starts at rows i * H .. i * H +
@@ -232,20 +233,20 @@ def _search_starts(T_vp: np.ndarray, T_cv: np.ndarray, pts: list, boxes_m: np.nd
         p = np.asarray(pts[i], dtype=np.float64).reshape(-1, 3)
         p = p[np.linspace(0, len(p) - 1, min(len(p), int(params.search_points))).round().astype(np.int64)]
         cand = T_vp[i] @ grid
-        sc = ray_scores(T_cv @ cand, p, boxes_m, params.search_window_m)
+        sc = ray_scores(T_cv @ cand, p, boxes_m, params.search_window_m, threads=threads)
         out[i, 1:] = cand[np.argsort(-sc, kind="stable")[:keep]]
     return out.reshape(-1, 4, 4), keep + 1
 
 
 def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float,
-               compiled: bool = True) -> np.ndarray:
+               compiled: bool = True, threads: int = 1) -> np.ndarray:
     """How well each of P poses explains the same observed points along their viewing rays.
 
     A point's residual is its depth beyond the posed model's first surface on the point's own ray (the projective
     association of depth-camera trackers); the score is the fraction of points within `window_m` of the surface
     minus the fraction seen beyond it by `window_m` or more (the camera sees through where the model is solid).
-    Points whose rays miss the model count neither way. In the compiled kernel when `compiled` and the package has
-    it (the same scores), else in numpy.
+    Points whose rays miss the model count neither way. In the compiled kernel, on `threads` threads, when `compiled`
+    and the package has it (the same scores), else in numpy.
 
     :param T_cam_pallet: (P, 4, 4). :param pts_cam: (m, 3) camera frame, metres. :param boxes_m: (k, 2, 3) the
         pallet's boards and blocks. :return: (P,) scores in [-1, 1]; 0 for no points.
@@ -255,7 +256,7 @@ def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarra
     if len(p) == 0:
         return np.zeros(len(T))
     if compiled and kernels.available():
-        return kernels.ray_scores(T, p, boxes_m, window_m)
+        return kernels.ray_scores(T, p, boxes_m, window_m, threads)
     R_pc = np.swapaxes(T[:, :3, :3], 1, 2)
     origin = -(R_pc @ T[:, :3, 3, None])[..., 0]
     s, _ = cast_rays_boxes(origin, np.einsum("nij,mj->nmi", R_pc, p), boxes_m)      # 1 = at the point

@@ -347,8 +347,8 @@ def test_registration_counts_in_the_kernel_equal_numpy(case):
 
 @needs_kernel
 def test_ray_scores_in_the_kernel_equal_numpy():
-    """The levelled search's ray scores, compiled and in numpy: equal for poses that hit, graze and miss the
-    points, and for points on the model's boards, in its openings and beyond it."""
+    """The levelled search's ray scores, compiled (on one thread and on several) and in numpy: equal for poses that
+    hit, graze and miss the points, and for points on the model's boards, in its openings and beyond it."""
     from pallet6d.runtime.level import ray_scores
 
     rng = np.random.default_rng(3)
@@ -363,6 +363,9 @@ def test_ray_scores_in_the_kernel_equal_numpy():
         kernel = ray_scores(T, pts, EPAL.boxes_m, window_m)
         numpy = ray_scores(T, pts, EPAL.boxes_m, window_m, compiled=False)
         np.testing.assert_array_equal(kernel, numpy)
+    many = np.concatenate([T] * 7)                                # 35 poses: several chunks of 8 for the threads
+    np.testing.assert_array_equal(ray_scores(many, pts, EPAL.boxes_m, 0.05, threads=3),
+                                  ray_scores(many, pts, EPAL.boxes_m, 0.05, compiled=False))
     assert kernel[0] == kernel.max() and kernel[-1] == 0.0
     assert ray_scores(T, np.zeros((0, 3)), EPAL.boxes_m, 0.05).tolist() == [0.0] * len(T)
 
