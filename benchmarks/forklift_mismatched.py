@@ -1,11 +1,14 @@
-"""Accepted poses on calibrated forklift frames whose inputs do not belong together, with and without the levelled search.
+"""Accepted poses on calibrated forklift frames whose inputs do not belong together, with and without the levelled
+search and climb.
 
     python benchmarks/forklift_mismatched.py --bundle models/epal-default --data /work/data/val/forklift-approach
 
 Every frame of a BOP dataset with `scene_forklift.json` goes to `PalletEstimator.estimate(..., T_vehicle_cam=...)` as
 recorded and mismatched: the next frame's depth, the focal lengths doubled, the depth 10x too near, a flat wall at the
-frame's median depth. The calibrated path is run twice: with the defaults, and as it was without the levelled
-search (`LevelParams(search_yaw_step_deg=0, refine_iterations=5)`, `StructureParams(min_agreement_levelled=0.6)`).
+frame's median depth. The calibrated path is run three times: as it is without the levelled search and climb
+(`LevelParams(search_yaw_step_deg=0, refine_iterations=5, climb_step_deg=0)`,
+`StructureParams(min_agreement_levelled=0.6)`), without the climb (`LevelParams(climb_step_deg=0)`), and with the
+defaults.
 Any pose accepted on mismatched inputs is made up.
 """
 from __future__ import annotations
@@ -53,8 +56,10 @@ def main(argv: list[str] | None = None) -> int:
     frames = [ds[i] for i in range(len(ds))]
     if not frames or any(f.T_vehicle_cam is None for f in frames):
         raise SystemExit(f"{args.data}: every frame needs its calibration (scene_forklift.json)")
-    settings = {"without the search": dict(level=LevelParams(search_yaw_step_deg=0, refine_iterations=5),
+    settings = {"without the search": dict(level=LevelParams(search_yaw_step_deg=0, refine_iterations=5,
+                                                             climb_step_deg=0),
                                            structure=StructureParams(min_agreement_levelled=0.6)),
+                "without the climb": dict(level=LevelParams(climb_step_deg=0)),
                 "defaults": {}}
     print(f"accepted poses on {len(frames)} calibrated frames of {args.data.name}")
     print("| inputs | " + " | ".join(settings) + " |\n|---|" + "---|" * len(settings))

@@ -1,10 +1,10 @@
-"""What the levelled refinement costs on calibrated frames: with and without its yaw and position search.
+"""What the levelled refinement costs on calibrated frames: with and without its yaw and position search and climb.
 
     python benchmarks/level_cost.py --bundle models/epal-default --data /work/data/val/forklift-approach [--int8]
 
 Runs `PalletEstimator.estimate(..., T_vehicle_cam=...)` on every frame of a BOP dataset with `scene_forklift.json`
-(each frame's calibration), once with the search off (`LevelParams(search_yaw_step_deg=0)`) and once with the
-defaults, and prints the refine stage's time per candidate (it holds the levelled refinement) and the frames' p50
+(each frame's calibration) with the search and the climb off (`LevelParams(search_yaw_step_deg=0,
+climb_step_deg=0)`), with the climb off (`LevelParams(climb_step_deg=0)`) and with the defaults, and prints the refine stage's time per candidate (it holds the levelled refinement) and the frames' p50
 total. Run it on an otherwise idle machine.
 """
 from __future__ import annotations
@@ -46,11 +46,12 @@ def main(argv: list[str] | None = None) -> int:
     if not frames or any(f.T_vehicle_cam is None for f in frames):
         raise SystemExit(f"{args.data}: every frame needs its calibration (scene_forklift.json)")
     precision = "int8" if args.int8 else "fp32"
-    for name, level in (("no search", LevelParams(search_yaw_step_deg=0)), ("search (default)", LevelParams())):
+    for name, level in (("no search, no climb", LevelParams(search_yaw_step_deg=0, climb_step_deg=0)),
+                        ("search, no climb", LevelParams(climb_step_deg=0)), ("defaults", LevelParams())):
         est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision=precision, level=level)
         est.estimate(frames[0].rgb, frames[0].depth_m, frames[0].K, T_vehicle_cam=frames[0].T_vehicle_cam)  # warm
         m = measure(est, frames)
-        print(f"{name:17s} refine {m['refine_ms_per_candidate']:.2f} ms per candidate ({m['candidates']}), "
+        print(f"{name:19s} refine {m['refine_ms_per_candidate']:.2f} ms per candidate ({m['candidates']}), "
               f"refine p50 {m['refine_p50_ms']:.1f} ms, frame p50 {m['total_p50_ms']:.1f} ms")
     return 0
 

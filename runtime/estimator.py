@@ -34,7 +34,7 @@ from .deadline import Deadline, elapsed_ms
 from .detector import Detections
 from .inputs import check_rgb, check_rgbd
 from .geometry import invert_T
-from .level import LevelParams, level_poses, up_in_camera
+from .level import LevelParams, climb_poses, level_poses, up_in_camera
 from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel
@@ -446,6 +446,8 @@ class PalletEstimator:
                 self._level(cands, depth_m, K, T_vehicle_cam, timings)
                 up_cam = up_in_camera(T_vehicle_cam)
             self.fit_check(cands, depth_m, K, timings, rgb, up_cam)
+            if up_cam is not None:
+                self._climb(cands, depth_m, K, up_cam, timings)
         return cands
 
     def _type_options(self, det: Detections) -> list[tuple[int, ...]]:
@@ -461,6 +463,26 @@ class PalletEstimator:
                         types += [j for j in self._types_of_class[other] if j not in types]
             out.append(tuple(types))
         return out
+
+    def _climb(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, up_cam: np.ndarray,
+               timings: dict[str, float]) -> None:
+        """The accepted level poses climb the soft ray score (`level.climb_poses`), after the fit check has judged
+        them, so the climb never turns a rejected pose into an accepted one; a moved pose's fit is computed again
+        for its report. Its time counts as refine."""
+        t = time.perf_counter()
+        rows = np.flatnonzero(cands.alive)
+        rows = rows[np.abs(cands.T_cam_pallet[rows, :3, 2] @ up_cam - 1.0) < 1e-6]      # level poses only
+        if len(rows):
+            geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
+            pts = [self.refiner.box_points(cands.pixels[i], depth_m, K) for i in rows]
+            T_cp = climb_poses(cands.T_cam_pallet[rows], pts, [g.boxes_m for g in geoms], self.options.level,
+                               threads=self.refiner.refine_options.threads)
+            moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
+            cands.assign(rows, T_cam_pallet=T_cp)
+            if len(moved):
+                cands.assign(moved, fit=self.fit_check.score(cands.T_cam_pallet[moved], cands.points_cam[moved],
+                                                             cands.type_index[moved], depth_m, K))
+        timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)
 
     def _level(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
                timings: dict[str, float]) -> None:

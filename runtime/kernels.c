@@ -18,6 +18,11 @@
 #include <stdlib.h>
 #include <string.h>
 
+/* The functions' signatures as kernels.py declares them: a library built from another version of this file (a
+   stale in-place build) is refused there instead of being called with the wrong arguments. */
+#define PALLET6D_KERNELS_ABI 2
+int pallet6d_kernels_abi(void) { return PALLET6D_KERNELS_ABI; }
+
 /* max / min as comparisons: fmaxf / fminf are library calls unless NaN semantics are given up (the points and
    boxes here are finite), these compile to single instructions and vectorise. */
 static inline float maxf(float a, float b) { return a > b ? a : b; }
@@ -584,34 +589,68 @@ static void camera_in_pallet(const double *T, double R_pc[9], double o[3]) {
     for (int r = 0; r < 3; r++) o[r] = -(R_pc[3 * r] * T[3] + R_pc[3 * r + 1] * T[7] + R_pc[3 * r + 2] * T[11]);
 }
 
+/* The boxes in the order of their distance from the camera o (pallet frame), nearest first: order[j] the box,
+   dist[j] its distance (0 for a box holding o). A ray whose point is at |d| per unit of s enters box order[j] no
+   earlier than s = dist[j] / |d|, so first_hit stops at the first box that cannot be met before the nearest hit so
+   far: most rays meet a front board among the first few boxes. k <= MAX_BOXES. */
+static void order_boxes(const double o[3], const double *boxes, int64_t k, int64_t *order, double *dist) {
+    for (int64_t b = 0; b < k; b++) {
+        double d2 = 0.0;
+        for (int r = 0; r < 3; r++) {
+            const double lo = boxes[6 * b + r] - o[r], hi = o[r] - boxes[6 * b + 3 + r];
+            const double g = lo > 0 ? lo : hi > 0 ? hi : 0.0;
+            d2 += g * g;
+        }
+        const double d = sqrt(d2);
+        int64_t j = b;
+        for (; j > 0 && dist[j - 1] > d; j--) {            /* insertion sort: a few dozen boxes */
+            dist[j] = dist[j - 1];
+            order[j] = order[j - 1];
+        }
+        dist[j] = d;
+        order[j] = b;
+    }
+}
+
 /* The first s > 0 at which the ray o + s R_pc p (s = 1: at the camera-frame point p) meets one of the k boxes,
-   INFINITY when none (a ray that misses their bounding box misses every box). */
+   INFINITY when none (a ray that misses their bounding box misses every box). The boxes are tried in `order_boxes`'
+   order until none can be met earlier (a small margin keeps rounding from skipping a box): the same s as trying
+   all of them. */
 static double first_hit(const double R_pc[9], const double o[3], const double *p, const double blo[3],
-                        const double bhi[3], const double *boxes, int64_t k) {
-    double inv[3], s = INFINITY, e;
+                        const double bhi[3], const double *boxes, int64_t k, const int64_t *order,
+                        const double *dist) {
+    double inv[3], s = INFINITY, e, d2 = 0.0;
     for (int r = 0; r < 3; r++) {
         const double d = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
         inv[r] = fabs(d) > 1e-12 ? 1.0 / d : 1e12;
+        d2 += d * d;
     }
     if (!ray_box(o, inv, blo, bhi, &e)) return INFINITY;
-    for (int64_t b = 0; b < k; b++)
+    const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;   /* distance per unit of s, rounded up */
+    for (int64_t j = 0; j < k && dist[j] <= s * reach; j++) {
+        const int64_t b = order[j];
         if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) s = e;
+    }
     return s;
 }
 
 /* The first hit of each point's viewing ray with its pose's boxes: s_out[i * N + j] = first_hit of pose i's point j
    for its first n_pts[i] points (the rest is left as it is). T: (P, 4, 4) pallet -> camera; pts: (P, N, 3) camera
-   frame; boxes: (k, 2, 3), pallet frame. Double arithmetic, as numpy's (structure.cast_rays_boxes). Returns 0. */
+   frame; boxes: (k, 2, 3), pallet frame, k <= MAX_BOXES. Double arithmetic, as numpy's (structure.cast_rays_boxes).
+   Returns 0, or 1 (nothing written) for more than MAX_BOXES boxes. */
 int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, const int64_t *n_pts, int64_t k,
                       const double *boxes, double *s_out) {
-    double blo[3], bhi[3];
+    if (k > MAX_BOXES) return 1;
+    double blo[3], bhi[3], dist[MAX_BOXES];
+    int64_t order[MAX_BOXES];
     boxes_bounds(boxes, k, blo, bhi);
     for (int64_t i = 0; i < P; i++) {
         double R_pc[9], o[3];
         camera_in_pallet(T + 16 * i, R_pc, o);
+        order_boxes(o, boxes, k, order, dist);
         const int64_t n = n_pts[i] < N ? n_pts[i] : N;
         for (int64_t j = 0; j < n; j++)
-            s_out[i * N + j] = first_hit(R_pc, o, pts + 3 * (i * N + j), blo, bhi, boxes, k);
+            s_out[i * N + j] = first_hit(R_pc, o, pts + 3 * (i * N + j), blo, bhi, boxes, k, order, dist);
     }
     return 0;
 }
@@ -620,12 +659,15 @@ int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, 
    specification): the ray from the camera to each point meets the posed model's boxes first at s times the
    point's distance (s = 1: at the point); its residual (1 - s) * |p| is the point's depth beyond the model's
    surface. out[i] = (points within window_m of the surface - points beyond it by window_m or more) / m; a ray
-   that misses the model counts neither way. T: (P, 4, 4) pallet -> camera; pts: (m, 3) camera frame; boxes:
+   that misses the model counts neither way. With soft != 0, out[i] = the sum of 1 - (res / window_m)^2 over the
+   points within the window, / m: a score that peaks at the pose that explains the depth best instead of being flat
+   within the window, and that noise along the rays does not push either way (no penalty beyond). T: (P, 4, 4) pallet -> camera; pts: (m, 3) camera frame; boxes:
    (k, 2, 3) min / max corners, pallet frame. Double arithmetic, as numpy's. The poses are shared among up to
-   n_threads threads, 8 at a time (a thread that cannot be started leaves its share to the others). Returns 0. */
+   n_threads threads, 8 at a time (a thread that cannot be started leaves its share to the others). Returns 0, or 1
+   (nothing written) for more than MAX_BOXES boxes. */
 struct ray_score_job {
     const double *T, *pts, *boxes, *blo, *bhi;
-    int64_t P, m, k, chunk;
+    int64_t P, m, k, chunk, soft;
     double window_m, *out;
     atomic_long next;
 };
@@ -636,29 +678,36 @@ static void *ray_score_worker(void *arg) {
     for (int64_t i0 = atomic_fetch_add(&job->next, job->chunk); i0 < job->P;
          i0 = atomic_fetch_add(&job->next, job->chunk))
         for (int64_t i = i0; i < i0 + job->chunk && i < job->P; i++) {
-            double R_pc[9], o[3];
+            double R_pc[9], o[3], dist[MAX_BOXES];
+            int64_t order[MAX_BOXES];
             camera_in_pallet(job->T + 16 * i, R_pc, o);
-            int64_t inl = 0, beyond = 0;
+            order_boxes(o, job->boxes, job->k, order, dist);
+            double inl = 0.0;
+            int64_t beyond = 0;
             for (int64_t j = 0; j < job->m; j++) {
                 const double *p = job->pts + 3 * j;
-                const double s = first_hit(R_pc, o, p, job->blo, job->bhi, job->boxes, job->k);
+                const double s = first_hit(R_pc, o, p, job->blo, job->bhi, job->boxes, job->k, order, dist);
                 if (!isfinite(s)) continue;
                 const double res = (1.0 - s) * sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
-                if (fabs(res) < job->window_m) inl++;
-                else if (res >= job->window_m) beyond++;
+                if (fabs(res) < job->window_m) {
+                    const double q = res / job->window_m;
+                    inl += job->soft ? 1.0 - q * q : 1.0;
+                } else if (res >= job->window_m && !job->soft)
+                    beyond++;
             }
-            job->out[i] = job->m > 0 ? (double)(inl - beyond) / (double)job->m : 0.0;
+            job->out[i] = job->m > 0 ? (inl - (double)beyond) / (double)job->m : 0.0;
         }
     return NULL;
 }
 
 int pallet6d_ray_scores(int64_t P, const double *T, int64_t m, const double *pts, int64_t k, const double *boxes,
-                        double window_m, int64_t n_threads, double *out) {
+                        double window_m, int64_t soft, int64_t n_threads, double *out) {
     enum { MAX_THREADS = 16 };
+    if (k > MAX_BOXES) return 1;
     double blo[3], bhi[3];
     boxes_bounds(boxes, k, blo, bhi);
     struct ray_score_job job = {.T = T, .pts = pts, .boxes = boxes, .blo = blo, .bhi = bhi, .P = P, .m = m, .k = k,
-                                .chunk = 8, .window_m = window_m, .out = out};
+                                .chunk = 8, .soft = soft, .window_m = window_m, .out = out};
     atomic_init(&job.next, 0);
     int64_t extra = (n_threads < (P + job.chunk - 1) / job.chunk ? n_threads : (P + job.chunk - 1) / job.chunk) - 1;
     extra = extra < 0 ? 0 : extra > MAX_THREADS - 1 ? MAX_THREADS - 1 : extra;

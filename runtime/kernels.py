@@ -31,6 +31,7 @@ _u8 = np.ctypeslib.ndpointer(np.uint8, flags="C_CONTIGUOUS")
 _ptr = ctypes.c_void_p
 _i = ctypes.c_int64
 _d = ctypes.c_double
+ABI = 2                              # kernels.c's PALLET6D_KERNELS_ABI: the signatures below
 
 
 def library_path() -> str | None:
@@ -50,7 +51,7 @@ _ARGTYPES = {
                      _i, _f32, _i, _i, _f64, _d, _i, _f64, _f64],
     "pallet6d_registration_counts": [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64,
                                      _i64],
-    "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _i, _f64],
+    "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _i, _i, _f64],
     "pallet6d_ray_hits": [_i, _f64, _i, _f64, _i64, _i, _f64, _f64],
 }
 
@@ -64,8 +65,14 @@ def _functions() -> dict | None:
     try:
         lib = ctypes.CDLL(path)
         out = {name: getattr(lib, name) for name in _ARGTYPES}
+        abi = lib.pallet6d_kernels_abi
     except (OSError, AttributeError) as e:
         log.warning("the compiled kernels %s do not load (%s): refinement runs in numpy", path, e)
+        return None
+    abi.restype, abi.argtypes = ctypes.c_int, []
+    if abi() != ABI:
+        log.warning("the compiled kernels %s were built from another version of kernels.c (ABI %d, not %d; "
+                    "reinstall the package to rebuild them): refinement runs in numpy", path, abi(), ABI)
         return None
     for name, fn in out.items():
         fn.restype, fn.argtypes = ctypes.c_int, _ARGTYPES[name]
@@ -235,6 +242,11 @@ def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray
     return inlier, violation
 
 
+def _check_boxes(boxes_m: np.ndarray) -> None:
+    if len(boxes_m) > MAX_BOXES:
+        raise ValueError(f"the kernels take pallet models of at most {MAX_BOXES} boxes, got {len(boxes_m)}")
+
+
 def ray_hits(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray) -> np.ndarray:
     """Where each pose's points' viewing rays first meet its boxes (`pallet6d_ray_hits` in kernels.c).
 
@@ -246,24 +258,28 @@ def ray_hits(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, b
     c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
     T, pts, boxes = c64(T_cam_pallet).reshape(-1, 4, 4), c64(pts_cam), c64(boxes_m).reshape(-1, 2, 3)
     n = np.ascontiguousarray(np.minimum(n_pts, pts.shape[1]), dtype=np.int64)
+    _check_boxes(boxes)
     out = np.full(pts.shape[:2], np.inf)
     fn(len(T), T, pts.shape[1], pts, n, len(boxes), boxes, out)
     return out
 
 
 def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float,
-               threads: int = 1) -> np.ndarray:
+               threads: int = 1, soft: bool = False) -> np.ndarray:
     """`level`'s ray scores of P poses on the same observed points (`pallet6d_ray_scores` in kernels.c).
 
     :param T_cam_pallet: (P, 4, 4). :param pts_cam: (m, 3) camera frame, metres. :param boxes_m: (k, 2, 3).
     :param threads: the poses are shared among this many threads (the same scores).
+    :param soft: the mean of 1 - (residual / window)^2 over the points within the window, no penalty beyond
+        (`level.ray_scores`).
     :return: (P,) scores in [-1, 1].
     """
     fn = _function("pallet6d_ray_scores")
     c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
     T, pts, boxes = c64(T_cam_pallet).reshape(-1, 4, 4), c64(pts_cam).reshape(-1, 3), c64(boxes_m).reshape(-1, 2, 3)
+    _check_boxes(boxes)
     out = np.empty(len(T))
-    fn(len(T), T, len(pts), pts, len(boxes), boxes, float(window_m), max(int(threads), 1), out)
+    fn(len(T), T, len(pts), pts, len(boxes), boxes, float(window_m), int(bool(soft)), max(int(threads), 1), out)
     return out
 
 

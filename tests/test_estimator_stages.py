@@ -10,6 +10,7 @@ import pytest
 
 from pallet6d.runtime.bundle import PalletType, load_bundle
 from pallet6d.runtime.candidates import Candidates
+from pallet6d.runtime.level import LevelParams
 from pallet6d.runtime.detector import Detections
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
 from pallet6d.runtime.fit import fit_score
@@ -468,6 +469,36 @@ def test_with_the_calibration_poses_stand_level_on_the_floor():
     same = off.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
     for a, b in zip(same.poses, free.poses):
         np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet)
+
+
+def test_the_climb_moves_accepted_poses_only_and_never_decides_acceptance():
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    f = generate_frame(dataclasses.replace(get_preset("forklift-approach"), pallet_models=("epal",)), seed=3)
+    T_vc = f.T_vehicle_cam                                                      # D435-like depth
+    boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.3)]
+    runs = {}
+    for name, level in (("climb", LevelParams()), ("no climb", LevelParams(climb_step_deg=0))):
+        est = PalletEstimator.from_bundle(SHIPPED, threads=1, level=level)
+        runs[name] = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
+    climb, plain = runs["climb"], runs["no climb"]
+    assert [p.box_xyxy.tolist() for p in climb.poses] == [p.box_xyxy.tolist() for p in plain.poses]
+    assert [(r.box_xyxy.tolist(), r.reason) for r in climb.rejected] == \
+        [(r.box_xyxy.tolist(), r.reason) for r in plain.rejected]
+    for a, b in zip(climb.rejected, plain.rejected):                           # rejected poses are left as judged
+        if b.pose is not None:
+            np.testing.assert_allclose(a.pose.T_cam_pallet, b.pose.T_cam_pallet)
+    assert len(climb.poses)
+    moved = 0
+    for a, b in zip(climb.poses, plain.poses):
+        Ta, Tb = T_vc @ a.T_cam_pallet, T_vc @ b.T_cam_pallet
+        np.testing.assert_allclose(Ta[2], Tb[2], atol=1e-9)                      # still level, at the same height
+        assert np.linalg.norm(Ta[:2, 3] - Tb[:2, 3]) < 0.1
+        if not np.allclose(Ta, Tb):                                              # a moved pose's fit is its own
+            moved += 1
+            assert a.fit.score != b.fit.score or a.fit.inlier_fraction != b.fit.inlier_fraction
+    assert moved
 
 
 @pytest.mark.parametrize("T, match", [(np.eye(3), "rigid"), (np.diag([2.0, 1, 1, 1]), "rigid"),

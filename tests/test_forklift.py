@@ -215,12 +215,44 @@ def test_the_levelled_search_finds_a_pose_whose_yaw_is_far_off(yaw_err_deg, shif
     assert yaw_err(alone) > 10.0                                                 # ICP alone stays far off
 
 
+@pytest.mark.parametrize("yaw_err_deg, shift_m", [(3.0, (0.03, -0.02)), (-2.0, (-0.04, 0.0)), (0.0, (0.0, 0.035))])
+def test_the_climb_brings_a_pose_a_few_degrees_and_centimetres_off_onto_the_pallet(yaw_err_deg, shift_m):
+    # a start where ICP may stop on the pallet's repeated boards: the soft ray score's climb ends on the pallet
+    from pallet6d.runtime.level import _climb_one
+    from pallet6d.runtime.refine import box_points
+
+    T_vc, T_vp = camera(), pallet_pose(1.8, 15.0, lateral_m=0.1)
+    depth, box = render(T_vc, T_vp), _box_of(T_vc, T_vp)
+    est = _tilted(T_vp, yaw_err_deg, (0.0, 0.0, 1.0))
+    est[:3, 3] += [shift_m[0], shift_m[1], 0.0]
+    pts = box_points(depth, K, box, 600, (0.1, 20.0))
+    out = T_vc @ _climb_one(invert_T(T_vc) @ est, pts, EPAL.boxes_m, LevelParams())
+    err_deg = np.degrees(np.arccos(np.clip(abs(out[:3, 0] @ T_vp[:3, 0]), -1, 1)))
+    assert err_deg < 0.3 and np.linalg.norm(out[:2, 3] - T_vp[:2, 3]) < 0.006
+    np.testing.assert_allclose(out[2], T_vp[2], atol=1e-9)                      # level, on the floor: untouched
+    tethered = LevelParams(climb_max_shift_m=0.01, climb_max_turn_deg=0.5)     # never far from the judged pose
+    near = _climb_one(invert_T(T_vc) @ est, pts, EPAL.boxes_m, tethered)
+    assert np.linalg.norm(near[:3, 3] - (invert_T(T_vc) @ est)[:3, 3]) <= 0.01 + 1e-9
+    assert np.degrees(np.arccos(np.clip((np.trace(near[:3, :3].T @ (invert_T(T_vc) @ est)[:3, :3]) - 1) / 2,
+                                        -1, 1))) <= 0.5 + 1e-6
+    stuck = LevelParams(climb_max_moves=0)                                     # no move allowed: the pose stays
+    np.testing.assert_allclose(_climb_one(invert_T(T_vc) @ est, pts, EPAL.boxes_m, stuck), invert_T(T_vc) @ est)
+    np.testing.assert_allclose(_climb_one(invert_T(T_vc) @ est, np.zeros((0, 3)), EPAL.boxes_m, LevelParams()),
+                               invert_T(T_vc) @ est)                            # no points: nothing to climb
+
+
 @pytest.mark.parametrize("kwargs, match", [({"search_yaw_step_deg": -1}, "search_yaw_step_deg"),
                                            ({"search_yaw_step_deg": 200}, "search_yaw_step_deg"),
                                            ({"search_shifts_m": ()}, "search_shifts_m"),
                                            ({"search_shifts_m": (0.0, 2.0)}, "search_shifts_m"),
                                            ({"search_keep": 0}, "search_keep"),
-                                           ({"search_window_m": 0.0}, "search_window_m")])
+                                           ({"search_window_m": 0.0}, "search_window_m"),
+                                           ({"climb_step_deg": -1.0}, "climb_step_deg"),
+                                           ({"climb_min_step_deg": 0.0}, "climb_min_step_deg"),
+                                           ({"climb_window_m": 0.0}, "climb_window_m"),
+                                           ({"climb_max_moves": -1}, "climb_max_moves"),
+                                           ({"climb_max_turn_deg": -1.0}, "climb_max_turn_deg"),
+                                           ({"climb_max_shift_m": -0.1}, "climb_max_shift_m")])
 def test_level_params_search_is_validated(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LevelParams(**kwargs)
@@ -275,8 +307,9 @@ def test_the_levelled_pose_is_not_pulled_towards_the_camera_by_depth_noise(dista
     T_cp, box = invert_T(T_vc) @ _tilted(T_vp, 1.0), _box_of(T_vc, T_vp)   # tilted: not level yet, so refined
     err = {}
     for window_m in (0.0, LevelParams().ray_window_m):
-        # the ICP from the pose alone (no search): the search's choice among its landings would blur the bias
-        level = LevelParams(ray_window_m=window_m, search_yaw_step_deg=0)
+        # the ICP from the pose alone (no search, no climb): the search's choice among its landings and the climb
+        # would blur the bias
+        level = LevelParams(ray_window_m=window_m, search_yaw_step_deg=0, climb_step_deg=0)
         out = vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(level=level), EPAL.boxes_m, noisy, K, box)
         err[window_m] = out[:2, 3] - T_vp[:2, 3]                  # x: along the forks, towards the pallet
     assert err[0.0][0] < -0.015

@@ -368,6 +368,70 @@ def test_ray_scores_in_the_kernel_equal_numpy():
                                   ray_scores(many, pts, EPAL.boxes_m, 0.05, compiled=False))
     assert kernel[0] == kernel.max() and kernel[-1] == 0.0
     assert ray_scores(T, np.zeros((0, 3)), EPAL.boxes_m, 0.05).tolist() == [0.0] * len(T)
+    for window_m in (0.02, 0.05):                                  # the soft score: sums in another order
+        np.testing.assert_allclose(ray_scores(many, pts, EPAL.boxes_m, window_m, threads=2, soft=True),
+                                   ray_scores(many, pts, EPAL.boxes_m, window_m, compiled=False, soft=True),
+                                   rtol=0, atol=1e-12)
+
+
+@needs_kernel
+def test_ray_hits_try_the_nearest_boxes_first_with_the_same_hits():
+    """The kernel stops at the first box that cannot be met before its nearest hit: random overlapping boxes, a
+    camera inside one of them, rays that miss, the same hits as trying every box (numpy)."""
+    from pallet6d.runtime.structure import cast_rays_boxes
+
+    rng = np.random.default_rng(8)
+    lo = rng.uniform(-1.0, 1.0, (40, 3))
+    boxes = np.stack([lo, lo + rng.uniform(0.01, 0.6, (40, 3))], axis=1)
+    inside = boxes[0].mean(0)
+    for origin in (np.array([0.0, 0.0, -4.0]), inside):                     # the camera outside, then inside a box
+        T = make_T(np.eye(3), -origin)[None]                                 # pallet -> camera: the camera at origin
+        pts = rng.uniform(-2.0, 2.0, (1, 500, 3)) - origin
+        hits = kernels.ray_hits(T, pts, np.array([500]), boxes)
+        s, _ = cast_rays_boxes(origin[None], pts, boxes)
+        np.testing.assert_allclose(hits, s, rtol=1e-12, atol=0)
+        if origin is inside:
+            assert np.all(hits == 0.0)                                       # every ray starts in a box
+        else:
+            assert np.isinf(hits).any() and np.isfinite(hits).any() and (hits > 0).all()
+    with pytest.raises(ValueError, match="at most"):
+        kernels.ray_hits(T, pts, np.array([500]), np.zeros((kernels.MAX_BOXES + 1, 2, 3)))
+
+
+def test_the_soft_ray_score_peaks_at_the_true_pose_where_the_plain_one_is_flat():
+    from pallet6d.runtime.level import ray_scores
+    from pallet6d.runtime.structure import cast_rays_boxes
+
+    T_true = make_T(quat_to_rot([0.5, -0.5, 0.5, -0.5]), [0.1, 0.2, 3.0])
+    pts = EPAL.surface_points(1500, seed=5) @ T_true[:3, :3].T + T_true[:3, 3]
+    R_pc = T_true[:3, :3].T
+    s, _ = cast_rays_boxes((-R_pc @ T_true[:3, 3])[None], (pts @ R_pc.T)[None], EPAL.boxes_m)
+    pts = pts[np.abs(s[0] - 1.0) < 1e-9]                                          # the camera sees these
+    near = np.stack([T_true] + [T_true @ _turn(yaw, (dx, dy, 0.0))
+                                for yaw, dx, dy in ((0.0, 0.0, 0.01), (0.0, 0.0, -0.01), (0.5, 0.0, 0.0))])
+    for compiled in (True, False):
+        if compiled and not kernels.available():
+            continue
+        plain = ray_scores(near, pts, EPAL.boxes_m, 0.05, compiled=compiled)
+        soft = ray_scores(near, pts, EPAL.boxes_m, 0.05, compiled=compiled, soft=True)
+        assert soft[0] == pytest.approx(plain[0]) == pytest.approx(1.0)            # every residual 0: both agree
+        assert np.all(soft[1:] < soft[0] - 1e-3)               # a centimetre nearer or farther scores lower
+        assert np.ptp(plain[:3]) <= 0.02                                         # the plain score barely tells
+
+
+@needs_kernel
+def test_a_kernel_built_from_another_version_is_refused(monkeypatch, caplog):
+    """A stale in-place build with other signatures is never called: the numpy paths run instead."""
+    kernels._functions.cache_clear()
+    monkeypatch.setattr(kernels, "ABI", kernels.ABI + 1)
+    try:
+        with caplog.at_level(logging.WARNING, logger="pallet6d.runtime.kernels"):
+            assert not kernels.available()
+        assert "another version of kernels.c" in caplog.text
+    finally:
+        monkeypatch.undo()
+        kernels._functions.cache_clear()
+    assert kernels.available()
 
 
 @needs_kernel
