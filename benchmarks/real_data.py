@@ -16,8 +16,9 @@ The uploaders' augmented copies (rotated by up to 15 degrees, boxes of the rotat
 unless --include-augmented.
 
 With --sim-negatives N, N simulated pallet-free RGB-D frames per preset (the preset's scenes with every pallet's
-boards and blocks removed; loads stay, hanging where their pallets were: hard negatives) go through the whole
-estimator at its default options: accepted poses per frame there are false accepts.
+boards and blocks removed, `sim.pallet_free`; loads stay, hanging where their pallets were, a hard negative, or with
+--sim-loads set-down stand where their pallets stood, as a warehouse shows them) go through the whole estimator at
+its default options: accepted poses per frame there are false accepts.
 """
 from __future__ import annotations
 
@@ -31,10 +32,12 @@ import numpy as np
 from pallet6d.export.real_data_report import RealDataReport, markdown   # numpy only: no torch
 
 
-def sim_negative_frame(preset: str, seed: int, index: int):
+def sim_negative_frame(preset: str, seed: int, index: int, set_down: bool = False):
     """(rgb, depth_m, K, T_vehicle_cam) of a simulated scene of `preset` without any pallet (its loads and racks
-    stay); T_vehicle_cam (the camera's calibration on its vehicle) is None but in forklift views."""
+    stay; `set_down`: the loads drop onto what held their pallets); T_vehicle_cam (the camera's calibration on its
+    vehicle) is None but in forklift views."""
     from pallet6d.sim.generate import render_scene
+    from pallet6d.sim.pallet_free import without_pallets
     from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel
     from pallet6d.sim.presets import get_preset
     from pallet6d.sim.warehouse import build_scene
@@ -44,7 +47,7 @@ def sim_negative_frame(preset: str, seed: int, index: int):
     rng = np.random.default_rng((int(seed), int(index)))
     for _ in range(cfg.max_attempts):
         scene = build_scene(cfg, rng)
-        scene.boxes = [b for b in scene.boxes if b.instance_id == 0]   # pallet parts carry their instance id
+        scene.boxes = without_pallets(scene.boxes, set_down)          # pallet parts carry their instance id
         try:
             scene.validate()
         except SceneError:
@@ -63,15 +66,17 @@ def sim_negative_frame(preset: str, seed: int, index: int):
     raise SceneError(f"no valid pallet-free scene of {preset} (seed {seed}, frame {index})")
 
 
-def sim_negatives(est, presets: list[str], n_frames: int, seed: int, calibrated: bool = False) -> dict:
+def sim_negatives(est, presets: list[str], n_frames: int, seed: int, calibrated: bool = False,
+                  set_down: bool = False) -> dict:
     """Accepted poses and detections per frame on simulated pallet-free frames, per preset; `calibrated`: the
-    forklift views' camera calibration goes to the estimator, as a forklift's would."""
+    forklift views' camera calibration goes to the estimator, as a forklift's would; `set_down`: the loads stand
+    where their pallets stood."""
     out = {}
     for preset in presets:
         accepted = detections = 0
         fits = []
         for i in range(n_frames):
-            rgb, depth_m, K, T_vc = sim_negative_frame(preset, seed, i)
+            rgb, depth_m, K, T_vc = sim_negative_frame(preset, seed, i, set_down)
             res = est.estimate(rgb, depth_m.astype(np.float32), K, T_vehicle_cam=T_vc if calibrated else None)
             accepted += len(res.poses)
             detections += len(est.detect(rgb))
@@ -156,6 +161,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="also N simulated pallet-free RGB-D frames per preset through the whole estimator")
     ap.add_argument("--sim-presets", default="virtual-clean,virtual-occluded,indoor-noisy")
     ap.add_argument("--sim-seed", type=int, default=9100, help="seed of the simulated pallet-free frames")
+    ap.add_argument("--sim-loads", choices=("hanging", "set-down"), default="hanging",
+                    help="the pallet-free frames' loads: where they were (over pallet-shaped gaps) or set down")
     ap.add_argument("--sim-calibrated", action="store_true",
                     help="give the estimator the forklift views' camera calibration (poses levelled on the floor)")
     ap.add_argument("--out", type=Path, help="write OUT.md and OUT.json")
@@ -183,13 +190,15 @@ def main(argv: list[str] | None = None) -> int:
         full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32")
         report["sim_negatives"] = sim_negatives(full, args.sim_presets.split(","), args.sim_negatives,
-                                                args.sim_seed, args.sim_calibrated)
+                                                args.sim_seed, args.sim_calibrated, args.sim_loads == "set-down")
     settings = {"bundle": str(args.bundle), "precision": "int8" if args.int8 else "fp32", "split": args.split,
                 "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data),
-                "augmented_copies": args.include_augmented, "sim_calibrated": args.sim_calibrated}
+                "augmented_copies": args.include_augmented, "sim_calibrated": args.sim_calibrated,
+                "sim_loads": args.sim_loads}
     text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)
     for preset, r in report.get("sim_negatives", {}).items():
-        text += (f"Simulated pallet-free {preset} (seed {args.sim_seed}): {r['frames']} frames, "
+        text += (f"Simulated pallet-free {preset} (seed {args.sim_seed}, loads {args.sim_loads}): {r['frames']} "
+                 f"frames, "
                  f"{r['accepted_poses_per_frame']:.2f} accepted poses per frame (default options), "
                  f"{r['detections_per_frame']:.2f} detections per frame.\n")
     print(text)

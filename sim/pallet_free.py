@@ -1,0 +1,81 @@
+"""Pallet-free scenes for measuring false accepts: a scene's pallets removed, their loads set down or left hanging.
+
+A scene without its pallets is the negative a pose estimator must refuse. Left where they were, the loads hang over
+pallet-shaped gaps (a hard negative, but one no warehouse shows); set down, each load drops by the height of the
+pallets it stood on, onto what held them (the floor, a rack beam, a truck bed), as a carton stack stands where no
+pallet is under it.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from .scene import Box
+
+__all__ = ["without_pallets"]
+
+_CONTACT_M = 0.02          # a box within this of a surface below it stands on it
+
+
+def _aabb(b: Box) -> tuple[np.ndarray, np.ndarray]:
+    """World-frame axis-aligned bounds (lo (3,), hi (3,)) of a box."""
+    ext = np.abs(b.T_world_box[:3, :3]) @ b.half_size_m
+    c = b.T_world_box[:3, 3]
+    return c - ext, c + ext
+
+
+def without_pallets(boxes: list[Box], set_down: bool = True) -> list[Box]:
+    """The scene's boxes without its pallets' parts (`instance_id` > 0).
+
+    :param set_down: a box standing on a pallet (its underside within 2 cm of the pallet's top, its centre over the
+        pallet's footprint) drops by the height of that pallet and of the pallets it stood on in turn (a stack),
+        and every box standing on a dropped box drops with it. False: every box stays where it was.
+    :return: the background boxes, in their order.
+    """
+    pallets: dict[int, list[np.ndarray]] = {}
+    for b in boxes:
+        if b.instance_id > 0:
+            lo, hi = _aabb(b)
+            p = pallets.setdefault(b.instance_id, [lo, hi])
+            p[0], p[1] = np.minimum(p[0], lo), np.maximum(p[1], hi)
+    rest = [b for b in boxes if b.instance_id == 0]
+    if not set_down or not pallets:
+        return rest
+    bounds = list(pallets.values())
+
+    def support_drop(x: float, y: float, z: float) -> float:
+        """How far a point at (x, y) resting at height z falls through a chain of removed pallets (0: none)."""
+        bottom = z
+        while True:
+            below = [lo[2] for lo, hi in bounds if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1]
+                     and abs(hi[2] - bottom) <= _CONTACT_M]
+            if not below:
+                return z - bottom
+            bottom = min(below)
+
+    aabbs = [_aabb(b) for b in rest]
+    drop = np.zeros(len(rest))
+    for i, (lo, hi) in enumerate(aabbs):
+        c = (lo + hi) / 2
+        drop[i] = support_drop(c[0], c[1], lo[2])
+    changed = True
+    while changed:                            # boxes standing on a dropped box fall with it
+        changed = False
+        for i, (lo, hi) in enumerate(aabbs):
+            if drop[i] > 0:
+                continue
+            c = (lo + hi) / 2
+            for j, (lo_j, hi_j) in enumerate(aabbs):
+                if (drop[j] > 0 and j != i and lo_j[0] <= c[0] <= hi_j[0] and lo_j[1] <= c[1] <= hi_j[1]
+                        and abs(hi_j[2] - lo[2]) <= _CONTACT_M):
+                    drop[i], changed = drop[j], True
+                    break
+    out = []
+    for b, d in zip(rest, drop):
+        if d > 0:
+            T = b.T_world_box.copy()
+            T[2, 3] -= d
+            b = replace(b, T_world_box=T)
+        out.append(b)
+    return out
