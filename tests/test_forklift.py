@@ -218,7 +218,7 @@ def test_the_levelled_search_finds_a_pose_whose_yaw_is_far_off(yaw_err_deg, shif
 @pytest.mark.parametrize("yaw_err_deg, shift_m", [(3.0, (0.03, -0.02)), (-2.0, (-0.04, 0.0)), (0.0, (0.0, 0.035))])
 def test_the_climb_brings_a_pose_a_few_degrees_and_centimetres_off_onto_the_pallet(yaw_err_deg, shift_m):
     # a start where ICP may stop on the pallet's repeated boards: the soft ray score's climb ends on the pallet
-    from pallet6d.runtime.level import _climb_one
+    from pallet6d.runtime.level import _climb_one, climb_poses
     from pallet6d.runtime.refine import box_points
 
     T_vc, T_vp = camera(), pallet_pose(1.8, 15.0, lateral_m=0.1)
@@ -235,6 +235,11 @@ def test_the_climb_brings_a_pose_a_few_degrees_and_centimetres_off_onto_the_pall
     assert np.linalg.norm(near[:3, 3] - (invert_T(T_vc) @ est)[:3, 3]) <= 0.01 + 1e-9
     assert np.degrees(np.arccos(np.clip((np.trace(near[:3, :3].T @ (invert_T(T_vc) @ est)[:3, :3]) - 1) / 2,
                                         -1, 1))) <= 0.5 + 1e-6
+    T_est = invert_T(T_vc) @ est
+    climbed = climb_poses(T_est[None], [pts], [EPAL.boxes_m])[0]
+    np.testing.assert_allclose(climbed, _climb_one(T_est, pts, EPAL.boxes_m, LevelParams()))
+    beyond = LevelParams(climb_max_range_m=1.0)                                 # farther: depth noise rules there
+    np.testing.assert_allclose(climb_poses(T_est[None], [pts], [EPAL.boxes_m], beyond)[0], T_est)
     stuck = LevelParams(climb_max_moves=0)                                     # no move allowed: the pose stays
     np.testing.assert_allclose(_climb_one(invert_T(T_vc) @ est, pts, EPAL.boxes_m, stuck), invert_T(T_vc) @ est)
     np.testing.assert_allclose(_climb_one(invert_T(T_vc) @ est, np.zeros((0, 3)), EPAL.boxes_m, LevelParams()),
@@ -252,7 +257,8 @@ def test_the_climb_brings_a_pose_a_few_degrees_and_centimetres_off_onto_the_pall
                                            ({"climb_window_m": 0.0}, "climb_window_m"),
                                            ({"climb_max_moves": -1}, "climb_max_moves"),
                                            ({"climb_max_turn_deg": -1.0}, "climb_max_turn_deg"),
-                                           ({"climb_max_shift_m": -0.1}, "climb_max_shift_m")])
+                                           ({"climb_max_shift_m": -0.1}, "climb_max_shift_m"),
+                                           ({"climb_max_range_m": -1.0}, "climb_max_range_m")])
 def test_level_params_search_is_validated(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LevelParams(**kwargs)
