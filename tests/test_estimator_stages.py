@@ -479,7 +479,8 @@ def test_the_climb_moves_accepted_poses_only_and_never_decides_acceptance():
     T_vc = f.T_vehicle_cam                                                      # D435-like depth
     boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.3)]
     runs = {}
-    for name, level in (("climb", LevelParams()), ("no climb", LevelParams(climb_step_deg=0))):
+    # these pallets stand 5-6 m away: the climb is let reach them
+    for name, level in (("climb", LevelParams(climb_max_range_m=10.0)), ("no climb", LevelParams(climb_step_deg=0))):
         est = PalletEstimator.from_bundle(SHIPPED, threads=1, level=level)
         runs[name] = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
     climb, plain = runs["climb"], runs["no climb"]
