@@ -67,6 +67,29 @@ def test_true_pose_passes_with_open_pockets():
     assert s.open > 20 and s.solid > 100
 
 
+def _render_boxes(boxes_m: np.ndarray, T_cam_pallet: np.ndarray) -> np.ndarray:
+    v, u = np.mgrid[0:H, 0:W]
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((H, W))], -1).reshape(1, -1, 3)
+    R, t = T_cam_pallet[:3, :3], T_cam_pallet[:3, 3]
+    t_box, _ = cast_rays_boxes((-R.T @ t)[None], d_cam @ R, boxes_m)
+    return np.minimum(t_box[0], BACK_WALL_M).reshape(H, W).astype(np.float32)
+
+
+def test_a_carton_where_a_pallet_seen_from_below_should_be_closes_its_pockets_mouths():
+    # seen 8 degrees from below, the rays that enter the pockets meet the blocks and bottom boards inside: a carton
+    # face where the pallet's front is shows no pocket, a pallet shows open mouths
+    T_below = make_T(_rot_x(8.0) @ np.array([[0.0, 1, 0], [0, 0, -1], [1, 0, 0]]), np.array([0.1, -0.45, 3.0]))
+    lo, hi = EPAL.boxes_m[:, 0].min(0), EPAL.boxes_m[:, 1].max(0)
+    carton = _render_boxes(np.array([[lo, hi]]), T_below)           # a solid block the pallet's size
+    pallet = _render_boxes(EPAL.boxes_m, T_below)
+    v, u = np.nonzero(pallet < BACK_WALL_M)
+    box = np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float)
+    on_pallet = _check(T=T_below, depth=pallet, box=box)
+    assert on_pallet.ok and on_pallet.mouth_open > 8 and on_pallet.mouth_closed == 0, on_pallet
+    on_carton = _check(T=T_below, depth=carton, box=box)
+    assert on_carton.reason == "openings_closed" and on_carton.mouth_closed > 8, on_carton
+
+
 def test_cast_rays_boxes_hits_the_face_at_its_depth():
     # a ray along the camera axis from 3 m in front of the -x face at a block's height and centre
     origin = np.array([[-3.6, 0.0, 0.0]])
