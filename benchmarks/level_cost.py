@@ -4,8 +4,9 @@
 
 Runs `PalletEstimator.estimate(..., T_vehicle_cam=...)` on every frame of a BOP dataset with `scene_forklift.json`
 (each frame's calibration) with the search and the climb off (`LevelParams(search_yaw_step_deg=0,
-climb_step_deg=0)`), with the climb off (`LevelParams(climb_step_deg=0)`) and with the defaults, and prints the refine stage's time per candidate (it holds the levelled refinement) and the frames' p50
-total. Run it on an otherwise idle machine.
+climb_step_deg=0)`), with the climb off (`LevelParams(climb_step_deg=0)`) and with the defaults, and prints the
+refine stage's time per candidate (it holds the levelled refinement and the climb) and the frames' p50 total. Run it
+on an otherwise idle machine.
 """
 from __future__ import annotations
 

@@ -661,10 +661,11 @@ int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, 
    surface. out[i] = (points within window_m of the surface - points beyond it by window_m or more) / m; a ray
    that misses the model counts neither way. With soft != 0, out[i] = the sum of 1 - (res / window_m)^2 over the
    points within the window, / m: a score that peaks at the pose that explains the depth best instead of being flat
-   within the window, and that noise along the rays does not push either way (no penalty beyond). T: (P, 4, 4) pallet -> camera; pts: (m, 3) camera frame; boxes:
-   (k, 2, 3) min / max corners, pallet frame. Double arithmetic, as numpy's. The poses are shared among up to
-   n_threads threads, 8 at a time (a thread that cannot be started leaves its share to the others). Returns 0, or 1
-   (nothing written) for more than MAX_BOXES boxes. */
+   within the window, and that noise along the rays does not push either way (no penalty beyond).
+   T: (P, 4, 4) pallet -> camera; pts: (m, 3) camera frame; boxes: (k, 2, 3) min / max corners, pallet frame.
+   Double arithmetic, as numpy's. The poses are shared among up to n_threads threads, 8 at a time (a thread that
+   cannot be started leaves its share to the others). Returns 0, or 1 (nothing written) for more than MAX_BOXES
+   boxes. */
 struct ray_score_job {
     const double *T, *pts, *boxes, *blo, *bhi;
     int64_t P, m, k, chunk, soft;

@@ -301,7 +301,7 @@ def climb_poses(T_cam_pallet: np.ndarray, pts_cam: list, boxes_m: list, params: 
 
 
 def _climb_one(T_cam_pallet: np.ndarray, pts: np.ndarray, boxes_m: np.ndarray, params: LevelParams,
-            threads: int = 1) -> np.ndarray:
+               threads: int = 1) -> np.ndarray:
     """One levelled pose's climb of the soft ray score (`LevelParams.climb_*`). :param T_cam_pallet: (4, 4).
     :param pts: (m, 3) its depth points, camera frame, metres. :return: (4, 4) the pose climbed (the same pose
     when no neighbour scores higher, or without points)."""
@@ -357,10 +357,9 @@ def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarra
         res = (1.0 - s) * np.linalg.norm(p, axis=1)[None]
     hit = np.isfinite(res)
     inside = hit & (np.abs(res) < window_m)
-    support = np.where(inside, 1.0 - (np.where(inside, res, 0.0) / window_m) ** 2, 0.0) if soft else inside
     if soft:
-        return np.sum(support, 1) / len(p)
-    return (np.sum(support, 1) - np.sum(hit & (res >= window_m), 1)) / len(p)
+        return np.sum(np.where(inside, 1.0 - (np.where(inside, res, 0.0) / window_m) ** 2, 0.0), 1) / len(p)
+    return (np.sum(inside, 1) - np.sum(hit & (res >= window_m), 1)) / len(p)
 
 
 def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, window_m: float,
