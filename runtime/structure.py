@@ -70,9 +70,10 @@ class StructureParams:
         things that are no pallet too (a load over a gap: 0.63). On 80 validation forklift views (D435-like and
         ToF-like depth, detector boxes) 0.65 refused 7 of the 104 poses not within 5 cm of a pallet and 1 of the
         123 within (0.7: 16 and 3; `docs/experiments/forklift.md`).
-    :ivar min_opening_evidence: openings are judged only with at least this many open + closed rays, their mouths'
-        included (a flat wall under a pallet cut by the image's edge showed 11 closed rays and no open one on the
-        validation frames; correct poses there pass with as few as 4).
+    :ivar min_opening_evidence: openings are judged only with at least this many open + closed rays through them,
+        or as many judging their mouths (a flat wall under a pallet cut by the image's edge showed 11 closed rays and
+        no open one on the validation frames; correct poses there pass with as few as 4; a few of each kind on a
+        pallet mostly hidden or cut by the image's edge are no verdict).
     :ivar min_open_fraction: the open fraction (`StructureScore.open_fraction`: the rays through the openings and
         those judging their mouths) below this -> "openings_closed". Poses of carton faces on pallet-free frames
         with the loads standing on the floor show 0.15-0.24; 0.25 refuses most of them but also far, mostly hidden
@@ -518,7 +519,7 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
             reason = "structure_unseen"
         elif agreement < (params.min_agreement if up_cam is None else params.min_agreement_levelled):
             reason = "structure_mismatch"
-        elif op + cl + mo + mc >= params.min_opening_evidence and open_fraction < params.min_open_fraction:
+        elif max(op + cl, mo + mc) >= params.min_opening_evidence and open_fraction < params.min_open_fraction:
             reason = "openings_closed"
         else:
             reason = ""

@@ -178,13 +178,15 @@ def test_target_that_cannot_be_in_view_raises():
 
 # sha256 (first 16 hex digits) of rgb + sensor depth + ideal depth of frames 0-2, seed 7, at 160x96: the paper
 # presets' frames must stay exactly as they are (appearance None, their own sensors), so the paper comparison
-# keeps its data. A change here changes the virtual-clean / virtual-occluded / indoor-noisy datasets.
+# keeps its data. A change here changes the virtual-clean / virtual-occluded / indoor-noisy datasets. One frame has
+# two digests: two of this project's machines (one an AMD EPYC) render it differently with the same numpy, OpenCV
+# and Python (numpy 2.2-2.4 and OpenCV 4.14-5.0 give each machine its own digest); every other frame is the same.
 PAPER_FRAME_HASHES = {
-    ("indoor-noisy", 0): "09903b6711d453a6", ("indoor-noisy", 1): "5eaf2ba56b918510",
-    ("indoor-noisy", 2): "5c82ef5d42beee57", ("virtual-clean", 0): "0782d16f071d3434",
-    ("virtual-clean", 1): "f58531baa31de907", ("virtual-clean", 2): "eee67e9af3650b81",
-    ("virtual-occluded", 0): "a1a63bfcfb15c5f7", ("virtual-occluded", 1): "a87d42b614269132",
-    ("virtual-occluded", 2): "d904ad4ba9537c6a",
+    ("indoor-noisy", 0): {"09903b6711d453a6"}, ("indoor-noisy", 1): {"5eaf2ba56b918510"},
+    ("indoor-noisy", 2): {"5c82ef5d42beee57"}, ("virtual-clean", 0): {"0782d16f071d3434"},
+    ("virtual-clean", 1): {"f58531baa31de907"}, ("virtual-clean", 2): {"eee67e9af3650b81"},
+    ("virtual-occluded", 0): {"a1a63bfcfb15c5f7"}, ("virtual-occluded", 1): {"a87d42b614269132", "f9e6c2b7d1887fa1"},
+    ("virtual-occluded", 2): {"d904ad4ba9537c6a"},
 }
 
 
@@ -194,4 +196,4 @@ def test_paper_preset_frames_are_bit_identical(name, index):
 
     frame = generate_frame(get_preset(name).with_image_size(160, 96), 7, index)
     digest = hashlib.sha256(frame.rgb.tobytes() + frame.depth_m.tobytes() + frame.depth_ideal_m.tobytes())
-    assert digest.hexdigest()[:16] == PAPER_FRAME_HASHES[(name, index)]
+    assert digest.hexdigest()[:16] in PAPER_FRAME_HASHES[(name, index)]
