@@ -316,7 +316,7 @@ def _climb_one(T_cam_pallet: np.ndarray, pts: np.ndarray, boxes_m: np.ndarray, p
     while step_deg >= params.climb_min_step_deg and moves < int(params.climb_max_moves):
         cand = T @ _neighbours(np.deg2rad(step_deg), step_m)
         sc = ray_scores(cand, p, boxes_m, params.climb_window_m, threads=threads, soft=True)
-        far = (np.einsum("i,nii->n", np.ones(3), T0[:3, :3].T @ cand[:, :3, :3]) - 1.0) / 2.0 < cos_max - 1e-12
+        far = (np.trace(T0[:3, :3].T @ cand[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0 < cos_max - 1e-12
         far |= np.linalg.norm(cand[:, :3, 3] - T0[:3, 3], axis=1) > params.climb_max_shift_m + 1e-12
         sc[far] = -np.inf
         k = int(np.argmax(sc))
