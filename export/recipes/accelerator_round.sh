@@ -1,0 +1,59 @@
+#!/bin/bash
+# One training round of the detector and the pose stage side by side on a machine with one GPU and 16 cores,
+# inside a 10-minute call: simulated chunks made in parallel on every core, then both networks fine-tuned from the
+# shipped bundle at once (bfloat16 autocast), their checkpoints returned as float16 parts (checkpoint_parts.py).
+#
+# usage, in the repository root: export/recipes/accelerator_round.sh OUT_DIR REAL_DIR
+# env: FRAMES (per chunk, 25), SIM_S (seconds of simulation, 190), TRAIN_MIN (minutes of training, 4.6),
+#      DEVICE (cuda), PROCS (16), SEED (21), DET_EPOCHS (7), POSE_EPOCHS (12), BUNDLE (models/epal-default)
+# REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
+set -u
+OUT_DIR=$1 REAL=$2
+export FRAMES=${FRAMES:-25} SEED=${SEED:-21}
+SIM_S=${SIM_S:-190} TRAIN_MIN=${TRAIN_MIN:-4.6} DEVICE=${DEVICE:-cuda} PROCS=${PROCS:-16}
+DET_EPOCHS=${DET_EPOCHS:-7} POSE_EPOCHS=${POSE_EPOCHS:-12} BUNDLE=${BUNDLE:-models/epal-default}
+export RECIPES=$PWD/export/recipes W=${W:-/tmp/p6d}
+rm -rf "$W"; mkdir -p "$W/pp/pallet6d" "$W/sim" "$W/cache" "$W/log" "$OUT_DIR"
+for d in runtime export calib sim; do ln -sfn "$PWD/$d" "$W/pp/pallet6d/$d"; done   # the package, not installed
+export PYTHONPATH=$W/pp PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
+say() { echo "[$(date +%T)] $*" | tee -a "$OUT_DIR/run.log"; }
+say "start: $(nproc --all) cores, $(python3 -c 'import torch; print(torch.__version__, torch.cuda.is_available())')"
+
+# Simulated chunks, interleaved so that a cut-short phase still has every kind: the forklift's view (all types,
+# D435-like; ToF-like; EPAL only), the mixed preset, and the paper's three presets (kept level by training on them).
+chunks() {
+  for i in $(seq 0 23); do
+    echo "fa-$((6000 + i)) forklift-approach $((6000 + i))"
+    [ $((i % 2)) = 0 ] && echo "mixed-$((6300 + i / 2)) mixed $((6300 + i / 2))"
+    [ $((i % 3)) = 0 ] && echo "vo-$((6500 + i / 3)) virtual-occluded $((6500 + i / 3))"
+    [ $((i % 3)) = 1 ] && echo "in-$((6400 + i / 3)) indoor-noisy $((6400 + i / 3))"
+    [ $((i % 4)) = 2 ] && echo "fatof-$((6100 + i / 4)) forklift-approach $((6100 + i / 4)) --sensor tof"
+    [ $((i % 4)) = 3 ] && echo "faepal-$((6200 + i / 4)) forklift-approach $((6200 + i / 4)) --pallet-types epal"
+    [ $((i % 6)) = 5 ] && echo "vc-$((6600 + i / 6)) virtual-clean $((6600 + i / 6))"
+  done
+}
+export DEADLINE=$(($(date +%s) + SIM_S))
+chunks | xargs -P "$PROCS" -L 1 bash "$RECIPES/sim_chunk.sh"
+DIRS=$(for d in "$W"/sim/*/; do [ -f "$d/DONE" ] && echo "${d%/}"; done)
+say "simulated: $(echo $DIRS | wc -w) of $(chunks | wc -l) chunks of $FRAMES frames"
+[ -n "$DIRS" ] || { tail -n 20 "$W"/log/*.log | tee -a "$OUT_DIR/run.log"; exit 1; }
+
+HARD=$(python3 -c "print(int($TRAIN_MIN * 60 + 75))")
+export OMP_NUM_THREADS=3
+timeout "$HARD" python3 -m pallet6d.runtime.cli train detector --config edge2-dilated --init "$BUNDLE" \
+  --data $DIRS --real "$REAL" --real-repeat-large 3 --select near_f1 \
+  --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr 3e-4 \
+  --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
+  --cache-dir "$W/cache" --out "$W/det" >"$OUT_DIR/det.log" 2>&1 &
+timeout "$HARD" python3 -m pallet6d.runtime.cli train pose --config edge2-dilated --init "$BUNDLE" \
+  --data $DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr 2e-4 --variants 2 --seed "$SEED" --device "$DEVICE" --amp \
+  --max-minutes "$TRAIN_MIN" --no-progress --cache-dir "$W/cache" --out "$W/pose" >>"$OUT_DIR/run.log" 2>&1 &
+wait
+say "trained"
+for run in det pose; do
+  for c in best last; do
+    [ -f "$W/$run/$c.pt" ] && python3 "$RECIPES/checkpoint_parts.py" split "$W/$run/$c.pt" "$OUT_DIR/$run-$c"
+  done
+done
+rm -f "$OUT_DIR"/det-*.fusion.pt "$OUT_DIR"/det-*.pose.pt   # a detector checkpoint holds the detector alone
+say "done: $(ls "$OUT_DIR" | tr '\n' ' ')"
