@@ -5,13 +5,18 @@
 #
 # usage, in the repository root: export/recipes/accelerator_round.sh OUT_DIR REAL_DIR
 # env: FRAMES (per chunk, 25), SIM_S (seconds of simulation, 190), TRAIN_MIN (minutes of training, 4.6),
-#      DEVICE (cuda), PROCS (16), SEED (21), DET_EPOCHS (7), POSE_EPOCHS (12), BUNDLE (models/epal-default)
+#      DEVICE (cuda), PROCS (16), SEED (21), DET_EPOCHS (7), POSE_EPOCHS (12), BUNDLE (models/epal-default),
+#      STAGES ("det pose": which networks to train), DET_INIT / POSE_INIT (a checkpoint or bundle to start from:
+#      BUNDLE), POSE_LR (2e-4), DET_LR (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
+#      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
 OUT_DIR=$1 REAL=$2
 export FRAMES=${FRAMES:-25} SEED=${SEED:-21}
 SIM_S=${SIM_S:-190} TRAIN_MIN=${TRAIN_MIN:-4.6} DEVICE=${DEVICE:-cuda} PROCS=${PROCS:-16}
 DET_EPOCHS=${DET_EPOCHS:-7} POSE_EPOCHS=${POSE_EPOCHS:-12} BUNDLE=${BUNDLE:-models/epal-default}
+STAGES=${STAGES:-det pose} DET_INIT=${DET_INIT:-$BUNDLE} POSE_INIT=${POSE_INIT:-$BUNDLE}
+POSE_LR=${POSE_LR:-2e-4} DET_LR=${DET_LR:-3e-4}
 export RECIPES=$PWD/export/recipes W=${W:-/tmp/p6d}
 rm -rf "$W"; mkdir -p "$W/pp/pallet6d" "$W/sim" "$W/cache" "$W/log" "$OUT_DIR"
 for d in runtime export calib sim; do ln -sfn "$PWD/$d" "$W/pp/pallet6d/$d"; done   # the package, not installed
@@ -22,6 +27,7 @@ say "start: $(nproc --all) cores, $(python3 -c 'import torch; print(torch.__vers
 # Simulated chunks, interleaved so that a cut-short phase still has every kind: the forklift's view (all types,
 # D435-like; ToF-like; EPAL only), the mixed preset, and the paper's three presets (kept level by training on them).
 chunks() {
+  [ -n "${CHUNKS_FILE:-}" ] && { cat "$CHUNKS_FILE"; return; }
   for i in $(seq 0 23); do
     echo "fa-$((6000 + i)) forklift-approach $((6000 + i))"
     [ $((i % 2)) = 0 ] && echo "mixed-$((6300 + i / 2)) mixed $((6300 + i / 2))"
@@ -32,7 +38,7 @@ chunks() {
     [ $((i % 6)) = 5 ] && echo "vc-$((6600 + i / 6)) virtual-clean $((6600 + i / 6))"
   done
 }
-export DEADLINE=$(($(date +%s) + SIM_S))
+export CHUNK_S=${CHUNK_S:-55} DEADLINE=$(($(date +%s) + SIM_S))
 chunks | xargs -P "$PROCS" -L 1 bash "$RECIPES/sim_chunk.sh"
 DIRS=$(for d in "$W"/sim/*/; do [ -f "$d/DONE" ] && echo "${d%/}"; done)
 say "simulated: $(echo $DIRS | wc -w) of $(chunks | wc -l) chunks of $FRAMES frames"
@@ -40,13 +46,13 @@ say "simulated: $(echo $DIRS | wc -w) of $(chunks | wc -l) chunks of $FRAMES fra
 
 HARD=$(python3 -c "print(int($TRAIN_MIN * 60 + 75))")
 export OMP_NUM_THREADS=3
-timeout "$HARD" python3 -m pallet6d.runtime.cli train detector --config edge2-dilated --init "$BUNDLE" \
+[[ " $STAGES " == *" det "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train detector --config edge2-dilated --init "$DET_INIT" \
   --data $DIRS --real "$REAL" --real-repeat-large 3 --select near_f1 \
-  --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr 3e-4 \
+  --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr "$DET_LR" \
   --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
   --cache-dir "$W/cache" --out "$W/det" >"$OUT_DIR/det.log" 2>&1 &
-timeout "$HARD" python3 -m pallet6d.runtime.cli train pose --config edge2-dilated --init "$BUNDLE" \
-  --data $DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr 2e-4 --variants 2 --seed "$SEED" --device "$DEVICE" --amp \
+[[ " $STAGES " == *" pose "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train pose --config edge2-dilated --init "$POSE_INIT" \
+  --data $DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr "$POSE_LR" --variants 2 --seed "$SEED" --device "$DEVICE" --amp \
   --max-minutes "$TRAIN_MIN" --no-progress --cache-dir "$W/cache" --out "$W/pose" >>"$OUT_DIR/run.log" 2>&1 &
 wait
 say "trained"

@@ -3,7 +3,7 @@
 # usage (env W, FRAMES, SEED, DEADLINE, RECIPES): sim_chunk.sh NAME PRESET SIM_SEED [pallet6d sim args...]
 name=$1 preset=$2 simseed=$3; shift 3
 left=$((DEADLINE - $(date +%s)))
-[ "$left" -gt 55 ] || exit 0          # a chunk takes about 50 s on one core: do not start one that cannot finish
+[ "$left" -gt "${CHUNK_S:-55}" ] || exit 0   # do not start a chunk that cannot finish (25 frames: about 50 s a core)
 log=$W/log/$name.log
 timeout "$left" python3 -m pallet6d.runtime.cli sim --preset "$preset" --frames "$FRAMES" --seed "$simseed" \
     --out "$W/sim/$name" "$@" >"$log" 2>&1 || exit 0
