@@ -8,7 +8,8 @@
 #      DEVICE (cuda), PROCS (16), SEED (21), DET_EPOCHS (7), POSE_EPOCHS (12), BUNDLE (models/epal-default),
 #      STAGES ("det pose": which networks to train), DET_INIT / POSE_INIT (a checkpoint or bundle to start from:
 #      BUNDLE), POSE_LR (2e-4), DET_LR (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
-#      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55)
+#      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55),
+#      DET_REPEAT (name prefixes of chunks the detector sees twice, e.g. "vo- in-"; none)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
 OUT_DIR=$1 REAL=$2
@@ -42,12 +43,14 @@ export CHUNK_S=${CHUNK_S:-55} DEADLINE=$(($(date +%s) + SIM_S))
 chunks | xargs -P "$PROCS" -L 1 bash "$RECIPES/sim_chunk.sh"
 DIRS=$(for d in "$W"/sim/*/; do [ -f "$d/DONE" ] && echo "${d%/}"; done)
 say "simulated: $(echo $DIRS | wc -w) of $(chunks | wc -l) chunks of $FRAMES frames"
+DET_DIRS=$DIRS
+for p in ${DET_REPEAT:-}; do DET_DIRS="$DET_DIRS $(for d in $DIRS; do case $(basename "$d") in "$p"*) echo "$d";; esac; done)"; done
 [ -n "$DIRS" ] || { tail -n 20 "$W"/log/*.log | tee -a "$OUT_DIR/run.log"; exit 1; }
 
 HARD=$(python3 -c "print(int($TRAIN_MIN * 60 + 75))")
 export OMP_NUM_THREADS=3
 [[ " $STAGES " == *" det "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train detector --config edge2-dilated --init "$DET_INIT" \
-  --data $DIRS --real "$REAL" --real-repeat-large 3 --select near_f1 \
+  --data $DET_DIRS --real "$REAL" --real-repeat-large 3 --select near_f1 \
   --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr "$DET_LR" \
   --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
   --cache-dir "$W/cache" --out "$W/det" >"$OUT_DIR/det.log" 2>&1 &
