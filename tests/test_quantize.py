@@ -65,3 +65,25 @@ def test_convs_only_and_fallback_when_the_heads_are_not_found(tmp_path):
     assert other == convs
     with pytest.raises(ValueError, match="calibration"):
         quantize_graph(fp32, tmp_path / "c.onnx", [])
+
+
+
+def test_detector_recipe_keeps_the_class_output_convs_float(bundle_dir, tmp_path):
+    """uint8 class logits gave a handful of distinct scores (ties, thresholds that meant the same): the exporter's
+    detector recipe keeps the class output convs float and the box output convs int8, on an exported detector."""
+    from pallet6d.export.quantize import INT8_RECIPES
+    from pallet6d.runtime.bundle import load_bundle
+
+    det = load_bundle(bundle_dir).detector
+    h, w = det.input_hw
+    rng = np.random.default_rng(2)
+    feeds = [{det.input_name: rng.random((1, 3, h, w), dtype=np.float32)} for _ in range(2)]
+    path = quantize_graph(bundle_dir / det.file, tmp_path / "det.int8.onnx", feeds, **INT8_RECIPES["detector"])
+    graph = onnx.load(str(path)).graph
+    dequantized = {o for n in graph.node if n.op_type == "DequantizeLinear" for o in n.output}
+    convs = {n.name: n for n in graph.node if n.op_type == "Conv"}
+    cls = [c for name, c in convs.items() if name.startswith("/head/cls") and name.endswith(".2/Conv")]
+    box = [c for name, c in convs.items() if name.startswith("/head/box") and name.endswith(".2/Conv")]
+    assert cls and box, sorted(convs)
+    assert all(c.input[1] not in dequantized for c in cls), "a class output conv has int8 weights"
+    assert all(c.input[1] in dequantized for c in box), "a box output conv lost its int8 weights"
