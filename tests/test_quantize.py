@@ -67,7 +67,6 @@ def test_convs_only_and_fallback_when_the_heads_are_not_found(tmp_path):
         quantize_graph(fp32, tmp_path / "c.onnx", [])
 
 
-
 def test_detector_recipe_keeps_the_class_output_convs_float(bundle_dir, tmp_path):
     """uint8 class logits gave a handful of distinct scores (ties, thresholds that meant the same): the exporter's
     detector recipe keeps the class output convs float and the box output convs int8, on an exported detector."""
