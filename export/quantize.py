@@ -36,9 +36,9 @@ DETECTOR_OPS = ("Conv", "Sigmoid", "Mul", "Add", "Concat", "MaxPool", "Resize", 
 # after them stay float: uint8 class logits span the background's large negative logits in ~0.36 steps, which
 # left 14 distinct scores above 0.1 (0.189, 0.251, 0.263, 0.326, ...), so a threshold between two of them meant
 # the same and equal scores tied the ranking. Fusion: convs but the branches' output convs (1 % of the FLOPs;
-# the fused features' error vs fp32 drops from 3.7 to 2.5 % RMS on the edge config). Pose: convs but its first layer (metric points in:
-# 5 mm steps if quantized) and its heads' output convs (a uint8 translation offset has ~1 cm steps; a uint8
-# confidence ties the argmax).
+# the fused features' error vs fp32 drops from 3.7 to 2.5 % RMS on the edge config). Pose: convs but its first
+# layer (metric points in: 5 mm steps if quantized) and its heads' output convs (a uint8 translation offset has
+# ~1 cm steps; a uint8 confidence ties the argmax).
 INT8_RECIPES: dict[str, dict] = {
     "detector": {"op_types": DETECTOR_OPS, "exclude_nodes": ("/head/cls.*.2/Conv",),
                  "float_after": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv")},
