@@ -198,8 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)
     for preset, r in report.get("sim_negatives", {}).items():
         text += (f"Simulated pallet-free {preset} (seed {args.sim_seed}, loads {args.sim_loads}): {r['frames']} "
-                 f"frames, "
-                 f"{r['accepted_poses_per_frame']:.2f} accepted poses per frame (default options), "
+                 f"frames, {r['accepted_poses_per_frame']:.2f} accepted poses per frame (default options), "
                  f"{r['detections_per_frame']:.2f} detections per frame.\n")
     print(text)
     if args.out:

@@ -443,11 +443,11 @@ class PalletEstimator:
             self.refiner(cands, depth_m, K, timings, deadline)
             up_cam = None
             if T_vehicle_cam is not None and self.options.level is not None:
-                self._level(cands, depth_m, K, T_vehicle_cam, timings)
+                pts_of = self._level(cands, depth_m, K, T_vehicle_cam, timings)
                 up_cam = up_in_camera(T_vehicle_cam)
             self.fit_check(cands, depth_m, K, timings, rgb, up_cam)
             if up_cam is not None:
-                self._climb(cands, depth_m, K, up_cam, timings)
+                self._climb(cands, depth_m, K, up_cam, pts_of, timings)
         return cands
 
     def _type_options(self, det: Detections) -> list[tuple[int, ...]]:
@@ -465,16 +465,16 @@ class PalletEstimator:
         return out
 
     def _climb(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, up_cam: np.ndarray,
-               timings: dict[str, float]) -> None:
+               pts_of: dict[int, np.ndarray], timings: dict[str, float]) -> None:
         """The accepted level poses climb the soft ray score (`level.climb_poses`), after the fit check has judged
         them, so the climb never turns a rejected pose into an accepted one; a moved pose's fit is computed again
-        for its report. Its time counts as refine."""
+        for its report. `pts_of`: each levelled row's depth points (`_level`). Its time counts as refine."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
         rows = rows[np.abs(cands.T_cam_pallet[rows, :3, 2] @ up_cam - 1.0) < 1e-6]      # level poses only
         if len(rows):
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
-            pts = [self.refiner.box_points(cands.pixels[i], depth_m, K) for i in rows]
+            pts = [pts_of[int(i)] for i in rows]
             T_cp = climb_poses(cands.T_cam_pallet[rows], pts, [g.boxes_m for g in geoms], self.options.level,
                                threads=self.refiner.refine_options.threads)
             moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
@@ -485,11 +485,14 @@ class PalletEstimator:
         timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)
 
     def _level(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
-               timings: dict[str, float]) -> None:
+               timings: dict[str, float]) -> dict[int, np.ndarray]:
         """The alive candidates' poses levelled on the calibrated floor and refined with their tilt held
-        (`level.level_poses`); a changed pose's fit is computed again by the fit check. Its time counts as refine."""
+        (`level.level_poses`); a changed pose's fit is computed again by the fit check. Its time counts as refine.
+
+        :return: each levelled row's depth points (the refiner's ICP points), for the climb."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
+        pts: list[np.ndarray] = []
         if len(rows):
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
             pts = [self.refiner.box_points(cands.pixels[i], depth_m, K) for i in rows]   # the refiner's ICP points
@@ -501,6 +504,7 @@ class PalletEstimator:
             cands.assign(rows, T_cam_pallet=T_cp)
             cands.assign(moved, fit=np.full((len(moved), 3), np.nan))
         timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)
+        return dict(zip(rows.tolist(), pts))
 
     def _result(self, cands: Candidates, image_hw: tuple[int, int], timings: dict[str, float],
                 t0: float) -> FrameResult:

@@ -338,8 +338,7 @@ def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarra
     points within the window instead, with no penalty beyond: it peaks at the pose that explains the depth best
     instead of being flat while the points stay within the window, and zero-mean noise along the rays pushes it
     neither nearer nor farther (a penalty on one side would push the pose away from the camera). In the compiled
-    kernel, on `threads` threads, when
-    `compiled` and the package has it (the same scores), else in numpy.
+    kernel, on `threads` threads, when `compiled` and the package has it (the same scores), else in numpy.
 
     :param T_cam_pallet: (P, 4, 4). :param pts_cam: (m, 3) camera frame, metres. :param boxes_m: (k, 2, 3) the
         pallet's boards and blocks. :return: (P,) scores in [-1, 1]; 0 for no points.
