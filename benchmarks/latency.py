@@ -162,6 +162,20 @@ def footprint(bundle: str, precision: str, pallets: int) -> dict:
             "pallets": pallets}
 
 
+def cpu_model() -> str:
+    """The CPU's model name (Linux: /proc/cpuinfo), else what `platform` knows: the same code's timings differ
+    between the machines a cloud hands out, so each table names its CPU."""
+    import platform
+
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def run_info(bundles: list[str]) -> dict:
     """What was measured, where and how: enough to reproduce the table and to judge it."""
     import platform
@@ -175,7 +189,7 @@ def run_info(bundles: list[str]) -> dict:
                             cwd=Path(__file__).parent).stdout.strip() or None
     return {"command": " ".join([Path(sys.argv[0]).as_posix()] + sys.argv[1:]),
             "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "git_commit": commit,
-            "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(),
+            "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(), "cpu_model": cpu_model(),
             "python": platform.python_version(), "onnxruntime": onnxruntime.__version__, "numpy": np.__version__,
             "kernels": kernels.available(),
             "bundles": {b.config: {"name": b.name, "random_init": bool(b.provenance.get("random_init"))}
@@ -186,7 +200,8 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
     weights = ", ".join(f"{c}: {'random-init' if v['random_init'] else 'trained'} ({v['name']})"
                         for c, v in info["bundles"].items())
     lines = ["# Runtime latency (ms, 1224x370, this machine)", "",
-             f"`{info['command']}` at {info['git_commit']} on {info['date_utc']}; {info['cpus']} CPUs, "
+             f"`{info['command']}` at {info['git_commit']} on {info['date_utc']}; {info['cpus']} CPUs "
+             f"({info.get('cpu_model', 'model not recorded')}), "
              f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}, compiled kernels "
              f"{'built' if info.get('kernels') else 'not built'}. Weights: {weights} "
              "(latency does not depend on the weights' values).", "",

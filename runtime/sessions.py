@@ -2,10 +2,12 @@
 
 Intra-op threads = the cores given to the runtime, inter-op 1 (the graphs are chains; a second
 pool only competes for the same two cores), all graph optimisations on, sequential execution.
-Thread spinning is off: each of the three sessions has its own pool, and a pool that keeps spinning
-after its graph ran steals the cores from the next graph and from the numpy stages in between
-(measured with 2 threads on 2 cores: detector 29 -> 16 ms, point sampling 32 -> 25 ms, end to end
--20 %; with spinning on, 2 threads were barely faster than 1).
+The pool's threads spin while a run is under way (a woken thread starts the next op's share at once, instead
+of sleeping between the graph's many small ops) and stop spinning the moment it returns
+(`session.force_spinning_stop`): each of the three sessions has its own pool, and a pool that kept spinning
+after its graph ran would steal the cores from the next graph and the numpy stages in between (2 threads on
+2 cores, one pallet, int8: no spinning 27.5-28.7 ms a frame, spinning during runs 25.7-26.0 ms, spinning
+throughout 66 ms; docs/experiments/latency.md).
 
 No CPU memory arena and no memory patterns: an arena keeps the largest activations each graph has ever
 needed, for good and per session (about 130 MB more resident with 8 pallets in a fusion batch), while without
@@ -41,7 +43,8 @@ def session_options(threads: int) -> ort.SessionOptions:
     so.log_severity_level = 3
     so.enable_cpu_mem_arena = False
     so.enable_mem_pattern = False
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1")
+    so.add_session_config_entry("session.force_spinning_stop", "1")
     so.add_session_config_entry("session.inter_op.allow_spinning", "0")
     return so
 
