@@ -23,6 +23,7 @@ import os
 import subprocess
 import sys
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -70,14 +71,33 @@ def _detector_ms(est, rgb) -> dict[str, float]:
     return out
 
 
-def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes,
-                  refine_starts: int, pallet_lanes: int = 1, kernel: str = "compiled") -> dict:
-    from dataclasses import replace
+def _spinning_off(runtime_options):
+    """`runtime_options` (the runtime's `session_options`) with the pools' spinning off altogether: the baseline of
+    `--spinning off`."""
+    def options(threads: int):
+        import onnxruntime as ort
 
+        ort.set_default_logger_severity(3)      # not the warning that each entry is set again
+        so = runtime_options(threads)
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        so.add_session_config_entry("session.force_spinning_stop", "0")
+        return so
+    return options
+
+
+def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes,
+                  refine_starts: int, pallet_lanes: int = 1, kernel: str = "compiled", spinning: str = "run") -> dict:
+    from dataclasses import replace
+    from unittest import mock
+
+    from pallet6d.runtime import sessions
     from pallet6d.runtime.estimator import PalletEstimator
 
-    est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
-                                      refine_starts=refine_starts, pallet_lanes=pallet_lanes)
+    # "off": the sessions are built with their pools' spinning off (the estimator keeps them)
+    with (mock.patch.object(sessions, "session_options", _spinning_off(sessions.session_options))
+          if spinning == "off" else nullcontext()):
+        est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
+                                          refine_starts=refine_starts, pallet_lanes=pallet_lanes)
     # "numpy": refinement (ICP and fit scores) without the compiled kernel (the same poses), to compare in one run
     est.refiner.refine_options = replace(est.refiner.refine_options, compiled=kernel == "compiled")
     scores = np.linspace(0.9, 0.5, pallets)
@@ -205,16 +225,16 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
              f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}, compiled kernels "
              f"{'built' if info.get('kernels') else 'not built'}. Weights: {weights} "
              "(latency does not depend on the weights' values).", "",
-             "| bundle | precision | threads | lanes | pallets | kernel | ICP starts | "
+             "| bundle | precision | threads | lanes | pallets | kernel | spinning | ICP starts | "
              + " | ".join(f"{s} p50" for s in STAGES[:-1])
              + " | total p50 | total p95 | total p99 | torch eager nets p50 | onnx nets p50 | torch/onnx |",
-             "|" + "---|" * (7 + len(STAGES) - 1 + 6)]
+             "|" + "---|" * (8 + len(STAGES) - 1 + 6)]
     for r in results:
         s = r["stages"]
         nets = s["detector"]["p50"] + s["fusion"]["p50"] + s["pose"]["p50"]
         t = r.get("torch_eager_nets")
         lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r.get('pallet_lanes', 1)} | "
-                     f"{r['pallets']} | {r.get('kernel', 'numpy')} | {r['refine_starts']} | "
+                     f"{r['pallets']} | {r.get('kernel', 'numpy')} | {r.get('spinning', 'off')} | {r['refine_starts']} | "
                      + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
                      + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
                      + (f"{t['p50']:.1f} | {nets:.1f} | {t['p50'] / nets:.2f} |" if t else f"- | {nets:.1f} | - |"))
@@ -241,6 +261,9 @@ def main() -> int:
     ap.add_argument("--kernel", nargs="+", choices=["compiled", "numpy"], default=["compiled"],
                     help="refinement (ICP, fit scores) in the compiled kernel (when built) and/or numpy "
                          "(default compiled)")
+    ap.add_argument("--spinning", nargs="+", choices=["run", "off"], default=["run"],
+                    help="onnxruntime's pools spin while a graph runs (run, the runtime's) or never (off); both: "
+                         "measured one after the other (default run)")
     ap.add_argument("--no-torch", action="store_true", help="skip the torch eager comparison")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = ap.parse_args()
@@ -259,14 +282,14 @@ def main() -> int:
                 continue
             footprints[f"{b.config}|{precision}"] = footprint(bundle, precision, max(args.pallets))
             for threads in args.threads:
-                for pallets, starts, lanes, kernel in itertools.product(args.pallets, starts_list, args.pallet_lanes,
-                                                                        args.kernel):
+                for pallets, starts, lanes, kernel, spinning in itertools.product(
+                        args.pallets, starts_list, args.pallet_lanes, args.kernel, args.spinning):
                     frame, boxes = _scene(pallets)
                     stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes, starts,
-                                           lanes, kernel)
+                                           lanes, kernel, spinning)
                     r = {"bundle": b.config, "precision": precision, "threads": threads, "pallet_lanes": lanes,
                          "pallets": pallets, "kernel": kernel if kernels.available() else "numpy",
-                         "refine_starts": starts, "frames": args.frames, "stages": stages}
+                         "spinning": spinning, "refine_starts": starts, "frames": args.frames, "stages": stages}
                     if not args.no_torch and precision == "fp32":
                         r["torch_eager_nets"] = bench_torch(b.config, threads, pallets, max(20, args.frames // 4))
                     results.append(r)
