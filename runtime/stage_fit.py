@@ -119,4 +119,5 @@ def _structure_detail(s) -> str:
         return (f"depth_image_mismatch: depth edges agree with the image's at AUC {s.edge_auc:.2f} (0.5 = chance; "
                 "depth of another frame, or not registered to the colour image?)")
     return (f"{s.reason}: agreement {s.agreement:.2f}, openings open {s.open_fraction:.2f} ({s.open + s.closed} rays), "
-            f"box cover {s.box_cover:.2f}, box solid {s.box_solid:.2f}, seen IoU {s.seen_iou:.2f}")
+            f"most open pocket {s.pocket_open:.2f}, box cover {s.box_cover:.2f}, box solid {s.box_solid:.2f}, "
+            f"seen IoU {s.seen_iou:.2f}")

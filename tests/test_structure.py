@@ -90,6 +90,27 @@ def test_a_carton_where_a_pallet_seen_from_below_should_be_closes_its_pockets_mo
     assert on_carton.reason == "openings_closed" and on_carton.mouth_closed > 8, on_carton
 
 
+def test_a_pallet_needs_one_open_pocket():
+    # seen 30 degrees from above, the top deck's gaps are open whatever fills the pockets: a carton stack's bottom
+    # posed as a pallet passes the overall open fraction; an obstacle in one pocket is a pallet still
+    T_above = make_T(_rot_x(-30.0) @ np.array([[0.0, 1, 0], [0, 0, -1], [1, 0, 0]]), np.array([0.1, 0.45, 3.0]))
+
+    def plugged(*y_ranges):
+        plugs = [[[-0.6, y0, -0.05], [-0.455, y1, 0.028]] for y0, y1 in y_ranges]   # the -x face's pockets
+        depth = _render_boxes(np.concatenate([EPAL.boxes_m, np.reshape(plugs, (-1, 2, 3))]), T_above)
+        v, u = np.nonzero(depth < BACK_WALL_M)
+        return _check(T=T_above, depth=depth, box=np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float))
+
+    assert plugged().ok and plugged().pocket_open == 1.0
+    one = plugged((-0.3, -0.072))
+    assert one.ok and one.pocket_open == 1.0, one
+    both = plugged((-0.3, -0.072), (0.072, 0.3))
+    assert both.open_fraction > 0.5 and both.pocket_open < 0.2 and both.reason == "pockets_closed", both
+    unjudged = _check(T=T_above, depth=_render_boxes(EPAL.boxes_m, T_above), box=BOX,
+                      params=StructureParams(min_pocket_evidence=10**6))
+    assert np.isnan(unjudged.pocket_open) and unjudged.reason != "pockets_closed"
+
+
 def test_cast_rays_boxes_hits_the_face_at_its_depth():
     # a ray along the camera axis from 3 m in front of the -x face at a block's height and centre
     origin = np.array([[-3.6, 0.0, 0.0]])
