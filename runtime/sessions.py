@@ -6,8 +6,8 @@ The pool's threads spin while a run is under way (a woken thread starts the next
 of sleeping between the graph's many small ops) and stop spinning the moment it returns
 (`session.force_spinning_stop`): each of the three sessions has its own pool, and a pool that kept spinning
 after its graph ran would steal the cores from the next graph and the numpy stages in between (2 threads on
-2 cores, one pallet, int8: no spinning 27.5-28.7 ms a frame, spinning during runs 25.7-26.0 ms, spinning
-throughout 66 ms; docs/experiments/latency.md).
+2 cores, one pallet, int8: no spinning 30.5 ms a frame, spinning during runs 26.8 ms, spinning throughout 66 ms;
+benchmarks/results/latency-spinning/).
 
 No CPU memory arena and no memory patterns: an arena keeps the largest activations each graph has ever
 needed, for good and per session (about 130 MB more resident with 8 pallets in a fusion batch), while without
