@@ -18,7 +18,7 @@ unless --include-augmented.
 With --sim-negatives N, N simulated pallet-free RGB-D frames per preset (the preset's scenes with every pallet's
 boards and blocks removed, `sim.pallet_free`; loads stay, hanging where their pallets were, a hard negative, or with
 --sim-loads set-down stand where their pallets stood, as a warehouse shows them) go through the whole estimator at
-its default options: accepted poses per frame there are false accepts.
+its default options (or `--sim-score-threshold`): accepted poses per frame there are false accepts.
 """
 from __future__ import annotations
 
@@ -163,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sim-seed", type=int, default=9100, help="seed of the simulated pallet-free frames")
     ap.add_argument("--sim-loads", choices=("hanging", "set-down"), default="hanging",
                     help="the pallet-free frames' loads: where they were (over pallet-shaped gaps) or set down")
+    ap.add_argument("--sim-score-threshold", type=float, default=None,
+                    help="the detector threshold of the estimator on the pallet-free frames (default: the estimator's)")
     ap.add_argument("--sim-calibrated", action="store_true",
                     help="give the estimator the forklift views' camera calibration (poses levelled on the floor)")
     ap.add_argument("--out", type=Path, help="write OUT.md and OUT.json")
@@ -187,18 +189,21 @@ def main(argv: list[str] | None = None) -> int:
         for path in write_examples(records, detections, args.data, args.examples):
             print(f"wrote {path}", file=sys.stderr)
     if args.sim_negatives:
+        threshold = {} if args.sim_score_threshold is None else {"score_threshold": args.sim_score_threshold}
         full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
-                                           precision="int8" if args.int8 else "fp32")
+                                           precision="int8" if args.int8 else "fp32", **threshold)
         report["sim_negatives"] = sim_negatives(full, args.sim_presets.split(","), args.sim_negatives,
                                                 args.sim_seed, args.sim_calibrated, args.sim_loads == "set-down")
     settings = {"bundle": str(args.bundle), "precision": "int8" if args.int8 else "fp32", "split": args.split,
                 "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data),
                 "augmented_copies": args.include_augmented, "sim_calibrated": args.sim_calibrated,
-                "sim_loads": args.sim_loads}
+                "sim_loads": args.sim_loads, "sim_score_threshold": args.sim_score_threshold}
     text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)
     for preset, r in report.get("sim_negatives", {}).items():
         text += (f"Simulated pallet-free {preset} (seed {args.sim_seed}, loads {args.sim_loads}): {r['frames']} "
-                 f"frames, {r['accepted_poses_per_frame']:.2f} accepted poses per frame (default options), "
+                 f"frames, {r['accepted_poses_per_frame']:.2f} accepted poses per frame ("
+                 + ("default options" if args.sim_score_threshold is None
+                    else f"detector threshold {args.sim_score_threshold}") + "), "
                  f"{r['detections_per_frame']:.2f} detections per frame.\n")
     print(text)
     if args.out:
