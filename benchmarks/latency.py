@@ -234,7 +234,8 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
         nets = s["detector"]["p50"] + s["fusion"]["p50"] + s["pose"]["p50"]
         t = r.get("torch_eager_nets")
         lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r.get('pallet_lanes', 1)} | "
-                     f"{r['pallets']} | {r.get('kernel', 'numpy')} | {r.get('spinning', 'off')} | {r['refine_starts']} | "
+                     f"{r['pallets']} | {r.get('kernel', 'numpy')} | {r.get('spinning', 'off')} | "
+                     f"{r['refine_starts']} | "
                      + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
                      + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
                      + (f"{t['p50']:.1f} | {nets:.1f} | {t['p50'] / nets:.2f} |" if t else f"- | {nets:.1f} | - |"))
