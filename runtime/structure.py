@@ -80,7 +80,9 @@ class StructureParams:
         pallets of the occluded preset (ADD-sym within 5 cm 77.3 -> 76.3 %; 0.15: 76.9 %), so a site with many
         carton stacks may raise it (`docs/experiments/structure-check.md`).
     :ivar min_pocket_evidence: a pocket (each half of a side face of the model's bounding box: an opening and its
-        blocks on an EPAL's faces) is judged with at least this many rays through it or at its mouth.
+        blocks on an EPAL's faces) is judged with at least this many rays through it or at its mouth (a correct pose
+        of a pallet cut by the image's edge showed one pocket with 8 rays, all closed; 8-16 refuse the same carton
+        poses).
     :ivar min_pocket_open_fraction: the open fraction of the most open pocket judged (`StructureScore.pocket_open`)
         below this -> "pockets_closed": a pallet shows at least one open pocket, also with an obstacle in the other,
         while a carton stack's bottom posed as a pallet closes them all, though a few rays between its cartons or
@@ -160,7 +162,7 @@ class StructureParams:
     min_agreement_levelled: float = 0.65
     min_opening_evidence: int = 8
     min_open_fraction: float = 0.15
-    min_pocket_evidence: int = 8
+    min_pocket_evidence: int = 12
     min_pocket_open_fraction: float = 0.3
     max_pocket_range_m: float = 6.0
     min_box_cover: float = 0.6
