@@ -331,14 +331,14 @@ def pocket_open_fractions(origin: np.ndarray, dirs: np.ndarray, t_bbox: np.ndarr
         the parameter is the camera depth. :param t_bbox: (n, r) where each ray enters the bounding box (inf: never).
     :param boxes_m: (k, 2, 3) the model's boxes. :param open_rays, closed_rays: (n, r) bool, rays judging an opening
         or a mouth open / closed.
-    :param min_evidence: pockets with fewer open + closed rays are not judged.
+    :param min_evidence: (>= 1) pockets with fewer open + closed rays are not judged.
     :return: (n,) the largest open fraction among the judged pockets, NaN where none is judged.
     """
     boxes = np.asarray(boxes_m, dtype=np.float64)
     lo, hi = boxes[:, 0].min(0), boxes[:, 1].max(0)
     centre = (lo + hi) / 2
     judged = open_rays | closed_rays
-    entry = origin[:, None, :] + np.where(judged & np.isfinite(t_bbox), t_bbox, 0.0)[..., None] * dirs   # (n, r, 3)
+    entry = origin[:, None, :] + np.where(judged, t_bbox, 0.0)[..., None] * dirs   # (n, r, 3); judged: t_bbox finite
     # the face each ray enters through: the nearest of the six planes (-x, +x, -y, +y, -z, +z)
     face = np.abs(np.concatenate([entry - lo, entry - hi], -1))[..., [0, 3, 1, 4, 2, 5]].argmin(-1)
     lateral = np.where(face < 2, entry[..., 1] - centre[1], entry[..., 0] - centre[0])
@@ -349,7 +349,7 @@ def pocket_open_fractions(origin: np.ndarray, dirs: np.ndarray, t_bbox: np.ndarr
     n_open = np.bincount(index, weights=open_rays[use], minlength=8 * n).reshape(n, 8)
     n_all = np.bincount(index, minlength=8 * n).reshape(n, 8)
     with np.errstate(invalid="ignore", divide="ignore"):
-        frac = np.where(n_all >= max(int(min_evidence), 1), n_open / n_all, -1.0)
+        frac = np.where(n_all >= int(min_evidence), n_open / n_all, -1.0)
     best = frac.max(1) if n else np.zeros(0)
     return np.where(best >= 0, best, np.nan)
 

@@ -101,7 +101,8 @@ def test_a_pallet_needs_one_open_pocket():
         v, u = np.nonzero(depth < BACK_WALL_M)
         return _check(T=T_above, depth=depth, box=np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float))
 
-    assert plugged().ok and plugged().pocket_open == 1.0
+    none = plugged()
+    assert none.ok and none.pocket_open == 1.0
     one = plugged((-0.3, -0.072))
     assert one.ok and one.pocket_open == 1.0, one
     both = plugged((-0.3, -0.072), (0.072, 0.3))
