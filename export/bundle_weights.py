@@ -9,7 +9,9 @@ the graph it was exported to and proves it with a parity check against onnxrunti
 - the exporter folded each BatchNorm into the convolution before it (anonymous `onnx::Conv_*`
   initializers); the node's name is the module's scope (`/rgb/backbone/layer1/layer1.0/conv1/Conv` is
   `rgb.backbone.layer1.0.conv1`), which takes the folded kernel, and its BatchNorm takes the folded bias;
-- Linear weights appear transposed in a MatMul, PReLU slopes reshaped to (C, 1, 1).
+- Linear weights appear transposed in a MatMul, PReLU slopes reshaped to (C, 1, 1);
+- a pose head's first convolution (`pose.SplitInputConv1d`) is two Conv nodes, its local columns and its global
+  columns (with the bias), joined again; a graph of the older layout has one Conv with the whole weight.
 
 A folded BatchNorm has lost its statistics, so they are measured again: the per-channel mean and variance
 of its input over calibration crops, with its scale and shift chosen so that the network computes exactly
@@ -35,7 +37,7 @@ from .config import get_config
 from .detector import build_detector
 from .fusion import build_fusion
 from .onnx_io import check_parity, ort_session, run_session
-from .pose import build_pose
+from .pose import SplitInputConv1d, build_pose
 from .train_loop import CKPT_FORMAT
 
 __all__ = ["BundleWeightsError", "bundle_checkpoint", "load_bundle_weights"]
@@ -125,6 +127,7 @@ def _state_from_graph(net: torch.nn.Module, graph_path: Path,
             put(name, value)
     pairs = _conv_batchnorm_pairs(net, example)
     folded: list[str] = []
+    split_parts: dict[str, list] = {}
     modules = dict(net.named_modules())
     # by node as well: the exporter shares one initializer among parameters of equal value (named after one
     # of them), and folded convolutions have anonymous ones
@@ -136,6 +139,9 @@ def _state_from_graph(net: torch.nn.Module, graph_path: Path,
             if not isinstance(mod, (torch.nn.Conv1d, torch.nn.Conv2d)):
                 raise BundleWeightsError(f"{graph_path.name}: node {node.name!r} names module {path!r}, which is not "
                                          "a convolution of this network (another config?)")
+            if isinstance(mod, SplitInputConv1d) and consts[1].shape[1] != mod.in_channels:
+                split_parts.setdefault(path, []).append(consts)   # one of its two convolutions: joined below
+                continue
             put(f"{path}.weight", consts[1])
             bias = consts[2] if len(consts) > 2 else None
             bn = pairs.get(path)
@@ -167,6 +173,15 @@ def _state_from_graph(net: torch.nn.Module, graph_path: Path,
                 put(f"{path}.weight", consts[1])
             if len(consts) > 2 and consts[2] is not None:
                 put(f"{path}.bias", consts[2])
+    for path, parts in split_parts.items():
+        # the local columns' convolution has no bias, the global columns' one carries the layer's bias
+        local = [p for p in parts if len(p) < 3 or p[2] is None]
+        glob = [p for p in parts if len(p) > 2 and p[2] is not None]
+        if len(local) != 1 or len(glob) != 1:
+            raise BundleWeightsError(f"{graph_path.name}: {path!r} is split into {len(parts)} convolutions, not a "
+                                     "local and a global one (another config?)")
+        put(f"{path}.weight", np.concatenate([local[0][1], glob[0][1]], axis=1))
+        put(f"{path}.bias", glob[0][2])
     left = [k for k in state if k not in done and not k.endswith("num_batches_tracked")]
     if left:
         raise BundleWeightsError(f"{graph_path.name}: no weights in the graph for {len(left)} tensors of the network, "

@@ -1,0 +1,152 @@
+"""A bundle's pose graph exported again from its own weights, by the current network code.
+
+How the pose network computes can change without its weights changing (its heads now meet the global
+feature once per pallet instead of once per point: `pose.SplitInputConv1d`). This writes a new bundle folder:
+every file of the old one copied unchanged except `pose.onnx`, whose weights are read back from the old graph
+(`bundle_weights`), exported again, stored as before (int8 per output channel, float16 or float32) and
+compared with the old graph on calibration inputs. The report keeps the old provenance, checks and scores and
+records the re-export under `provenance.pose_graph`; re-measure the scores before shipping.
+
+usage: python -m pallet6d.export.regraph --bundle models/epal-default --out /tmp/epal-default
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import logging
+import shlex
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pallet6d.runtime.bundle import MANIFEST, REPORT, load_bundle, sha256_file
+from pallet6d.runtime.pose_inputs import gather_features
+
+from .bundle_export import FLOAT_WEIGHTS, _graph_diff
+from .bundle_weights import load_bundle_weights
+from .calib_data import make_calibration_set
+from .config import get_config
+from .export_inputs import ExportError, git_commit
+from .flops import count_gflops
+from .onnx_io import check_parity, export_graph, ort_session, run_session
+from .pose import build_pose
+
+__all__ = ["regraph_pose", "main"]
+log = logging.getLogger(__name__)
+
+
+def _pose_inputs(bundle, seed: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Calibration points (B, N, 3) and their fusion features (B, N, C) from the bundle's own fusion graph."""
+    cfg = get_config(bundle.config)
+    calib = make_calibration_set(cfg, frames=frames, seed=seed)
+    f = bundle.fusion
+    names = [f.rgb_input, f.depth_input] + ([f.choose_input] if f.choose_input else [])
+    arrays = [calib.rgb_crops, calib.depth_crops] + ([calib.choose] if f.choose_input else [])
+    sess = ort_session(bundle.graph("fusion", "fp32"), threads=2)
+    feats = np.concatenate([run_session(sess, {n: a[i:i + 8] for n, a in zip(names, arrays)})[f.output_name]
+                            for i in range(0, len(arrays[0]), 8)])
+    if not f.choose_input:
+        feats = gather_features(feats, calib.choose)
+    return calib.points.astype(np.float32), feats.astype(np.float32)
+
+
+def _storage(report: dict) -> str:
+    """How the old pose graph stored its weights: "int8", "fp16" or "fp32"."""
+    checks = report.get("checks") or {}
+    return next((s for s in ("int8", "fp16") if "pose" in (checks.get(f"weights_{s}") or {})), "fp32")
+
+
+def regraph_pose(src: str | Path, out: str | Path, *, seed: int = 0, frames: int = 8, command: str = "") -> Path:
+    """Write `out`: the bundle `src` with its pose graph exported again from its weights (module docstring).
+
+    :raises ExportError: `out` is not new or empty, the bundle's pose graph cannot be read back, or the new
+        graph's outputs differ from the old one's by more than its weight storage allows.
+    """
+    src, out = Path(src), Path(out)
+    if out.exists() and any(out.iterdir()):
+        raise ExportError(f"output folder {out} is not empty; choose a new folder")
+    bundle = load_bundle(src)
+    report = json.loads((src / REPORT).read_text(encoding="utf-8"))
+    cfg = get_config(bundle.config)
+    net = build_pose(cfg.pose, bundle.fusion.feature_dim).eval()
+    read_back = load_bundle_weights(src, {"pose": net}, seed=seed, bundle=bundle)
+    points, feats = _pose_inputs(bundle, seed, frames)
+    if "int8" in bundle.precision and bundle.graph("pose", "int8") != bundle.graph("pose", "fp32"):
+        raise ExportError(f"{src}: its pose stage has a separate int8 graph; only a float pose graph is re-exported")
+
+    shutil.copytree(src, out, dirs_exist_ok=True)
+    try:
+        _write_pose_graph(bundle, report, net, read_back, out, points, feats, seed, command)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)   # no half-written bundle
+        raise
+    return out
+
+
+def _write_pose_graph(bundle, report: dict, net: torch.nn.Module, read_back: dict, out: Path, points: np.ndarray,
+                      feats: np.ndarray, seed: int, command: str) -> None:
+    q = bundle.pose
+    in_names, out_names = [q.points_input, q.features_input], [q.quat_output, q.trans_output, q.conf_output]
+    old_graph = bundle.graph("pose", "fp32")
+    new_graph = out / old_graph.relative_to(bundle.root)
+    example = (torch.from_numpy(points[:2]), torch.from_numpy(feats[:2]))
+    export_graph(net, example, new_graph, in_names, out_names, {k: {0: "batch"} for k in in_names + out_names})
+    parity = check_parity(net, example, new_graph, in_names, out_names)
+    storage = _storage(report)
+    feeds = [{q.points_input: points[i:i + 4], q.features_input: feats[i:i + 4]} for i in range(0, len(points), 4)]
+    stored_check = None
+    if storage != "fp32":
+        write, limits = FLOAT_WEIGHTS[storage]
+        small = new_graph.with_suffix(".stored.onnx")
+        stored = write(new_graph, small)
+        stored_check = {**stored.to_dict(), "vs_fp32_weights": _graph_diff(new_graph, small, feeds),
+                        "limit_rel_rms": limits["pose"]}
+        small.replace(new_graph)
+    vs_old = _graph_diff(old_graph, new_graph, feeds)
+    limit = FLOAT_WEIGHTS[storage][1].get("pose", 1e-4)
+    worst = max(v["rel_rms"] for v in vs_old.values())
+    if not worst <= limit:
+        raise ExportError(f"the re-exported pose graph differs from the old one by {worst:.2g} relative RMS "
+                          f"(limit {limit} for {storage} weights)")
+
+    manifest = json.loads((bundle.root / MANIFEST).read_text(encoding="utf-8"))
+    rel = new_graph.relative_to(out).as_posix()
+    manifest["files"][rel] = sha256_file(new_graph)
+    (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
+    checks = report.setdefault("checks", {})
+    checks.setdefault("parity", {})["pose"] = parity
+    checks.setdefault("gflops", {})["pose_per_pallet"] = round(count_gflops(new_graph), 3)
+    if stored_check is not None:
+        checks.setdefault(f"weights_{storage}", {})["pose"] = stored_check
+    report.setdefault("provenance", {})["pose_graph"] = {
+        "command": command, "seed": seed, "git_commit": git_commit(),
+        "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "from": {"bundle": str(read_back["bundle"]), "file": rel, "sha256": read_back["graphs"]["pose"]["sha256"]},
+        "read_back_parity": read_back["parity"]["pose"], "vs_previous_graph": vs_old}
+    (out / REPORT).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    load_bundle(out)   # the runtime must accept what was written
+    log.info("%s: pose graph re-exported (%s weights), vs the old graph: worst relative RMS %.2g", out, storage, worst)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m pallet6d.export.regraph", description=__doc__.split("\n")[0])
+    parser.add_argument("--bundle", required=True, help="the bundle whose pose graph is re-exported")
+    parser.add_argument("--out", required=True, help="the new bundle folder (new or empty)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the calibration inputs the graphs are compared on")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    command = "python -m pallet6d.export.regraph " + shlex.join(sys.argv[1:] if argv is None else argv)
+    try:
+        regraph_pose(args.bundle, args.out, seed=args.seed, command=command)
+    except (ExportError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
