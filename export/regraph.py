@@ -70,13 +70,13 @@ def regraph_pose(src: str | Path, out: str | Path, *, seed: int = 0, frames: int
     if out.exists() and any(out.iterdir()):
         raise ExportError(f"output folder {out} is not empty; choose a new folder")
     bundle = load_bundle(src)
-    report = json.loads((src / REPORT).read_text(encoding="utf-8"))
+    if "int8" in bundle.precision and bundle.graph("pose", "int8") != bundle.graph("pose", "fp32"):
+        raise ExportError(f"{src}: its pose stage has a separate int8 graph; only a float pose graph is re-exported")
+    report = json.loads(json.dumps(bundle.report))   # a copy: report.json, or a version-1 manifest's own
     cfg = get_config(bundle.config)
     net = build_pose(cfg.pose, bundle.fusion.feature_dim).eval()
     read_back = load_bundle_weights(src, {"pose": net}, seed=seed, bundle=bundle)
     points, feats = _pose_inputs(bundle, seed, frames)
-    if "int8" in bundle.precision and bundle.graph("pose", "int8") != bundle.graph("pose", "fp32"):
-        raise ExportError(f"{src}: its pose stage has a separate int8 graph; only a float pose graph is re-exported")
 
     shutil.copytree(src, out, dirs_exist_ok=True)
     try:
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     command = "python -m pallet6d.export.regraph " + shlex.join(sys.argv[1:] if argv is None else argv)
     try:
         regraph_pose(args.bundle, args.out, seed=args.seed, command=command)
-    except (ExportError, ValueError) as exc:
+    except (ValueError, OSError) as exc:     # ExportError and BundleWeightsError are ValueErrors
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0
