@@ -38,7 +38,7 @@ from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git
                             trained_input_sizes, warm_up_batchnorm)
 from .flops import count_gflops
 from .fusion import build_fusion
-from .onnx_io import check_parity, compare_outputs, export_graph, ort_session, run_session
+from .onnx_io import check_parity, export_graph, graph_diff, ort_session
 from .pallet_types import class_ids_for_types, trained_pallet_types, write_pallet_types
 from .pose import build_pose
 from .quantize import INT8_RECIPES, quantize_graph
@@ -69,19 +69,6 @@ INT8_STAGES = ("detector", "fusion")
 POSE_OUTPUTS = ("quat", "trans", "conf")
 # a detector that takes several input sizes: its graph's height and width axes (and the anchors) are dynamic
 DET_DYNAMIC_AXES = {DET_IN: {2: "height", 3: "width"}, DET_OUT: {2: "anchors"}}
-
-
-def _graph_diff(ref_path: Path, test_path: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
-    """Per output: how `test_path`'s outputs differ from `ref_path`'s on `feeds` (compare_outputs); the feeds
-    may differ in shape (a detector's input sizes)."""
-    ref_sess, test_sess = ort_session(ref_path), ort_session(test_path)
-    ref, got = {}, {}
-    for f in feeds:
-        for k, v in run_session(ref_sess, f).items():
-            ref.setdefault(k, []).append(v.ravel())
-        for k, v in run_session(test_sess, f).items():
-            got.setdefault(k, []).append(v.ravel())
-    return {k: compare_outputs(np.concatenate(ref[k]), np.concatenate(got[k])).to_dict() for k in ref}
 
 
 def _hw_name(hw: tuple[int, int]) -> str:
@@ -300,10 +287,10 @@ def quantize_graphs(g: Graphs, out: Path, stages: tuple[str, ...] = INT8_STAGES)
         # what each stage quantizes and keeps float: quantize.INT8_RECIPES
         files[stage] = quantize_graph(g.files[stage], out / f"{stage}.int8.onnx", g.feeds[stage][:g.split[stage]],
                                       **INT8_RECIPES[stage])
-        checks[stage] = _graph_diff(g.files[stage], files[stage], g.held_out(stage))
+        checks[stage] = graph_diff(g.files[stage], files[stage], g.held_out(stage))
         if stage == "detector" and len(g.detector_sizes) > 1:
             checks["detector_by_size"] = {
-                _hw_name(hw): _graph_diff(g.files[stage], files[stage],
+                _hw_name(hw): graph_diff(g.files[stage], files[stage],
                                           [f for f in g.held_out(stage) if f[g.det_in].shape[2:] == hw])
                 for hw in g.detector_sizes}
     checks["note"] = "int8 vs fp32 on calibration inputs held out from calibration"
@@ -326,7 +313,7 @@ def store_float_weights(g: Graphs, out: Path, stages: tuple[str, ...], storage: 
     for stage in stages:
         small = out / f"{stage}.{storage}-weights.onnx"
         stored = write(g.files[stage], small)
-        diff = _graph_diff(g.files[stage], small, g.held_out(stage))
+        diff = graph_diff(g.files[stage], small, g.held_out(stage))
         worst = max(v["rel_rms"] for v in diff.values())
         if not worst <= limits[stage]:
             small.unlink()

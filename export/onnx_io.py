@@ -13,7 +13,7 @@ import torch
 
 from pallet6d.runtime.sessions import session_options
 
-__all__ = ["OPSET", "PARITY_TOLERANCE", "ParityError", "export_graph", "check_parity", "compare_outputs", "ort_session",
+__all__ = ["OPSET", "PARITY_TOLERANCE", "ParityError", "export_graph", "check_parity", "compare_outputs", "graph_diff", "ort_session",
            "run_session"]
 
 log = logging.getLogger(__name__)
@@ -74,6 +74,19 @@ def compare_outputs(ref: np.ndarray, test: np.ndarray) -> OutputDiff:
     corr = float(np.corrcoef(ref, test)[0, 1]) if ref.std() > 0 and test.std() > 0 else float(np.allclose(ref, test))
     return OutputDiff(float(np.abs(diff).max()), float(np.abs(ref).max()), float(np.sqrt(np.mean(diff ** 2)) / rms_ref),
                       corr)
+
+
+def graph_diff(ref_path: Path, test_path: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
+    """Per output: how `test_path`'s outputs differ from `ref_path`'s on `feeds` (compare_outputs); the feeds
+    may differ in shape (a detector's input sizes)."""
+    ref_sess, test_sess = ort_session(ref_path), ort_session(test_path)
+    ref, got = {}, {}
+    for f in feeds:
+        for k, v in run_session(ref_sess, f).items():
+            ref.setdefault(k, []).append(v.ravel())
+        for k, v in run_session(test_sess, f).items():
+            got.setdefault(k, []).append(v.ravel())
+    return {k: compare_outputs(np.concatenate(ref[k]), np.concatenate(got[k])).to_dict() for k in ref}
 
 
 def check_parity(model: torch.nn.Module, args: tuple[torch.Tensor, ...], path: Path, input_names: list[str],

@@ -26,13 +26,13 @@ import torch
 from pallet6d.runtime.bundle import MANIFEST, REPORT, load_bundle, sha256_file
 from pallet6d.runtime.pose_inputs import gather_features
 
-from .bundle_export import FLOAT_WEIGHTS, _graph_diff
+from .bundle_export import FLOAT_WEIGHTS
 from .bundle_weights import load_bundle_weights
 from .calib_data import make_calibration_set
 from .config import get_config
 from .export_inputs import ExportError, git_commit
 from .flops import count_gflops
-from .onnx_io import check_parity, export_graph, ort_session, run_session
+from .onnx_io import check_parity, export_graph, graph_diff, ort_session, run_session
 from .pose import build_pose
 
 __all__ = ["regraph_pose", "main"]
@@ -103,10 +103,10 @@ def _write_pose_graph(bundle, report: dict, net: torch.nn.Module, read_back: dic
         write, limits = FLOAT_WEIGHTS[storage]
         small = new_graph.with_suffix(".stored.onnx")
         stored = write(new_graph, small)
-        stored_check = {**stored.to_dict(), "vs_fp32_weights": _graph_diff(new_graph, small, feeds),
+        stored_check = {**stored.to_dict(), "vs_fp32_weights": graph_diff(new_graph, small, feeds),
                         "limit_rel_rms": limits["pose"]}
         small.replace(new_graph)
-    vs_old = _graph_diff(old_graph, new_graph, feeds)
+    vs_old = graph_diff(old_graph, new_graph, feeds)
     limit = FLOAT_WEIGHTS[storage][1].get("pose", 1e-4)
     worst = max(v["rel_rms"] for v in vs_old.values())
     if not worst <= limit:
