@@ -40,7 +40,7 @@ from .onnx_io import check_parity, ort_session, run_session
 from .pose import SplitInputConv1d, build_pose
 from .train_loop import CKPT_FORMAT
 
-__all__ = ["BundleWeightsError", "bundle_checkpoint", "load_bundle_weights"]
+__all__ = ["BundleWeightsError", "bundle_checkpoint", "load_bundle_weights", "pose_inputs"]
 
 log = logging.getLogger(__name__)
 
@@ -239,10 +239,23 @@ def _stage_inputs(stage: str, calib: CalibrationSet, bundle: Bundle) -> tuple[tu
     if stage == "fusion":
         crops = [tuple(t(a[i:i + 8]) for a in arrays) for i in range(0, len(calib.rgb_crops), 8)]
         return tuple(t(a[:2]) for a in arrays), crops, names, [f.output_name]
-    feats = run_session(ort_session(bundle.graph("fusion", "fp32"), threads=2),
-                        {n: a[:2] for n, a in zip(names, arrays)})[f.output_name]
-    example = (t(calib.points[:2]), t(feats if choose else gather_features(feats, calib.choose[:2])))
+    points, feats = pose_inputs(calib, bundle, 2)
+    example = (t(points), t(feats))
     return example, [example], [q.points_input, q.features_input], [q.quat_output, q.trans_output, q.conf_output]
+
+
+def pose_inputs(calib: CalibrationSet, bundle: Bundle, count: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The pose graph's inputs for the first `count` calibration crops (all: None): points (B, N, 3) and their fused
+    features (B, N, C) from the bundle's own fusion graph."""
+    f = bundle.fusion
+    names = [f.rgb_input, f.depth_input] + ([f.choose_input] if f.choose_input else [])
+    arrays = [a[:count] for a in [calib.rgb_crops, calib.depth_crops] + ([calib.choose] if f.choose_input else [])]
+    sess = ort_session(bundle.graph("fusion", "fp32"), threads=2)
+    feats = np.concatenate([run_session(sess, {n: a[i:i + 8] for n, a in zip(names, arrays)})[f.output_name]
+                            for i in range(0, len(arrays[0]), 8)])
+    if not f.choose_input:
+        feats = gather_features(feats, calib.choose[:count])
+    return calib.points[:count].astype(np.float32), feats.astype(np.float32)
 
 
 def _read_bundle(bundle_dir: str | Path) -> Bundle:
@@ -253,10 +266,12 @@ def _read_bundle(bundle_dir: str | Path) -> Bundle:
 
 
 def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module], calib_frames: int = 8,
-                        seed: int = 0, bundle: Bundle | None = None) -> dict:
+                        seed: int = 0, bundle: Bundle | None = None, calib: CalibrationSet | None = None) -> dict:
     """Load `nets` ({"detector" | "fusion" | "pose": network}) from the bundle's float graphs.
 
     :param bundle: the bundle already loaded from `bundle_dir`, if it is (else it is loaded here).
+    :param calib: the calibration inputs for the parity checks and BatchNorm statistics, if the caller has them (else
+        `calib_frames` frames of the bundle's config, seeded by `seed`).
     :return: what to record of it: the bundle's path, name, config, graph sha256s and the parity checks.
     :raises BundleWeightsError: not a bundle, a graph the networks cannot take (another config, an
         external detector), or weights that do not reproduce the graph.
@@ -269,7 +284,7 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
     cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw),
                                                    classes=tuple(bundle.detector.classes),
                                                    depth_max_m=bundle.detector.depth_max_m))
-    calib = make_calibration_set(cfg, frames=calib_frames, seed=seed)
+    calib = calib or make_calibration_set(cfg, frames=calib_frames, seed=seed)
     record: dict = {"bundle": str(root), "name": bundle.name, "config": bundle.config, "graphs": {}, "parity": {}}
     for stage, net in nets.items():
         graph = bundle.graph(stage, "fp32")

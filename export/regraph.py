@@ -24,34 +24,18 @@ import numpy as np
 import torch
 
 from pallet6d.runtime.bundle import MANIFEST, REPORT, load_bundle, sha256_file
-from pallet6d.runtime.pose_inputs import gather_features
 
 from .bundle_export import FLOAT_WEIGHTS
-from .bundle_weights import load_bundle_weights
+from .bundle_weights import load_bundle_weights, pose_inputs
 from .calib_data import make_calibration_set
 from .config import get_config
 from .export_inputs import ExportError, git_commit
 from .flops import count_gflops
-from .onnx_io import check_parity, export_graph, graph_diff, ort_session, run_session
+from .onnx_io import check_parity, export_graph, graph_diff
 from .pose import build_pose
 
 __all__ = ["regraph_pose", "main"]
 log = logging.getLogger(__name__)
-
-
-def _pose_inputs(bundle, seed: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """Calibration points (B, N, 3) and their fusion features (B, N, C) from the bundle's own fusion graph."""
-    cfg = get_config(bundle.config)
-    calib = make_calibration_set(cfg, frames=frames, seed=seed)
-    f = bundle.fusion
-    names = [f.rgb_input, f.depth_input] + ([f.choose_input] if f.choose_input else [])
-    arrays = [calib.rgb_crops, calib.depth_crops] + ([calib.choose] if f.choose_input else [])
-    sess = ort_session(bundle.graph("fusion", "fp32"), threads=2)
-    feats = np.concatenate([run_session(sess, {n: a[i:i + 8] for n, a in zip(names, arrays)})[f.output_name]
-                            for i in range(0, len(arrays[0]), 8)])
-    if not f.choose_input:
-        feats = gather_features(feats, calib.choose)
-    return calib.points.astype(np.float32), feats.astype(np.float32)
 
 
 def _storage(report: dict) -> str:
@@ -75,8 +59,9 @@ def regraph_pose(src: str | Path, out: str | Path, *, seed: int = 0, frames: int
     report = json.loads(json.dumps(bundle.report))   # a copy: report.json, or a version-1 manifest's own
     cfg = get_config(bundle.config)
     net = build_pose(cfg.pose, bundle.fusion.feature_dim).eval()
-    read_back = load_bundle_weights(src, {"pose": net}, seed=seed, bundle=bundle)
-    points, feats = _pose_inputs(bundle, seed, frames)
+    calib = make_calibration_set(cfg, frames=frames, seed=seed)
+    read_back = load_bundle_weights(src, {"pose": net}, bundle=bundle, calib=calib)
+    points, feats = pose_inputs(calib, bundle)
 
     shutil.copytree(src, out, dirs_exist_ok=True)
     try:
