@@ -11,7 +11,9 @@ the graph it was exported to and proves it with a parity check against onnxrunti
   `rgb.backbone.layer1.0.conv1`), which takes the folded kernel, and its BatchNorm takes the folded bias;
 - Linear weights appear transposed in a MatMul, PReLU slopes reshaped to (C, 1, 1);
 - a pose head's first convolution (`pose.SplitInputConv1d`) is two Conv nodes, its local columns and its global
-  columns (with the bias), joined again; a graph of the older layout has one Conv with the whole weight.
+  columns (with the bias), joined again; a graph of the older layout has one Conv with the whole weight;
+- a pose graph that gives the most confident hypothesis alone (`pose.MostConfidentPose`) has the network's layers
+  under their own names, and is checked against the network wrapped the same way.
 
 A folded BatchNorm has lost its statistics, so they are measured again: the per-channel mean and variance
 of its input over calibration crops, with its scale and shift chosen so that the network computes exactly
@@ -37,7 +39,7 @@ from .config import get_config
 from .detector import build_detector
 from .fusion import build_fusion
 from .onnx_io import check_parity, ort_session, run_session
-from .pose import SplitInputConv1d, build_pose
+from .pose import MostConfidentPose, SplitInputConv1d, build_pose
 from .train_loop import CKPT_FORMAT
 
 __all__ = ["BundleWeightsError", "bundle_checkpoint", "load_bundle_weights", "pose_inputs"]
@@ -295,7 +297,9 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
             state, folded = _state_from_graph(net, graph, example)
             net.load_state_dict(state)
             _restore_batchnorm_statistics(net, folded, batches)
-            record["parity"][stage] = check_parity(net, example, graph, in_names, out_names)
+            graph_net = MostConfidentPose(net) if stage == "pose" and bundle.pose.hypotheses == "most_confident" \
+                else net
+            record["parity"][stage] = check_parity(graph_net, example, graph, in_names, out_names)
         except RuntimeError as exc:
             raise BundleWeightsError(f"--init {root}: the weights read back from {graph.name} do not reproduce it: "
                                      f"{exc}") from None

@@ -8,6 +8,10 @@ quaternion (w, x, y, z), a translation offset from the point, and a confidence i
 
 Graph: points (B, N, 3) metres, centred; features (B, N, C) -> quat (B, N, 4), trans (B, N, 3), conf (B, N).
 The object's translation from point i is points[i] + trans[i] (+ the centre the runtime subtracted).
+
+The shipped graph (`MostConfidentPose`, the same weights) keeps only what the runtime uses, DenseFusion's most
+confident hypothesis: it runs the confidence head at every point and the rotation and translation heads at the
+chosen point alone -> quat (B, 4), trans (B, 3) = that point + its offset, conf (B,).
 """
 from __future__ import annotations
 
@@ -18,7 +22,7 @@ from torch import nn
 from .attention import MultiHeadSelfAttention
 from .config import PoseConfig
 
-__all__ = ["PoseNet", "SplitInputConv1d", "build_pose"]
+__all__ = ["MostConfidentPose", "PoseNet", "SplitInputConv1d", "build_pose"]
 
 
 class SplitInputConv1d(nn.Conv1d):
@@ -70,9 +74,10 @@ class PoseNet(nn.Module):
         self.head_t = _head(local, g2, cfg.head_dims, 3)
         self.head_c = _head(local, g2, cfg.head_dims, 1)
 
-    def forward(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """:param points: (B, N, 3). :param features: (B, N, C).
-        :return: quat (B, N, 4) unit wxyz, trans (B, N, 3) metres, conf (B, N)."""
+    def dense(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The dense per-point feature, `[local; g at every point]`, as its two parts.
+
+        :param points: (B, N, 3). :param features: (B, N, C). :return: local (B, 2*p1 + 2*p2, N), g (B, g2, 1)."""
         x = F.relu(self.conv1(points.transpose(1, 2)))
         e = F.relu(self.e_conv1(features.transpose(1, 2)))
         pf1 = torch.cat((x, e), 1)
@@ -82,12 +87,46 @@ class PoseNet(nn.Module):
         e = F.relu(self.e_conv2(e))
         pf2 = torch.cat((x, e), 1)
         g = F.relu(self.conv6(F.relu(self.conv5(pf2))))
-        g = g.mean(2, keepdim=True)
-        local = torch.cat((pf1, pf2), 1)                 # the dense feature is [local; g at every point]
+        return torch.cat((pf1, pf2), 1), g.mean(2, keepdim=True)
+
+    def forward(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:param points: (B, N, 3). :param features: (B, N, C).
+        :return: quat (B, N, 4) unit wxyz, trans (B, N, 3) metres, conf (B, N)."""
+        local, g = self.dense(points, features)
         quat = F.normalize(self.head_r(local, g), dim=1, eps=1e-8).transpose(1, 2)
         trans = self.head_t(local, g).transpose(1, 2)
         conf = torch.sigmoid(self.head_c(local, g))[:, 0]
         return quat, trans, conf
+
+
+class MostConfidentPose(nn.Module):
+    """A pose network's most confident hypothesis per sample (DenseFusion's argmax), computed without the rotation
+    and translation heads at the other points: the graph the runtime runs.
+
+    Its layers are the network's own, registered under the same names: the same state-dict keys and graph node
+    names, so a graph of it reads back into a `PoseNet` like a graph of the network (`bundle_weights`).
+    """
+
+    def __init__(self, net: PoseNet) -> None:
+        super().__init__()
+        for name, child in net.named_children():
+            self.add_module(name, child)
+        self._dense = net.dense
+
+    def forward(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:param points: (B, N, 3) centred. :param features: (B, N, C).
+        :return: quat (B, 4) unit wxyz, trans (B, 3) = the chosen point + its offset (metres, centred frame), conf
+            (B,); the chosen point is the first of the most confident ones, as numpy's argmax picks."""
+        local, g = self._dense(points, features)
+        conf = torch.sigmoid(self.head_c(local, g))[:, 0]                      # (B, N)
+        best, idx = conf.max(1, keepdim=True)                                   # (B, 1)
+        # the chosen point as a one-hot mask (exact: x * 1 plus zeros), which keeps every shape static for
+        # shape inference, where a gather's index would not
+        pick = (torch.arange(conf.shape[1], device=conf.device) == idx).to(local.dtype)   # (B, N)
+        chosen = torch.bmm(local, pick[:, :, None])                             # (B, C, 1)
+        quat = F.normalize(self.head_r(chosen, g), dim=1, eps=1e-8)[:, :, 0]
+        point = (points * pick[:, :, None]).sum(1)
+        return quat, point + self.head_t(chosen, g)[:, :, 0], best[:, 0]
 
 
 def build_pose(cfg: PoseConfig, feature_dim: int) -> PoseNet:

@@ -1,11 +1,13 @@
 """A bundle's pose graph exported again from its own weights, by the current network code.
 
-How the pose network computes can change without its weights changing (its heads now meet the global
-feature once per pallet instead of once per point: `pose.SplitInputConv1d`). This writes a new bundle folder:
-every file of the old one copied unchanged except `pose.onnx`, whose weights are read back from the old graph
-(`bundle_weights`), exported again, stored as before (int8 per output channel, float16 or float32) and
-compared with the old graph on calibration inputs. The report keeps the old provenance, checks and scores and
-records the re-export under `provenance.pose_graph`; re-measure the scores before shipping.
+How the pose network computes can change without its weights changing (its heads meet the global feature once
+per pallet instead of once per point: `pose.SplitInputConv1d`; the graph gives the most confident hypothesis alone:
+`pose.MostConfidentPose`). This writes a new bundle folder: every file of the old one copied unchanged except
+`pose.onnx`, whose weights are read back from the old graph (`bundle_weights`), exported again, stored as before
+(int8 per output channel, float16 or float32) and compared with the old graph on calibration inputs (an old graph
+that gives every point's hypothesis is compared at its most confident point), and the manifest's
+`pose.hypotheses`. The report keeps the old provenance, checks and scores and records the re-export under
+`provenance.pose_graph`; re-measure the scores before shipping.
 
 usage: python -m pallet6d.export.regraph --bundle models/epal-default --out /tmp/epal-default
 """
@@ -31,8 +33,8 @@ from .calib_data import make_calibration_set
 from .config import get_config
 from .export_inputs import ExportError, git_commit
 from .flops import count_gflops
-from .onnx_io import check_parity, export_graph, graph_diff
-from .pose import build_pose
+from .onnx_io import check_parity, compare_outputs, export_graph, graph_diff, ort_session, run_session
+from .pose import MostConfidentPose, build_pose
 
 __all__ = ["regraph_pose", "main"]
 log = logging.getLogger(__name__)
@@ -79,8 +81,9 @@ def _write_pose_graph(bundle, report: dict, net: torch.nn.Module, read_back: dic
     old_graph = bundle.graph("pose", "fp32")
     new_graph = out / old_graph.relative_to(bundle.root)
     example = (torch.from_numpy(points[:2]), torch.from_numpy(feats[:2]))
-    export_graph(net, example, new_graph, in_names, out_names, {k: {0: "batch"} for k in in_names + out_names})
-    parity = check_parity(net, example, new_graph, in_names, out_names)
+    graph_net = MostConfidentPose(net)
+    export_graph(graph_net, example, new_graph, in_names, out_names, {k: {0: "batch"} for k in in_names + out_names})
+    parity = check_parity(graph_net, example, new_graph, in_names, out_names)
     storage = _storage(report)
     feeds = [{q.points_input: points[i:i + 4], q.features_input: feats[i:i + 4]} for i in range(0, len(points), 4)]
     stored_check = None
@@ -91,7 +94,7 @@ def _write_pose_graph(bundle, report: dict, net: torch.nn.Module, read_back: dic
         stored_check = {**stored.to_dict(), "vs_fp32_weights": graph_diff(new_graph, small, feeds),
                         "limit_rel_rms": limits["pose"]}
         small.replace(new_graph)
-    vs_old = graph_diff(old_graph, new_graph, feeds)
+    vs_old = _diff_to_old(old_graph, new_graph, feeds, q)
     limit = FLOAT_WEIGHTS[storage][1].get("pose", 1e-4)
     worst = max(v["rel_rms"] for v in vs_old.values())
     if not worst <= limit:
@@ -101,6 +104,7 @@ def _write_pose_graph(bundle, report: dict, net: torch.nn.Module, read_back: dic
     manifest = json.loads((bundle.root / MANIFEST).read_text(encoding="utf-8"))
     rel = new_graph.relative_to(out).as_posix()
     manifest["files"][rel] = sha256_file(new_graph)
+    manifest["pose"]["hypotheses"] = "most_confident"
     (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
     checks = report.setdefault("checks", {})
     checks.setdefault("parity", {})["pose"] = parity
@@ -115,6 +119,26 @@ def _write_pose_graph(bundle, report: dict, net: torch.nn.Module, read_back: dic
     (out / REPORT).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     load_bundle(out)   # the runtime must accept what was written
     log.info("%s: pose graph re-exported (%s weights), vs the old graph: worst relative RMS %.2g", out, storage, worst)
+
+
+def _diff_to_old(old_graph: Path, new_graph: Path, feeds: list[dict[str, np.ndarray]], q) -> dict:
+    """Per output, how the new graph's outputs differ from the old one's (`onnx_io.compare_outputs`); an old graph
+    that gives every point's hypothesis (`q.hypotheses` "per_point") is read at its most confident point, with the
+    point added to its offset, as the runtime reads it."""
+    old_sess, new_sess = ort_session(old_graph), ort_session(new_graph)
+    ref: dict[str, list] = {}
+    got: dict[str, list] = {}
+    for f in feeds:
+        old, new = run_session(old_sess, f), run_session(new_sess, f)
+        if q.hypotheses == "per_point":
+            conf = old[q.conf_output]
+            idx, rows = conf.argmax(1), np.arange(len(conf))
+            old = {q.quat_output: old[q.quat_output][rows, idx], q.conf_output: conf[rows, idx],
+                   q.trans_output: f[q.points_input][rows, idx] + old[q.trans_output][rows, idx]}
+        for k in (q.quat_output, q.trans_output, q.conf_output):
+            ref.setdefault(k, []).append(old[k].ravel())
+            got.setdefault(k, []).append(new[k].ravel())
+    return {k: compare_outputs(np.concatenate(ref[k]), np.concatenate(got[k])).to_dict() for k in ref}
 
 
 def main(argv: list[str] | None = None) -> int:

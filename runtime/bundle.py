@@ -306,6 +306,10 @@ def check_bundle(path: str | Path, run: bool = True) -> list[str]:
         fusion_in[f.choose_input] = [None, n]
         fusion_feeds[f.choose_input] = _zeros([2, n], np.int64)
         fusion_out = [None, n, c]
+    if p.hypotheses == "most_confident":
+        pose_out = {p.quat_output: [None, 4], p.trans_output: [None, 3], p.conf_output: [None]}
+    else:
+        pose_out = {p.quat_output: [None, n, 4], p.trans_output: [None, n, 3], p.conf_output: [None, n]}
     for prec in b.precision:
         suffix = "" if prec == "fp32" else " int8"
         for h, w in d.input_sizes:   # a multi-size graph must take (and run at) every size
@@ -316,8 +320,7 @@ def check_bundle(path: str | Path, run: bool = True) -> list[str]:
                                      {d.input_name: _zeros([1, 3, h, w])})
         for stage, inputs, outputs, feeds in (
                 ("fusion", fusion_in, {f.output_name: fusion_out}, fusion_feeds),
-                ("pose", {p.points_input: [None, n, 3], p.features_input: [None, n, c]},
-                 {p.quat_output: [None, n, 4], p.trans_output: [None, n, 3], p.conf_output: [None, n]},
+                ("pose", {p.points_input: [None, n, 3], p.features_input: [None, n, c]}, pose_out,
                  {p.points_input: _zeros([2, n, 3]), p.features_input: _zeros([2, n, c])})):
             graph = b.graph(stage, prec)
             problems += _check_graph(graph, f"{stage}{suffix} ({graph.name})", inputs, outputs, run, feeds)

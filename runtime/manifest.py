@@ -37,6 +37,9 @@ every file. How the bundle was made and what it scored live in `report.json` bes
         "file": "pose.onnx", "file_int8": "pose.onnx" | null,   # a float graph may serve precision int8
         "points_input": "points", "features_input": "features",  # (B, N, 3) centred metres, (B, N, C)
         "quat_output": "quat", "trans_output": "trans", "conf_output": "conf",   # (B, N, 4), (B, N, 3), (B, N)
+        "hypotheses": "per_point" | "most_confident",  # optional, absent = per_point; most_confident: the graph
+                                                       # picks the most confident point itself and gives (B, 4),
+                                                       # (B, 3) = that point + its offset, (B,)
         "num_points": 256, "depth_range_m": [0.1, 10.0],
         "points_centring": "mean", "translation": "point_offset", "quaternion_order": "wxyz"
       },
@@ -71,7 +74,7 @@ from .pallet_geometry import default_refine_starts, derive_pockets_m
 from .pallet_type import PalletType
 
 __all__ = ["BundleError", "FieldError", "DetectorSpec", "FusionSpec", "PoseSpec", "PalletType", "Manifest",
-           "FORMAT", "FORMAT_VERSION", "read_manifest", "relative_name", "upgrade_v1"]
+           "FORMAT", "FORMAT_VERSION", "POSE_HYPOTHESES", "read_manifest", "relative_name", "upgrade_v1"]
 
 FORMAT = "pallet6d-bundle"
 FORMAT_VERSION = 2
@@ -247,12 +250,14 @@ class FusionSpec:
 
 
 _POSE_CONVENTIONS = (("points_centring", "mean"), ("translation", "point_offset"), ("quaternion_order", "wxyz"))
+POSE_HYPOTHESES = ("per_point", "most_confident")
 
 
 @dataclass(frozen=True)
 class PoseSpec:
     """The pose graph: centred points and their features in, per-point quaternion, translation offset and
-    confidence out."""
+    confidence out (`hypotheses` "per_point"), or the most confident point's alone (`hypotheses` "most_confident":
+    quaternion (B, 4), that point plus its offset (B, 3), confidence (B,))."""
 
     file: str
     file_int8: str | None
@@ -263,9 +268,12 @@ class PoseSpec:
     conf_output: str
     num_points: int
     depth_range_m: tuple[float, float]
+    hypotheses: str = "per_point"
 
     def __post_init__(self) -> None:
         graph_file("file", self.file)
+        if self.hypotheses not in POSE_HYPOTHESES:
+            raise FieldError("hypotheses", f"must be one of {', '.join(POSE_HYPOTHESES)}, got {self.hypotheses!r}")
         graph_file("file_int8", self.file_int8)
         if self.num_points <= 0:
             raise FieldError("num_points", f"must be a positive integer, got {self.num_points}")
@@ -283,13 +291,13 @@ class PoseSpec:
                        points_input=p.str("points_input"), features_input=p.str("features_input"),
                        quat_output=p.str("quat_output"), trans_output=p.str("trans_output"),
                        conf_output=p.str("conf_output"), num_points=p.int("num_points"),
-                       depth_range_m=p.nums("depth_range_m", 2))
+                       depth_range_m=p.nums("depth_range_m", 2), hypotheses=p.str("hypotheses", "per_point"))
 
     def to_dict(self) -> dict:
         return {"file": self.file, "file_int8": self.file_int8, "points_input": self.points_input,
                 "features_input": self.features_input, "quat_output": self.quat_output,
-                "trans_output": self.trans_output, "conf_output": self.conf_output, "num_points": self.num_points,
-                "depth_range_m": list(self.depth_range_m), **dict(_POSE_CONVENTIONS)}
+                "trans_output": self.trans_output, "conf_output": self.conf_output, "hypotheses": self.hypotheses,
+                "num_points": self.num_points, "depth_range_m": list(self.depth_range_m), **dict(_POSE_CONVENTIONS)}
 
 
 @dataclass(frozen=True)

@@ -4,6 +4,9 @@ The pose network predicts, for every sampled point i of pallet b, a quaternion q
 offset dt[b, i] and a confidence c[b, i]. Points enter the network centred (the cloud's centre is
 subtracted), so hypothesis i places the pallet at  points[b, i] + dt[b, i] + centre[b]  in the camera
 frame, with rotation q[b, i]. The pose is the most confident hypothesis (DenseFusion's argmax).
+
+A pose graph that picks that hypothesis itself (manifest `pose.hypotheses` "most_confident") gives each pallet's
+quaternion, its chosen point plus offset (centred frame) and confidence: `chosen_poses` only adds the centre back.
 """
 from __future__ import annotations
 
@@ -11,7 +14,7 @@ import numpy as np
 
 from .geometry import quat_to_rot
 
-__all__ = ["select_poses"]
+__all__ = ["chosen_poses", "select_poses"]
 
 
 def select_poses(quat: np.ndarray, offset_m: np.ndarray, conf: np.ndarray, points_m: np.ndarray,
@@ -52,3 +55,31 @@ def select_poses(quat: np.ndarray, offset_m: np.ndarray, conf: np.ndarray, point
     T[:, :3, :3] = quat_to_rot(q)
     T[:, :3, 3] = points_m[rows, idx] + offset_m[rows, idx] + centre_m
     return T, conf[rows, idx], idx.astype(np.int64)
+
+
+def chosen_poses(quat: np.ndarray, trans_centred_m: np.ndarray, conf: np.ndarray,
+                 centre_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses from a graph that picked each pallet's most confident hypothesis itself.
+
+    :param quat: (B, 4) wxyz quaternions (need not be normalised).
+    :param trans_centred_m: (B, 3) the chosen point plus its offset, in the centred frame, metres.
+    :param conf: (B,) the chosen hypotheses' confidences.
+    :param centre_m: (B, 3) the centre subtracted from each pallet's points, camera frame, metres.
+    :return: T_cam_pallet (B, 4, 4), confidence (B,).
+    """
+    quat = np.asarray(quat, dtype=np.float64)
+    if quat.ndim != 2 or quat.shape[1] != 4:
+        raise ValueError(f"quat must be (B, 4), got {quat.shape}")
+    B = len(quat)
+    trans_centred_m = np.asarray(trans_centred_m, dtype=np.float64)
+    conf = np.asarray(conf, dtype=np.float64)
+    centre_m = np.asarray(centre_m, dtype=np.float64)
+    for name, arr, shape in (("trans_centred_m", trans_centred_m, (B, 3)), ("conf", conf, (B,)),
+                             ("centre_m", centre_m, (B, 3))):
+        if arr.shape != shape:
+            raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
+    T = np.tile(np.eye(4), (B, 1, 1))
+    if B:
+        T[:, :3, :3] = quat_to_rot(quat)
+        T[:, :3, 3] = trans_centred_m + centre_m
+    return T, conf

@@ -2,7 +2,7 @@
 
 Per box: crop and encode, select the depth pixels and sample N of them (`pose_inputs.prepare_pose_inputs`,
 shared with training), then the fusion and pose graphs on all boxes (in chunks of `graph_batch`), then the most
-confident per-point hypothesis (`selection.select_poses`).
+confident per-point hypothesis (`selection.select_poses`, or the graph's own choice: `selection.chosen_poses`).
 
 With two or more chunks and `lanes` > 1, the chunks run side by side, `lanes` at a time, each on a one-thread copy
 of the two graphs: graphs this small hardly use a second intra-op thread (one pallet, int8: 10 ms on 2 threads,
@@ -28,7 +28,7 @@ from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .geometry import clamp_box
 from .pose_inputs import PoseBatch, PoseInputSpec, gather_features, prepare_pose_inputs
-from .selection import select_poses
+from .selection import chosen_poses, select_poses
 from .sessions import OnnxModel
 
 __all__ = ["GRAPH_BATCH", "PoseNetworkStage"]
@@ -97,8 +97,9 @@ class PoseNetworkStage:
         `lanes` when there are several chunks); once `deadline` has expired no further chunk is taken, so the
         rows run are always the first b.
 
-        :return: per-point quaternions (b, N, 4), translation offsets (b, N, 3), confidences (b, N) for the
-            first b rows of `batch` (b = len(batch) unless the deadline stopped it).
+        :return: the pose graph's outputs for the first b rows of `batch` (b = len(batch) unless the deadline
+            stopped it): per-point quaternions (b, N, 4), translation offsets (b, N, 3), confidences (b, N); or, from
+            a graph that picks the most confident hypothesis (`PoseSpec.hypotheses`), (b, 4), (b, 3), (b,).
         """
         q = self.pose_spec
         timings = {} if timings is None else timings
@@ -112,8 +113,8 @@ class PoseNetworkStage:
                     break
                 outs.append(self._run_chunk(self.fusion, self.pose, batch, part, timings))
         if not outs:
-            n = batch.points.shape[1]
-            return np.zeros((0, n, 4), np.float32), np.zeros((0, n, 3), np.float32), np.zeros((0, n), np.float32)
+            per_point = (batch.points.shape[1],) if q.hypotheses == "per_point" else ()
+            return tuple(np.zeros((0, *per_point, *k), np.float32) for k in ((4,), (3,), ()))
         return tuple(np.concatenate([o[k] for o in outs]) for k in (q.quat_output, q.trans_output, q.conf_output))
 
     def _run_chunk(self, fusion: OnnxModel, pose: OnnxModel, batch: PoseBatch, part: slice,
@@ -170,11 +171,12 @@ class PoseNetworkStage:
             timings[s] = timings.get(s, 0.0) + (wall * spent[s] / total if total > 0 else 0.0)
         return [r for r in results if r is not None]
 
-    @staticmethod
-    def postprocess(quat: np.ndarray, trans: np.ndarray, conf: np.ndarray,
+    def postprocess(self, quat: np.ndarray, trans: np.ndarray, conf: np.ndarray,
                     batch: PoseBatch) -> tuple[np.ndarray, np.ndarray]:
         """The most confident hypothesis of each of the b rows: T_cam_pallet (b, 4, 4), confidence (b,)."""
         b = len(quat)
+        if self.pose_spec.hypotheses == "most_confident":
+            return chosen_poses(quat, trans, conf, batch.centres[:b])
         T, confidence, _ = select_poses(quat, trans, conf, batch.points[:b], batch.centres[:b], "wxyz")
         return T, confidence
 

@@ -230,6 +230,7 @@ POCKET = [[[-0.6, -0.3, -0.07], [0.6, -0.1, 0.02]], [[-0.6, 0.1, -0.07], [0.6, 0
     (_set(("fusion",), "crop_resize", "letterbox"), r"'fusion.crop_resize' must be 'stretch'"),
     (_set(("fusion", "depth_encoding"), "interpolation", "linear"), r"'fusion.depth_encoding.interpolation' must be"),
     (_set(("pose",), "quaternion_order", "xyzw"), r"'pose.quaternion_order' must be 'wxyz'"),
+    (_set(("pose",), "hypotheses", "top_3"), r"'pose.hypotheses' must be one of per_point, most_confident"),
     (_set((), "precision", ["fp32", "int8"]), r"'precision' lists 'int8' but not every graph has a file_int8"),
     # pallet types
     (_drop_type(1), r"'pallet_types' has no type for detector class 1 \('gma'\)"),

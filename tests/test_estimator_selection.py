@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from pallet6d.runtime.geometry import quat_to_rot, rot_to_quat
-from pallet6d.runtime.selection import select_poses
+from pallet6d.runtime.selection import chosen_poses, select_poses
 
 
 def _hypotheses(B=2, N=5, seed=0):
@@ -61,3 +61,21 @@ def test_empty_batch_and_shape_errors():
         select_poses(quat, offset, conf[:, :4], points, centre)
     with pytest.raises(ValueError, match="quat_order"):
         select_poses(quat, offset, conf, points, centre, quat_order="zyxw")
+
+
+def test_a_graphs_own_choice_gives_the_same_pose_as_the_choice_here():
+    quat, offset, conf, points, centre = _hypotheses(B=3, N=6, seed=2)
+    T, c, idx = select_poses(quat, offset, conf, points, centre)
+    rows = np.arange(3)
+    T2, c2 = chosen_poses(quat[rows, idx], points[rows, idx] + offset[rows, idx], conf[rows, idx], centre)
+    np.testing.assert_allclose(T2, T, atol=1e-12)
+    np.testing.assert_allclose(c2, c)
+
+
+def test_a_graphs_own_choice_empty_and_shape_errors():
+    T, c = chosen_poses(np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)))
+    assert T.shape == (0, 4, 4) and c.shape == (0,)
+    with pytest.raises(ValueError, match=r"quat must be \(B, 4\)"):
+        chosen_poses(np.zeros((2, 5, 4)), np.zeros((2, 3)), np.zeros(2), np.zeros((2, 3)))
+    with pytest.raises(ValueError, match=r"conf: expected shape \(2,\)"):
+        chosen_poses(np.ones((2, 4)), np.zeros((2, 3)), np.zeros((2, 1)), np.zeros((2, 3)))

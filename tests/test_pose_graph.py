@@ -1,6 +1,7 @@
-"""The pose heads' first convolution meets the global feature once per sample (`export/pose.py`), graphs of the
-older layout (one convolution over the concatenation) still read back, and `export/regraph.py` re-exports a
-bundle's pose graph from its own weights."""
+"""The pose heads' first convolution meets the global feature once per sample (`export/pose.py`), the shipped graph
+gives the most confident hypothesis alone (`MostConfidentPose`), graphs of the older layouts (one convolution over
+the concatenation; every point's hypothesis) still read back and run, and `export/regraph.py` re-exports a bundle's
+pose graph from its own weights."""
 from __future__ import annotations
 
 import json
@@ -11,12 +12,16 @@ import pytest
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
-from pallet6d.export.bundle_weights import _state_from_graph  # noqa: E402
+from pallet6d.export.bundle_weights import _state_from_graph, load_bundle_weights  # noqa: E402
 from pallet6d.export.config import get_config  # noqa: E402
 from pallet6d.export.export_inputs import ExportError  # noqa: E402
 from pallet6d.export.onnx_io import compare_outputs, export_graph, ort_session, run_session  # noqa: E402
-from pallet6d.export.pose import SplitInputConv1d, build_pose  # noqa: E402
+from pallet6d.export.pose import MostConfidentPose, SplitInputConv1d, build_pose  # noqa: E402
 from pallet6d.export.regraph import regraph_pose  # noqa: E402
+from pallet6d.runtime.bundle import check_bundle, load_bundle, sha256_file  # noqa: E402
+from pallet6d.runtime.estimator import PalletEstimator  # noqa: E402
+
+from estimator_fixtures import scene, visible_boxes  # noqa: E402
 
 CFG = get_config("tiny")
 
@@ -92,3 +97,80 @@ def test_a_bundle_pose_graph_re_exported_from_its_weights(bundle_dir, tmp_path):
         assert compare_outputs(v, got[k]).rel_rms < 0.02, k
     with pytest.raises(ExportError, match="not empty"):
         regraph_pose(bundle_dir, out)
+
+
+def test_the_most_confident_hypothesis_is_the_networks_argmax():
+    torch.manual_seed(3)
+    net = build_pose(CFG.pose, CFG.fusion.feature_dim).eval()
+    points, feats = _inputs(4)
+    with torch.no_grad():
+        quat, trans, conf = net(points, feats)
+        q1, t1, c1 = MostConfidentPose(net)(points, feats)
+    rows, idx = torch.arange(4), conf.argmax(1)
+    assert torch.allclose(q1, quat[rows, idx], atol=1e-6)
+    assert torch.allclose(t1, points[rows, idx] + trans[rows, idx], atol=1e-6)
+    assert torch.equal(c1, conf[rows, idx])
+    assert set(MostConfidentPose(net).state_dict()) == set(net.state_dict())    # the same weights, same names
+
+
+def test_equal_confidences_choose_the_first_point_as_numpy_does():
+    torch.manual_seed(4)
+    net = build_pose(CFG.pose, CFG.fusion.feature_dim).eval()
+    with torch.no_grad():
+        net.head_c[-1].weight.zero_()         # every point's confidence the same
+    points, feats = _inputs(2)
+    with torch.no_grad():
+        quat, trans, _ = net(points, feats)
+        q1, t1, _ = MostConfidentPose(net)(points, feats)
+    assert torch.allclose(q1, quat[:, 0], atol=1e-6)
+    assert torch.allclose(t1, points[:, 0] + trans[:, 0], atol=1e-6)
+
+
+def _per_point_bundle(bundle_dir, out):
+    """A copy of `bundle_dir` whose pose graph gives every point's hypothesis (the older layout), same weights."""
+    import shutil
+    shutil.copytree(bundle_dir, out)
+    net = build_pose(CFG.pose, CFG.fusion.feature_dim).eval()
+    load_bundle_weights(bundle_dir, {"pose": net}, calib_frames=2)
+    names, outputs = ["points", "features"], ["quat", "trans", "conf"]
+    export_graph(net, _inputs(2), out / "pose.onnx", names, outputs, {k: {0: "batch"} for k in names + outputs})
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["pose"]["hypotheses"] = "per_point"
+    manifest["files"]["pose.onnx"] = sha256_file(out / "pose.onnx")
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    return out
+
+
+def _network_poses(bundle) -> tuple[np.ndarray, np.ndarray]:
+    """The pose stage's most confident hypotheses (T_cam_pallet, confidence) on the shared scene's pallets."""
+    frame = scene()
+    est = PalletEstimator.from_bundle(bundle, threads=1)
+    stage = est.pose_network
+    batch, _ = stage.preprocess(frame.rgb, frame.depth_m, frame.K, visible_boxes(frame, 3))
+    return stage.postprocess(*stage.infer(batch), batch)
+
+
+def test_bundles_of_either_hypothesis_layout_give_the_same_poses(bundle_dir, tmp_path):
+    old = _per_point_bundle(bundle_dir, tmp_path / "per-point")
+    assert load_bundle(old).pose.hypotheses == "per_point" and load_bundle(bundle_dir).pose.hypotheses == \
+        "most_confident"
+    T_old, c_old = _network_poses(old)
+    T_new, c_new = _network_poses(bundle_dir)
+    assert T_old.shape == (3, 4, 4)
+    np.testing.assert_allclose(T_new, T_old, atol=1e-5)
+    np.testing.assert_allclose(c_new, c_old, atol=1e-6)
+    out = regraph_pose(old, tmp_path / "again", frames=2, command="test")      # the older layout re-exported
+    assert load_bundle(out).pose.hypotheses == "most_confident"
+    record = json.loads((out / "report.json").read_text())["provenance"]["pose_graph"]
+    assert all(v["rel_rms"] < 0.02 for v in record["vs_previous_graph"].values())
+    np.testing.assert_allclose(_network_poses(out)[0], T_old, atol=2e-3)      # int8-stored weights, as before
+
+
+def test_bundle_check_reports_a_graph_that_does_not_give_what_the_manifest_says(bundle_dir, tmp_path):
+    wrong = _per_point_bundle(bundle_dir, tmp_path / "wrong")
+    manifest = json.loads((wrong / "manifest.json").read_text())
+    manifest["pose"]["hypotheses"] = "most_confident"          # a per-point graph called a most-confident one
+    (wrong / "manifest.json").write_text(json.dumps(manifest))
+    problems = check_bundle(wrong, run=False)
+    assert any("pose" in p and "quat" in p for p in problems), problems
+    assert check_bundle(bundle_dir, run=True) == []
