@@ -20,6 +20,9 @@ Variants (`CONFIGS`):
 - ``edge2-dilated``: ``edge2`` with ``edge``'s crop (96) and dilated layer3/4: the backbone computes exactly what
   the shipped ``edge`` backbone computes, so a warm start from it loses only the two output convs (0.7 ms more
   per pallet at int8 than ``edge2``); the fallback if ``edge2`` does not reach ``edge``'s accuracy.
+- ``edge2-slim``: ``edge2-dilated`` with layer4 and the PSP bottleneck at half its width (128 and 256 channels):
+  about half its fusion work (layer4 at stride 8 is most of it), trained from it (``--init`` copies every other
+  layer) with its fused features as a target (``pallet6d train pose --distill``).
 - ``densefusion``: ``paper`` without any attention block (the paper's ablation baseline).
 - ``edge-densefusion``: ``edge`` without any attention block (the same ablation at the shipped size).
 - ``tiny``: minimal widths for fast tests (never for deployment).
@@ -262,6 +265,9 @@ CONFIGS: dict[str, ModelConfig] = {
 # edge2 with edge's crop and dilated layers: the backbone computes what edge's computes
 CONFIGS["edge2-dilated"] = CONFIGS["edge2"].replace(
     name="edge2-dilated", fusion=dataclasses.replace(CONFIGS["edge2"].fusion, crop_hw=(96, 96), dilated=True))
+CONFIGS["edge2-slim"] = CONFIGS["edge2-dilated"].replace(
+    name="edge2-slim", fusion=dataclasses.replace(CONFIGS["edge2-dilated"].fusion, resnet_widths=(32, 64, 128, 128),
+                                                  psp_out=256))
 
 
 def get_config(name: str) -> ModelConfig:

@@ -91,6 +91,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-points", type=int, metavar="N",
                         help="pose: train on N points per pallet (a random subset of the config's, re-centred); "
                              "export the result with the same `pallet6d export --num-points N`")
+    parser.add_argument("--distill", type=Path, metavar="BUNDLE|CKPT",
+                        help="pose: also train the fusion network to give these weights' fused features (a bundle or "
+                             "checkpoint whose fusion network takes the same crops, e.g. a smaller config learning "
+                             "from models/epal-default)")
+    parser.add_argument("--distill-weight", type=float, default=1.0,
+                        help="pose: weight of --distill's feature error (relative to the teacher's variance) in the "
+                             "loss (default 1)")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
     parser.add_argument("--init", type=Path,
@@ -276,10 +283,14 @@ def main(args: argparse.Namespace) -> int:
         if args.num_points is not None and args.stage != "pose":
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
+        if args.distill is not None and args.stage != "pose":
+            print("pallet6d train: --distill is for the pose stage", file=sys.stderr)
+            return 2
         if args.stage == "pose":
             from .train_pose import train_pose
             entry = train_pose(cfg, args.data, args.out, settings, variants=args.variants or recipe["variants"],
-                               aug=AugmentConfig(), num_points=args.num_points, **common)
+                               aug=AugmentConfig(), num_points=args.num_points, distill=args.distill,
+                               distill_weight=args.distill_weight, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

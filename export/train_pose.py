@@ -10,6 +10,11 @@ symmetry-aware ADD of the most confident per-point hypothesis.
 
 A fusion network with `sample_stride` samples its features at `choose` inside the graph; the dense one's
 map is gathered at `choose` here, as the runtime does.
+
+With a teacher (`distill`: a bundle or checkpoint whose fusion network takes the same crops), its per-point fused
+features are a second target: the loss adds `distill_weight` times the mean squared difference of the two
+networks' features, divided by the variance of the teacher's (so 1 means "no better than their mean"). A
+smaller fusion network (`edge2-slim`) then learns to give the pose network what it was trained on.
 """
 from __future__ import annotations
 
@@ -24,13 +29,13 @@ import torch
 from pallet6d.runtime.bop import BopDataset
 
 from .calib_data import pose_input_spec
-from .config import ModelConfig
+from .config import ModelConfig, get_config
 from .fusion import build_fusion
 from .losses import pad_symmetries, pose_loss, stack_model_points
 from .pose import build_pose
 from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for,
                          pallet_type_name)
-from .train_loop import LoopSettings, autocast, train_epochs
+from .train_loop import LoopSettings, autocast, load_init_weights, train_epochs
 from .warm_start import init_config, warm_start
 
 __all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "subsample_points", "train_pose"]
@@ -132,9 +137,12 @@ class PoseTrainer:
     """Fusion + pose networks, and the loss/metric on a batch of `PoseData` samples."""
 
     def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015,
-                 amp: bool = False, num_points: int | None = None) -> None:
+                 amp: bool = False, num_points: int | None = None, teacher: torch.nn.Module | None = None,
+                 distill_weight: float = 1.0) -> None:
         """:param num_points: use this many of each sample's points (fewer than prepared: the first ones, a
-            uniform random subset since the points are sampled in random order), re-centred on their mean."""
+            uniform random subset since the points are sampled in random order), re-centred on their mean.
+        :param teacher: a fusion network whose per-point features the trained one should also give (module
+            docstring), taking the same inputs; frozen. :param distill_weight: that term's weight in the loss."""
         self.cfg, self.data, self.device, self.w, self.amp = cfg, data, torch.device(device), w, amp
         prepared = data.samples.points.shape[1]
         if num_points is not None and not 0 < num_points <= prepared:
@@ -148,7 +156,9 @@ class PoseTrainer:
                                               ).float().to(self.device)
         self.type_symmetries = pad_symmetries([torch.from_numpy(data.symmetries[int(o)]).float()
                                                for o in self.obj_ids]).to(self.device)
-
+        self.teacher = None if teacher is None else teacher.to(self.device).eval().requires_grad_(False)
+        self.distill_weight = float(distill_weight)
+        self.feature_error = float("nan")    # the last batch's relative feature error against the teacher
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
         return {"fusion": self.fusion, "pose": self.pose}
@@ -163,32 +173,47 @@ class PoseTrainer:
         if self.num_points < pts.shape[1]:
             pts, choose, T_gt = subsample_points(pts, choose, T_gt, self.num_points)
         with autocast(self.device.type, amp):
-            if self.cfg.fusion.sampled:
-                point_feats = self.fusion(rgb, depth, choose)
-            else:
-                point_feats = gather_points(self.fusion(rgb, depth), choose)
+            point_feats = self._features(self.fusion, rgb, depth, choose)
             out = self.pose(pts, point_feats)
         quat, trans, conf = (o.float() for o in out)
         rows = torch.from_numpy(np.searchsorted(self.obj_ids, obj)).to(self.device)
         loss, d = pose_loss(quat, trans, conf, pts, self.type_points[rows], T_gt, self.type_symmetries[rows], self.w)
+        if self.teacher is not None:
+            with torch.no_grad(), autocast(self.device.type, amp):
+                target = self._features(self.teacher, rgb, depth, choose).float()
+            err = ((point_feats.float() - target) ** 2).mean() / target.var().clamp_min(1e-12)
+            self.feature_error = float(err.detach())
+            loss = loss + self.distill_weight * err
         return loss, d, conf
+
+    def _features(self, fusion: torch.nn.Module, rgb: torch.Tensor, depth: torch.Tensor,
+                  choose: torch.Tensor) -> torch.Tensor:
+        """(B, N, C) fused features at the sampled pixels."""
+        if self.cfg.fusion.sampled:
+            return fusion(rgb, depth, choose)
+        return gather_points(fusion(rgb, depth), choose)
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
         loss, d, _ = self.forward_loss(idx, amp=self.amp)
-        return loss, {"dis": float(d.detach().mean())}
+        info = {"dis": float(d.detach().mean())}
+        if self.teacher is not None:
+            info["feat"] = self.feature_error
+        return loss, info
 
     def validate(self, batch: int = 16) -> dict:
         """Mean loss, and the symmetric ADD of the most confident hypothesis (the runtime's choice)."""
         idx_all = self.data.val_idx
-        losses, errs = [], []
+        losses, errs, feats = [], [], []
         for i in range(0, len(idx_all), batch):
             idx = idx_all[i:i + batch]
             loss, d, conf = self.forward_loss(idx)
             losses.append(float(loss) * len(idx))
             errs.append(d.gather(1, conf.argmax(1, keepdim=True))[:, 0].cpu().numpy())
+            feats.append(self.feature_error * len(idx))
         e = np.concatenate(errs) if errs else np.zeros(0)
         n = max(len(e), 1)
-        return {"metric": float(e.mean()) if len(e) else float("inf"), "loss": sum(losses) / n,
+        extra = {"feature_error": sum(feats) / n} if self.teacher is not None else {}
+        return {**extra, "metric": float(e.mean()) if len(e) else float("inf"), "loss": sum(losses) / n,
                 "add_sym_mean_m": float(e.mean()) if len(e) else None,
                 "add_sym_median_m": float(np.median(e)) if len(e) else None,
                 "add_sym_acc_0.05": float((e < 0.05).mean()) if len(e) else None,
@@ -199,18 +224,22 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                variants: int = 2, aug: AugmentConfig | None = None, resume: bool = False,
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
                command: str = "", progress: bool = True, init: str | Path | None = None,
-               num_points: int | None = None) -> dict:
+               num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
         (and cached) at the config's count and cut to a random `num_points` of them (`PoseTrainer`).
+    :param distill: a bundle or checkpoint whose fusion network's features are a second target (module docstring);
+        it must take the same crops as `cfg`'s. :param distill_weight: that target's weight.
     """
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
     pd = load_pose_data(cfg, data, variants, settings.seed, aug, cache_dir if cache_dir is not None else run_dir / "cache",
                         val_fraction, max_frames, progress)
-    trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points)
+    teacher, distilled = (None, None) if distill is None else _teacher(distill, cfg)
+    trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
+                          distill_weight=distill_weight)
     params = list(trainer.fusion.parameters()) + list(trainer.pose.parameters())
     optimizer = torch.optim.Adam(params, lr=settings.lr)
     provenance = {"stage": "pose", "config": cfg.name, "seed": settings.seed, "command": command,
@@ -220,6 +249,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                   "samples": {"train": int(len(pd.train_idx)), "val": int(len(pd.val_idx))},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__),
                   "pallet_types": {str(k): v for k, v in sorted(pd.type_names.items())}}
+    if distilled is not None:
+        provenance["distill"] = {**distilled, "weight": distill_weight}
     if init is not None and not resume and init_config(init) != cfg.name:
         # another config's weights (e.g. edge2 from the edge bundle): copy what fits
         provenance["init"] = warm_start(init, trainer.nets)
@@ -227,3 +258,19 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
                         lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
                         resume=resume, progress=progress, init=init)
+
+
+def _teacher(path: str | Path, cfg: ModelConfig) -> tuple[torch.nn.Module, dict]:
+    """The fusion network of a bundle or checkpoint, for distillation, and what to record of it.
+
+    :raises ValueError: it does not take the crops `cfg`'s fusion network takes (crop size, sampled or dense, feature
+        dimension)."""
+    t_cfg = get_config(init_config(path))
+    mine, theirs = cfg.fusion, t_cfg.fusion
+    if (mine.crop_hw, mine.sampled, mine.feature_dim) != (theirs.crop_hw, theirs.sampled, theirs.feature_dim):
+        raise ValueError(f"--distill {path}: its fusion network ({t_cfg.name}: crop {theirs.crop_hw}, sampled "
+                         f"{theirs.sampled}, {theirs.feature_dim} features) does not take and give what {cfg.name}'s "
+                         f"does (crop {mine.crop_hw}, sampled {mine.sampled}, {mine.feature_dim} features)")
+    teacher = build_fusion(theirs)
+    record = load_init_weights(path, {"fusion": teacher})
+    return teacher, {"source": record, "config": t_cfg.name}

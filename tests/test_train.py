@@ -396,3 +396,35 @@ def test_train_cli_parses_the_detector_input_size():
     for bad in ("256", "256x", "axb", "1x2x3"):
         with pytest.raises(argparse.ArgumentTypeError, match="HxW"):
             _hw(bad)
+
+
+def test_distillation_pulls_the_fusion_features_towards_the_teachers(pose_data, bundle_dir):
+    from pallet6d.export.fusion import build_fusion
+    from pallet6d.export.train_pose import _teacher
+
+    teacher, record = _teacher(bundle_dir, CFG)
+    assert record["config"] == "tiny"
+    torch.manual_seed(0)
+    trainer = PoseTrainer(CFG, pose_data, teacher=teacher, distill_weight=1.0)
+    idx = pose_data.train_idx[:4]
+    first, last = _overfit(trainer, lambda: trainer.forward_loss(idx)[0], 30, 2e-3)
+    assert last < 0.7 * first, (first, last)
+    assert 0 <= trainer.feature_error < 1.0          # closer to the teacher's features than their mean is
+    same = PoseTrainer(CFG, pose_data, teacher=build_fusion(CFG.fusion))
+    same.fusion.load_state_dict(same.teacher.state_dict())
+    same.fusion.eval()                                  # BatchNorm on its running statistics, as the teacher
+    same.forward_loss(idx)
+    assert same.feature_error == pytest.approx(0.0, abs=1e-9)     # a network is its own perfect student
+    assert not any(p.requires_grad for p in trainer.teacher.parameters())
+
+
+def test_distillation_run_records_its_teacher_and_refuses_one_that_takes_other_crops(sim_bop_dataset, bundle_dir,
+                                                                                       tmp_path):
+    entry = train_pose(CFG, [sim_bop_dataset], tmp_path / "d", LoopSettings(epochs=1, batch=4, lr=1e-3, seed=1),
+                       variants=1, progress=False, distill=bundle_dir, distill_weight=0.5)
+    assert np.isfinite(entry["val_feature_error"]) and np.isfinite(entry["train_feat"])
+    prov = load_checkpoint(tmp_path / "d" / "last.pt")["provenance"]
+    assert prov["distill"]["weight"] == 0.5 and prov["distill"]["config"] == "tiny"
+    with pytest.raises(ValueError, match="does not take and give"):
+        train_pose(get_config("edge2-slim"), [sim_bop_dataset], tmp_path / "e",
+                   LoopSettings(epochs=1, batch=4, lr=1e-3), variants=1, progress=False, distill=bundle_dir)
