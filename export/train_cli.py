@@ -98,6 +98,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distill-weight", type=float, default=1.0,
                         help="pose: weight of --distill's feature error (relative to the teacher's variance) in the "
                              "loss (default 1)")
+    parser.add_argument("--freeze-pose", action="store_true",
+                        help="pose: train the fusion network alone, the pose network fixed as --init gives it")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
     parser.add_argument("--init", type=Path,
@@ -283,14 +285,14 @@ def main(args: argparse.Namespace) -> int:
         if args.num_points is not None and args.stage != "pose":
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
-        if args.distill is not None and args.stage != "pose":
-            print("pallet6d train: --distill is for the pose stage", file=sys.stderr)
+        if (args.distill is not None or args.freeze_pose) and args.stage != "pose":
+            print("pallet6d train: --distill and --freeze-pose are for the pose stage", file=sys.stderr)
             return 2
         if args.stage == "pose":
             from .train_pose import train_pose
             entry = train_pose(cfg, args.data, args.out, settings, variants=args.variants or recipe["variants"],
                                aug=AugmentConfig(), num_points=args.num_points, distill=args.distill,
-                               distill_weight=args.distill_weight, **common)
+                               distill_weight=args.distill_weight, freeze_pose=args.freeze_pose, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

@@ -224,13 +224,17 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                variants: int = 2, aug: AugmentConfig | None = None, resume: bool = False,
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
                command: str = "", progress: bool = True, init: str | Path | None = None,
-               num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0) -> dict:
+               num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
+               freeze_pose: bool = False) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
         (and cached) at the config's count and cut to a random `num_points` of them (`PoseTrainer`).
     :param distill: a bundle or checkpoint whose fusion network's features are a second target (module docstring);
         it must take the same crops as `cfg`'s. :param distill_weight: that target's weight.
+    :param freeze_pose: train the fusion network alone under a fixed pose network (e.g. a smaller fusion network
+        learning to serve a trained pose network, whose confidences then keep the meaning the runtime's thresholds
+        were chosen for).
     """
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
@@ -240,7 +244,9 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     teacher, distilled = (None, None) if distill is None else _teacher(distill, cfg)
     trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
                           distill_weight=distill_weight)
-    params = list(trainer.fusion.parameters()) + list(trainer.pose.parameters())
+    if freeze_pose:
+        trainer.pose.requires_grad_(False)
+    params = list(trainer.fusion.parameters()) + ([] if freeze_pose else list(trainer.pose.parameters()))
     optimizer = torch.optim.Adam(params, lr=settings.lr)
     provenance = {"stage": "pose", "config": cfg.name, "seed": settings.seed, "command": command,
                   "data": pd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
@@ -251,6 +257,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                   "pallet_types": {str(k): v for k, v in sorted(pd.type_names.items())}}
     if distilled is not None:
         provenance["distill"] = {**distilled, "weight": distill_weight}
+    if freeze_pose:
+        provenance["freeze_pose"] = True
     if init is not None and not resume and init_config(init) != cfg.name:
         # another config's weights (e.g. edge2 from the edge bundle): copy what fits
         provenance["init"] = warm_start(init, trainer.nets)

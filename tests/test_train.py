@@ -420,11 +420,18 @@ def test_distillation_pulls_the_fusion_features_towards_the_teachers(pose_data, 
 
 def test_distillation_run_records_its_teacher_and_refuses_one_that_takes_other_crops(sim_bop_dataset, bundle_dir,
                                                                                        tmp_path):
+    from pallet6d.export.pose import build_pose
     entry = train_pose(CFG, [sim_bop_dataset], tmp_path / "d", LoopSettings(epochs=1, batch=4, lr=1e-3, seed=1),
-                       variants=1, progress=False, distill=bundle_dir, distill_weight=0.5)
+                       variants=1, progress=False, distill=bundle_dir, distill_weight=0.5, init=bundle_dir,
+                       freeze_pose=True)
     assert np.isfinite(entry["val_feature_error"]) and np.isfinite(entry["train_feat"])
-    prov = load_checkpoint(tmp_path / "d" / "last.pt")["provenance"]
-    assert prov["distill"]["weight"] == 0.5 and prov["distill"]["config"] == "tiny"
+    ckpt = load_checkpoint(tmp_path / "d" / "last.pt")
+    prov = ckpt["provenance"]
+    assert prov["distill"]["weight"] == 0.5 and prov["distill"]["config"] == "tiny" and prov["freeze_pose"]
+    start = build_pose(CFG.pose, CFG.fusion.feature_dim)
+    load_init_weights(bundle_dir, {"pose": start})
+    for k, v in start.state_dict().items():          # the pose network stayed as --init gave it
+        assert torch.equal(ckpt["pose"][k], v), k
     with pytest.raises(ValueError, match="does not take and give"):
         train_pose(get_config("edge2-slim"), [sim_bop_dataset], tmp_path / "e",
                    LoopSettings(epochs=1, batch=4, lr=1e-3), variants=1, progress=False, distill=bundle_dir)
