@@ -9,7 +9,9 @@
 #      STAGES ("det pose": which networks to train), DET_INIT / POSE_INIT (a checkpoint or bundle to start from:
 #      BUNDLE), POSE_LR (2e-4), DET_LR (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
 #      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55),
-#      DET_REPEAT (name prefixes of chunks the detector sees twice, e.g. "vo- in-"; none)
+#      DET_REPEAT (name prefixes of chunks the detector sees twice, e.g. "vo- in-"; none), POSE_CONFIG (edge2-dilated),
+#      POSE_ARGS (more `pallet6d train pose` flags, e.g. "--distill models/epal-default --freeze-pose" with
+#      POSE_CONFIG=edge2-slim; none)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
 OUT_DIR=$1 REAL=$2
@@ -17,7 +19,7 @@ export FRAMES=${FRAMES:-25} SEED=${SEED:-21}
 SIM_S=${SIM_S:-190} TRAIN_MIN=${TRAIN_MIN:-4.6} DEVICE=${DEVICE:-cuda} PROCS=${PROCS:-16}
 DET_EPOCHS=${DET_EPOCHS:-7} POSE_EPOCHS=${POSE_EPOCHS:-12} BUNDLE=${BUNDLE:-models/epal-default}
 STAGES=${STAGES:-det pose} DET_INIT=${DET_INIT:-$BUNDLE} POSE_INIT=${POSE_INIT:-$BUNDLE}
-POSE_LR=${POSE_LR:-2e-4} DET_LR=${DET_LR:-3e-4}
+POSE_LR=${POSE_LR:-2e-4} DET_LR=${DET_LR:-3e-4} POSE_CONFIG=${POSE_CONFIG:-edge2-dilated} POSE_ARGS=${POSE_ARGS:-}
 export RECIPES=$PWD/export/recipes W=${W:-/tmp/p6d}
 rm -rf "$W"; mkdir -p "$W/pp/pallet6d" "$W/sim" "$W/cache" "$W/log" "$OUT_DIR"
 for d in runtime export calib sim; do ln -sfn "$PWD/$d" "$W/pp/pallet6d/$d"; done   # the package, not installed
@@ -54,8 +56,8 @@ export OMP_NUM_THREADS=3
   --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr "$DET_LR" \
   --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
   --cache-dir "$W/cache" --out "$W/det" >"$OUT_DIR/det.log" 2>&1 &
-[[ " $STAGES " == *" pose "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train pose --config edge2-dilated --init "$POSE_INIT" \
-  --data $DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr "$POSE_LR" --variants 2 --seed "$SEED" --device "$DEVICE" --amp \
+[[ " $STAGES " == *" pose "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train pose --config "$POSE_CONFIG" --init "$POSE_INIT" \
+  --data $DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr "$POSE_LR" --variants 2 --seed "$SEED" --device "$DEVICE" --amp $POSE_ARGS \
   --max-minutes "$TRAIN_MIN" --no-progress --cache-dir "$W/cache" --out "$W/pose" >>"$OUT_DIR/run.log" 2>&1 &
 wait
 say "trained"
