@@ -5,6 +5,7 @@ import logging
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import onnx
@@ -76,13 +77,16 @@ def compare_outputs(ref: np.ndarray, test: np.ndarray) -> OutputDiff:
                       corr)
 
 
-def graph_diff(ref_path: Path, test_path: Path, feeds: list[dict[str, np.ndarray]]) -> dict:
+def graph_diff(ref_path: Path, test_path: Path, feeds: list[dict[str, np.ndarray]],
+               read_ref: Callable[[dict, dict], dict] | None = None) -> dict:
     """Per output: how `test_path`'s outputs differ from `ref_path`'s on `feeds` (compare_outputs); the feeds
-    may differ in shape (a detector's input sizes)."""
+    may differ in shape (a detector's input sizes). `read_ref(outputs, feed)` turns the reference graph's outputs
+    into what the tested graph gives (e.g. an older layout of them), when they differ."""
     ref_sess, test_sess = ort_session(ref_path), ort_session(test_path)
     ref, got = {}, {}
     for f in feeds:
-        for k, v in run_session(ref_sess, f).items():
+        ref_out = run_session(ref_sess, f)
+        for k, v in (ref_out if read_ref is None else read_ref(ref_out, f)).items():
             ref.setdefault(k, []).append(v.ravel())
         for k, v in run_session(test_sess, f).items():
             got.setdefault(k, []).append(v.ravel())

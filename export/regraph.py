@@ -33,7 +33,7 @@ from .calib_data import make_calibration_set
 from .config import get_config
 from .export_inputs import ExportError, git_commit
 from .flops import count_gflops
-from .onnx_io import check_parity, compare_outputs, export_graph, graph_diff, ort_session, run_session
+from .onnx_io import check_parity, export_graph, graph_diff
 from .pose import MostConfidentPose, build_pose
 
 __all__ = ["regraph_pose", "main"]
@@ -122,23 +122,16 @@ def _write_pose_graph(bundle, report: dict, net: torch.nn.Module, read_back: dic
 
 
 def _diff_to_old(old_graph: Path, new_graph: Path, feeds: list[dict[str, np.ndarray]], q) -> dict:
-    """Per output, how the new graph's outputs differ from the old one's (`onnx_io.compare_outputs`); an old graph
-    that gives every point's hypothesis (`q.hypotheses` "per_point") is read at its most confident point, with the
-    point added to its offset, as the runtime reads it."""
-    old_sess, new_sess = ort_session(old_graph), ort_session(new_graph)
-    ref: dict[str, list] = {}
-    got: dict[str, list] = {}
-    for f in feeds:
-        old, new = run_session(old_sess, f), run_session(new_sess, f)
-        if q.hypotheses == "per_point":
-            conf = old[q.conf_output]
-            idx, rows = conf.argmax(1), np.arange(len(conf))
-            old = {q.quat_output: old[q.quat_output][rows, idx], q.conf_output: conf[rows, idx],
-                   q.trans_output: f[q.points_input][rows, idx] + old[q.trans_output][rows, idx]}
-        for k in (q.quat_output, q.trans_output, q.conf_output):
-            ref.setdefault(k, []).append(old[k].ravel())
-            got.setdefault(k, []).append(new[k].ravel())
-    return {k: compare_outputs(np.concatenate(ref[k]), np.concatenate(got[k])).to_dict() for k in ref}
+    """Per output, how the new graph's outputs differ from the old one's (`onnx_io.graph_diff`); an old graph that
+    gives every point's hypothesis (`q.hypotheses` "per_point") is read at its most confident point, with the point
+    added to its offset, as the runtime reads it."""
+    def most_confident(old: dict, feed: dict) -> dict:
+        conf = old[q.conf_output]
+        idx, rows = conf.argmax(1), np.arange(len(conf))
+        return {q.quat_output: old[q.quat_output][rows, idx], q.conf_output: conf[rows, idx],
+                q.trans_output: feed[q.points_input][rows, idx] + old[q.trans_output][rows, idx]}
+
+    return graph_diff(old_graph, new_graph, feeds, most_confident if q.hypotheses == "per_point" else None)
 
 
 def main(argv: list[str] | None = None) -> int:
