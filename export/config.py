@@ -23,6 +23,9 @@ Variants (`CONFIGS`):
 - ``edge2-slim``: ``edge2-dilated`` with layer4 and the PSP bottleneck at half its width (128 and 256 channels):
   about half its fusion work (layer4 at stride 8 is most of it), trained from it (``--init`` copies every other
   layer) with its fused features as a target (``pallet6d train pose --distill``).
+- ``edge2-pruned``: ``edge2-slim`` with a projection shortcut at the start of layer4, so that ``--init`` from
+  ``edge2-dilated`` fills layer4, the PSP stages and bottleneck and the output convs with the most important half
+  of their channels (`export/channel_prune.py`) instead of leaving them to train from scratch.
 - ``densefusion``: ``paper`` without any attention block (the paper's ablation baseline).
 - ``edge-densefusion``: ``edge`` without any attention block (the same ablation at the shipped size).
 - ``tiny``: minimal widths for fast tests (never for deployment).
@@ -117,6 +120,8 @@ class FusionConfig:
         graph takes `choose` (B, N) pixel indices and returns the fused features sampled bilinearly at
         those pixels (B, N, C), from the stride-8 map, or from a light stride-4 decoder (the stride-8
         features upsampled and added to a projection of layer1). Attention then runs at stride 8.
+    :ivar project_layer4: layer4 starts with a 1x1 projection shortcut also when it is as wide as layer3 (the
+        layout of every wider layer4, which a channel-pruned copy of one then fills: `export/channel_prune.py`).
     """
 
     crop_hw: tuple[int, int] = (120, 120)
@@ -130,6 +135,7 @@ class FusionConfig:
     attention_stride: int = 4
     dilated: bool = True
     sample_stride: int = 0
+    project_layer4: bool = False
 
     def __post_init__(self) -> None:
         h, w = self.crop_hw
@@ -268,6 +274,8 @@ CONFIGS["edge2-dilated"] = CONFIGS["edge2"].replace(
 CONFIGS["edge2-slim"] = CONFIGS["edge2-dilated"].replace(
     name="edge2-slim", fusion=dataclasses.replace(CONFIGS["edge2-dilated"].fusion, resnet_widths=(32, 64, 128, 128),
                                                   psp_out=256))
+CONFIGS["edge2-pruned"] = CONFIGS["edge2-slim"].replace(
+    name="edge2-pruned", fusion=dataclasses.replace(CONFIGS["edge2-slim"].fusion, project_layer4=True))
 
 
 def get_config(name: str) -> ModelConfig:

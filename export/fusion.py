@@ -38,7 +38,7 @@ class FusionNet(nn.Module):
 
         def branch(c_in: int) -> PSPNet:
             return PSPNet(c_in, cfg.crop_hw, cfg.resnet_widths, cfg.psp_sizes, cfg.psp_out, cfg.up_channels,
-                          cfg.branch_dim, cfg.dilated)
+                          cfg.branch_dim, cfg.dilated, project_layer4=cfg.project_layer4)
 
         self.rgb = branch(3)
         self.depth = branch(1)
@@ -131,7 +131,7 @@ class SampledFusionNet(nn.Module):
 
         def branch(c_in: int) -> PSPNet:
             return PSPNet(c_in, cfg.crop_hw, cfg.resnet_widths, cfg.psp_sizes, cfg.psp_out, (), cfg.branch_dim,
-                          cfg.dilated, with_stride4=cfg.sample_stride == 4)
+                          cfg.dilated, with_stride4=cfg.sample_stride == 4, project_layer4=cfg.project_layer4)
 
         self.rgb = branch(3)
         self.depth = branch(1)

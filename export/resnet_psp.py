@@ -22,7 +22,9 @@ __all__ = ["ResNet18Dilated", "PSPNet", "adaptive_pool_matrix"]
 
 
 class BasicBlock(nn.Module):
-    def __init__(self, c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> None:
+    """:param project: a 1x1 projection shortcut even where the identity would fit (same width, stride 1)."""
+
+    def __init__(self, c_in: int, c_out: int, stride: int = 1, dilation: int = 1, project: bool = False) -> None:
         super().__init__()
         self.conv1 = nn.Conv2d(c_in, c_out, 3, stride, dilation, dilation, bias=False)
         self.bn1 = nn.BatchNorm2d(c_out)
@@ -30,7 +32,7 @@ class BasicBlock(nn.Module):
         self.bn2 = nn.BatchNorm2d(c_out)
         self.relu = nn.ReLU(inplace=True)
         self.down = None
-        if stride != 1 or c_in != c_out:
+        if stride != 1 or c_in != c_out or project:
             self.down = nn.Sequential(nn.Conv2d(c_in, c_out, 1, stride, bias=False), nn.BatchNorm2d(c_out))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -42,9 +44,10 @@ class BasicBlock(nn.Module):
 
 class ResNet18Dilated(nn.Module):
     """ResNet18 with output stride 8 (layer3/4 dilated 2/4, or not dilated). :param in_channels: 3 for RGB,
-    1 for depth."""
+    1 for depth. :param project_layer4: layer4 starts with a projection shortcut also when it is as wide as layer3."""
 
-    def __init__(self, in_channels: int, widths: tuple[int, int, int, int], dilated: bool = True) -> None:
+    def __init__(self, in_channels: int, widths: tuple[int, int, int, int], dilated: bool = True,
+                 project_layer4: bool = False) -> None:
         super().__init__()
         w1, w2, w3, w4 = widths
         self.stem = nn.Sequential(nn.Conv2d(in_channels, w1, 7, 2, 3, bias=False), nn.BatchNorm2d(w1),
@@ -53,7 +56,8 @@ class ResNet18Dilated(nn.Module):
         self.layer2 = nn.Sequential(BasicBlock(w1, w2, stride=2), BasicBlock(w2, w2))
         d3, d4 = (2, 4) if dilated else (1, 1)
         self.layer3 = nn.Sequential(BasicBlock(w2, w3, dilation=d3), BasicBlock(w3, w3, dilation=d3))
-        self.layer4 = nn.Sequential(BasicBlock(w3, w4, dilation=d4), BasicBlock(w4, w4, dilation=d4))
+        self.layer4 = nn.Sequential(BasicBlock(w3, w4, dilation=d4, project=project_layer4),
+                                    BasicBlock(w4, w4, dilation=d4))
         self.out_channels = w4
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -82,14 +86,15 @@ class PSPNet(nn.Module):
     :param in_hw: the crop size the network is built for (H, W multiples of 8).
     :param up_channels: one x2 upsampling stage per entry (three: back to the crop; none: stride 8).
     :param with_stride4: also return layer1's (B, widths[0], H/4, W/4) map (for a stride-4 decoder).
+    :param project_layer4: see `ResNet18Dilated`.
     """
 
     def __init__(self, in_channels: int, in_hw: tuple[int, int], widths: tuple[int, int, int, int],
                  psp_sizes: tuple[int, ...], psp_out: int, up_channels: tuple[int, ...], out_dim: int,
-                 dilated: bool = True, with_stride4: bool = False) -> None:
+                 dilated: bool = True, with_stride4: bool = False, project_layer4: bool = False) -> None:
         super().__init__()
         self.with_stride4 = with_stride4
-        self.backbone = ResNet18Dilated(in_channels, widths, dilated)
+        self.backbone = ResNet18Dilated(in_channels, widths, dilated, project_layer4)
         c = self.backbone.out_channels
         self.feat_hw = (in_hw[0] // 8, in_hw[1] // 8)
         for s in psp_sizes:

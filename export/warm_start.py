@@ -1,6 +1,7 @@
 """Start a network of one config from the trained weights of another (e.g. ``edge2`` from the shipped ``edge``
 bundle): every parameter and buffer whose name and shape agree is copied; a fusion attention's position
-embedding is resized bilinearly to the new token grid; everything else keeps its fresh initialisation.
+embedding is resized bilinearly to the new token grid; a narrower layer4 / PSP head of the same layout takes the
+wider one's most important channels (`channel_prune`); everything else keeps its fresh initialisation.
 
 ``edge`` -> ``edge2`` copies both ResNet18 backbones (layer3/4 lose their dilation but keep their kernels), the
 PSP stages and bottleneck, the attention and the whole pose network; new are the stride-8 output convs
@@ -16,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .channel_prune import prune_plan, slice_tensor
 from .config import get_config
 from .fusion import build_fusion
 from .pose import build_pose
@@ -37,17 +39,22 @@ def _resize_tokens(pos: torch.Tensor, n_new: int) -> torch.Tensor | None:
 
 
 def transfer_state(source: dict[str, torch.Tensor], net: nn.Module) -> dict:
-    """Copy `source` entries into `net` where name and shape agree (position embeddings: resized).
+    """Copy `source` entries into `net` where name and shape agree (position embeddings: resized; the layers of
+    a narrower ResNet18+PSP branch: their most important channels).
 
-    :return: {"copied": count, "resized": [names], "new": [names of `net` left as initialised]}.
+    :return: {"copied": count, "resized": [names], "pruned": [names], "new": [names of `net` left as initialised]}.
     """
     target = net.state_dict()
-    copied, resized, new = 0, [], []
+    plan = prune_plan(source, target)
+    copied, resized, pruned, new = 0, [], [], []
     for name, value in target.items():
         src = source.get(name)
         if src is not None and src.shape == value.shape:
             target[name] = src.to(value.dtype).clone()
             copied += 1
+        elif src is not None and name in plan and (cut := slice_tensor(src, plan[name])).shape == value.shape:
+            target[name] = cut.to(value.dtype).clone()
+            pruned.append(name)
         elif src is not None and name.endswith("pos") and src.dim() == 3 and value.dim() == 3 \
                 and (r := _resize_tokens(src.float(), value.shape[1])) is not None and r.shape == value.shape:
             target[name] = r.to(value.dtype)
@@ -55,7 +62,7 @@ def transfer_state(source: dict[str, torch.Tensor], net: nn.Module) -> dict:
         else:
             new.append(name)
     net.load_state_dict(target)
-    return {"copied": copied, "resized": resized, "new": new}
+    return {"copied": copied, "resized": resized, "pruned": pruned, "new": new}
 
 
 def init_config(path: str | Path) -> str:
@@ -89,6 +96,6 @@ def warm_start(path: str | Path, nets: dict[str, nn.Module]) -> dict:
     for k, net in nets.items():
         record["transfer"][k] = transfer_state(source[k].state_dict(), net)
         t = record["transfer"][k]
-        log.info("%s: %d tensors from %s (%s), %d resized, %d new", k, t["copied"], path, src_cfg.name,
-                 len(t["resized"]), len(t["new"]))
+        log.info("%s: %d tensors from %s (%s), %d resized, %d channel-pruned, %d new", k, t["copied"], path,
+                 src_cfg.name, len(t["resized"]), len(t["pruned"]), len(t["new"]))
     return record
