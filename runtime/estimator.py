@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from concurrent.futures import wait
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -261,8 +262,9 @@ class PalletEstimator:
         return cls(load_bundle(path), threads=threads, precision=precision, options=EstimatorOptions(**options))
 
     def close(self) -> None:
-        """Stop the worker threads of the pallet lanes (an estimator still works afterwards)."""
+        """Stop the worker threads (pallet lanes, registration test); an estimator still works afterwards."""
         self.pose_network.close()
+        self.fit_check.close()
 
     # the first pallet type's model, for callers that score or draw one type
     @property
@@ -437,7 +439,11 @@ class PalletEstimator:
             keep, why = roi_filter(cands.boxes_xyxy, depth_m, self.options.roi)
             drop = np.flatnonzero(~keep)
             cands.reject(drop, "outside_roi", [why[i] for i in drop])
-        if len(cands):
+        if not len(cands):
+            return cands
+        # the fit check's frame-level registration test needs only the boxes: it runs while the networks do
+        registration = self.fit_check.start_registration(cands.boxes_xyxy[cands.alive], depth_m, rgb)
+        try:
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
             self.type_choice(cands, depth_m, K, timings, deadline)
             self.refiner(cands, depth_m, K, timings, deadline)
@@ -445,9 +451,12 @@ class PalletEstimator:
             if T_vehicle_cam is not None and self.options.level is not None:
                 pts_of = self._level(cands, depth_m, K, T_vehicle_cam, timings)
                 up_cam = up_in_camera(T_vehicle_cam)
-            self.fit_check(cands, depth_m, K, timings, rgb, up_cam)
+            self.fit_check(cands, depth_m, K, timings, rgb, up_cam, registration)
             if up_cam is not None:
                 self._climb(cands, depth_m, K, up_cam, pts_of, timings)
+        finally:
+            if registration is not None:        # it reads the caller's arrays: done before they are handed back
+                wait([registration[1]])
         return cands
 
     def _type_options(self, det: Detections) -> list[tuple[int, ...]]:

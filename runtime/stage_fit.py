@@ -3,6 +3,7 @@ there (`structure.py`)? Then the acceptance gates."""
 from __future__ import annotations
 
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
 
@@ -11,9 +12,13 @@ from .deadline import elapsed_ms
 from .fit import fit_score
 from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
+from .registration import RegistrationScore
 from .structure import StructureParams, frame_registration, frame_size_rule, structure_check
 
-__all__ = ["FitCheckStage"]
+__all__ = ["FitCheckStage", "StartedRegistration"]
+
+# the registration test started on a frame's boxes: (the boxes (n, 4), its future (score, refused))
+StartedRegistration = tuple[np.ndarray, "Future[tuple[RegistrationScore, bool]]"]
 
 
 class FitCheckStage:
@@ -30,7 +35,8 @@ class FitCheckStage:
         the registration test (`min_registration_peak`: the frame's depth edges against the image's, at zero shift
         and shifted) rejects every candidate as "depth_image_mismatch"; candidates failing the metric size reject
         every candidate as "size_mismatch" when they outnumber the whole boxes that pass it (`frame_size_majority`)
-        or reach `frame_size_veto`.
+        or reach `frame_size_veto`. The registration test needs only the depth, the image and the boxes, so
+        `start_registration` runs it on a worker thread while the networks run (`close` stops that thread).
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], tol_m: float, min_fit: float,
@@ -38,16 +44,44 @@ class FitCheckStage:
         self.geometries = tuple(geometries)
         self.tol_m, self.min_fit, self.min_confidence = float(tol_m), float(min_fit), float(min_confidence)
         self.structure = structure
+        self._pool: ThreadPoolExecutor | None = None
+
+    def close(self) -> None:
+        """Stop the registration test's worker thread (the stage still works afterwards)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def start_registration(self, boxes_xyxy: np.ndarray, depth_m: np.ndarray,
+                           rgb: np.ndarray | None) -> StartedRegistration | None:
+        """Start the frame-level registration test on `boxes_xyxy` (n, 4) on the worker thread, for the structure
+        check to take (`__call__(..., registration=)`) if the candidates it judges are exactly these boxes;
+        otherwise it runs the test again on its own. The caller must wait for it before `depth_m` or `rgb` change.
+        :return: None where the test would not run (no structure check, no image, test off, no boxes)."""
+        p = self.structure
+        if p is None or rgb is None or p.min_registration_peak <= 0 or len(boxes_xyxy) == 0:
+            return None
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="pallet6d-registration")
+        boxes = np.array(boxes_xyxy, dtype=np.float64, copy=True)
+        return boxes, self._pool.submit(frame_registration, depth_m, rgb, boxes, p)
 
     def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
-                        rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None) -> None:
+                        rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None,
+                        registration: StartedRegistration | None = None) -> None:
         """The structure check on `rows` of `cands`: first the frame-level registration test over all of them, then
         one batched call per pallet type, then the frame's size rules (`frame_size_rule`); failures are rejected.
         :param rgb: the colour image registered to `depth_m`, for the edge and registration tests (None skips
-            them). :param up_cam: (3,) the vehicle's up in the camera frame, for the tilt test (None skips it)."""
+            them). :param up_cam: (3,) the vehicle's up in the camera frame, for the tilt test (None skips it).
+        :param registration: the test started on the frame's boxes (`start_registration`), used when those are
+            the boxes of `rows`."""
         p = self.structure
         if rgb is not None and p.min_registration_peak > 0 and len(rows):
-            reg, refused = frame_registration(depth_m, rgb, cands.boxes_xyxy[rows], p)
+            boxes = cands.boxes_xyxy[rows]
+            if registration is not None and np.array_equal(registration[0], boxes):
+                reg, refused = registration[1].result()
+            else:
+                reg, refused = frame_registration(depth_m, rgb, boxes, p)
             if refused:
                 cands.reject(rows, "depth_image_mismatch",
                              f"depth_image_mismatch: the frame's depth edges agree with the image's at AUC "
@@ -83,10 +117,12 @@ class FitCheckStage:
         return out
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
-                 rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None) -> None:
+                 rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None,
+                 registration: StartedRegistration | None = None) -> None:
         """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates.
         :param rgb: the frame's colour image, for the structure check's edge test (None skips that test).
-        :param up_cam: the vehicle's up in the camera frame, for the structure check's tilt test (None skips it)."""
+        :param up_cam: the vehicle's up in the camera frame, for the structure check's tilt test (None skips it).
+        :param registration: see `check_structure`."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
         todo = rows[np.isnan(cands.fit[rows, 2])]
@@ -99,7 +135,7 @@ class FitCheckStage:
         cands.reject(rows[poor], "poor_fit", [f"fit {s:.3f} < {self.min_fit} (inliers {i:.2f}, free-space violation "
                                               f"{v:.2f})" for i, v, s in fit[poor]])
         if self.structure is not None:
-            self.check_structure(cands, rows[~low & ~poor], depth_m, K, rgb, up_cam)
+            self.check_structure(cands, rows[~low & ~poor], depth_m, K, rgb, up_cam, registration)
         timings["fit"] = elapsed_ms(t)
 
 

@@ -233,3 +233,67 @@ def test_frame_size_majority_rejects_every_candidate_when_failures_outnumber_who
         assert list(c.reason[:2]) == ["size_mismatch"] * 2 and "frame_size_majority" in c.detail[0]
     else:
         assert "size_mismatch" not in set(c.reason[:2]), c.reason
+
+
+# -- the test started while the networks run ---------------------------------------------------------------------
+def _candidates_on(frame, n: int, est) -> Candidates:
+    pallets = sorted(frame.pallets, key=lambda p: -p.visib_fract)[:n]
+    boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in pallets)], float)
+    c = Candidates.new(boxes, np.ones(n), np.zeros(n, np.int64), np.zeros(n, np.int64), est.spec.num_points)
+    c.assign(np.arange(n), T_cam_pallet=np.stack([p.T_cam_pallet for p in pallets]))
+    return c
+
+
+def test_a_started_registration_is_taken_only_for_the_boxes_it_was_started_on(bundle_dir):
+    """A started test that says "refused" rejects the frame when its boxes are the judged candidates' boxes, and is
+    ignored (the test runs again on the frame's real depth) when they are not."""
+    from concurrent.futures import Future
+
+    from estimator_fixtures import scene
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.runtime.stage_fit import FitCheckStage
+
+    frame = scene()
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, structure=None)
+    stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0, StructureParams())
+    refused: Future = Future()
+    refused.set_result((RegistrationScore(0.5, 0.9, 100, 100, 500), True))
+    c = _candidates_on(frame, 2, est)
+    stage.check_structure(c, np.arange(2), frame.depth_m, frame.K, frame.rgb, registration=(c.boxes_xyxy[:1], refused))
+    assert "depth_image_mismatch" not in set(c.reason), c.reason           # started on other boxes: not taken
+    c = _candidates_on(frame, 2, est)
+    stage.check_structure(c, np.arange(2), frame.depth_m, frame.K, frame.rgb, registration=(c.boxes_xyxy, refused))
+    assert list(c.reason) == ["depth_image_mismatch"] * 2
+
+
+def test_the_started_test_gives_the_frame_the_same_result_and_stops_with_the_estimator(bundle_dir):
+    from estimator_fixtures import scene, visible_boxes
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    frame = scene()
+    boxes = visible_boxes(frame, 3)
+    other = generate_frame(get_preset("virtual-clean"), seed=3)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, min_confidence=0.0)
+    started = est.fit_check.start_registration(boxes, frame.depth_m, frame.rgb)
+    assert started is not None
+    np.testing.assert_array_equal(started[0], boxes)
+    assert started[1].result() == frame_registration(frame.depth_m, frame.rgb, boxes, est.options.structure)
+    inline = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, min_confidence=0.0)
+    inline.fit_check.start_registration = lambda *args: None            # the test in the fit check itself
+    reasons = set()
+    for depth in (frame.depth_m, other.depth_m):
+        est.close()                                      # the worker thread stops; the next frame starts it again
+        a = est.estimate_boxes(frame.rgb, depth, frame.K, boxes_xyxy=boxes)
+        b = inline.estimate_boxes(frame.rgb, depth, frame.K, boxes_xyxy=boxes)
+        assert [(x.reason, x.detail) for x in a.rejected] == [(x.reason, x.detail) for x in b.rejected]
+        assert [p.T_cam_pallet.tolist() for p in a.poses] == [p.T_cam_pallet.tolist() for p in b.poses]
+        reasons |= {x.reason for x in a.rejected}
+    assert "depth_image_mismatch" in reasons                # another frame's depth: refused by the started test
+    assert est.fit_check._pool is not None
+    est.close()
+    assert est.fit_check._pool is None
+    # nothing to start without an image, without the test, or without boxes
+    assert est.fit_check.start_registration(boxes, frame.depth_m, None) is None
+    assert est.fit_check.start_registration(np.zeros((0, 4)), frame.depth_m, frame.rgb) is None
