@@ -10,9 +10,9 @@ import numpy as np
 from .candidates import Candidates
 from .deadline import elapsed_ms
 from .fit import fit_score
+from .registration import RegistrationScore
 from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
-from .registration import RegistrationScore
 from .structure import StructureParams, frame_registration, frame_size_rule, structure_check
 
 __all__ = ["FitCheckStage", "StartedRegistration"]
