@@ -11,7 +11,7 @@
 #      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55),
 #      DET_REPEAT (name prefixes of chunks the detector sees twice, e.g. "vo- in-"; none), POSE_CONFIG (edge2-dilated),
 #      POSE_ARGS (more `pallet6d train pose` flags, e.g. "--distill models/epal-default --freeze-pose" with
-#      POSE_CONFIG=edge2-slim; none)
+#      POSE_CONFIG=edge2-pruned, which starts from the bundle's most important layer4 / PSP channels; none)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
 OUT_DIR=$1 REAL=$2
