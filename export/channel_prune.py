@@ -6,9 +6,9 @@ it starts close to it, and distillation (`pallet6d train pose --distill`) closes
 
 Importance from the weights alone, no data: a channel after a BatchNorm carries about sqrt(gamma^2 + beta^2) (its
 output's RMS where the input is normalised; for a bundle's folded BatchNorms, which `bundle_weights` gives the
-input's own statistics, exactly its output's RMS), a sum of such channels (a residual) the root of their squares' sum; what reads it
-weighs it by the norm of its weights on that channel. Channels without a BatchNorm (the PSP stages, the bottleneck)
-are weighed by the norms of the weights that write and that read them.
+input's own statistics, exactly its output's RMS), a sum of such channels (a residual) the root of their squares'
+sum; what reads it weighs it by the norm of its weights on that channel. Channels without a BatchNorm (the PSP
+stages, the bottleneck) are weighed by the norms of the weights that write and that read them.
 
 `branch_plan` says, for every layer4, PSP and output tensor of one branch, which indices of each dimension to keep;
 `slice_tensor` applies it. Kept channels stay in their original order.
