@@ -127,7 +127,9 @@ class EstimatorOptions:
         one thread (`stage_pose.py`; four pallets, int8, 2 cores: 40 -> 28 ms). It costs memory: a one-thread
         copy of the two graphs and each lane's activations (peak resident memory about 160 -> 220 MB int8,
         `benchmarks/memory.py`), so it is off by default. 1: one after the other, each on all `threads`;
-        None: as many lanes as `threads`.
+        None: as many lanes as `threads`. With more than one lane the fit check's registration test also runs beside
+        the networks, on a thread of its own (`FitCheckStage.start_registration`: 1.5-2.5 ms less a frame, about
+        7 MB more memory).
     :ivar level: with the camera's calibration (`estimate(..., T_vehicle_cam=...)`): each pose is levelled, set on
         the floor where it nearly is, and refined in yaw and position with its tilt held (`level.py`) before the fit
         check, whose structure check then also tests the tilt (`StructureParams.max_tilt_deg`). On stereo depth
@@ -441,8 +443,11 @@ class PalletEstimator:
             cands.reject(drop, "outside_roi", [why[i] for i in drop])
         if not len(cands):
             return cands
-        # the fit check's frame-level registration test needs only the boxes: it runs while the networks do
-        registration = self.fit_check.start_registration(cands.boxes_xyxy[cands.alive], depth_m, rgb)
+        # the fit check's frame-level registration test needs only the boxes: with lanes (speed before memory: its
+        # thread holds a few MB) it runs while the networks do
+        registration = None
+        if self.pose_network.lanes > 1:
+            registration = self.fit_check.start_registration(cands.boxes_xyxy[cands.alive], depth_m, rgb)
         try:
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
             self.type_choice(cands, depth_m, K, timings, deadline)

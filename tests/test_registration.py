@@ -266,7 +266,7 @@ def test_a_started_registration_is_taken_only_for_the_boxes_it_was_started_on(bu
     assert list(c.reason) == ["depth_image_mismatch"] * 2
 
 
-def test_the_started_test_gives_the_frame_the_same_result_and_stops_with_the_estimator(bundle_dir):
+def test_with_lanes_the_started_test_gives_the_same_result_and_stops_with_the_estimator(bundle_dir):
     from estimator_fixtures import scene, visible_boxes
     from pallet6d.runtime.estimator import PalletEstimator
     from pallet6d.sim.generate import generate_frame
@@ -275,13 +275,16 @@ def test_the_started_test_gives_the_frame_the_same_result_and_stops_with_the_est
     frame = scene()
     boxes = visible_boxes(frame, 3)
     other = generate_frame(get_preset("virtual-clean"), seed=3)
-    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, min_confidence=0.0)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, min_confidence=0.0,
+                                      pallet_lanes=2)
     started = est.fit_check.start_registration(boxes, frame.depth_m, frame.rgb)
     assert started is not None
     np.testing.assert_array_equal(started[0], boxes)
     assert started[1].result() == frame_registration(frame.depth_m, frame.rgb, boxes, est.options.structure)
     inline = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, min_confidence=0.0)
-    inline.fit_check.start_registration = lambda *args: None            # the test in the fit check itself
+    # one lane (the default): the test runs in the fit check itself, no thread of its own
+    inline.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes)
+    assert inline.fit_check._pool is None
     reasons = set()
     for depth in (frame.depth_m, other.depth_m):
         est.close()                                      # the worker thread stops; the next frame starts it again
