@@ -32,51 +32,19 @@ import numpy as np
 from pallet6d.export.real_data_report import RealDataReport, markdown   # numpy only: no torch
 
 
-def sim_negative_frame(preset: str, seed: int, index: int, set_down: bool = False):
-    """(rgb, depth_m, K, T_vehicle_cam) of a simulated scene of `preset` without any pallet (its loads and racks
-    stay; `set_down`: the loads drop onto what held their pallets); T_vehicle_cam (the camera's calibration on its
-    vehicle) is None but in forklift views."""
-    from pallet6d.sim.generate import render_scene
-    from pallet6d.sim.pallet_free import without_pallets
-    from pallet6d.sim.sensors import RgbCameraModel, StereoDepthModel
-    from pallet6d.sim.presets import get_preset
-    from pallet6d.sim.warehouse import build_scene
-    from pallet6d.sim.scene import SceneError
-
-    cfg = get_preset(preset)
-    rng = np.random.default_rng((int(seed), int(index)))
-    for _ in range(cfg.max_attempts):
-        scene = build_scene(cfg, rng)
-        scene.boxes = without_pallets(scene.boxes, set_down)          # pallet parts carry their instance id
-        try:
-            scene.validate()
-        except SceneError:
-            continue
-        sensor_rng = np.random.default_rng((int(seed), int(index), 1))
-        try:    # generators with `depth_sensors` model every sensor kind of a preset
-            from pallet6d.sim.depth_sensors import depth_model_for
-            depth_model = depth_model_for(cfg.sensor)
-        except ImportError:
-            depth_model = StereoDepthModel() if cfg.sensor == "d435" else None
-        rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*cfg.exposure),
-                                   noise_sigma=sensor_rng.uniform(*cfg.rgb_noise_sigma))
-        f = render_scene(scene, depth_model, rgb_model, sensor_rng)
-        vehicle = getattr(scene, "vehicle", None)
-        return f.rgb, f.depth_m, f.K, None if vehicle is None else vehicle.T_vehicle_cam
-    raise SceneError(f"no valid pallet-free scene of {preset} (seed {seed}, frame {index})")
-
-
 def sim_negatives(est, presets: list[str], n_frames: int, seed: int, calibrated: bool = False,
                   set_down: bool = False) -> dict:
     """Accepted poses and detections per frame on simulated pallet-free frames, per preset; `calibrated`: the
     forklift views' camera calibration goes to the estimator, as a forklift's would; `set_down`: the loads stand
     where their pallets stood."""
+    from pallet6d.sim.pallet_free import render_pallet_free
+
     out = {}
     for preset in presets:
         accepted = detections = 0
         fits = []
         for i in range(n_frames):
-            rgb, depth_m, K, T_vc = sim_negative_frame(preset, seed, i, set_down)
+            rgb, depth_m, K, T_vc = render_pallet_free(preset, seed, i, set_down)
             res = est.estimate(rgb, depth_m.astype(np.float32), K, T_vehicle_cam=T_vc if calibrated else None)
             accepted += len(res.poses)
             detections += len(est.detect(rgb))

@@ -98,6 +98,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distill-weight", type=float, default=1.0,
                         help="pose: weight of --distill's feature error (relative to the teacher's variance) in the "
                              "loss (default 1)")
+    parser.add_argument("--distill-negatives", metavar="PRESET,...",
+                        help="pose: with --distill, also match the teacher's features on crops without a pallet: the "
+                             "boxes the teacher bundle's detector finds in pallet-free scenes of these sim presets "
+                             "(their loads set down and left hanging; seed --seed)")
+    parser.add_argument("--distill-negative-frames", type=int, default=30, metavar="N",
+                        help="pose: pallet-free frames per preset and load placement for --distill-negatives (30)")
     parser.add_argument("--freeze-pose", action="store_true",
                         help="pose: train the fusion network alone, the pose network fixed as --init gives it")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
@@ -288,11 +294,19 @@ def main(args: argparse.Namespace) -> int:
         if (args.distill is not None or args.freeze_pose) and args.stage != "pose":
             print("pallet6d train: --distill and --freeze-pose are for the pose stage", file=sys.stderr)
             return 2
+        if args.distill_negatives and args.distill is None:
+            print("pallet6d train: --distill-negatives needs --distill (a bundle whose detector boxes the crops)",
+                  file=sys.stderr)
+            return 2
         if args.stage == "pose":
             from .train_pose import train_pose
+            negatives = None if not args.distill_negatives else {
+                "detector_bundle": args.distill, "presets": args.distill_negatives.split(","),
+                "frames": args.distill_negative_frames, "seed": args.seed}
             entry = train_pose(cfg, args.data, args.out, settings, variants=args.variants or recipe["variants"],
                                aug=AugmentConfig(), num_points=args.num_points, distill=args.distill,
-                               distill_weight=args.distill_weight, freeze_pose=args.freeze_pose, **common)
+                               distill_weight=args.distill_weight, freeze_pose=args.freeze_pose,
+                               negatives=negatives, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

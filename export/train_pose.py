@@ -14,7 +14,9 @@ map is gathered at `choose` here, as the runtime does.
 With a teacher (`distill`: a bundle or checkpoint whose fusion network takes the same crops), its per-point fused
 features are a second target: the loss adds `distill_weight` times the mean squared difference of the two
 networks' features, divided by the variance of the teacher's (so 1 means "no better than their mean"). A
-smaller fusion network (`edge2-slim`) then learns to give the pose network what it was trained on.
+smaller fusion network (`edge2-slim`) then learns to give the pose network what it was trained on. With
+`negatives` (`negative_crops`: what the detector boxes in pallet-free scenes), each step also matches the teacher's
+features on a few of those crops, so that the student does not drift where no pallet is.
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ from pallet6d.runtime.bop import BopDataset
 from .calib_data import pose_input_spec
 from .config import ModelConfig, get_config
 from .fusion import build_fusion
+from .negative_crops import NegativeCrops, load_negative_crops
 from .losses import pad_symmetries, pose_loss, stack_model_points
 from .pose import build_pose
 from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for,
@@ -138,11 +141,18 @@ class PoseTrainer:
 
     def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015,
                  amp: bool = False, num_points: int | None = None, teacher: torch.nn.Module | None = None,
-                 distill_weight: float = 1.0) -> None:
+                 distill_weight: float = 1.0, negatives: NegativeCrops | None = None,
+                 negatives_per_step: int = 4) -> None:
         """:param num_points: use this many of each sample's points (fewer than prepared: the first ones, a
             uniform random subset since the points are sampled in random order), re-centred on their mean.
         :param teacher: a fusion network whose per-point features the trained one should also give (module
-            docstring), taking the same inputs; frozen. :param distill_weight: that term's weight in the loss."""
+            docstring), taking the same inputs; frozen. :param distill_weight: that term's weight in the loss.
+        :param negatives: crops without a pallet on which the features alone are distilled (needs `teacher`),
+            `negatives_per_step` of them, drawn at random, each step; their feature error has the same weight."""
+        if negatives is not None and teacher is None:
+            raise ValueError("negative crops are distilled on: they need a teacher (--distill)")
+        if negatives is not None and negatives_per_step < 1:
+            raise ValueError(f"negatives_per_step must be >= 1, got {negatives_per_step}")
         self.cfg, self.data, self.device, self.w, self.amp = cfg, data, torch.device(device), w, amp
         prepared = data.samples.points.shape[1]
         if num_points is not None and not 0 < num_points <= prepared:
@@ -159,6 +169,15 @@ class PoseTrainer:
         self.teacher = None if teacher is None else teacher.to(self.device).eval().requires_grad_(False)
         self.distill_weight = float(distill_weight)
         self.feature_error = float("nan")    # the last batch's relative feature error against the teacher
+        self.negatives, self.negatives_per_step = negatives, negatives_per_step
+        if negatives is not None and self.num_points < negatives.choose.shape[1]:
+            self.negatives = NegativeCrops(negatives.rgb_crops, negatives.depth_crops,
+                                           negatives.choose[:, :self.num_points])
+        if negatives is not None:   # every 8th crop held out to measure the student there
+            every = np.arange(len(negatives))
+            held = every % 8 == 7 if len(negatives) >= 16 else np.zeros(len(negatives), bool)
+            self.negatives_train, self.negatives_val = every[~held], every[held]
+
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
         return {"fusion": self.fusion, "pose": self.pose}
@@ -186,6 +205,17 @@ class PoseTrainer:
             loss = loss + self.distill_weight * err
         return loss, d, conf
 
+    def negative_feature_error(self, idx: np.ndarray, amp: bool = False) -> torch.Tensor:
+        """Relative feature error against the teacher on negative crops `idx` (scalar, as `forward_loss`'s)."""
+        n = self.negatives
+        t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
+        rgb, depth, choose = t(n.rgb_crops[idx]), t(n.depth_crops[idx]), t(n.choose[idx])
+        with autocast(self.device.type, amp):
+            feats = self._features(self.fusion, rgb, depth, choose).float()
+        with torch.no_grad(), autocast(self.device.type, amp):
+            target = self._features(self.teacher, rgb, depth, choose).float()
+        return ((feats - target) ** 2).mean() / target.var().clamp_min(1e-12)
+
     def _features(self, fusion: torch.nn.Module, rgb: torch.Tensor, depth: torch.Tensor,
                   choose: torch.Tensor) -> torch.Tensor:
         """(B, N, C) fused features at the sampled pixels."""
@@ -198,6 +228,11 @@ class PoseTrainer:
         info = {"dis": float(d.detach().mean())}
         if self.teacher is not None:
             info["feat"] = self.feature_error
+        if self.negatives is not None:
+            k = min(self.negatives_per_step, len(self.negatives_train))
+            err = self.negative_feature_error(rng.choice(self.negatives_train, k, replace=False), amp=self.amp)
+            loss = loss + self.distill_weight * err
+            info["feat_neg"] = float(err.detach())
         return loss, info
 
     def validate(self, batch: int = 16) -> dict:
@@ -213,6 +248,11 @@ class PoseTrainer:
         e = np.concatenate(errs) if errs else np.zeros(0)
         n = max(len(e), 1)
         extra = {"feature_error": sum(feats) / n} if self.teacher is not None else {}
+        if self.negatives is not None and len(self.negatives_val):
+            held = self.negatives_val
+            with torch.no_grad():
+                extra["negative_feature_error"] = float(np.mean([
+                    float(self.negative_feature_error(held[i:i + batch])) for i in range(0, len(held), batch)]))
         return {**extra, "metric": float(e.mean()) if len(e) else float("inf"), "loss": sum(losses) / n,
                 "add_sym_mean_m": float(e.mean()) if len(e) else None,
                 "add_sym_median_m": float(np.median(e)) if len(e) else None,
@@ -225,7 +265,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
                command: str = "", progress: bool = True, init: str | Path | None = None,
                num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
-               freeze_pose: bool = False) -> dict:
+               freeze_pose: bool = False, negatives: dict | None = None) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -235,6 +275,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     :param freeze_pose: train the fusion network alone under a fixed pose network (e.g. a smaller fusion network
         learning to serve a trained pose network, whose confidences then keep the meaning the runtime's thresholds
         were chosen for).
+    :param negatives: distil on crops without a pallet too (`negative_crops`): keyword arguments of
+        `load_negative_crops` but `spec` and `cache_dir` (`detector_bundle`, `presets`, `frames`, `seed`, ...).
     """
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
@@ -242,8 +284,13 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     pd = load_pose_data(cfg, data, variants, settings.seed, aug, cache_dir if cache_dir is not None else run_dir / "cache",
                         val_fraction, max_frames, progress)
     teacher, distilled = (None, None) if distill is None else _teacher(distill, cfg)
+    neg_crops = neg_record = None
+    if negatives is not None:
+        neg_crops, neg_record = load_negative_crops(spec=pose_input_spec(cfg), cache_dir=cache_dir if cache_dir
+                                                    is not None else run_dir / "cache", **negatives)
+        log.info("negative crops: %d", len(neg_crops))
     trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
-                          distill_weight=distill_weight)
+                          distill_weight=distill_weight, negatives=neg_crops)
     if freeze_pose:
         trainer.pose.requires_grad_(False)
     params = list(trainer.fusion.parameters()) + ([] if freeze_pose else list(trainer.pose.parameters()))
@@ -257,6 +304,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                   "pallet_types": {str(k): v for k, v in sorted(pd.type_names.items())}}
     if distilled is not None:
         provenance["distill"] = {**distilled, "weight": distill_weight}
+    if neg_record is not None:
+        provenance["distill_negatives"] = neg_record
     if freeze_pose:
         provenance["freeze_pose"] = True
     if init is not None and not resume and init_config(init) != cfg.name:

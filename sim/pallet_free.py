@@ -13,7 +13,7 @@ import numpy as np
 
 from .scene import Box
 
-__all__ = ["without_pallets"]
+__all__ = ["without_pallets", "render_pallet_free"]
 
 _CONTACT_M = 0.02          # a box within this of a surface below it stands on it
 
@@ -79,3 +79,37 @@ def without_pallets(boxes: list[Box], set_down: bool = True) -> list[Box]:
             b = replace(b, T_world_box=T)
         out.append(b)
     return out
+
+
+def render_pallet_free(preset: str, seed: int, index: int, set_down: bool = False):
+    """A scene of `preset` drawn without any pallet (its loads and racks stay; `set_down`: the loads drop onto what
+    held their pallets), rendered through the preset's sensors.
+
+    Frame `index` of `seed` uses `np.random.default_rng((seed, index))`: reproducible frame by frame.
+    :return: (rgb (H, W, 3) uint8, depth_m (H, W) float, K (3, 3), T_vehicle_cam (4, 4) or None): the camera's
+        calibration on its vehicle in forklift views, else None.
+    :raises SceneError: no valid scene within the preset's attempts.
+    """
+    from .depth_sensors import depth_model_for
+    from .generate import render_scene
+    from .presets import get_preset
+    from .scene import SceneError
+    from .sensors import RgbCameraModel
+    from .warehouse import build_scene
+
+    cfg = get_preset(preset)
+    rng = np.random.default_rng((int(seed), int(index)))
+    for _ in range(cfg.max_attempts):
+        scene = build_scene(cfg, rng)
+        scene.boxes = without_pallets(scene.boxes, set_down)          # pallet parts carry their instance id
+        try:
+            scene.validate()
+        except SceneError:
+            continue
+        sensor_rng = np.random.default_rng((int(seed), int(index), 1))
+        rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*cfg.exposure),
+                                   noise_sigma=sensor_rng.uniform(*cfg.rgb_noise_sigma))
+        f = render_scene(scene, depth_model_for(cfg.sensor), rgb_model, sensor_rng)
+        vehicle = getattr(scene, "vehicle", None)
+        return f.rgb, f.depth_m, f.K, None if vehicle is None else vehicle.T_vehicle_cam
+    raise SceneError(f"no valid pallet-free scene of {preset} (seed {seed}, frame {index})")

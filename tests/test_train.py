@@ -435,3 +435,73 @@ def test_distillation_run_records_its_teacher_and_refuses_one_that_takes_other_c
     with pytest.raises(ValueError, match="does not take and give"):
         train_pose(get_config("edge2-slim"), [sim_bop_dataset], tmp_path / "e",
                    LoopSettings(epochs=1, batch=4, lr=1e-3), variants=1, progress=False, distill=bundle_dir)
+
+
+def test_negative_crops_are_the_runtimes_inputs_on_the_detectors_boxes(bundle_dir, tmp_path):
+    from pallet6d.export.negative_crops import build_negative_crops, load_negative_crops
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.runtime.pose_inputs import prepare_pose_inputs
+    from pallet6d.sim.pallet_free import render_pallet_free
+
+    spec = pose_input_spec(CFG)
+    crops = build_negative_crops(bundle_dir, spec, ["virtual-clean"], frames=1, seed=3, score_threshold=0.0,
+                                 max_boxes=2)
+    assert 1 <= len(crops) <= 4 and crops.choose.shape[1] == spec.num_points
+    # the first crop: frame 0 of the preset (loads left hanging), its detector's best box
+    rgb, depth_m, K, _ = render_pallet_free("virtual-clean", 3, 0, set_down=False)
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0)    # fp32: the tiny bundle's
+    box = est.detect(rgb).boxes_xyxy[:1]
+    est.close()
+    batch = prepare_pose_inputs(rgb, depth_m, K, box, spec, np.random.default_rng((3, 0)))
+    if batch.n_valid[0] >= 50:
+        np.testing.assert_array_equal(crops.rgb_crops[0], batch.rgb_crops[0])
+        np.testing.assert_array_equal(crops.choose[0], batch.choose[0])
+    again, record = load_negative_crops(bundle_dir, spec, ["virtual-clean"], 1, 3, tmp_path, score_threshold=0.0,
+                                        max_boxes=2)
+    cached, _ = load_negative_crops(bundle_dir, spec, ["virtual-clean"], 1, 3, tmp_path, score_threshold=0.0,
+                                    max_boxes=2)
+    np.testing.assert_array_equal(again.depth_crops, crops.depth_crops)
+    np.testing.assert_array_equal(cached.choose, crops.choose)
+    assert record["crops"] == len(crops) and len(record["detector_sha256"]) == 64
+    with pytest.raises(ValueError, match="no detection"):
+        build_negative_crops(bundle_dir, spec, ["virtual-clean"], frames=1, seed=3, score_threshold=1.0)
+    with pytest.raises(ValueError, match="need a model bundle"):
+        load_negative_crops(tmp_path, spec, ["virtual-clean"], 1, 3, None)
+
+
+def test_negative_crops_pull_the_features_there_and_need_a_teacher(pose_data, bundle_dir, tmp_path):
+    from pallet6d.export.negative_crops import NegativeCrops, build_negative_crops
+    from pallet6d.export.train_pose import _teacher
+
+    crops = build_negative_crops(bundle_dir, pose_input_spec(CFG), ["virtual-clean"], frames=2, seed=3,
+                                 score_threshold=0.0, max_boxes=4)
+    many = NegativeCrops(*(np.concatenate([a] * (16 // len(crops) + 1))
+                           for a in (crops.rgb_crops, crops.depth_crops, crops.choose)))
+    with pytest.raises(ValueError, match="need a teacher"):
+        PoseTrainer(CFG, pose_data, negatives=many)
+    teacher, _ = _teacher(bundle_dir, CFG)
+    torch.manual_seed(0)
+    trainer = PoseTrainer(CFG, pose_data, teacher=teacher, negatives=many, negatives_per_step=4)
+    assert len(trainer.negatives_val) == len(many) // 8 and not set(trainer.negatives_val) & set(trainer.negatives_train)
+    with torch.no_grad():       # as the training loop validates
+        before = trainer.validate(batch=4)["negative_feature_error"]
+    rng = np.random.default_rng(0)
+    opt = torch.optim.Adam(trainer.fusion.parameters(), lr=2e-3)
+    trainer.fusion.train()
+    for _ in range(30):
+        loss, info = trainer.step(pose_data.train_idx[:4], rng)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert np.isfinite(info["feat_neg"])
+    with torch.no_grad():
+        after = trainer.validate(batch=4)["negative_feature_error"]
+    assert after < 0.7 * before, (before, after)
+
+
+def test_train_cli_refuses_negatives_without_a_teacher(sim_bop_dataset, tmp_path, capsys):
+    from pallet6d.runtime.cli import main
+
+    rc = main(["train", "pose", "--config", "tiny", "--data", str(sim_bop_dataset), "--out", str(tmp_path / "r"),
+               "--distill-negatives", "virtual-clean"])
+    assert rc == 2 and "--distill-negatives needs --distill" in capsys.readouterr().err

@@ -1,0 +1,134 @@
+"""Crops without a pallet, for distillation: what a bundle's detector boxes in pallet-free simulated scenes.
+
+A student fusion network distilled on pallet crops alone learns the teacher's features where pallets are, and
+nothing about the carton stacks, rack edges and floors the detector also boxes: there its features drift, and the
+pose network posed on them passes the fit checks more often than under the teacher. These crops are the runtime's
+inputs on such boxes (`prepare_pose_inputs` on the detector's boxes, at a low score threshold so that the near
+misses count too); training matches the teacher's features on them and nothing else (they have no pose).
+
+Frames come from `sim.pallet_free.render_pallet_free` with the training seed: keep it away from the seeds the
+negative benchmarks use (`benchmarks/real_data.py --sim-seed`, 9100 and 9200).
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from pallet6d.runtime.bundle import BundleError, load_bundle
+from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
+
+__all__ = ["NegativeCrops", "build_negative_crops", "detector_graph", "load_negative_crops"]
+
+log = logging.getLogger(__name__)
+
+MIN_POINTS = 50          # as the pose samples: a box with fewer valid depth pixels is never posed
+
+
+@dataclass
+class NegativeCrops:
+    """:ivar rgb_crops: (B, 3, h, w) float32. :ivar depth_crops: (B, 1, h, w) float32.
+    :ivar choose: (B, N) int64 flat pixel index into the crop, as `PoseBatch.choose`."""
+
+    rgb_crops: np.ndarray
+    depth_crops: np.ndarray
+    choose: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.rgb_crops)
+        if len(self.depth_crops) != n or len(self.choose) != n:
+            raise ValueError(f"negative crops: {n} rgb crops, {len(self.depth_crops)} depth crops, "
+                             f"{len(self.choose)} point index rows; expected equal counts")
+
+    def __len__(self) -> int:
+        return len(self.rgb_crops)
+
+
+def build_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, presets: Sequence[str], frames: int,
+                         seed: int, score_threshold: float = 0.1, max_boxes: int = 4,
+                         progress=None) -> NegativeCrops:
+    """The crops of the boxes `detector_bundle`'s detector (int8 when it has one, as it ships) finds in pallet-free
+    frames.
+
+    :param presets: sim presets; each gives `frames` frames with the loads set down and `frames` left hanging.
+    :param seed: the frames' seed (module docstring). :param score_threshold: the detector's score cut.
+    :param max_boxes: at most this many boxes a frame, the highest scoring.
+    :param progress: called with 1 after each frame, or None.
+    :raises ValueError: no box in any frame.
+    """
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.sim.pallet_free import render_pallet_free
+
+    if frames < 1 or max_boxes < 1:
+        raise ValueError(f"frames and max_boxes must be >= 1, got {frames} and {max_boxes}")
+    precision, _ = detector_graph(detector_bundle)
+    est = PalletEstimator.from_bundle(detector_bundle, threads=1, precision=precision, score_threshold=score_threshold)
+    rgb_rows, depth_rows, choose_rows = [], [], []
+    try:
+        for p, preset in enumerate(presets):
+            for set_down in (False, True):
+                for i in range(frames):
+                    index = 2 * p * frames + int(set_down) * frames + i
+                    rgb, depth_m, K, _ = render_pallet_free(preset, seed, index, set_down)
+                    boxes = est.detect(rgb).boxes_xyxy[:max_boxes]
+                    if len(boxes):
+                        batch = prepare_pose_inputs(rgb, depth_m, K, boxes, spec, np.random.default_rng((seed, index)))
+                        keep = batch.n_valid >= MIN_POINTS
+                        rgb_rows.append(batch.rgb_crops[keep])
+                        depth_rows.append(batch.depth_crops[keep])
+                        choose_rows.append(batch.choose[keep])
+                    if progress is not None:
+                        progress(1)
+    finally:
+        est.close()
+    crops = NegativeCrops(*(np.concatenate(r) if r else np.zeros(0) for r in (rgb_rows, depth_rows, choose_rows)))
+    if not len(crops):
+        raise ValueError(f"no detection above score {score_threshold} in {2 * frames * len(presets)} pallet-free "
+                         f"frames of {', '.join(presets)}: nothing to distill on")
+    return crops
+
+
+def detector_graph(bundle: str | Path) -> tuple[str, Path]:
+    """(precision, path) of the detector graph the crops are boxed with: int8 when the bundle has it.
+
+    :raises ValueError: `bundle` is not a model bundle (e.g. a training checkpoint)."""
+    try:
+        b = load_bundle(bundle, verify_sha256=False)
+    except (BundleError, OSError) as exc:
+        raise ValueError(f"{bundle}: the negative crops need a model bundle's detector ({exc})") from exc
+    precision = "int8" if "int8" in b.precision else "fp32"
+    return precision, b.graph("detector", precision)
+
+
+def load_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, presets: Sequence[str], frames: int,
+                        seed: int, cache_dir: str | Path | None, score_threshold: float = 0.1,
+                        max_boxes: int = 4, progress=None) -> tuple[NegativeCrops, dict]:
+    """`build_negative_crops`, read from `cache_dir` when the same settings and detector graph made it before.
+
+    :return: (crops, what to record of them in the run's provenance).
+    """
+    precision, graph = detector_graph(detector_bundle)
+    record = {"detector": str(detector_bundle), "detector_precision": precision,
+              "detector_sha256": hashlib.sha256(graph.read_bytes()).hexdigest(),
+              "presets": list(presets), "frames_per_preset_and_load": frames, "seed": seed,
+              "score_threshold": score_threshold, "max_boxes": max_boxes, "spec": repr(spec)}
+    key = hashlib.sha256(repr(sorted(record.items())).encode()).hexdigest()[:16]
+    path = None if cache_dir is None else Path(cache_dir) / f"negatives_{key}.npz"
+    if path is not None and path.exists():
+        with np.load(path, allow_pickle=False) as z:
+            crops = NegativeCrops(z["rgb_crops"], z["depth_crops"], z["choose"])
+        log.info("cache hit: %s", path)
+    else:
+        crops = build_negative_crops(detector_bundle, spec, presets, frames, seed, score_threshold, max_boxes,
+                                     progress)
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez(tmp, rgb_crops=crops.rgb_crops, depth_crops=crops.depth_crops, choose=crops.choose)
+            tmp.replace(path)
+    record.pop("spec")
+    return crops, {**record, "crops": len(crops)}
