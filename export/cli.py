@@ -26,7 +26,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--int8-stages",
                         help="with --int8: comma-separated stages to quantize (default detector,fusion: the pose "
                              "net loses accuracy when quantized); the others run their float graph at int8 too")
-    parser.add_argument("--detector-onnx", help="use this YOLOv8 ONNX graph (ultralytics export layout) as detector")
+    det = parser.add_mutually_exclusive_group()
+    det.add_argument("--detector-onnx", help="use this YOLOv8 ONNX graph (ultralytics export layout) as detector")
+    det.add_argument("--detector-from", metavar="BUNDLE",
+                     help="keep this bundle's detector graphs (float and int8) byte for byte, e.g. when only the pose "
+                          "stage was retrained (`pallet6d train merge --detector BUNDLE`); the checkpoint's detector "
+                          "must be the same network")
     parser.add_argument("--detector-input-sizes", type=_sizes, metavar="HxW,HxW,...",
                         help="detector input sizes, one chosen per frame by its aspect (default: those the "
                              "checkpoint's detector was trained on); several give a graph with dynamic height/width")
@@ -94,7 +99,8 @@ def main(args: argparse.Namespace) -> int:
                                  float_weights=args.float_weights,
                                  int8_stages=INT8_STAGES if args.int8_stages is None else
                                  tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()),
-                                 pallet_types=types, detector_input_sizes=args.detector_input_sizes)
+                                 pallet_types=types, detector_input_sizes=args.detector_input_sizes,
+                                 detector_from=args.detector_from)
     except (ExportError, ParityError) as exc:
         print(f"pallet6d export: {exc}", file=sys.stderr)
         return 1
