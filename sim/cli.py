@@ -35,6 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sensor", default=None, choices=sorted(SENSORS),
                         help="every frame's depth from this sensor model instead of the preset's (ideal: exact depth); "
                              "the scenes and their ground truth stay the same, the camera noise is drawn again")
+    parser.add_argument("--pallet-free", choices=("set-down", "hanging"), default=None,
+                        help="the preset's scenes without their pallets, written with no ground truth (negatives for "
+                             "training and measuring detectors): their loads set down where the pallets stood, or "
+                             "left hanging")
     parser.add_argument("--preview", action="store_true",
                         help="also write PNGs with each pallet's GT 3D box and axes, and the depth")
 
@@ -70,7 +74,7 @@ def main(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         with tqdm(total=args.frames, desc=f"sim {config.name}", unit="frame", file=sys.stderr) as bar:
             previews = write_dataset(config, args.frames, args.seed, args.out, args.split, args.preview,
-                                     start=args.start, progress=bar.update)
+                                     start=args.start, progress=bar.update, pallet_free=args.pallet_free)
         dt = time.perf_counter() - t0
     except (SceneError, ValueError) as exc:
         print(f"pallet6d sim: {exc}", file=sys.stderr)

@@ -12,6 +12,7 @@ import cv2
 from pallet6d.runtime.geometry import invert_T
 from pallet6d.runtime.bop import BopGT, BopWriter, models_info_entry, write_models_info
 from pallet6d.sim.generate import SimFrame, generate_frame, obj_id_of
+from pallet6d.sim.pallet_free import generate_pallet_free_frame
 from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
 from pallet6d.sim.presets import SimConfig
 from pallet6d.sim.preview import draw_preview
@@ -89,8 +90,12 @@ def frame_to_bop_gts(frame: SimFrame) -> list[BopGT]:
 
 
 def write_dataset(config: SimConfig, frames: int, seed: int, out, split: str = "train", preview: bool = False,
-                  start: int = 0, progress: Callable[[int], None] | None = None) -> list[Path]:
+                  start: int = 0, progress: Callable[[int], None] | None = None,
+                  pallet_free: str | None = None) -> list[Path]:
     """Generate `frames` frames (indices start .. start+frames-1) into a BOP dataset at `out`.
+
+    :param pallet_free: None, or where the loads go ("set-down", "hanging") in frames of the preset's scenes drawn
+        without their pallets and written with no ground truth (`pallet_free.generate_pallet_free_frame`).
 
     :return: the preview image paths (empty without `preview`).
     """
@@ -100,14 +105,15 @@ def write_dataset(config: SimConfig, frames: int, seed: int, out, split: str = "
     write_models(out)
     previews: list[Path] = []
     meta = {"generator": "pallet6d.sim", "gt_info_version": GT_INFO_VERSION, "seed": seed, "start": start,
-            "frames": frames, "config": dataclasses.asdict(config)}
+            "frames": frames, "config": dataclasses.asdict(config), "pallet_free": pallet_free}
     (out / split).mkdir(parents=True, exist_ok=True)
     (out / split / f"sim_config_{start:06d}.json").write_text(json.dumps(meta, indent=1))
     side: dict[str, dict] = {}
     side_scene = None
     with BopWriter(out, split) as writer:
         for index in range(start, start + frames):
-            frame = generate_frame(config, seed, index)
+            frame = generate_frame(config, seed, index) if pallet_free is None else \
+                generate_pallet_free_frame(config, seed, index, pallet_free)
             scene_id, im_id = divmod(index, IMAGES_PER_SCENE)
             writer.write_frame(scene_id, im_id, frame.rgb, frame.depth_m, frame.K, frame_to_bop_gts(frame),
                                T_cam_world=invert_T(frame.T_world_cam))

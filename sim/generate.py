@@ -25,8 +25,8 @@ from pallet6d.sim.shading import SurfaceHits, albedo, shade, surface_hits
 from pallet6d.sim.tof import ToFDepthModel, register_rgb_to_depth
 from pallet6d.sim.warehouse import build_scene
 
-__all__ = ["PalletGT", "SimFrame", "obj_id_of", "render_scene", "with_forklift_gt", "generate_frame",
-           "mask_bbox_xywh"]
+__all__ = ["PalletGT", "SimFrame", "obj_id_of", "render_scene", "render_with_sensors", "with_forklift_gt",
+           "generate_frame", "mask_bbox_xywh"]
 
 log = logging.getLogger(__name__)
 
@@ -251,6 +251,27 @@ def with_forklift_gt(scene: Scene, frame: SimFrame) -> SimFrame:
     return frame
 
 
+def render_with_sensors(config: SimConfig, scene: Scene, seed: int, index: int, cast=None) -> SimFrame:
+    """Render `scene` through frame `index`'s draw of `config`'s sensors and appearance (seeded by (seed, index)).
+
+    :param cast: `_raycast(scene)` when already computed, else None."""
+    sensor_rng = np.random.default_rng((int(seed), int(index), 1))
+    if config.sensor_mix:
+        pick = np.random.default_rng((int(seed), int(index), 3)).integers(len(config.sensor_mix))
+        depth_model = depth_model_for(config.sensor_mix[int(pick)])
+    else:
+        depth_model = config.sensor_model if config.sensor_model is not None else depth_model_for(config.sensor)
+    if config.appearance is not None:
+        app_rng = np.random.default_rng((int(seed), int(index), 2))
+        appearance = draw_appearance(config.appearance, scene, app_rng)
+        return render_scene(scene, depth_model, None, sensor_rng, _cast=cast, appearance=appearance)
+    blur = sensor_rng.uniform(2, 9) if sensor_rng.random() < config.blur_prob else 0.0
+    rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*config.exposure),
+                               noise_sigma=sensor_rng.uniform(*config.rgb_noise_sigma),
+                               shot_noise=0.004 if config.sensor == "ideal" else 0.01, blur_px=blur)
+    return render_scene(scene, depth_model, rgb_model, sensor_rng, _cast=cast)
+
+
 def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
     """Frame `index` of the dataset drawn from `config` with `seed`.
 
@@ -279,23 +300,7 @@ def generate_frame(config: SimConfig, seed: int, index: int = 0) -> SimFrame:
         visib = int((inst_img == scene.target_instance).sum()) / n_all if n_all else 0.0
         best = max(best, visib if inside else 0.0)
         if inside and visib >= config.min_target_visib:
-            sensor_rng = np.random.default_rng((int(seed), int(index), 1))
-            if config.sensor_mix:
-                pick = np.random.default_rng((int(seed), int(index), 3)).integers(len(config.sensor_mix))
-                depth_model = depth_model_for(config.sensor_mix[int(pick)])
-            else:
-                depth_model = config.sensor_model if config.sensor_model is not None else depth_model_for(config.sensor)
-            if config.appearance is not None:
-                app_rng = np.random.default_rng((int(seed), int(index), 2))
-                appearance = draw_appearance(config.appearance, scene, app_rng)
-                frame = render_scene(scene, depth_model, None, sensor_rng, _cast=cast, appearance=appearance)
-                return with_forklift_gt(scene, frame)
-            blur = sensor_rng.uniform(2, 9) if sensor_rng.random() < config.blur_prob else 0.0
-            rgb_model = RgbCameraModel(exposure=sensor_rng.uniform(*config.exposure),
-                                       noise_sigma=sensor_rng.uniform(*config.rgb_noise_sigma),
-                                       shot_noise=0.004 if config.sensor == "ideal" else 0.01, blur_px=blur)
-            frame = render_scene(scene, depth_model, rgb_model, sensor_rng, _cast=cast)
-            return with_forklift_gt(scene, frame)
+            return with_forklift_gt(scene, render_with_sensors(config, scene, seed, index, cast))
         log.debug("frame %d attempt %d: target visible fraction %.2f, inside image %s", index, attempt, visib,
                   inside)
     where = "fully in the image and " if config.target_inside else ""

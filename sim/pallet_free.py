@@ -13,9 +13,10 @@ import numpy as np
 
 from .scene import Box
 
-__all__ = ["without_pallets", "render_pallet_free"]
+__all__ = ["without_pallets", "render_pallet_free", "generate_pallet_free_frame", "LOADS"]
 
 _CONTACT_M = 0.02          # a box within this of a surface below it stands on it
+LOADS = ("set-down", "hanging")   # where a pallet-free scene's loads go
 
 
 def _aabb(b: Box) -> tuple[np.ndarray, np.ndarray]:
@@ -113,3 +114,32 @@ def render_pallet_free(preset: str, seed: int, index: int, set_down: bool = Fals
         vehicle = getattr(scene, "vehicle", None)
         return f.rgb, f.depth_m, f.K, None if vehicle is None else vehicle.T_vehicle_cam
     raise SceneError(f"no valid pallet-free scene of {preset} (seed {seed}, frame {index})")
+
+
+def generate_pallet_free_frame(config, seed: int, index: int = 0, loads: str = "set-down"):
+    """Frame `index` of a pallet-free dataset drawn from `config` (a `SimConfig`) with `seed`: a scene of the preset
+    without its pallets, through the preset's own sensors and appearance (`generate.render_with_sensors`), with no
+    pallet ground truth (a negative for training and measuring detectors).
+
+    :param loads: "set-down" (the loads stand where their pallets stood) or "hanging".
+    :return: a `SimFrame` whose `pallets` and `faces` are empty.
+    :raises SceneError: no valid scene within the preset's attempts.
+    """
+    from .generate import render_with_sensors
+    from .scene import SceneError
+    from .warehouse import build_scene
+
+    if loads not in LOADS:
+        raise ValueError(f"loads must be one of {', '.join(LOADS)}, got {loads!r}")
+    rng = np.random.default_rng((int(seed), int(index)))
+    for _ in range(config.max_attempts):
+        scene = build_scene(config, rng)
+        scene.boxes = without_pallets(scene.boxes, loads == "set-down")
+        try:
+            scene.validate()
+        except SceneError:
+            continue
+        frame = render_with_sensors(config, scene, seed, index)
+        frame.pallets, frame.faces, frame.vehicle = [], [], scene.vehicle
+        return frame
+    raise SceneError(f"no valid pallet-free scene of {config.name} (seed {seed}, frame {index})")

@@ -43,3 +43,27 @@ def test_a_load_on_a_stack_falls_through_the_whole_stack_but_not_through_a_rack_
     out = without_pallets(stack + [on_stack, beam] + rack + [on_rack])
     assert [_bottom(b) for b in out] == pytest.approx([0.0, 1.4, 1.5])
     assert without_pallets([]) == [] and without_pallets([beam]) == [beam]
+
+
+def test_a_pallet_free_dataset_draws_the_presets_scenes_without_pallets_or_ground_truth(tmp_path, monkeypatch):
+    import pallet6d.sim.generate as generate
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.sim.dataset import write_dataset
+    from pallet6d.sim.pallet_free import generate_pallet_free_frame
+    from pallet6d.sim.presets import get_preset
+
+    scenes = []
+    render = generate.render_with_sensors
+    monkeypatch.setattr(generate, "render_with_sensors",
+                        lambda config, scene, *a, **k: scenes.append(scene) or render(config, scene, *a, **k))
+    config = get_preset("forklift-approach").with_image_size(320, 180)
+    write_dataset(config, 2, 5, tmp_path / "d", pallet_free="set-down")
+    ds = BopDataset(tmp_path / "d")
+    assert len(ds) == 2 and all(ds[i].gts == [] for i in range(2))
+    assert len(scenes) == 2 and all(b.instance_id == 0 for s in scenes for b in s.boxes)
+    assert all(s.vehicle is not None for s in scenes)          # the forklift's own view, fork tips included
+    frame = generate_pallet_free_frame(config, 5, 0, "set-down")
+    np.testing.assert_array_equal(frame.rgb, ds[0].rgb)         # seeded frame by frame
+    assert frame.pallets == [] and frame.faces == []
+    with pytest.raises(ValueError, match="loads must be one of"):
+        generate_pallet_free_frame(config, 5, 0, "floating")
