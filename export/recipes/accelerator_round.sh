@@ -28,7 +28,9 @@ say() { echo "[$(date +%T)] $*" | tee -a "$OUT_DIR/run.log"; }
 say "start: $(nproc --all) cores, $(python3 -c 'import torch; print(torch.__version__, torch.cuda.is_available())')"
 
 # Simulated chunks, interleaved so that a cut-short phase still has every kind: the forklift's view (all types,
-# D435-like; ToF-like; EPAL only), the mixed preset, and the paper's three presets (kept level by training on them).
+# D435-like; ToF-like; EPAL only), the mixed preset, the paper's three presets (kept level by training on them), and
+# pallet-free scenes with their loads set down ("neg-": the detector's negatives; the pose stage has nothing to learn
+# there).
 chunks() {
   [ -n "${CHUNKS_FILE:-}" ] && { cat "$CHUNKS_FILE"; return; }
   for i in $(seq 0 23); do
@@ -39,6 +41,8 @@ chunks() {
     [ $((i % 4)) = 2 ] && echo "fatof-$((6100 + i / 4)) forklift-approach $((6100 + i / 4)) --sensor tof"
     [ $((i % 4)) = 3 ] && echo "faepal-$((6200 + i / 4)) forklift-approach $((6200 + i / 4)) --pallet-types epal"
     [ $((i % 6)) = 5 ] && echo "vc-$((6600 + i / 6)) virtual-clean $((6600 + i / 6))"
+    [ $((i % 6)) = 1 ] && echo "neg-$((6700 + i / 6)) forklift-approach $((6700 + i / 6)) --pallet-free set-down"
+    [ $((i % 6)) = 4 ] && echo "neg-$((6750 + i / 6)) virtual-occluded $((6750 + i / 6)) --pallet-free set-down"
   done
 }
 export CHUNK_S=${CHUNK_S:-55} DEADLINE=$(($(date +%s) + SIM_S))
@@ -46,6 +50,7 @@ chunks | xargs -P "$PROCS" -L 1 bash "$RECIPES/sim_chunk.sh"
 DIRS=$(for d in "$W"/sim/*/; do [ -f "$d/DONE" ] && echo "${d%/}"; done)
 say "simulated: $(echo $DIRS | wc -w) of $(chunks | wc -l) chunks of $FRAMES frames"
 DET_DIRS=$DIRS
+POSE_DIRS=$(for d in $DIRS; do case $(basename "$d") in neg-*) ;; *) echo "$d";; esac; done)
 for p in ${DET_REPEAT:-}; do DET_DIRS="$DET_DIRS $(for d in $DIRS; do case $(basename "$d") in "$p"*) echo "$d";; esac; done)"; done
 [ -n "$DIRS" ] || { tail -n 20 "$W"/log/*.log | tee -a "$OUT_DIR/run.log"; exit 1; }
 
@@ -57,7 +62,7 @@ export OMP_NUM_THREADS=3
   --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
   --cache-dir "$W/cache" --out "$W/det" >"$OUT_DIR/det.log" 2>&1 &
 [[ " $STAGES " == *" pose "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train pose --config "$POSE_CONFIG" --init "$POSE_INIT" \
-  --data $DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr "$POSE_LR" --variants 2 --seed "$SEED" --device "$DEVICE" --amp $POSE_ARGS \
+  --data $POSE_DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr "$POSE_LR" --variants 2 --seed "$SEED" --device "$DEVICE" --amp $POSE_ARGS \
   --max-minutes "$TRAIN_MIN" --no-progress --cache-dir "$W/cache" --out "$W/pose" >>"$OUT_DIR/run.log" 2>&1 &
 wait
 say "trained"
