@@ -1,10 +1,12 @@
-"""Crops without a pallet, for distillation: what a bundle's detector boxes in pallet-free simulated scenes.
+"""Crops without a pallet: what a bundle's detector boxes in pallet-free simulated scenes.
 
 A student fusion network distilled on pallet crops alone learns the teacher's features where pallets are, and
 nothing about the carton stacks, rack edges and floors the detector also boxes: there its features drift, and the
-pose network posed on them passes the fit checks more often than under the teacher. These crops are the runtime's
+pose network posed on them passes the fit checks more often than under the teacher. And the pose network's
+confidence, trained on pallets alone, has never been told what no pallet looks like. These crops are the runtime's
 inputs on such boxes (`prepare_pose_inputs` on the detector's boxes, at a low score threshold so that the near
-misses count too); training matches the teacher's features on them and nothing else (they have no pose).
+misses count too); training matches the teacher's features on them, or teaches the confidence to be low there
+(`train_pose.PoseTrainer`); they have no pose.
 
 Frames come from `sim.pallet_free.render_pallet_free` with the training seed: keep it away from the seeds the
 negative benchmarks use (`benchmarks/real_data.py --sim-seed`, 9100 and 9200).
@@ -32,17 +34,23 @@ MIN_POINTS = 50          # as the pose samples: a box with fewer valid depth pix
 @dataclass
 class NegativeCrops:
     """:ivar rgb_crops: (B, 3, h, w) float32. :ivar depth_crops: (B, 1, h, w) float32.
-    :ivar choose: (B, N) int64 flat pixel index into the crop, as `PoseBatch.choose`."""
+    :ivar choose: (B, N) int64 flat pixel index into the crop, as `PoseBatch.choose`.
+    :ivar points: (B, N, 3) float32 the sampled points, centred on their mean (metres), as `PoseBatch.points`."""
 
     rgb_crops: np.ndarray
     depth_crops: np.ndarray
     choose: np.ndarray
+    points: np.ndarray
 
     def __post_init__(self) -> None:
         n = len(self.rgb_crops)
-        if len(self.depth_crops) != n or len(self.choose) != n:
+        if not len(self.depth_crops) == len(self.choose) == len(self.points) == n:
             raise ValueError(f"negative crops: {n} rgb crops, {len(self.depth_crops)} depth crops, "
-                             f"{len(self.choose)} point index rows; expected equal counts")
+                             f"{len(self.choose)} point index rows, {len(self.points)} point sets; expected equal "
+                             "counts")
+
+    def take(self, idx) -> "NegativeCrops":
+        return NegativeCrops(self.rgb_crops[idx], self.depth_crops[idx], self.choose[idx], self.points[idx])
 
     def __len__(self) -> int:
         return len(self.rgb_crops)
@@ -67,7 +75,7 @@ def build_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, prese
         raise ValueError(f"frames and max_boxes must be >= 1, got {frames} and {max_boxes}")
     precision, _ = detector_graph(detector_bundle)
     est = PalletEstimator.from_bundle(detector_bundle, threads=1, precision=precision, score_threshold=score_threshold)
-    rgb_rows, depth_rows, choose_rows = [], [], []
+    rgb_rows, depth_rows, choose_rows, point_rows = [], [], [], []
     try:
         for p, preset in enumerate(presets):
             for set_down in (False, True):
@@ -81,11 +89,13 @@ def build_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, prese
                         rgb_rows.append(batch.rgb_crops[keep])
                         depth_rows.append(batch.depth_crops[keep])
                         choose_rows.append(batch.choose[keep])
+                        point_rows.append(batch.points[keep])
                     if progress is not None:
                         progress(1)
     finally:
         est.close()
-    crops = NegativeCrops(*(np.concatenate(r) if r else np.zeros(0) for r in (rgb_rows, depth_rows, choose_rows)))
+    crops = NegativeCrops(*(np.concatenate(r) if r else np.zeros(0)
+                            for r in (rgb_rows, depth_rows, choose_rows, point_rows)))
     if not len(crops):
         raise ValueError(f"no detection above score {score_threshold} in {2 * frames * len(presets)} pallet-free "
                          f"frames of {', '.join(presets)}: nothing to distill on")
@@ -112,7 +122,7 @@ def load_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, preset
     :return: (crops, what to record of them in the run's provenance).
     """
     precision, graph = detector_graph(detector_bundle)
-    record = {"detector": str(detector_bundle), "detector_precision": precision,
+    record = {"format": 2, "detector": str(detector_bundle), "detector_precision": precision,
               "detector_sha256": hashlib.sha256(graph.read_bytes()).hexdigest(),
               "presets": list(presets), "frames_per_preset_and_load": frames, "seed": seed,
               "score_threshold": score_threshold, "max_boxes": max_boxes, "spec": repr(spec)}
@@ -120,7 +130,7 @@ def load_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, preset
     path = None if cache_dir is None else Path(cache_dir) / f"negatives_{key}.npz"
     if path is not None and path.exists():
         with np.load(path, allow_pickle=False) as z:
-            crops = NegativeCrops(z["rgb_crops"], z["depth_crops"], z["choose"])
+            crops = NegativeCrops(z["rgb_crops"], z["depth_crops"], z["choose"], z["points"])
         log.info("cache hit: %s", path)
     else:
         crops = build_negative_crops(detector_bundle, spec, presets, frames, seed, score_threshold, max_boxes,
@@ -128,7 +138,8 @@ def load_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, preset
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp.npz")
-            np.savez(tmp, rgb_crops=crops.rgb_crops, depth_crops=crops.depth_crops, choose=crops.choose)
+            np.savez(tmp, rgb_crops=crops.rgb_crops, depth_crops=crops.depth_crops, choose=crops.choose,
+                     points=crops.points)
             tmp.replace(path)
     record.pop("spec")
     return crops, {**record, "crops": len(crops)}

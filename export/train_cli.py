@@ -98,12 +98,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distill-weight", type=float, default=1.0,
                         help="pose: weight of --distill's feature error (relative to the teacher's variance) in the "
                              "loss (default 1)")
-    parser.add_argument("--distill-negatives", metavar="PRESET,...",
-                        help="pose: with --distill, also match the teacher's features on crops without a pallet: the "
-                             "boxes the teacher bundle's detector finds in pallet-free scenes of these sim presets "
-                             "(their loads set down and left hanging; seed --seed)")
-    parser.add_argument("--distill-negative-frames", type=int, default=30, metavar="N",
-                        help="pose: pallet-free frames per preset and load placement for --distill-negatives (30)")
+    parser.add_argument("--negatives", metavar="PRESET,...",
+                        help="pose: crops without a pallet, the boxes --negatives-detector finds in pallet-free scenes "
+                             "of these sim presets (their loads set down and left hanging; seed --seed): with "
+                             "--distill the teacher's features are matched there, with --negative-conf-weight the "
+                             "confidence is taught to be low there")
+    parser.add_argument("--negative-frames", type=int, default=30, metavar="N",
+                        help="pose: pallet-free frames per preset and load placement for --negatives (30)")
+    parser.add_argument("--negatives-detector", type=Path, metavar="BUNDLE",
+                        help="pose: the bundle whose detector boxes the --negatives crops (default: --distill, else "
+                             "--init)")
+    parser.add_argument("--negative-conf-weight", type=float, default=0.0, metavar="W",
+                        help="pose: weight of the pose network's confidence on the --negatives crops (mean of "
+                             "-log(1 - confidence)) in the loss (default 0: not trained there)")
+    parser.add_argument("--conf-head-only", action="store_true",
+                        help="pose: train the pose network's confidence head alone, the rest as --init gives it "
+                             "(every point's rotation and translation stay)")
     parser.add_argument("--freeze-pose", action="store_true",
                         help="pose: train the fusion network alone, the pose network fixed as --init gives it")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
@@ -291,22 +301,29 @@ def main(args: argparse.Namespace) -> int:
         if args.num_points is not None and args.stage != "pose":
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
-        if (args.distill is not None or args.freeze_pose) and args.stage != "pose":
-            print("pallet6d train: --distill and --freeze-pose are for the pose stage", file=sys.stderr)
-            return 2
-        if args.distill_negatives and args.distill is None:
-            print("pallet6d train: --distill-negatives needs --distill (a bundle whose detector boxes the crops)",
+        if (args.distill is not None or args.freeze_pose or args.negatives or args.conf_head_only) \
+                and args.stage != "pose":
+            print("pallet6d train: --distill, --freeze-pose, --negatives and --conf-head-only are for the pose stage",
                   file=sys.stderr)
+            return 2
+        boxer = args.negatives_detector or args.distill or args.init
+        if args.negatives and boxer is None:
+            print("pallet6d train: --negatives needs a bundle whose detector boxes the crops (--negatives-detector, "
+                  "--distill or --init)", file=sys.stderr)
+            return 2
+        if args.negatives and args.distill is None and not args.negative_conf_weight > 0:
+            print("pallet6d train: --negatives needs a use: --distill or --negative-conf-weight", file=sys.stderr)
             return 2
         if args.stage == "pose":
             from .train_pose import train_pose
-            negatives = None if not args.distill_negatives else {
-                "detector_bundle": args.distill, "presets": args.distill_negatives.split(","),
-                "frames": args.distill_negative_frames, "seed": args.seed}
+            negatives = None if not args.negatives else {
+                "detector_bundle": boxer, "presets": args.negatives.split(","), "frames": args.negative_frames,
+                "seed": args.seed}
             entry = train_pose(cfg, args.data, args.out, settings, variants=args.variants or recipe["variants"],
                                aug=AugmentConfig(), num_points=args.num_points, distill=args.distill,
                                distill_weight=args.distill_weight, freeze_pose=args.freeze_pose,
-                               negatives=negatives, **common)
+                               negatives=negatives, negative_conf_weight=args.negative_conf_weight,
+                               conf_head_only=args.conf_head_only, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

@@ -14,12 +14,16 @@ map is gathered at `choose` here, as the runtime does.
 With a teacher (`distill`: a bundle or checkpoint whose fusion network takes the same crops), its per-point fused
 features are a second target: the loss adds `distill_weight` times the mean squared difference of the two
 networks' features, divided by the variance of the teacher's (so 1 means "no better than their mean"). A
-smaller fusion network (`edge2-slim`) then learns to give the pose network what it was trained on. With
-`negatives` (`negative_crops`: what the detector boxes in pallet-free scenes), each step also matches the teacher's
-features on a few of those crops, so that the student does not drift where no pallet is.
+smaller fusion network (`edge2-slim`) then learns to give the pose network what it was trained on.
+
+With `negatives` (`negative_crops`: what a detector boxes in pallet-free scenes), each step also takes a few of
+those crops: the teacher's features are matched there (so that a student does not drift where no pallet is), and,
+with a weight for it, the pose network's confidence is taught to be low there (the runtime refuses a pose whose
+confidence is under `min_confidence`). `trainable="conf"` trains the confidence head alone, every pose unchanged.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +33,7 @@ import numpy as np
 import torch
 
 from pallet6d.runtime.bop import BopDataset
+from pallet6d.runtime.estimator import EstimatorOptions
 
 from .calib_data import pose_input_spec
 from .config import ModelConfig, get_config
@@ -46,6 +51,8 @@ __all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "subsam
 log = logging.getLogger(__name__)
 
 MODEL_POINTS = 500   # DenseFusion's num_pt_mesh_small: points of the model in the loss
+TRAINABLE = ("all", "fusion", "conf")
+CONF_FLOOR = EstimatorOptions().min_confidence   # validation reports the share of best confidences above it
 
 
 @dataclass
@@ -142,15 +149,24 @@ class PoseTrainer:
     def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015,
                  amp: bool = False, num_points: int | None = None, teacher: torch.nn.Module | None = None,
                  distill_weight: float = 1.0, negatives: NegativeCrops | None = None,
-                 negatives_per_step: int = 4) -> None:
+                 negatives_per_step: int = 4, negative_conf_weight: float = 0.0, trainable: str = "all") -> None:
         """:param num_points: use this many of each sample's points (fewer than prepared: the first ones, a
             uniform random subset since the points are sampled in random order), re-centred on their mean.
         :param teacher: a fusion network whose per-point features the trained one should also give (module
             docstring), taking the same inputs; frozen. :param distill_weight: that term's weight in the loss.
-        :param negatives: crops without a pallet on which the features alone are distilled (needs `teacher`),
-            `negatives_per_step` of them, drawn at random, each step; their feature error has the same weight."""
-        if negatives is not None and teacher is None:
-            raise ValueError("negative crops are distilled on: they need a teacher (--distill)")
+        :param negatives: crops without a pallet (`negative_crops`), `negatives_per_step` of them, drawn at random,
+            each step: with `teacher`, their feature error is added with `distill_weight`; with
+            `negative_conf_weight` > 0, the pose network's confidence there, as `negative_conf_weight` times the mean
+            of -log(1 - confidence) over their points (the runtime refuses a pose whose best point's confidence
+            is under its `min_confidence`).
+        :param trainable: what the training changes (the rest stays as built or loaded): "all", "fusion" (the pose
+            network fixed), or "conf" (the pose network's confidence head alone: every point's rotation and
+            translation stay; the fusion network runs without gradients in inference mode)."""
+        if trainable not in TRAINABLE:
+            raise ValueError(f"trainable must be one of {TRAINABLE}, got {trainable!r}")
+        if negatives is not None and teacher is None and not negative_conf_weight > 0:
+            raise ValueError("negative crops need a use: a teacher to distil on them (--distill) or a confidence "
+                             "weight (--negative-conf-weight)")
         if negatives is not None and negatives_per_step < 1:
             raise ValueError(f"negatives_per_step must be >= 1, got {negatives_per_step}")
         self.cfg, self.data, self.device, self.w, self.amp = cfg, data, torch.device(device), w, amp
@@ -170,9 +186,11 @@ class PoseTrainer:
         self.distill_weight = float(distill_weight)
         self.feature_error = float("nan")    # the last batch's relative feature error against the teacher
         self.negatives, self.negatives_per_step = negatives, negatives_per_step
+        self.negative_conf_weight, self.trainable = float(negative_conf_weight), trainable
         if negatives is not None and self.num_points < negatives.choose.shape[1]:
+            pts = negatives.points[:, :self.num_points]       # a uniform random subset, re-centred (as positives)
             self.negatives = NegativeCrops(negatives.rgb_crops, negatives.depth_crops,
-                                           negatives.choose[:, :self.num_points])
+                                           negatives.choose[:, :self.num_points], pts - pts.mean(1, keepdims=True))
         if negatives is not None:   # every 8th crop held out to measure the student there
             every = np.arange(len(negatives))
             held = every % 8 == 7 if len(negatives) >= 16 else np.zeros(len(negatives), bool)
@@ -192,7 +210,8 @@ class PoseTrainer:
         if self.num_points < pts.shape[1]:
             pts, choose, T_gt = subsample_points(pts, choose, T_gt, self.num_points)
         with autocast(self.device.type, amp):
-            point_feats = self._features(self.fusion, rgb, depth, choose)
+            with self._fusion_grad():
+                point_feats = self._features(self.fusion, rgb, depth, choose)
             out = self.pose(pts, point_feats)
         quat, trans, conf = (o.float() for o in out)
         rows = torch.from_numpy(np.searchsorted(self.obj_ids, obj)).to(self.device)
@@ -205,16 +224,30 @@ class PoseTrainer:
             loss = loss + self.distill_weight * err
         return loss, d, conf
 
-    def negative_feature_error(self, idx: np.ndarray, amp: bool = False) -> torch.Tensor:
-        """Relative feature error against the teacher on negative crops `idx` (scalar, as `forward_loss`'s)."""
-        n = self.negatives
+    def negative_terms(self, idx: np.ndarray, amp: bool = False) -> dict[str, torch.Tensor]:
+        """On negative crops `idx`: "feat_neg", the relative feature error against the teacher (with a teacher and
+        a trainable fusion network), "conf_neg", the mean of -log(1 - confidence) over their points (with
+        `negative_conf_weight` > 0), and "conf_max", each crop's best confidence (B,), detached."""
+        n = self.negatives.take(idx)
         t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
-        rgb, depth, choose = t(n.rgb_crops[idx]), t(n.depth_crops[idx]), t(n.choose[idx])
+        rgb, depth, choose, pts = t(n.rgb_crops), t(n.depth_crops), t(n.choose), t(n.points)
+        out = {}
         with autocast(self.device.type, amp):
-            feats = self._features(self.fusion, rgb, depth, choose).float()
-        with torch.no_grad(), autocast(self.device.type, amp):
-            target = self._features(self.teacher, rgb, depth, choose).float()
-        return ((feats - target) ** 2).mean() / target.var().clamp_min(1e-12)
+            with self._fusion_grad():
+                feats = self._features(self.fusion, rgb, depth, choose)
+            if self.teacher is not None and self.trainable != "conf":
+                with torch.no_grad():
+                    target = self._features(self.teacher, rgb, depth, choose).float()
+                out["feat_neg"] = ((feats.float() - target) ** 2).mean() / target.var().clamp_min(1e-12)
+            conf = self.pose(pts, feats)[2].float()
+        if self.negative_conf_weight > 0:
+            out["conf_neg"] = -torch.log1p(-conf.clamp(max=1 - 1e-6)).mean()
+        out["conf_max"] = conf.detach().amax(1)
+        return out
+
+    def _fusion_grad(self):
+        """No gradients through a fusion network that is not trained."""
+        return torch.no_grad() if self.trainable == "conf" else contextlib.nullcontext()
 
     def _features(self, fusion: torch.nn.Module, rgb: torch.Tensor, depth: torch.Tensor,
                   choose: torch.Tensor) -> torch.Tensor:
@@ -224,35 +257,46 @@ class PoseTrainer:
         return gather_points(fusion(rgb, depth), choose)
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
+        if self.trainable == "conf":
+            self.fusion.eval()          # fixed: its BatchNorm on its running statistics, as the runtime runs it
         loss, d, _ = self.forward_loss(idx, amp=self.amp)
         info = {"dis": float(d.detach().mean())}
         if self.teacher is not None:
             info["feat"] = self.feature_error
         if self.negatives is not None:
             k = min(self.negatives_per_step, len(self.negatives_train))
-            err = self.negative_feature_error(rng.choice(self.negatives_train, k, replace=False), amp=self.amp)
-            loss = loss + self.distill_weight * err
-            info["feat_neg"] = float(err.detach())
+            terms = self.negative_terms(rng.choice(self.negatives_train, k, replace=False), amp=self.amp)
+            if "feat_neg" in terms:
+                loss = loss + self.distill_weight * terms["feat_neg"]
+                info["feat_neg"] = float(terms["feat_neg"].detach())
+            if "conf_neg" in terms:
+                loss = loss + self.negative_conf_weight * terms["conf_neg"]
+                info["conf_neg"] = float(terms["conf_neg"].detach())
         return loss, info
 
     def validate(self, batch: int = 16) -> dict:
         """Mean loss, and the symmetric ADD of the most confident hypothesis (the runtime's choice)."""
         idx_all = self.data.val_idx
-        losses, errs, feats = [], [], []
+        losses, errs, feats, conf_all = [], [], [], []
         for i in range(0, len(idx_all), batch):
             idx = idx_all[i:i + batch]
             loss, d, conf = self.forward_loss(idx)
             losses.append(float(loss) * len(idx))
             errs.append(d.gather(1, conf.argmax(1, keepdim=True))[:, 0].cpu().numpy())
+            conf_all.append(conf.amax(1).cpu().numpy())
             feats.append(self.feature_error * len(idx))
         e = np.concatenate(errs) if errs else np.zeros(0)
         n = max(len(e), 1)
         extra = {"feature_error": sum(feats) / n} if self.teacher is not None else {}
+        if conf_all:        # the share of pallets whose best confidence clears the runtime's default floor
+            extra["conf_pass"] = float((np.concatenate(conf_all) >= CONF_FLOOR).mean())
         if self.negatives is not None and len(self.negatives_val):
             held = self.negatives_val
-            with torch.no_grad():
-                extra["negative_feature_error"] = float(np.mean([
-                    float(self.negative_feature_error(held[i:i + batch])) for i in range(0, len(held), batch)]))
+            terms = [self.negative_terms(held[i:i + batch]) for i in range(0, len(held), batch)]
+            if "feat_neg" in terms[0]:
+                extra["negative_feature_error"] = float(np.mean([float(x["feat_neg"]) for x in terms]))
+            extra["negative_conf_pass"] = float((torch.cat([x["conf_max"] for x in terms]).cpu().numpy()
+                                                 >= CONF_FLOOR).mean())
         return {**extra, "metric": float(e.mean()) if len(e) else float("inf"), "loss": sum(losses) / n,
                 "add_sym_mean_m": float(e.mean()) if len(e) else None,
                 "add_sym_median_m": float(np.median(e)) if len(e) else None,
@@ -265,7 +309,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
                command: str = "", progress: bool = True, init: str | Path | None = None,
                num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
-               freeze_pose: bool = False, negatives: dict | None = None) -> dict:
+               freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
+               conf_head_only: bool = False) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -275,9 +320,14 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     :param freeze_pose: train the fusion network alone under a fixed pose network (e.g. a smaller fusion network
         learning to serve a trained pose network, whose confidences then keep the meaning the runtime's thresholds
         were chosen for).
-    :param negatives: distil on crops without a pallet too (`negative_crops`): keyword arguments of
-        `load_negative_crops` but `spec` and `cache_dir` (`detector_bundle`, `presets`, `frames`, `seed`, ...).
+    :param negatives: crops without a pallet (`negative_crops`) for distillation (with `distill`) and for the
+        confidence (`negative_conf_weight`; `PoseTrainer`): keyword arguments of `load_negative_crops` but `spec`
+        and `cache_dir` (`detector_bundle`, `presets`, `frames`, `seed`, ...).
+    :param conf_head_only: train the pose network's confidence head alone, everything else fixed (poses keep
+        their rotation and translation at every point).
     """
+    if freeze_pose and conf_head_only:
+        raise ValueError("--freeze-pose and --conf-head-only exclude each other")
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
@@ -289,11 +339,16 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         neg_crops, neg_record = load_negative_crops(spec=pose_input_spec(cfg), cache_dir=cache_dir if cache_dir
                                                     is not None else run_dir / "cache", **negatives)
         log.info("negative crops: %d", len(neg_crops))
+    trainable = "conf" if conf_head_only else "fusion" if freeze_pose else "all"
     trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
-                          distill_weight=distill_weight, negatives=neg_crops)
-    if freeze_pose:
+                          distill_weight=distill_weight, negatives=neg_crops,
+                          negative_conf_weight=negative_conf_weight, trainable=trainable)
+    if trainable != "all":
         trainer.pose.requires_grad_(False)
-    params = list(trainer.fusion.parameters()) + ([] if freeze_pose else list(trainer.pose.parameters()))
+    if trainable == "conf":
+        trainer.fusion.requires_grad_(False)
+        trainer.pose.head_c.requires_grad_(True)
+    params = [p for net in trainer.nets.values() for p in net.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=settings.lr)
     provenance = {"stage": "pose", "config": cfg.name, "seed": settings.seed, "command": command,
                   "data": pd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
@@ -305,7 +360,9 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     if distilled is not None:
         provenance["distill"] = {**distilled, "weight": distill_weight}
     if neg_record is not None:
-        provenance["distill_negatives"] = neg_record
+        provenance["negatives"] = {**neg_record, "conf_weight": negative_conf_weight}
+    if conf_head_only:
+        provenance["trainable"] = "conf_head"
     if freeze_pose:
         provenance["freeze_pose"] = True
     if init is not None and not resume and init_config(init) != cfg.name:

@@ -447,6 +447,7 @@ def test_negative_crops_are_the_runtimes_inputs_on_the_detectors_boxes(bundle_di
     crops = build_negative_crops(bundle_dir, spec, ["virtual-clean"], frames=1, seed=3, score_threshold=0.0,
                                  max_boxes=2)
     assert 1 <= len(crops) <= 4 and crops.choose.shape[1] == spec.num_points
+    assert crops.points.shape == (len(crops), spec.num_points, 3)
     # the first crop: frame 0 of the preset (loads left hanging), its detector's best box
     rgb, depth_m, K, _ = render_pallet_free("virtual-clean", 3, 0, set_down=False)
     est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0)    # fp32: the tiny bundle's
@@ -456,6 +457,7 @@ def test_negative_crops_are_the_runtimes_inputs_on_the_detectors_boxes(bundle_di
     if batch.n_valid[0] >= 50:
         np.testing.assert_array_equal(crops.rgb_crops[0], batch.rgb_crops[0])
         np.testing.assert_array_equal(crops.choose[0], batch.choose[0])
+        np.testing.assert_array_equal(crops.points[0], batch.points[0])
     again, record = load_negative_crops(bundle_dir, spec, ["virtual-clean"], 1, 3, tmp_path, score_threshold=0.0,
                                         max_boxes=2)
     cached, _ = load_negative_crops(bundle_dir, spec, ["virtual-clean"], 1, 3, tmp_path, score_threshold=0.0,
@@ -469,15 +471,21 @@ def test_negative_crops_are_the_runtimes_inputs_on_the_detectors_boxes(bundle_di
         load_negative_crops(tmp_path, spec, ["virtual-clean"], 1, 3, None)
 
 
-def test_negative_crops_pull_the_features_there_and_need_a_teacher(pose_data, bundle_dir, tmp_path):
-    from pallet6d.export.negative_crops import NegativeCrops, build_negative_crops
-    from pallet6d.export.train_pose import _teacher
+@pytest.fixture(scope="module")
+def negatives(bundle_dir):
+    """At least 16 negative crops of the tiny bundle's detector (repeated: a random detector boxes few)."""
+    from pallet6d.export.negative_crops import build_negative_crops
 
     crops = build_negative_crops(bundle_dir, pose_input_spec(CFG), ["virtual-clean"], frames=2, seed=3,
                                  score_threshold=0.0, max_boxes=4)
-    many = NegativeCrops(*(np.concatenate([a] * (16 // len(crops) + 1))
-                           for a in (crops.rgb_crops, crops.depth_crops, crops.choose)))
-    with pytest.raises(ValueError, match="need a teacher"):
+    return crops.take(np.arange(len(crops)).repeat(16 // len(crops) + 1))
+
+
+def test_negative_crops_pull_the_features_there_and_need_a_use(pose_data, bundle_dir, negatives):
+    from pallet6d.export.train_pose import _teacher
+
+    many = negatives
+    with pytest.raises(ValueError, match="need a use"):
         PoseTrainer(CFG, pose_data, negatives=many)
     teacher, _ = _teacher(bundle_dir, CFG)
     torch.manual_seed(0)
@@ -499,9 +507,62 @@ def test_negative_crops_pull_the_features_there_and_need_a_teacher(pose_data, bu
     assert after < 0.7 * before, (before, after)
 
 
-def test_train_cli_refuses_negatives_without_a_teacher(sim_bop_dataset, tmp_path, capsys):
+def test_the_confidence_head_alone_learns_to_refuse_negatives_and_keeps_every_pose(pose_data, negatives):
+    torch.manual_seed(0)
+    trainer = PoseTrainer(CFG, pose_data, negatives=negatives, negative_conf_weight=1.0, trainable="conf")
+    trainer.pose.requires_grad_(False)
+    trainer.pose.head_c.requires_grad_(True)
+    fusion_before = {k: v.clone() for k, v in trainer.fusion.state_dict().items()}
+    others_before = {k: v.clone() for k, v in trainer.pose.state_dict().items() if not k.startswith("head_c.")}
+    for net in trainer.nets.values():
+        net.eval()                                      # as the training loop validates
+    with torch.no_grad():
+        before = trainer.validate(batch=4)
+    idx = pose_data.train_idx[:4]
+    with torch.no_grad():
+        quat0, trans0, _ = trainer.pose(*_pose_inputs(trainer, idx))
+    opt = torch.optim.Adam([p for p in trainer.pose.parameters() if p.requires_grad], lr=1e-2)
+    rng = np.random.default_rng(0)
+    for net in trainer.nets.values():
+        net.train()
+    for _ in range(30):
+        loss, info = trainer.step(idx, rng)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    for net in trainer.nets.values():
+        net.eval()
+    with torch.no_grad():
+        after = trainer.validate(batch=4)
+        quat1, trans1, _ = trainer.pose(*_pose_inputs(trainer, idx))
+    assert "conf_neg" in info and "feat_neg" not in info
+    assert after["negative_conf_pass"] <= before["negative_conf_pass"]
+    assert info["conf_neg"] < 0.05                   # every negative point's confidence near 0
+    for k, v in trainer.fusion.state_dict().items():  # BatchNorm statistics included: the fusion ran in eval mode
+        assert torch.equal(v, fusion_before[k]), k
+    for k, v in trainer.pose.state_dict().items():
+        if not k.startswith("head_c."):
+            assert torch.equal(v, others_before[k]), k
+    torch.testing.assert_close(quat1, quat0)
+    torch.testing.assert_close(trans1, trans0)
+    with pytest.raises(ValueError, match="trainable must be one of"):
+        PoseTrainer(CFG, pose_data, trainable="detector")
+
+
+def _pose_inputs(trainer, idx):
+    """The pose network's inputs for training samples `idx`, as `forward_loss` makes them (fusion in eval mode)."""
+    s = trainer.data.samples
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
+    trainer.fusion.eval()
+    feats = trainer._features(trainer.fusion, t(s.rgb_crops[idx]), t(s.depth_crops[idx]), t(s.choose[idx]))
+    return t(s.points[idx]), feats
+
+
+def test_train_cli_refuses_negatives_without_a_use(sim_bop_dataset, bundle_dir, tmp_path, capsys):
     from pallet6d.runtime.cli import main
 
-    rc = main(["train", "pose", "--config", "tiny", "--data", str(sim_bop_dataset), "--out", str(tmp_path / "r"),
-               "--distill-negatives", "virtual-clean"])
-    assert rc == 2 and "--distill-negatives needs --distill" in capsys.readouterr().err
+    base = ["train", "pose", "--config", "tiny", "--data", str(sim_bop_dataset), "--out", str(tmp_path / "r")]
+    assert main([*base, "--negatives", "virtual-clean"]) == 2
+    assert "--negatives needs a bundle whose detector" in capsys.readouterr().err
+    assert main([*base, "--negatives", "virtual-clean", "--init", str(bundle_dir)]) == 2
+    assert "--negatives needs a use" in capsys.readouterr().err
