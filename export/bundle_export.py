@@ -11,8 +11,8 @@
 `export_bundle` runs them in order. Without a checkpoint, `random_init=True` exports freshly initialised
 networks (BatchNorm statistics warmed up on the calibration inputs so activations have realistic ranges) so
 the runtime can be built and tested before any training. A detector graph made elsewhere
-(`detector_onnx`) is copied unchanged; with `int8`, it is quantized like our own. `detector_from` keeps another
-bundle's detector graphs, float and int8, when the checkpoint's detector is that network (`detector_reuse`).
+(`detector_onnx`) is copied unchanged; with `int8`, it is quantized like our own. `keep_from` keeps another
+bundle's detector or fusion graphs, float and int8, when the checkpoint's network is that bundle's (`graph_reuse`).
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from pallet6d.runtime.pose_inputs import gather_features
 from .calib_data import CalibrationSet, make_calibration_set
 from .config import ModelConfig
 from .detector import build_detector
-from .detector_reuse import take_detector_graphs
+from .graph_reuse import KEEPABLE, take_graphs
 from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git_commit, load_checkpoint,
                             read_checkpoint, trained_classes, trained_depth_max_m, trained_input_hw,
                             trained_input_sizes, warm_up_batchnorm)
@@ -415,7 +415,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                   int8_stages: tuple[str, ...] = INT8_STAGES,
                   pallet_types: tuple[str, ...] | None = None,
                   detector_input_sizes: tuple[tuple[int, int], ...] | None = None,
-                  detector_from: str | Path | None = None) -> ExportedBundle:
+                  keep_from: dict[str, str | Path] | None = None) -> ExportedBundle:
     """Export `cfg`'s networks to a new bundle folder `out` (the steps of the module docstring).
 
     :param classes: the external detector's class names (default: its metadata), or our detector's.
@@ -433,8 +433,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     :param float_weights: how the float graphs store their weights on disk (FLOAT_WEIGHTS): "int8" (int8
         per output channel, a quarter of the size), "fp16" (half), "fp32"; the arithmetic is float32 in every
         case, and int8 graphs are quantized from the full float32 weights before that.
-    :param detector_from: a bundle whose detector graphs the new bundle keeps unchanged (`detector_reuse`); the
-        checkpoint's detector must be the same network.
+    :param keep_from: stage ("detector", "fusion") -> a bundle whose graphs of that stage the new bundle keeps
+        unchanged (`graph_reuse`); the checkpoint's network of the stage must be that bundle's.
     :raises ExportError: bad arguments, checkpoint or external detector.
     :raises onnx_io.ParityError: an exported graph does not reproduce its torch model.
     """
@@ -447,9 +447,15 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         unknown = [p for p in calib_presets if p not in PRESETS]
         if unknown:
             raise ExportError(f"unknown calibration preset(s) {unknown}; known: {', '.join(PRESETS)}")
-    if detector_from is not None and (detector_onnx is not None or checkpoint is None):
-        raise ExportError("--detector-from keeps a bundle's detector for a checkpoint's pose stage: give --checkpoint, "
-                          "and not --detector-onnx")
+    keep_from = dict(keep_from or {})
+    if set(keep_from) - set(KEEPABLE):
+        raise ExportError(f"only the {' and '.join(KEEPABLE)} graphs can be kept from another bundle, not "
+                          f"{sorted(set(keep_from) - set(KEEPABLE))}")
+    if keep_from and checkpoint is None:
+        raise ExportError("--detector-from / --fusion-from keep a bundle's graphs beside a checkpoint's other "
+                          "networks: give --checkpoint")
+    if "detector" in keep_from and detector_onnx is not None:
+        raise ExportError("--detector-from and --detector-onnx both name the detector: give one")
     if pallet_types and detector_onnx is None and classes is None and checkpoint is None:
         classes = tuple(pallet_types)     # a trained detector keeps its classes: one for all types, or one each
     out = Path(out)
@@ -471,16 +477,22 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
                                                                  float_weights)
     for ref in g.references.values():
         ref.unlink()
-    if detector_from is not None:
-        spec_fields = {"input_hw": tuple(n.cfg.detector.input_hw), "input_sizes": tuple(n.detector_sizes),
-                       "classes": tuple(n.cfg.detector.classes), "depth_max_m": n.cfg.detector.depth_max_m,
-                       "input_name": g.det_in, "output_name": g.det_out}
-        checks = take_detector_graphs(Path(detector_from), out, g.files, None if q is None else q.files,
-                                      g.held_out("detector"), spec_fields, checks)
+    kept_fields = {
+        "detector": {"input_hw": tuple(n.cfg.detector.input_hw), "input_sizes": tuple(n.detector_sizes),
+                     "classes": tuple(n.cfg.detector.classes), "depth_max_m": n.cfg.detector.depth_max_m,
+                     "input_name": g.det_in, "output_name": g.det_out},
+        "fusion": {"crop_hw": tuple(n.cfg.fusion.crop_hw), "feature_dim": n.cfg.fusion.feature_dim,
+                   "rgb_mean": tuple(n.cfg.rgb_mean), "rgb_std": tuple(n.cfg.rgb_std),
+                   "depth_clip_m": n.cfg.depth_clip_m, "rgb_input": "rgb", "depth_input": "depth",
+                   "choose_input": n.fusion_inputs[2] if len(n.fusion_inputs) > 2 else None,
+                   "output_name": "features"}}
+    for stage, source in keep_from.items():
+        checks = take_graphs(stage, Path(source), out, g.files, None if q is None else q.files, g.held_out(stage),
+                             kept_fields[stage], checks)
     provenance = {"command": command, "seed": seed, "git_commit": git_commit(),
                   "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                   "random_init": bool(random_init), "checkpoint": None if checkpoint is None else str(checkpoint),
                   "detector_onnx": None if detector_onnx is None else str(detector_onnx),
-                  "detector_from": None if detector_from is None else str(detector_from),
+                  "graphs_kept_from": {k: str(v) for k, v in keep_from.items()} or None,
                   "training": n.training, "calibration": n.calib.source, "model_config": n.cfg.to_dict()}
     return write_bundle(out, n, g, q, types, name or out.name, checks, provenance)

@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="keep this bundle's detector graphs (float and int8) byte for byte, e.g. when only the pose "
                           "stage was retrained (`pallet6d train merge --detector BUNDLE`); the checkpoint's detector "
                           "must be the same network")
+    parser.add_argument("--fusion-from", metavar="BUNDLE",
+                        help="keep this bundle's fusion graphs (float and int8) byte for byte; the checkpoint's fusion "
+                             "network must be the same network (e.g. only the pose network's confidence retrained)")
     parser.add_argument("--detector-input-sizes", type=_sizes, metavar="HxW,HxW,...",
                         help="detector input sizes, one chosen per frame by its aspect (default: those the "
                              "checkpoint's detector was trained on); several give a graph with dynamic height/width")
@@ -100,7 +103,8 @@ def main(args: argparse.Namespace) -> int:
                                  int8_stages=INT8_STAGES if args.int8_stages is None else
                                  tuple(s.strip() for s in args.int8_stages.split(",") if s.strip()),
                                  pallet_types=types, detector_input_sizes=args.detector_input_sizes,
-                                 detector_from=args.detector_from)
+                                 keep_from={k: v for k, v in (("detector", args.detector_from),
+                                                              ("fusion", args.fusion_from)) if v})
     except (ExportError, ParityError) as exc:
         print(f"pallet6d export: {exc}", file=sys.stderr)
         return 1

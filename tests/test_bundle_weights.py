@@ -135,8 +135,9 @@ def test_a_bundle_merged_back_and_exported_computes_what_it_computed(bundle_dir,
         bundle_checkpoint(bundle_dir, "fusion")
 
 
-def test_export_keeps_another_bundles_detector_graphs_for_the_same_network(bundle_dir, tmp_path):
-    """`--detector-from`: the merged checkpoint's detector is the bundle's, so its graphs go in unchanged."""
+def test_export_keeps_another_bundles_detector_and_fusion_graphs_for_the_same_networks(bundle_dir, tmp_path):
+    """`--detector-from`, `--fusion-from`: the merged checkpoint's networks are the bundle's, so its graphs go in
+    unchanged."""
     from pallet6d.export.bundle_export import export_bundle
     from pallet6d.export.export_inputs import ExportError
     from pallet6d.export.train_cli import merge_checkpoints
@@ -145,17 +146,23 @@ def test_export_keeps_another_bundles_detector_graphs_for_the_same_network(bundl
     merge_checkpoints(bundle_dir, bundle_dir, tmp_path / "model.pt")
     calib = make_calibration_set(CFG, frames=2, max_crops=4, seed=3)
     out = export_bundle(CFG, tmp_path / "kept", checkpoint=tmp_path / "model.pt", calib=calib,
-                        detector_from=bundle_dir)
-    assert sha256_file(tmp_path / "kept" / "detector.onnx") == sha256_file(bundle_dir / "detector.onnx")
-    assert out.manifest.files["detector.onnx"] == sha256_file(bundle_dir / "detector.onnx")
-    assert out.report["checks"]["detector_from"]["bundle"] == str(bundle_dir)
+                        keep_from={"detector": bundle_dir, "fusion": bundle_dir})
     theirs = json.loads((bundle_dir / "report.json").read_text())["checks"]
-    assert out.report["checks"]["parity"]["detector"] == theirs["parity"]["detector"]
+    for stage in ("detector", "fusion"):
+        assert sha256_file(tmp_path / "kept" / f"{stage}.onnx") == sha256_file(bundle_dir / f"{stage}.onnx")
+        assert out.manifest.files[f"{stage}.onnx"] == sha256_file(bundle_dir / f"{stage}.onnx")
+        assert out.report["checks"][f"{stage}_from"]["bundle"] == str(bundle_dir)
+        assert out.report["checks"]["parity"][stage] == theirs["parity"][stage]
     with pytest.raises(ExportError, match="no int8 detector graph"):     # the tiny bundle is float only
         export_bundle(CFG, tmp_path / "int8", checkpoint=tmp_path / "model.pt", calib=calib, int8=True,
-                      detector_from=bundle_dir)
+                      keep_from={"detector": bundle_dir})
     other = export_bundle(CFG, tmp_path / "other", random_init=True, seed=5, calib=calib).root
-    with pytest.raises(ExportError, match="another network"):
-        export_bundle(CFG, tmp_path / "mixed", checkpoint=tmp_path / "model.pt", calib=calib, detector_from=other)
+    for stage in ("detector", "fusion"):
+        with pytest.raises(ExportError, match="another network"):
+            export_bundle(CFG, tmp_path / f"mixed-{stage}", checkpoint=tmp_path / "model.pt", calib=calib,
+                          keep_from={stage: other})
     with pytest.raises(ExportError, match="give --checkpoint"):
-        export_bundle(CFG, tmp_path / "fresh", random_init=True, calib=calib, detector_from=bundle_dir)
+        export_bundle(CFG, tmp_path / "fresh", random_init=True, calib=calib, keep_from={"detector": bundle_dir})
+    with pytest.raises(ExportError, match="not \\['pose'\\]"):
+        export_bundle(CFG, tmp_path / "pose", checkpoint=tmp_path / "model.pt", calib=calib,
+                      keep_from={"pose": bundle_dir})
