@@ -6,7 +6,9 @@ pose network posed on them passes the fit checks more often than under the teach
 confidence, trained on pallets alone, has never been told what no pallet looks like. These crops are the runtime's
 inputs on such boxes (`prepare_pose_inputs` on the detector's boxes, at a low score threshold so that the near
 misses count too); training matches the teacher's features on them, or teaches the confidence to be low there
-(`train_pose.PoseTrainer`); they have no pose.
+(`train_pose.PoseTrainer`); they have no pose. So are crops of real pallets whose depth or intrinsics do not belong
+to the image (`build_mismatched_crops`: another frame's depth, a wrong depth scale, a wrong focal length, a flat
+wall), the inputs a wrongly wired camera gives: no pose is right there either.
 
 Frames come from `sim.pallet_free.render_pallet_free` with the training seed: keep it away from the seeds the
 negative benchmarks use (`benchmarks/real_data.py --sim-seed`, 9100 and 9200).
@@ -24,7 +26,8 @@ import numpy as np
 from pallet6d.runtime.bundle import BundleError, load_bundle
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
-__all__ = ["NegativeCrops", "build_negative_crops", "detector_graph", "load_negative_crops"]
+__all__ = ["NegativeCrops", "build_negative_crops", "build_mismatched_crops", "mismatched", "MISMATCHES",
+           "detector_graph", "load_negative_crops", "load_mismatched_crops"]
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +105,68 @@ def build_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, prese
     return crops
 
 
+MISMATCHES = ("other_frame", "depth_x0.1", "focal_x2", "flat_wall")
+
+
+def mismatched(kind: str, depth_m: np.ndarray, K: np.ndarray, other_depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(depth_m, K) that do not belong to the image they come with: another frame's depth, depth 10x too near (a
+    wrong depth scale), focal lengths 2x too long, or a flat wall at the frame's median depth."""
+    K = np.array(K, np.float64)
+    if kind == "other_frame":
+        return other_depth_m, K
+    if kind == "depth_x0.1":
+        return depth_m * np.float32(0.1), K
+    if kind == "focal_x2":
+        K[0, 0] *= 2.0
+        K[1, 1] *= 2.0
+        return depth_m, K
+    if kind == "flat_wall":
+        valid = depth_m[depth_m > 0]
+        return np.full_like(depth_m, float(np.median(valid)) if len(valid) else 3.0), K
+    raise ValueError(f"unknown mismatch {kind!r}; known: {', '.join(MISMATCHES)}")
+
+
+def build_mismatched_crops(datasets: Sequence[str | Path], spec: PoseInputSpec, frames: int, seed: int,
+                           kinds: Sequence[str] = MISMATCHES, progress=None) -> NegativeCrops:
+    """Crops of real pallets whose depth or intrinsics do not belong to the image (`mismatched`): each of `frames`
+    frames drawn at random from `datasets` (BOP), its ground-truth pallets' boxes (jittered as the pose samples'),
+    once per kind; "other_frame" takes the depth of another drawn frame of the same size.
+
+    :raises ValueError: no usable crop.
+    """
+    from pallet6d.runtime.bop import BopDataset
+    from pallet6d.runtime.evaluation import counted_pallets
+
+    from .train_data import AugmentConfig, jitter_box
+
+    aug = AugmentConfig()
+    sets = [BopDataset(d) for d in datasets]
+    rng = np.random.default_rng((seed, 7))
+    picks = [(int(k), int(rng.integers(len(sets[k])))) for k in rng.integers(len(sets), size=frames)]
+    rows: list[tuple] = []
+    for n, (k, i) in enumerate(picks):
+        f = sets[k][i]
+        gts = [g for g, c in zip(f.gts, counted_pallets(f.gts, min_box_side_px=2, unknown_visib_counts=False)) if c]
+        others = [sets[kk][ii] for kk, ii in picks if (kk, ii) != (k, i)]
+        other = next((o for o in others if o.depth_m.shape == f.depth_m.shape), None)
+        for kind in kinds:
+            if not gts or (kind == "other_frame" and other is None):
+                continue
+            frng = np.random.default_rng((seed, n, MISMATCHES.index(kind) if kind in MISMATCHES else 99))
+            depth_m, K = mismatched(kind, f.depth_m, f.K, None if other is None else other.depth_m)
+            boxes = np.array([jitter_box(np.array([x, y, x + w, y + h], float), frng, aug.box_scale_sigma,
+                                         aug.box_shift_sigma) for x, y, w, h in (g.bbox_visib_xywh for g in gts)])
+            batch = prepare_pose_inputs(f.rgb, depth_m, K, boxes, spec, frng)
+            keep = batch.n_valid >= MIN_POINTS
+            rows += [(batch.rgb_crops[j], batch.depth_crops[j], batch.choose[j], batch.points[j])
+                     for j in np.flatnonzero(keep)]
+        if progress is not None:
+            progress(1)
+    if not rows:
+        raise ValueError(f"no usable mismatched crop in {frames} frames of {len(sets)} datasets")
+    return NegativeCrops(*(np.stack(c) for c in zip(*rows)))
+
+
 def detector_graph(bundle: str | Path) -> tuple[str, Path]:
     """(precision, path) of the detector graph the crops are boxed with: int8 when the bundle has it.
 
@@ -125,21 +190,41 @@ def load_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, preset
     record = {"format": 2, "detector": str(detector_bundle), "detector_precision": precision,
               "detector_sha256": hashlib.sha256(graph.read_bytes()).hexdigest(),
               "presets": list(presets), "frames_per_preset_and_load": frames, "seed": seed,
-              "score_threshold": score_threshold, "max_boxes": max_boxes, "spec": repr(spec)}
-    key = hashlib.sha256(repr(sorted(record.items())).encode()).hexdigest()[:16]
-    path = None if cache_dir is None else Path(cache_dir) / f"negatives_{key}.npz"
+              "score_threshold": score_threshold, "max_boxes": max_boxes}
+    crops = _cached("negatives", {**record, "spec": repr(spec)}, cache_dir,
+                    lambda: build_negative_crops(detector_bundle, spec, presets, frames, seed, score_threshold,
+                                                 max_boxes, progress))
+    return crops, {**record, "crops": len(crops)}
+
+
+def load_mismatched_crops(datasets: Sequence[str | Path], spec: PoseInputSpec, frames: int, seed: int,
+                          cache_dir: str | Path | None, progress=None) -> tuple[NegativeCrops, dict]:
+    """`build_mismatched_crops` (every kind), read from `cache_dir` when the same settings and data made it before.
+
+    :return: (crops, what to record of them in the run's provenance).
+    """
+    from .train_data import dataset_fingerprint
+
+    record = {"format": 1, "datasets": [dataset_fingerprint(d) for d in datasets], "frames": frames, "seed": seed,
+              "kinds": list(MISMATCHES)}
+    crops = _cached("mismatched", {**record, "spec": repr(spec)}, cache_dir,
+                    lambda: build_mismatched_crops(datasets, spec, frames, seed, MISMATCHES, progress))
+    return crops, {**record, "datasets": [str(d) for d in datasets], "crops": len(crops)}
+
+
+def _cached(kind: str, settings: dict, cache_dir: str | Path | None, build) -> NegativeCrops:
+    """`build()`'s crops, or the ones a build with the same `settings` cached in `cache_dir` (None: no cache)."""
+    key = hashlib.sha256(repr(sorted(settings.items())).encode()).hexdigest()[:16]
+    path = None if cache_dir is None else Path(cache_dir) / f"{kind}_{key}.npz"
     if path is not None and path.exists():
         with np.load(path, allow_pickle=False) as z:
-            crops = NegativeCrops(z["rgb_crops"], z["depth_crops"], z["choose"], z["points"])
-        log.info("cache hit: %s", path)
-    else:
-        crops = build_negative_crops(detector_bundle, spec, presets, frames, seed, score_threshold, max_boxes,
-                                     progress)
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp.npz")
-            np.savez(tmp, rgb_crops=crops.rgb_crops, depth_crops=crops.depth_crops, choose=crops.choose,
-                     points=crops.points)
-            tmp.replace(path)
-    record.pop("spec")
-    return crops, {**record, "crops": len(crops)}
+            log.info("cache hit: %s", path)
+            return NegativeCrops(z["rgb_crops"], z["depth_crops"], z["choose"], z["points"])
+    crops = build()
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, rgb_crops=crops.rgb_crops, depth_crops=crops.depth_crops, choose=crops.choose,
+                 points=crops.points)
+        tmp.replace(path)
+    return crops

@@ -108,6 +108,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--negatives-detector", type=Path, metavar="BUNDLE",
                         help="pose: the bundle whose detector boxes the --negatives crops (default: --distill, else "
                              "--init)")
+    parser.add_argument("--mismatched-frames", type=int, default=0, metavar="N",
+                        help="pose: add to the negatives the pallets of N training frames drawn at random under depth "
+                             "or intrinsics that do not belong to the image (another frame's depth, depth 10x too "
+                             "near, focal 2x too long, a flat wall; 0: none)")
     parser.add_argument("--negative-conf-weight", type=float, default=0.0, metavar="W",
                         help="pose: weight of the pose network's confidence on the --negatives crops (mean of "
                              "-log(1 - confidence)) in the loss (default 0: not trained there)")
@@ -311,7 +315,7 @@ def main(args: argparse.Namespace) -> int:
             print("pallet6d train: --negatives needs a bundle whose detector boxes the crops (--negatives-detector, "
                   "--distill or --init)", file=sys.stderr)
             return 2
-        if args.negatives and args.distill is None and not args.negative_conf_weight > 0:
+        if (args.negatives or args.mismatched_frames) and args.distill is None and not args.negative_conf_weight > 0:
             print("pallet6d train: --negatives needs a use: --distill or --negative-conf-weight", file=sys.stderr)
             return 2
         if args.stage == "pose":
@@ -323,7 +327,8 @@ def main(args: argparse.Namespace) -> int:
                                aug=AugmentConfig(), num_points=args.num_points, distill=args.distill,
                                distill_weight=args.distill_weight, freeze_pose=args.freeze_pose,
                                negatives=negatives, negative_conf_weight=args.negative_conf_weight,
-                               conf_head_only=args.conf_head_only, **common)
+                               conf_head_only=args.conf_head_only, mismatched_frames=args.mismatched_frames,
+                               **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

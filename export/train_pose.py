@@ -38,7 +38,7 @@ from pallet6d.runtime.estimator import EstimatorOptions
 from .calib_data import pose_input_spec
 from .config import ModelConfig, get_config
 from .fusion import build_fusion
-from .negative_crops import NegativeCrops, load_negative_crops
+from .negative_crops import NegativeCrops, load_mismatched_crops, load_negative_crops
 from .losses import pad_symmetries, pose_loss, stack_model_points
 from .pose import build_pose
 from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for,
@@ -310,7 +310,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                command: str = "", progress: bool = True, init: str | Path | None = None,
                num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
                freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
-               conf_head_only: bool = False) -> dict:
+               conf_head_only: bool = False, mismatched_frames: int = 0) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -325,6 +325,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         and `cache_dir` (`detector_bundle`, `presets`, `frames`, `seed`, ...).
     :param conf_head_only: train the pose network's confidence head alone, everything else fixed (poses keep
         their rotation and translation at every point).
+    :param mismatched_frames: add crops of this many training frames' pallets under depth or intrinsics that do not
+        belong to the image (`negative_crops.build_mismatched_crops`, every kind) to the negatives.
     """
     if freeze_pose and conf_head_only:
         raise ValueError("--freeze-pose and --conf-head-only exclude each other")
@@ -334,11 +336,19 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     pd = load_pose_data(cfg, data, variants, settings.seed, aug, cache_dir if cache_dir is not None else run_dir / "cache",
                         val_fraction, max_frames, progress)
     teacher, distilled = (None, None) if distill is None else _teacher(distill, cfg)
-    neg_crops = neg_record = None
+    neg_parts, neg_record = [], {}
+    cache = cache_dir if cache_dir is not None else run_dir / "cache"
     if negatives is not None:
-        neg_crops, neg_record = load_negative_crops(spec=pose_input_spec(cfg), cache_dir=cache_dir if cache_dir
-                                                    is not None else run_dir / "cache", **negatives)
-        log.info("negative crops: %d", len(neg_crops))
+        crops, neg_record["pallet_free"] = load_negative_crops(spec=pose_input_spec(cfg), cache_dir=cache, **negatives)
+        neg_parts.append(crops)
+    if mismatched_frames > 0:
+        crops, neg_record["mismatched"] = load_mismatched_crops(data, pose_input_spec(cfg), mismatched_frames,
+                                                                settings.seed, cache)
+        neg_parts.append(crops)
+    neg_crops = None if not neg_parts else neg_parts[0] if len(neg_parts) == 1 else NegativeCrops(
+        *(np.concatenate([getattr(c, f) for c in neg_parts]) for f in ("rgb_crops", "depth_crops", "choose", "points")))
+    if neg_crops is not None:
+        log.info("negative crops: %s", {k: v["crops"] for k, v in neg_record.items()})
     trainable = "conf" if conf_head_only else "fusion" if freeze_pose else "all"
     trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
                           distill_weight=distill_weight, negatives=neg_crops,
@@ -359,7 +369,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                   "pallet_types": {str(k): v for k, v in sorted(pd.type_names.items())}}
     if distilled is not None:
         provenance["distill"] = {**distilled, "weight": distill_weight}
-    if neg_record is not None:
+    if neg_record:
         provenance["negatives"] = {**neg_record, "conf_weight": negative_conf_weight}
     if conf_head_only:
         provenance["trainable"] = "conf_head"

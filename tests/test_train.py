@@ -566,3 +566,24 @@ def test_train_cli_refuses_negatives_without_a_use(sim_bop_dataset, bundle_dir, 
     assert "--negatives needs a bundle whose detector" in capsys.readouterr().err
     assert main([*base, "--negatives", "virtual-clean", "--init", str(bundle_dir)]) == 2
     assert "--negatives needs a use" in capsys.readouterr().err
+
+
+def test_mismatched_inputs_and_their_crops(sim_bop_dataset):
+    from pallet6d.export.negative_crops import MISMATCHES, build_mismatched_crops, mismatched
+
+    depth = np.array([[0.0, 2.0], [3.0, 4.0]], np.float32)
+    K = np.array([[100.0, 0, 1], [0, 100.0, 1], [0, 0, 1]])
+    other = np.ones_like(depth)
+    np.testing.assert_array_equal(mismatched("other_frame", depth, K, other)[0], other)
+    np.testing.assert_allclose(mismatched("depth_x0.1", depth, K, other)[0], depth * 0.1)
+    K2 = mismatched("focal_x2", depth, K, other)[1]
+    assert (K2[0, 0], K2[1, 1], K2[0, 2]) == (200.0, 200.0, 1.0) and K[0, 0] == 100.0   # the caller's K untouched
+    np.testing.assert_array_equal(mismatched("flat_wall", depth, K, other)[0], np.full_like(depth, 3.0))
+    with pytest.raises(ValueError, match="unknown mismatch"):
+        mismatched("upside_down", depth, K, other)
+    spec = pose_input_spec(CFG)
+    crops = build_mismatched_crops([sim_bop_dataset], spec, frames=2, seed=4)
+    again = build_mismatched_crops([sim_bop_dataset], spec, frames=2, seed=4)
+    assert len(crops) >= len(MISMATCHES) - 1 and crops.points.shape[1:] == (spec.num_points, 3)
+    np.testing.assert_array_equal(crops.points, again.points)                  # seeded
+    np.testing.assert_allclose(crops.points.mean(1), 0.0, atol=1e-4)           # centred, as the runtime's points
