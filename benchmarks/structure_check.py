@@ -28,6 +28,7 @@ from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.estimator import PalletEstimator
 from pallet6d.runtime.metrics import add_sym
 from pallet6d.runtime.structure import StructureParams, frame_registration, frame_size_rule, structure_check
+from pallet6d.sim.mismatch import MISMATCHES, mismatched
 
 VARIANTS = ("as_recorded", "flat_wall", "other_frame", "depth_x0.1", "focal_x2", "K_transposed", "focal_1e9")
 
@@ -40,17 +41,8 @@ def mismatch(name: str, frame, other=None) -> tuple[np.ndarray, np.ndarray]:
     d, K = frame.depth_m, frame.K.copy()
     if name == "as_recorded":
         return d, K
-    if name == "flat_wall":
-        valid = d[d > 0]
-        return np.full_like(d, float(np.median(valid)) if len(valid) else 3.0), K
-    if name == "other_frame":
-        return other.depth_m, K
-    if name == "depth_x0.1":
-        return d * np.float32(0.1), K
-    if name == "focal_x2":
-        K[0, 0] *= 2.0
-        K[1, 1] *= 2.0
-        return d, K
+    if name in MISMATCHES:
+        return mismatched(name, d, K, None if other is None else other.depth_m)
     if name == "K_transposed":
         return d, K.T.copy()
     if name == "focal_1e9":

@@ -25,9 +25,10 @@ import numpy as np
 
 from pallet6d.runtime.bundle import BundleError, load_bundle
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
+from pallet6d.sim.mismatch import MISMATCHES, mismatched
 
-__all__ = ["NegativeCrops", "build_negative_crops", "build_mismatched_crops", "mismatched", "MISMATCHES",
-           "detector_graph", "load_negative_crops", "load_mismatched_crops"]
+__all__ = ["NegativeCrops", "build_negative_crops", "build_mismatched_crops", "detector_graph", "load_negative_crops",
+           "load_mismatched_crops"]
 
 log = logging.getLogger(__name__)
 
@@ -105,30 +106,9 @@ def build_negative_crops(detector_bundle: str | Path, spec: PoseInputSpec, prese
     return crops
 
 
-MISMATCHES = ("other_frame", "depth_x0.1", "focal_x2", "flat_wall")
-
-
-def mismatched(kind: str, depth_m: np.ndarray, K: np.ndarray, other_depth_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(depth_m, K) that do not belong to the image they come with: another frame's depth, depth 10x too near (a
-    wrong depth scale), focal lengths 2x too long, or a flat wall at the frame's median depth."""
-    K = np.array(K, np.float64)
-    if kind == "other_frame":
-        return other_depth_m, K
-    if kind == "depth_x0.1":
-        return depth_m * np.float32(0.1), K
-    if kind == "focal_x2":
-        K[0, 0] *= 2.0
-        K[1, 1] *= 2.0
-        return depth_m, K
-    if kind == "flat_wall":
-        valid = depth_m[depth_m > 0]
-        return np.full_like(depth_m, float(np.median(valid)) if len(valid) else 3.0), K
-    raise ValueError(f"unknown mismatch {kind!r}; known: {', '.join(MISMATCHES)}")
-
-
 def build_mismatched_crops(datasets: Sequence[str | Path], spec: PoseInputSpec, frames: int, seed: int,
                            kinds: Sequence[str] = MISMATCHES, progress=None) -> NegativeCrops:
-    """Crops of real pallets whose depth or intrinsics do not belong to the image (`mismatched`): each of `frames`
+    """Crops of real pallets whose depth or intrinsics do not belong to the image (`sim.mismatch`): each of `frames`
     frames drawn at random from `datasets` (BOP), its ground-truth pallets' boxes (jittered as the pose samples'),
     once per kind; "other_frame" takes the depth of another drawn frame of the same size.
 

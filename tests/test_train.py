@@ -569,7 +569,8 @@ def test_train_cli_refuses_negatives_without_a_use(sim_bop_dataset, bundle_dir, 
 
 
 def test_mismatched_inputs_and_their_crops(sim_bop_dataset):
-    from pallet6d.export.negative_crops import MISMATCHES, build_mismatched_crops, mismatched
+    from pallet6d.export.negative_crops import build_mismatched_crops
+    from pallet6d.sim.mismatch import MISMATCHES, mismatched
 
     depth = np.array([[0.0, 2.0], [3.0, 4.0]], np.float32)
     K = np.array([[100.0, 0, 1], [0, 100.0, 1], [0, 0, 1]])
@@ -581,6 +582,8 @@ def test_mismatched_inputs_and_their_crops(sim_bop_dataset):
     np.testing.assert_array_equal(mismatched("flat_wall", depth, K, other)[0], np.full_like(depth, 3.0))
     with pytest.raises(ValueError, match="unknown mismatch"):
         mismatched("upside_down", depth, K, other)
+    with pytest.raises(ValueError, match="needs another frame"):
+        mismatched("other_frame", depth, K)
     spec = pose_input_spec(CFG)
     crops = build_mismatched_crops([sim_bop_dataset], spec, frames=2, seed=4)
     again = build_mismatched_crops([sim_bop_dataset], spec, frames=2, seed=4)
