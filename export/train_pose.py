@@ -159,9 +159,10 @@ class PoseTrainer:
             `negative_conf_weight` > 0, the pose network's confidence there, as `negative_conf_weight` times the mean
             of -log(1 - confidence) over their points (the runtime refuses a pose whose best point's confidence
             is under its `min_confidence`).
-        :param trainable: what the training changes (the rest stays as built or loaded): "all", "fusion" (the pose
-            network fixed), or "conf" (the pose network's confidence head alone: every point's rotation and
-            translation stay; the fusion network runs without gradients in inference mode)."""
+        :param trainable: what the training changes (the rest stays as built or loaded; `train_pose` gives the
+            optimizer only those parameters): "all", "fusion" (the pose network fixed), or "conf" (the pose network's
+            confidence head alone: every point's rotation and translation stay; the fusion network runs without
+            gradients in inference mode)."""
         if trainable not in TRAINABLE:
             raise ValueError(f"trainable must be one of {TRAINABLE}, got {trainable!r}")
         if negatives is not None and teacher is None and not negative_conf_weight > 0:
