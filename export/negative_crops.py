@@ -1,4 +1,5 @@
-"""Crops without a pallet: what a bundle's detector boxes in pallet-free simulated scenes.
+"""Training crops with no pose to find: what a bundle's detector boxes in pallet-free simulated scenes, and pallets
+under depth or intrinsics that do not belong to the image.
 
 A student fusion network distilled on pallet crops alone learns the teacher's features where pallets are, and
 nothing about the carton stacks, rack edges and floors the detector also boxes: there its features drift, and the
