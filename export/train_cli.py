@@ -305,10 +305,10 @@ def main(args: argparse.Namespace) -> int:
         if args.num_points is not None and args.stage != "pose":
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
-        if (args.distill is not None or args.freeze_pose or args.negatives or args.conf_head_only) \
-                and args.stage != "pose":
-            print("pallet6d train: --distill, --freeze-pose, --negatives and --conf-head-only are for the pose stage",
-                  file=sys.stderr)
+        if (args.distill is not None or args.freeze_pose or args.negatives or args.mismatched_frames
+                or args.conf_head_only) and args.stage != "pose":
+            print("pallet6d train: --distill, --freeze-pose, --negatives, --mismatched-frames and --conf-head-only are "
+                  "for the pose stage", file=sys.stderr)
             return 2
         boxer = args.negatives_detector or args.distill or args.init
         if args.negatives and boxer is None:
@@ -316,7 +316,8 @@ def main(args: argparse.Namespace) -> int:
                   "--distill or --init)", file=sys.stderr)
             return 2
         if (args.negatives or args.mismatched_frames) and args.distill is None and not args.negative_conf_weight > 0:
-            print("pallet6d train: --negatives needs a use: --distill or --negative-conf-weight", file=sys.stderr)
+            print("pallet6d train: negative crops (--negatives, --mismatched-frames) need a use: --distill or "
+                  "--negative-conf-weight", file=sys.stderr)
             return 2
         if args.stage == "pose":
             from .train_pose import train_pose

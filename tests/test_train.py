@@ -565,7 +565,12 @@ def test_train_cli_refuses_negatives_without_a_use(sim_bop_dataset, bundle_dir, 
     assert main([*base, "--negatives", "virtual-clean"]) == 2
     assert "--negatives needs a bundle whose detector" in capsys.readouterr().err
     assert main([*base, "--negatives", "virtual-clean", "--init", str(bundle_dir)]) == 2
-    assert "--negatives needs a use" in capsys.readouterr().err
+    assert "negative crops (--negatives, --mismatched-frames) need a use" in capsys.readouterr().err
+    assert main([*base, "--mismatched-frames", "2"]) == 2
+    assert "need a use" in capsys.readouterr().err
+    assert main(["train", "detector", "--config", "tiny", "--data", str(sim_bop_dataset), "--out",
+                 str(tmp_path / "d"), "--mismatched-frames", "2"]) == 2
+    assert "are for the pose stage" in capsys.readouterr().err
 
 
 def test_mismatched_inputs_and_their_crops(sim_bop_dataset):
