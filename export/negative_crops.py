@@ -128,7 +128,8 @@ def build_mismatched_crops(datasets: Sequence[str | Path], spec: PoseInputSpec, 
     for n, (k, i) in enumerate(picks):
         f = sets[k][i]
         gts = [g for g, c in zip(f.gts, counted_pallets(f.gts, min_box_side_px=2, unknown_visib_counts=False)) if c]
-        others = [sets[kk][ii] for kk, ii in picks if (kk, ii) != (k, i)]
+        # the first other drawn frame of the same size, read lazily: a frame read is an image and a depth from disk
+        others = (sets[kk][ii] for kk, ii in picks if (kk, ii) != (k, i))
         other = next((o for o in others if o.depth_m.shape == f.depth_m.shape), None)
         for kind in kinds:
             if not gts or (kind == "other_frame" and other is None):
