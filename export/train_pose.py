@@ -19,7 +19,10 @@ smaller fusion network (`edge2-slim`) then learns to give the pose network what 
 With `negatives` (`negative_crops`: what a detector boxes in pallet-free scenes), each step also takes a few of
 those crops: the teacher's features are matched there (so that a student does not drift where no pallet is), and,
 with a weight for it, the pose network's confidence is taught to be low there (the runtime refuses a pose whose
-confidence is under `min_confidence`). `trainable="conf"` trains the confidence head alone, every pose unchanged.
+confidence is under `min_confidence`). `trainable="conf"` trains the confidence head alone, every pose unchanged;
+with `conf_teacher` (the starting pose network, frozen) the pallets' confidences are pulled toward that network's
+own instead of DenseFusion's confidence term, so that only the negatives move: refitted to that term alone, the
+head gives modest pallets confidences near `w / error`, under the runtime's floor.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ from typing import Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from pallet6d.runtime.bop import BopDataset
 from pallet6d.runtime.estimator import EstimatorOptions
@@ -149,7 +153,8 @@ class PoseTrainer:
     def __init__(self, cfg: ModelConfig, data: PoseData, device: str = "cpu", w: float = 0.015,
                  amp: bool = False, num_points: int | None = None, teacher: torch.nn.Module | None = None,
                  distill_weight: float = 1.0, negatives: NegativeCrops | None = None,
-                 negatives_per_step: int = 4, negative_conf_weight: float = 0.0, trainable: str = "all") -> None:
+                 negatives_per_step: int = 4, negative_conf_weight: float = 0.0, trainable: str = "all",
+                 conf_teacher: torch.nn.Module | None = None) -> None:
         """:param num_points: use this many of each sample's points (fewer than prepared: the first ones, a
             uniform random subset since the points are sampled in random order), re-centred on their mean.
         :param teacher: a fusion network whose per-point features the trained one should also give (module
@@ -162,9 +167,14 @@ class PoseTrainer:
         :param trainable: what the training changes (the rest stays as built or loaded; `train_pose` gives the
             optimizer only those parameters): "all", "fusion" (the pose network fixed), or "conf" (the pose network's
             confidence head alone: every point's rotation and translation stay; the fusion network runs without
-            gradients in inference mode)."""
+            gradients in inference mode).
+        :param conf_teacher: with trainable "conf", a pose network (frozen) whose confidence on the pallets is the
+            target (binary cross-entropy per point) in place of the eq. 4 loss (module docstring)."""
         if trainable not in TRAINABLE:
             raise ValueError(f"trainable must be one of {TRAINABLE}, got {trainable!r}")
+        if conf_teacher is not None and trainable != "conf":
+            raise ValueError("a confidence teacher needs trainable='conf' (--conf-head-only): its targets hold only "
+                             "for the points and features the trained network also has")
         if negatives is not None and teacher is None and not negative_conf_weight > 0:
             raise ValueError("negative crops need a use: a teacher to distil on them (--distill) or a confidence "
                              "weight (--negative-conf-weight)")
@@ -196,6 +206,7 @@ class PoseTrainer:
             every = np.arange(len(negatives))
             held = every % 8 == 7 if len(negatives) >= 16 else np.zeros(len(negatives), bool)
             self.negatives_train, self.negatives_val = every[~held], every[held]
+        self.conf_teacher = None if conf_teacher is None else conf_teacher.to(self.device).eval().requires_grad_(False)
 
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
@@ -217,6 +228,10 @@ class PoseTrainer:
         quat, trans, conf = (o.float() for o in out)
         rows = torch.from_numpy(np.searchsorted(self.obj_ids, obj)).to(self.device)
         loss, d = pose_loss(quat, trans, conf, pts, self.type_points[rows], T_gt, self.type_symmetries[rows], self.w)
+        if self.conf_teacher is not None:     # poses fixed: the loss is the confidences' distance to the teacher's
+            with torch.no_grad(), autocast(self.device.type, amp):
+                target = self.conf_teacher(pts, point_feats)[2].float()
+            loss = F.binary_cross_entropy(conf.clamp(1e-6, 1 - 1e-6), target)
         if self.teacher is not None:
             with torch.no_grad(), autocast(self.device.type, amp):
                 target = self._features(self.teacher, rgb, depth, choose).float()
@@ -311,7 +326,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                command: str = "", progress: bool = True, init: str | Path | None = None,
                num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
                freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
-               conf_head_only: bool = False, mismatched_frames: int = 0) -> dict:
+               conf_head_only: bool = False, mismatched_frames: int = 0, keep_pallet_conf: bool = False) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -326,11 +341,18 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         and `cache_dir` (`detector_bundle`, `presets`, `frames`, `seed`, ...).
     :param conf_head_only: train the pose network's confidence head alone, everything else fixed (poses keep
         their rotation and translation at every point).
+    :param keep_pallet_conf: with `conf_head_only`, train the pallets' confidences toward those of `init`'s pose
+        network (same config) instead of the eq. 4 loss (`PoseTrainer`'s `conf_teacher`).
     :param mismatched_frames: add crops of this many training frames' pallets under depth or intrinsics that do not
         belong to the image (`negative_crops.build_mismatched_crops`, every kind) to the negatives.
     """
     if freeze_pose and conf_head_only:
         raise ValueError("--freeze-pose and --conf-head-only exclude each other")
+    if keep_pallet_conf and not (conf_head_only and init is not None and not resume):
+        raise ValueError("--keep-pallet-conf needs --conf-head-only and --init (the network whose confidences it keeps), "
+                         "without --resume")
+    if keep_pallet_conf and init_config(init) != cfg.name:
+        raise ValueError(f"--keep-pallet-conf: --init {init} is a {init_config(init)!r} network, not {cfg.name!r}")
     run_dir = Path(run_dir)
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
@@ -351,9 +373,13 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     if neg_crops is not None:
         log.info("negative crops: %s", {k: v["crops"] for k, v in neg_record.items()})
     trainable = "conf" if conf_head_only else "fusion" if freeze_pose else "all"
+    conf_teacher = None
+    if keep_pallet_conf:
+        conf_teacher = build_pose(cfg.pose, cfg.fusion.feature_dim)
+        load_init_weights(init, {"pose": conf_teacher})
     trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
                           distill_weight=distill_weight, negatives=neg_crops,
-                          negative_conf_weight=negative_conf_weight, trainable=trainable)
+                          negative_conf_weight=negative_conf_weight, trainable=trainable, conf_teacher=conf_teacher)
     if trainable != "all":
         trainer.pose.requires_grad_(False)
     if trainable == "conf":
@@ -374,6 +400,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         provenance["negatives"] = {**neg_record, "conf_weight": negative_conf_weight}
     if conf_head_only:
         provenance["trainable"] = "conf_head"
+    if keep_pallet_conf:
+        provenance["pallet_conf_target"] = "init"
     if freeze_pose:
         provenance["freeze_pose"] = True
     if init is not None and not resume and init_config(init) != cfg.name:

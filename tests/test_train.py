@@ -549,6 +549,59 @@ def test_the_confidence_head_alone_learns_to_refuse_negatives_and_keeps_every_po
         PoseTrainer(CFG, pose_data, trainable="detector")
 
 
+def test_a_confidence_teacher_holds_the_pallets_confidences_where_they_were(pose_data, negatives):
+    import copy
+
+    torch.manual_seed(0)
+    trainer = PoseTrainer(CFG, pose_data, trainable="conf")
+    teacher = copy.deepcopy(trainer.pose)
+    kept = PoseTrainer(CFG, pose_data, trainable="conf", conf_teacher=teacher)
+    kept.fusion.load_state_dict(trainer.fusion.state_dict())
+    kept.pose.load_state_dict(trainer.pose.state_dict())
+    idx = pose_data.train_idx[:4]
+    grads = {}
+    for name, t in (("eq4", trainer), ("teacher", kept)):
+        t.pose.requires_grad_(False)
+        t.pose.head_c.requires_grad_(True)
+        loss, _ = t.step(idx, np.random.default_rng(0))
+        loss.backward()
+        grads[name] = max(float(p.grad.abs().max()) for p in t.pose.head_c.parameters())
+    # the same network as its teacher: the pallets' term is at its minimum, nothing moves; eq. 4's pulls
+    assert grads["teacher"] < 1e-6 < grads["eq4"], grads
+    with pytest.raises(ValueError, match="needs trainable='conf'"):
+        PoseTrainer(CFG, pose_data, conf_teacher=teacher)
+    kept = PoseTrainer(CFG, pose_data, negatives=negatives, negative_conf_weight=1.0, trainable="conf",
+                       conf_teacher=teacher)
+    kept.fusion.load_state_dict(trainer.fusion.state_dict())
+    kept.pose.load_state_dict(teacher.state_dict())
+    kept.pose.requires_grad_(False)
+    kept.pose.head_c.requires_grad_(True)
+    opt = torch.optim.Adam(kept.pose.head_c.parameters(), lr=1e-2)
+    rng = np.random.default_rng(0)
+    seen = []
+    for _ in range(30):
+        loss, info = kept.step(idx, rng)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        seen.append(info["conf_neg"])
+    assert np.mean(seen[-5:]) < 0.5 * np.mean(seen[:5]), seen     # the negatives moved
+
+
+def test_train_cli_keeps_pallet_conf_only_for_the_confidence_head(sim_bop_dataset, bundle_dir, tmp_path, capsys):
+    from pallet6d.runtime.cli import main
+
+    base = ["train", "pose", "--config", "tiny", "--data", str(sim_bop_dataset), "--out", str(tmp_path / "r"),
+            "--epochs", "1", "--no-progress"]
+    assert main([*base, "--keep-pallet-conf", "--init", str(bundle_dir)]) == 1
+    assert "--keep-pallet-conf needs --conf-head-only and --init" in capsys.readouterr().err
+    assert main([*base, "--keep-pallet-conf", "--conf-head-only"]) == 1
+    assert "needs --conf-head-only and --init" in capsys.readouterr().err
+    assert main(["train", "detector", "--config", "tiny", "--data", str(sim_bop_dataset), "--out",
+                 str(tmp_path / "d"), "--keep-pallet-conf"]) == 2
+    assert "are for the pose stage" in capsys.readouterr().err
+
+
 def _pose_inputs(trainer, idx):
     """The pose network's inputs for training samples `idx`, as `forward_loss` makes them (fusion in eval mode)."""
     s = trainer.data.samples
