@@ -115,6 +115,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--negative-conf-weight", type=float, default=0.0, metavar="W",
                         help="pose: weight of the pose network's confidence on the --negatives crops (mean of "
                              "-log(1 - confidence)) in the loss (default 0: not trained there)")
+    parser.add_argument("--negative-conf-top", type=float, default=1.0, metavar="F",
+                        help="pose: the --negative-conf-weight term over this fraction of each negative crop's most "
+                             "confident points (default 1: all; the runtime refuses by the best point alone)")
     parser.add_argument("--conf-head-only", action="store_true",
                         help="pose: train the pose network's confidence head alone, the rest as --init gives it "
                              "(every point's rotation and translation stay)")
@@ -333,7 +336,8 @@ def main(args: argparse.Namespace) -> int:
                                distill_weight=args.distill_weight, freeze_pose=args.freeze_pose,
                                negatives=negatives, negative_conf_weight=args.negative_conf_weight,
                                conf_head_only=args.conf_head_only, mismatched_frames=args.mismatched_frames,
-                               keep_pallet_conf=args.keep_pallet_conf, **common)
+                               keep_pallet_conf=args.keep_pallet_conf, negative_conf_top=args.negative_conf_top,
+                               **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

@@ -154,7 +154,7 @@ class PoseTrainer:
                  amp: bool = False, num_points: int | None = None, teacher: torch.nn.Module | None = None,
                  distill_weight: float = 1.0, negatives: NegativeCrops | None = None,
                  negatives_per_step: int = 4, negative_conf_weight: float = 0.0, trainable: str = "all",
-                 conf_teacher: torch.nn.Module | None = None) -> None:
+                 conf_teacher: torch.nn.Module | None = None, negative_conf_top: float = 1.0) -> None:
         """:param num_points: use this many of each sample's points (fewer than prepared: the first ones, a
             uniform random subset since the points are sampled in random order), re-centred on their mean.
         :param teacher: a fusion network whose per-point features the trained one should also give (module
@@ -163,7 +163,8 @@ class PoseTrainer:
             each step: with `teacher`, their feature error is added with `distill_weight`; with
             `negative_conf_weight` > 0, the pose network's confidence there, as `negative_conf_weight` times the mean
             of -log(1 - confidence) over their points (the runtime refuses a pose whose best point's confidence
-            is under its `min_confidence`).
+            is under its `min_confidence`). :param negative_conf_top: that mean over this fraction of each negative
+            crop's points, its most confident ones (1: every point).
         :param trainable: what the training changes (the rest stays as built or loaded; `train_pose` gives the
             optimizer only those parameters): "all", "fusion" (the pose network fixed), or "conf" (the pose network's
             confidence head alone: every point's rotation and translation stay; the fusion network runs without
@@ -178,6 +179,8 @@ class PoseTrainer:
         if negatives is not None and teacher is None and not negative_conf_weight > 0:
             raise ValueError("negative crops need a use: a teacher to distil on them (--distill) or a confidence "
                              "weight (--negative-conf-weight)")
+        if not 0 < negative_conf_top <= 1:
+            raise ValueError(f"negative_conf_top must be in (0, 1], got {negative_conf_top}")
         if negatives is not None and negatives_per_step < 1:
             raise ValueError(f"negatives_per_step must be >= 1, got {negatives_per_step}")
         self.cfg, self.data, self.device, self.w, self.amp = cfg, data, torch.device(device), w, amp
@@ -198,6 +201,7 @@ class PoseTrainer:
         self.feature_error = float("nan")    # the last batch's relative feature error against the teacher
         self.negatives, self.negatives_per_step = negatives, negatives_per_step
         self.negative_conf_weight, self.trainable = float(negative_conf_weight), trainable
+        self.negative_conf_top = float(negative_conf_top)
         if negatives is not None and self.num_points < negatives.choose.shape[1]:
             pts = negatives.points[:, :self.num_points]       # a uniform random subset, re-centred (as positives)
             self.negatives = NegativeCrops(negatives.rgb_crops, negatives.depth_crops,
@@ -257,7 +261,9 @@ class PoseTrainer:
                 out["feat_neg"] = ((feats.float() - target) ** 2).mean() / target.var().clamp_min(1e-12)
             conf = self.pose(pts, feats)[2].float()
         if self.negative_conf_weight > 0:
-            out["conf_neg"] = -torch.log1p(-conf.clamp(max=1 - 1e-6)).mean()
+            k = max(1, round(self.negative_conf_top * conf.shape[1]))   # the runtime reads the best point alone
+            top = conf.topk(k, dim=1).values if k < conf.shape[1] else conf
+            out["conf_neg"] = -torch.log1p(-top.clamp(max=1 - 1e-6)).mean()
         out["conf_max"] = conf.detach().amax(1)
         return out
 
@@ -326,7 +332,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                command: str = "", progress: bool = True, init: str | Path | None = None,
                num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
                freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
-               conf_head_only: bool = False, mismatched_frames: int = 0, keep_pallet_conf: bool = False) -> dict:
+               conf_head_only: bool = False, mismatched_frames: int = 0, keep_pallet_conf: bool = False,
+               negative_conf_top: float = 1.0) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -341,6 +348,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         and `cache_dir` (`detector_bundle`, `presets`, `frames`, `seed`, ...).
     :param conf_head_only: train the pose network's confidence head alone, everything else fixed (poses keep
         their rotation and translation at every point).
+    :param negative_conf_top: the negatives' confidence term over this fraction of each crop's most confident
+        points (`PoseTrainer`).
     :param keep_pallet_conf: with `conf_head_only`, train the pallets' confidences toward those of `init`'s pose
         network (same config) instead of the eq. 4 loss (`PoseTrainer`'s `conf_teacher`).
     :param mismatched_frames: add crops of this many training frames' pallets under depth or intrinsics that do not
@@ -379,7 +388,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         load_init_weights(init, {"pose": conf_teacher})
     trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
                           distill_weight=distill_weight, negatives=neg_crops,
-                          negative_conf_weight=negative_conf_weight, trainable=trainable, conf_teacher=conf_teacher)
+                          negative_conf_weight=negative_conf_weight, trainable=trainable, conf_teacher=conf_teacher,
+                          negative_conf_top=negative_conf_top)
     if trainable != "all":
         trainer.pose.requires_grad_(False)
     if trainable == "conf":
@@ -397,7 +407,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     if distilled is not None:
         provenance["distill"] = {**distilled, "weight": distill_weight}
     if neg_record:
-        provenance["negatives"] = {**neg_record, "conf_weight": negative_conf_weight}
+        provenance["negatives"] = {**neg_record, "conf_weight": negative_conf_weight, "conf_top": negative_conf_top}
     if conf_head_only:
         provenance["trainable"] = "conf_head"
     if keep_pallet_conf:

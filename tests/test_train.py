@@ -588,6 +588,27 @@ def test_a_confidence_teacher_holds_the_pallets_confidences_where_they_were(pose
     assert np.mean(seen[-5:]) < 0.5 * np.mean(seen[:5]), seen     # the negatives moved
 
 
+def test_the_negatives_confidence_term_can_read_their_most_confident_points(pose_data, negatives):
+    torch.manual_seed(0)
+    n = negatives.choose.shape[1]
+    best = PoseTrainer(CFG, pose_data, negatives=negatives, negative_conf_weight=1.0, negative_conf_top=1 / n)
+    every = PoseTrainer(CFG, pose_data, negatives=negatives, negative_conf_weight=1.0)
+    every.nets["fusion"].load_state_dict(best.fusion.state_dict())
+    every.nets["pose"].load_state_dict(best.pose.state_dict())
+    for t in (best, every):
+        for net in t.nets.values():
+            net.eval()
+    idx = np.arange(min(3, len(negatives)))
+    with torch.no_grad():
+        b, e = best.negative_terms(idx), every.negative_terms(idx)
+    # one point a crop: the best one, as the runtime decides by
+    torch.testing.assert_close(b["conf_neg"], -torch.log1p(-b["conf_max"]).mean())
+    assert float(b["conf_neg"]) >= float(e["conf_neg"])
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="negative_conf_top must be in"):
+            PoseTrainer(CFG, pose_data, negatives=negatives, negative_conf_weight=1.0, negative_conf_top=bad)
+
+
 def test_train_cli_keeps_pallet_conf_only_for_the_confidence_head(sim_bop_dataset, bundle_dir, tmp_path, capsys):
     from pallet6d.runtime.cli import main
 
