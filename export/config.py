@@ -180,6 +180,10 @@ class PoseConfig:
     :ivar point_dims: per-point geometric (and fused-embedding) conv widths (DenseFusion: 64, 128).
     :ivar global_dims: the two convs before average pooling (DenseFusion: 512, 1024).
     :ivar head_dims: hidden widths of each head (DenseFusion: 640, 256, 128).
+    :ivar verifier: a fourth head of the confidence head's shape, read at the chosen point alone: the confidence the
+        graph gives (and the runtime compares with `min_confidence`), while the confidence head keeps choosing the
+        hypothesis. Ranking a crop's points and judging whether the crop holds a pallet at all are two questions; one
+        head trained for both moves the chosen hypotheses.
     """
 
     num_points: int = 500
@@ -188,6 +192,7 @@ class PoseConfig:
     head_dims: tuple[int, int, int] = (640, 256, 128)
     attention: bool = True
     attention_heads: int = 4
+    verifier: bool = False
 
     def __post_init__(self) -> None:
         _check_positive("num_points", self.num_points)
@@ -271,6 +276,10 @@ CONFIGS: dict[str, ModelConfig] = {
 # edge2 with edge's crop and dilated layers: the backbone computes what edge's computes
 CONFIGS["edge2-dilated"] = CONFIGS["edge2"].replace(
     name="edge2-dilated", fusion=dataclasses.replace(CONFIGS["edge2"].fusion, crop_hw=(96, 96), dilated=True))
+# edge2-dilated's networks with a verifier head (`PoseConfig.verifier`): started from an edge2-dilated bundle, every
+# pose stays that bundle's
+CONFIGS["edge2-verified"] = CONFIGS["edge2-dilated"].replace(
+    name="edge2-verified", pose=dataclasses.replace(CONFIGS["edge2-dilated"].pose, verifier=True))
 CONFIGS["edge2-slim"] = CONFIGS["edge2-dilated"].replace(
     name="edge2-slim", fusion=dataclasses.replace(CONFIGS["edge2-dilated"].fusion, resnet_widths=(32, 64, 128, 128),
                                                   psp_out=256))

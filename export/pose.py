@@ -11,7 +11,8 @@ The object's translation from point i is points[i] + trans[i] (+ the centre the 
 
 The shipped graph (`MostConfidentPose`, the same weights) keeps only what the runtime uses, DenseFusion's most
 confident hypothesis: it runs the confidence head at every point and the rotation and translation heads at the
-chosen point alone -> quat (B, 4), trans (B, 3) = that point + its offset, conf (B,).
+chosen point alone -> quat (B, 4), trans (B, 3) = that point + its offset, conf (B,). With a verifier head
+(`PoseConfig.verifier`) the graph's conf is the verifier's at the chosen point; the confidence head still chooses.
 """
 from __future__ import annotations
 
@@ -73,6 +74,7 @@ class PoseNet(nn.Module):
         self.head_r = _head(local, g2, cfg.head_dims, 4)
         self.head_t = _head(local, g2, cfg.head_dims, 3)
         self.head_c = _head(local, g2, cfg.head_dims, 1)
+        self.head_v = _head(local, g2, cfg.head_dims, 1) if cfg.verifier else None
 
     def dense(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The dense per-point feature, `[local; g at every point]`, as its two parts.
@@ -98,6 +100,16 @@ class PoseNet(nn.Module):
         conf = torch.sigmoid(self.head_c(local, g))[:, 0]
         return quat, trans, conf
 
+    def verify(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The verifier head's confidence at every point, and the confidence head's (which chooses).
+
+        :param points: (B, N, 3). :param features: (B, N, C). :return: verifier (B, N), conf (B, N), in (0, 1).
+        :raises ValueError: the network has no verifier head."""
+        if self.head_v is None:
+            raise ValueError("this pose network has no verifier head (PoseConfig.verifier)")
+        local, g = self.dense(points, features)
+        return torch.sigmoid(self.head_v(local, g))[:, 0], torch.sigmoid(self.head_c(local, g))[:, 0]
+
 
 class MostConfidentPose(nn.Module):
     """A pose network's most confident hypothesis per sample (DenseFusion's argmax), computed without the rotation
@@ -111,12 +123,14 @@ class MostConfidentPose(nn.Module):
         super().__init__()
         for name, child in net.named_children():
             self.add_module(name, child)
+        self.head_v = net.head_v
         self._dense = net.dense
 
     def forward(self, points: torch.Tensor, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """:param points: (B, N, 3) centred. :param features: (B, N, C).
         :return: quat (B, 4) unit wxyz, trans (B, 3) = the chosen point + its offset (metres, centred frame), conf
-            (B,); the chosen point is the first of the most confident ones, as numpy's argmax picks."""
+            (B,) (the verifier head's at the chosen point where the network has one); the chosen point is the first
+            of the most confident ones, as numpy's argmax picks."""
         local, g = self._dense(points, features)
         conf = torch.sigmoid(self.head_c(local, g))[:, 0]                      # (B, N)
         best, idx = conf.max(1, keepdim=True)                                   # (B, 1)
@@ -126,6 +140,8 @@ class MostConfidentPose(nn.Module):
         chosen = torch.bmm(local, pick[:, :, None])                             # (B, C, 1)
         quat = F.normalize(self.head_r(chosen, g), dim=1, eps=1e-8)[:, :, 0]
         point = (points * pick[:, :, None]).sum(1)
+        if self.head_v is not None:
+            best = torch.sigmoid(self.head_v(chosen, g))[:, 0]                  # (B, 1)
         return quat, point + self.head_t(chosen, g)[:, :, 0], best[:, 0]
 
 

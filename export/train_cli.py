@@ -125,6 +125,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pose, with --conf-head-only: train the pallets' confidences toward --init's own "
                              "(binary cross-entropy per point) instead of the eq. 4 loss, so that the negatives alone "
                              "move the confidence")
+    parser.add_argument("--verifier-only", action="store_true",
+                        help="pose: train the verifier head alone (a config with one, e.g. edge2-verified; started as a "
+                             "copy of --init's confidence head): it follows the confidence head on the pallets and "
+                             "learns to be low at the --negatives' chosen points; every pose stays --init's")
     parser.add_argument("--freeze-pose", action="store_true",
                         help="pose: train the fusion network alone, the pose network fixed as --init gives it")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
@@ -313,9 +317,9 @@ def main(args: argparse.Namespace) -> int:
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
         if (args.distill is not None or args.freeze_pose or args.negatives or args.mismatched_frames
-                or args.conf_head_only or args.keep_pallet_conf) and args.stage != "pose":
-            print("pallet6d train: --distill, --freeze-pose, --negatives, --mismatched-frames, --conf-head-only and "
-                  "--keep-pallet-conf are for the pose stage", file=sys.stderr)
+                or args.conf_head_only or args.keep_pallet_conf or args.verifier_only) and args.stage != "pose":
+            print("pallet6d train: --distill, --freeze-pose, --negatives, --mismatched-frames, --conf-head-only, "
+                  "--keep-pallet-conf and --verifier-only are for the pose stage", file=sys.stderr)
             return 2
         boxer = args.negatives_detector or args.distill or args.init
         if args.negatives and boxer is None:
@@ -337,7 +341,7 @@ def main(args: argparse.Namespace) -> int:
                                negatives=negatives, negative_conf_weight=args.negative_conf_weight,
                                conf_head_only=args.conf_head_only, mismatched_frames=args.mismatched_frames,
                                keep_pallet_conf=args.keep_pallet_conf, negative_conf_top=args.negative_conf_top,
-                               **common)
+                               verifier_only=args.verifier_only, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

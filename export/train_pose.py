@@ -22,7 +22,10 @@ with a weight for it, the pose network's confidence is taught to be low there (t
 confidence is under `min_confidence`). `trainable="conf"` trains the confidence head alone, every pose unchanged;
 with `conf_teacher` (the starting pose network, frozen) the pallets' confidences are pulled toward that network's
 own instead of DenseFusion's confidence term, so that only the negatives move: refitted to that term alone, the
-head gives modest pallets confidences near `w / error`, under the runtime's floor.
+head gives modest pallets confidences near `w / error`, under the runtime's floor. `trainable="verifier"` trains a
+network's verifier head alone (`PoseConfig.verifier`): at the pallets' points it follows the confidence head (binary
+cross-entropy), at the negatives' chosen points (the confidence head's best, as the graph reads it) it learns to be
+low; the confidence head keeps choosing, so every pose stays as it was.
 """
 from __future__ import annotations
 
@@ -55,7 +58,8 @@ __all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "subsam
 log = logging.getLogger(__name__)
 
 MODEL_POINTS = 500   # DenseFusion's num_pt_mesh_small: points of the model in the loss
-TRAINABLE = ("all", "fusion", "conf")
+TRAINABLE = ("all", "fusion", "conf", "verifier")
+FIXED_FUSION = ("conf", "verifier")   # trainables under which the fusion network runs fixed, in inference mode
 CONF_FLOOR = EstimatorOptions().min_confidence   # validation reports the share of best confidences above it
 
 
@@ -168,11 +172,15 @@ class PoseTrainer:
         :param trainable: what the training changes (the rest stays as built or loaded; `train_pose` gives the
             optimizer only those parameters): "all", "fusion" (the pose network fixed), or "conf" (the pose network's
             confidence head alone: every point's rotation and translation stay; the fusion network runs without
-            gradients in inference mode).
+            gradients in inference mode), or "verifier" (the verifier head alone, the same way; module docstring).
         :param conf_teacher: with trainable "conf", a pose network (frozen) whose confidence on the pallets is the
             target (binary cross-entropy per point) in place of the eq. 4 loss (module docstring)."""
         if trainable not in TRAINABLE:
             raise ValueError(f"trainable must be one of {TRAINABLE}, got {trainable!r}")
+        if trainable == "verifier" and not cfg.pose.verifier:
+            raise ValueError(f"config {cfg.name!r} has no verifier head to train (e.g. edge2-verified has)")
+        if trainable == "verifier" and negative_conf_top != 1.0:
+            raise ValueError("the verifier learns at each negative's chosen point: negative_conf_top does not apply")
         if conf_teacher is not None and trainable != "conf":
             raise ValueError("a confidence teacher needs trainable='conf' (--conf-head-only): its targets hold only "
                              "for the points and features the trained network also has")
@@ -199,6 +207,7 @@ class PoseTrainer:
         self.teacher = None if teacher is None else teacher.to(self.device).eval().requires_grad_(False)
         self.distill_weight = float(distill_weight)
         self.feature_error = float("nan")    # the last batch's relative feature error against the teacher
+        self.last_confidence = torch.zeros(0)  # the last batch's confidence as the graph gives it (B,)
         self.negatives, self.negatives_per_step = negatives, negatives_per_step
         self.negative_conf_weight, self.trainable = float(negative_conf_weight), trainable
         self.negative_conf_top = float(negative_conf_top)
@@ -236,6 +245,13 @@ class PoseTrainer:
             with torch.no_grad(), autocast(self.device.type, amp):
                 target = self.conf_teacher(pts, point_feats)[2].float()
             loss = F.binary_cross_entropy(conf.clamp(1e-6, 1 - 1e-6), target)
+        self.last_confidence = conf.detach().amax(1)
+        if self.trainable == "verifier":      # poses fixed: the verifier follows the confidence head on pallets
+            with autocast(self.device.type, amp):
+                verdict, _ = self.pose.verify(pts, point_feats)
+            verdict = verdict.float()
+            loss = F.binary_cross_entropy(verdict.clamp(1e-6, 1 - 1e-6), conf.detach())
+            self.last_confidence = verdict.detach().gather(1, conf.argmax(1, keepdim=True))[:, 0]
         if self.teacher is not None:
             with torch.no_grad(), autocast(self.device.type, amp):
                 target = self._features(self.teacher, rgb, depth, choose).float()
@@ -255,11 +271,15 @@ class PoseTrainer:
         with autocast(self.device.type, amp):
             with self._fusion_grad():
                 feats = self._features(self.fusion, rgb, depth, choose)
-            if self.teacher is not None and self.trainable != "conf":
+            if self.teacher is not None and self.trainable not in FIXED_FUSION:
                 with torch.no_grad():
                     target = self._features(self.teacher, rgb, depth, choose).float()
                 out["feat_neg"] = ((feats.float() - target) ** 2).mean() / target.var().clamp_min(1e-12)
-            conf = self.pose(pts, feats)[2].float()
+            if self.trainable == "verifier":    # the graph's confidence: the verifier's at the chosen point
+                verdict, c = self.pose.verify(pts, feats)
+                conf = verdict.float().gather(1, c.argmax(1, keepdim=True))
+            else:
+                conf = self.pose(pts, feats)[2].float()
         if self.negative_conf_weight > 0:
             k = max(1, round(self.negative_conf_top * conf.shape[1]))   # the runtime reads the best point alone
             top = conf.topk(k, dim=1).values if k < conf.shape[1] else conf
@@ -269,7 +289,7 @@ class PoseTrainer:
 
     def _fusion_grad(self):
         """No gradients through a fusion network that is not trained."""
-        return torch.no_grad() if self.trainable == "conf" else contextlib.nullcontext()
+        return torch.no_grad() if self.trainable in FIXED_FUSION else contextlib.nullcontext()
 
     def _features(self, fusion: torch.nn.Module, rgb: torch.Tensor, depth: torch.Tensor,
                   choose: torch.Tensor) -> torch.Tensor:
@@ -279,7 +299,7 @@ class PoseTrainer:
         return gather_points(fusion(rgb, depth), choose)
 
     def step(self, idx: np.ndarray, rng: np.random.Generator) -> tuple[torch.Tensor, dict]:
-        if self.trainable == "conf":
+        if self.trainable in FIXED_FUSION:
             self.fusion.eval()          # fixed: its BatchNorm on its running statistics, as the runtime runs it
         loss, d, _ = self.forward_loss(idx, amp=self.amp)
         info = {"dis": float(d.detach().mean())}
@@ -305,7 +325,7 @@ class PoseTrainer:
             loss, d, conf = self.forward_loss(idx)
             losses.append(float(loss) * len(idx))
             errs.append(d.gather(1, conf.argmax(1, keepdim=True))[:, 0].cpu().numpy())
-            conf_all.append(conf.amax(1).cpu().numpy())
+            conf_all.append(self.last_confidence.cpu().numpy())
             feats.append(self.feature_error * len(idx))
         e = np.concatenate(errs) if errs else np.zeros(0)
         n = max(len(e), 1)
@@ -333,7 +353,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
                freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
                conf_head_only: bool = False, mismatched_frames: int = 0, keep_pallet_conf: bool = False,
-               negative_conf_top: float = 1.0) -> dict:
+               negative_conf_top: float = 1.0, verifier_only: bool = False) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -354,9 +374,12 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         network (same config) instead of the eq. 4 loss (`PoseTrainer`'s `conf_teacher`).
     :param mismatched_frames: add crops of this many training frames' pallets under depth or intrinsics that do not
         belong to the image (`negative_crops.build_mismatched_crops`, every kind) to the negatives.
+    :param verifier_only: train the verifier head alone (a config with one, `PoseConfig.verifier`; `PoseTrainer`),
+        everything else fixed: every pose stays. Started from a network without one (`init`), it starts as a copy
+        of the confidence head.
     """
-    if freeze_pose and conf_head_only:
-        raise ValueError("--freeze-pose and --conf-head-only exclude each other")
+    if sum((freeze_pose, conf_head_only, verifier_only)) > 1:
+        raise ValueError("--freeze-pose, --conf-head-only and --verifier-only exclude each other")
     if keep_pallet_conf and not (conf_head_only and init is not None and not resume):
         raise ValueError("--keep-pallet-conf needs --conf-head-only and --init (the network whose confidences it keeps), "
                          "without --resume")
@@ -381,7 +404,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         *(np.concatenate([getattr(c, f) for c in neg_parts]) for f in ("rgb_crops", "depth_crops", "choose", "points")))
     if neg_crops is not None:
         log.info("negative crops: %s", {k: v["crops"] for k, v in neg_record.items()})
-    trainable = "conf" if conf_head_only else "fusion" if freeze_pose else "all"
+    trainable = "conf" if conf_head_only else "verifier" if verifier_only else "fusion" if freeze_pose else "all"
     conf_teacher = None
     if keep_pallet_conf:
         conf_teacher = build_pose(cfg.pose, cfg.fusion.feature_dim)
@@ -392,9 +415,9 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                           negative_conf_top=negative_conf_top)
     if trainable != "all":
         trainer.pose.requires_grad_(False)
-    if trainable == "conf":
+    if trainable in FIXED_FUSION:
         trainer.fusion.requires_grad_(False)
-        trainer.pose.head_c.requires_grad_(True)
+        (trainer.pose.head_c if trainable == "conf" else trainer.pose.head_v).requires_grad_(True)
     params = [p for net in trainer.nets.values() for p in net.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=settings.lr)
     provenance = {"stage": "pose", "config": cfg.name, "seed": settings.seed, "command": command,
@@ -408,8 +431,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         provenance["distill"] = {**distilled, "weight": distill_weight}
     if neg_record:
         provenance["negatives"] = {**neg_record, "conf_weight": negative_conf_weight, "conf_top": negative_conf_top}
-    if conf_head_only:
-        provenance["trainable"] = "conf_head"
+    if conf_head_only or verifier_only:
+        provenance["trainable"] = "conf_head" if conf_head_only else "verifier_head"
     if keep_pallet_conf:
         provenance["pallet_conf_target"] = "init"
     if freeze_pose:
@@ -417,6 +440,9 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     if init is not None and not resume and init_config(init) != cfg.name:
         # another config's weights (e.g. edge2 from the edge bundle): copy what fits
         provenance["init"] = warm_start(init, trainer.nets)
+        if cfg.pose.verifier and not get_config(init_config(init)).pose.verifier:
+            trainer.pose.head_v.load_state_dict(trainer.pose.head_c.state_dict())
+            provenance["init"]["verifier"] = "the confidence head's weights"
         init = None
     return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
                         lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
