@@ -20,6 +20,9 @@ Variants (`CONFIGS`):
 - ``edge2-dilated``: ``edge2`` with ``edge``'s crop (96) and dilated layer3/4: the backbone computes exactly what
   the shipped ``edge`` backbone computes, so a warm start from it loses only the two output convs (0.7 ms more
   per pallet at int8 than ``edge2``); the fallback if ``edge2`` does not reach ``edge``'s accuracy.
+- ``edge2-verified``: ``edge2-dilated`` with a verifier head (`PoseConfig.verifier`): started from an
+  ``edge2-dilated`` bundle and trained alone (``pallet6d train pose --verifier-only``), every pose stays that bundle's
+  and the graph's confidence becomes the verifier's.
 - ``edge2-slim``: ``edge2-dilated`` with layer4 and the PSP bottleneck at half its width (128 and 256 channels):
   about half its fusion work (layer4 at stride 8 is most of it), trained from it (``--init`` copies every other
   layer) with its fused features as a target (``pallet6d train pose --distill``).
