@@ -25,7 +25,9 @@ own instead of DenseFusion's confidence term, so that only the negatives move: r
 head gives modest pallets confidences near `w / error`, under the runtime's floor. `trainable="verifier"` trains a
 network's verifier head alone (`PoseConfig.verifier`): at the pallets' points it follows the confidence head (binary
 cross-entropy), at the negatives' chosen points (the confidence head's best, as the graph reads it) it learns to be
-low; the confidence head keeps choosing, so every pose stays as it was.
+low; the confidence head keeps choosing, so every pose stays as it was. After training, its output is shifted by one
+constant in logit space (`calibrate_verifier`) so that the runtime's floor keeps as many validation pallets as the
+confidence head kept: the floor then refuses only what the verifier ranks below those pallets.
 """
 from __future__ import annotations
 
@@ -50,10 +52,12 @@ from .losses import pad_symmetries, pose_loss, stack_model_points
 from .pose import build_pose
 from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for,
                          pallet_type_name)
-from .train_loop import LoopSettings, autocast, load_init_weights, train_epochs
+from .train_loop import (BEST, LAST, LoopSettings, autocast, load_checkpoint, load_init_weights, save_checkpoint,
+                         train_epochs)
 from .warm_start import init_config, warm_start
 
-__all__ = ["PoseData", "load_pose_data", "PoseTrainer", "gather_points", "subsample_points", "train_pose"]
+__all__ = ["PoseData", "load_pose_data", "PoseTrainer", "calibrate_verifier", "gather_points", "subsample_points",
+           "train_pose"]
 
 log = logging.getLogger(__name__)
 
@@ -346,6 +350,72 @@ class PoseTrainer:
                 "add_sym_acc_0.1": float((e < 0.1).mean()) if len(e) else None, "n": len(e)}
 
 
+def _logit(p: float) -> float:
+    p = min(max(p, 1e-7), 1 - 1e-7)
+    return float(np.log(p / (1 - p)))
+
+
+def calibrate_verifier(trainer: PoseTrainer, batch: int = 16) -> dict:
+    """Shift the verifier head's output logit (its last bias) so that, on the validation pallets, as many of the
+    verifier's confidences at the chosen points clear the runtime's floor (`CONF_FLOOR`) as the confidence head's best
+    confidences do. Ranking is unchanged; the floor then keeps the pallets the confidence head kept, by count, and
+    refuses what the verifier scores below them. Idempotent (a second call shifts by about 0).
+
+    :return: {"logit_shift", "threshold_before" (the verifier's confidence that now maps to the floor),
+        "pallet_share" (the share kept, both heads), "val_pallets"}.
+    :raises ValueError: the trainer's network has no verifier head, or no validation samples."""
+    if trainer.pose.head_v is None:
+        raise ValueError("calibrate_verifier: the pose network has no verifier head")
+    idx_all = trainer.data.val_idx
+    if len(idx_all) == 0:
+        raise ValueError("calibrate_verifier: no validation samples to calibrate on")
+    mode = trainer.trainable
+    trainer.trainable = "verifier"            # forward_loss then reports the verifier's confidence at the choice
+    verdicts, best_conf = [], []
+    try:
+        for net in trainer.nets.values():
+            net.eval()
+        with torch.no_grad():
+            for i in range(0, len(idx_all), batch):
+                _, _, conf = trainer.forward_loss(idx_all[i:i + batch])
+                verdicts.append(trainer.last_confidence.cpu().numpy())
+                best_conf.append(conf.amax(1).cpu().numpy())
+    finally:
+        trainer.trainable = mode
+    v = np.sort(np.concatenate(verdicts).astype(np.float64))[::-1]
+    k = int((np.concatenate(best_conf) >= CONF_FLOOR).sum())    # pallets the confidence head keeps
+    if k == 0:
+        cut = _logit(v[0]) + 1e-3                               # none: every verdict goes under the floor
+    elif k == len(v):
+        cut = _logit(v[-1]) - 1e-3
+    else:                                                       # between the k-th and (k+1)-th verdicts
+        cut = 0.5 * (_logit(v[k - 1]) + _logit(v[k]))
+    shift = _logit(CONF_FLOOR) - cut
+    last = trainer.pose.head_v[-1]
+    with torch.no_grad():
+        last.bias += shift
+    return {"logit_shift": shift, "threshold_before": float(1 / (1 + np.exp(-cut))),
+            "pallet_share": k / len(v), "val_pallets": len(v)}
+
+
+def _calibrate_checkpoints(trainer: PoseTrainer, run_dir: Path) -> None:
+    """`calibrate_verifier` on each checkpoint the run wrote (each from its own weights), recorded in its
+    provenance."""
+    for name in (LAST, BEST):
+        path = run_dir / name
+        if not path.is_file():
+            continue
+        ckpt = load_checkpoint(path)
+        trainer.pose.load_state_dict(ckpt["pose"])
+        record = calibrate_verifier(trainer)
+        ckpt["pose"] = trainer.pose.state_dict()
+        ckpt["provenance"] = {**ckpt["provenance"], "verifier_calibration": record}
+        save_checkpoint(path, ckpt)
+        log.info("%s: verifier shifted by %.3f in logit space (%.4f -> the floor %.2f; %.1f %% of %d validation "
+                 "pallets kept)", path, record["logit_shift"], record["threshold_before"], CONF_FLOOR,
+                 100 * record["pallet_share"], record["val_pallets"])
+
+
 def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path, settings: LoopSettings,
                variants: int = 2, aug: AugmentConfig | None = None, resume: bool = False,
                cache_dir: str | Path | None = None, val_fraction: float = 0.1, max_frames: int | None = None,
@@ -376,7 +446,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         belong to the image (`negative_crops.build_mismatched_crops`, every kind) to the negatives.
     :param verifier_only: train the verifier head alone (a config with one, `PoseConfig.verifier`; `PoseTrainer`),
         everything else fixed: every pose stays. Started from a network without one (`init`), it starts as a copy
-        of the confidence head.
+        of the confidence head. The checkpoints are then calibrated (`calibrate_verifier`).
     """
     if sum((freeze_pose, conf_head_only, verifier_only)) > 1:
         raise ValueError("--freeze-pose, --conf-head-only and --verifier-only exclude each other")
@@ -444,9 +514,12 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
             trainer.pose.head_v.load_state_dict(trainer.pose.head_c.state_dict())
             provenance["init"]["verifier"] = "the confidence head's weights"
         init = None
-    return train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
-                        lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
-                        resume=resume, progress=progress, init=init)
+    entry = train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
+                         lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
+                         resume=resume, progress=progress, init=init)
+    if verifier_only:
+        _calibrate_checkpoints(trainer, run_dir)
+    return entry
 
 
 def _teacher(path: str | Path, cfg: ModelConfig) -> tuple[torch.nn.Module, dict]:

@@ -15,7 +15,9 @@ from pallet6d.export.config import CONFIGS, get_config  # noqa: E402
 from pallet6d.export.fusion import build_fusion  # noqa: E402
 from pallet6d.export.pose import MostConfidentPose, build_pose  # noqa: E402
 from pallet6d.export.train_loop import LoopSettings, load_checkpoint  # noqa: E402
-from pallet6d.export.train_pose import train_pose  # noqa: E402
+from pallet6d.export.train_data import NO_AUGMENT  # noqa: E402
+from pallet6d.export.train_pose import (CONF_FLOOR, PoseTrainer, calibrate_verifier, load_pose_data,  # noqa: E402
+                                        train_pose)
 
 CFG = get_config("tiny")
 TINY_V = CFG.replace(name="tiny-verified", pose=dataclasses.replace(CFG.pose, verifier=True))
@@ -64,6 +66,8 @@ def test_the_verifier_trained_alone_leaves_every_pose_and_ships_in_the_pose_grap
                progress=False, init=bundle_dir, verifier_only=True, mismatched_frames=2, negative_conf_weight=1.0)
     ckpt = load_checkpoint(run / "last.pt")
     assert ckpt["provenance"]["trainable"] == "verifier_head"
+    assert set(ckpt["provenance"]["verifier_calibration"]) == {"logit_shift", "threshold_before", "pallet_share",
+                                                               "val_pallets"}
     assert ckpt["provenance"]["init"]["verifier"] == "the confidence head's weights"
     shipped = {"fusion": build_fusion(CFG.fusion),
                "pose": build_pose(CFG.pose, CFG.fusion.feature_dim)}
@@ -101,3 +105,44 @@ def test_verifier_training_needs_a_verifier_and_excludes_the_other_heads_trainin
     with pytest.raises(ValueError, match="exclude each other"):
         train_pose(TINY_V, [sim_bop_dataset], tmp_path / "b", settings, variants=1, progress=False,
                    init=bundle_dir, verifier_only=True, conf_head_only=True)
+
+
+def _val_shares(trainer):
+    """(share of verifier confidences at the chosen points >= the floor, share of best confidences >= it)."""
+    trainer.trainable = "verifier"
+    with torch.no_grad():
+        _, _, conf = trainer.forward_loss(trainer.data.val_idx)
+    return float((trainer.last_confidence >= CONF_FLOOR).float().mean()), float((conf.amax(1) >= CONF_FLOOR).float().mean())
+
+
+@pytest.mark.parametrize("offset", [-4.0, 0.0, 4.0])
+def test_calibration_makes_the_floor_keep_as_many_validation_pallets_as_the_confidence_head(
+        sim_bop_dataset, tmp_path, offset):
+    pd = load_pose_data(TINY_V, [sim_bop_dataset], variants=1, seed=0, aug=NO_AUGMENT, cache_dir=tmp_path,
+                        progress=False)
+    pd = dataclasses.replace(pd, val_idx=np.arange(len(pd.samples.points)))    # every sample, so shares are fine
+    torch.manual_seed(2)
+    trainer = PoseTrainer(TINY_V, pd)
+    with torch.no_grad():           # the confidence head's best near the floor, the verifier far from it either way
+        trainer.pose.head_c[-1].bias.fill_(-2.2)
+        trainer.pose.head_v[-1].bias.fill_(-2.2 + offset)
+    for net in trainer.nets.values():
+        net.eval()
+    before, kept = _val_shares(trainer)
+    poses = trainer.pose.state_dict()
+    record = calibrate_verifier(trainer)
+    after, kept_after = _val_shares(trainer)
+    assert after == pytest.approx(kept) and kept_after == kept
+    assert record["pallet_share"] == pytest.approx(kept) and record["val_pallets"] == len(pd.val_idx)
+    assert np.sign(record["logit_shift"]) == -np.sign(offset) or before == pytest.approx(kept)
+    for k, v in trainer.pose.state_dict().items():           # only the verifier's last bias moved
+        if k != "head_v.6.bias":
+            assert torch.equal(v, poses[k]), k
+    assert abs(calibrate_verifier(trainer)["logit_shift"]) < 1e-6      # idempotent
+
+
+def test_calibration_needs_a_verifier(sim_bop_dataset, tmp_path):
+    pd = load_pose_data(CFG, [sim_bop_dataset], variants=1, seed=0, aug=NO_AUGMENT, cache_dir=tmp_path,
+                        progress=False)
+    with pytest.raises(ValueError, match="no verifier head"):
+        calibrate_verifier(PoseTrainer(CFG, pd))
