@@ -129,6 +129,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pose: train the verifier head alone (a config with one, e.g. edge2-verified; started as a "
                              "copy of --init's confidence head): it follows the confidence head on the pallets and "
                              "learns to be low at the --negatives' chosen points; every pose stays --init's")
+    parser.add_argument("--verifier-target", choices=("confidence", "pallet"), default="confidence",
+                        help="pose, with --verifier-only: on the pallets the verifier follows the confidence head "
+                             "(confidence, default) or learns 1 at the chosen point (pallet: pallet or not, whatever "
+                             "the pose's error)")
     parser.add_argument("--freeze-pose", action="store_true",
                         help="pose: train the fusion network alone, the pose network fixed as --init gives it")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
@@ -321,6 +325,9 @@ def main(args: argparse.Namespace) -> int:
             print("pallet6d train: --distill, --freeze-pose, --negatives, --mismatched-frames, --conf-head-only, "
                   "--keep-pallet-conf and --verifier-only are for the pose stage", file=sys.stderr)
             return 2
+        if args.verifier_target != "confidence" and not args.verifier_only:
+            print("pallet6d train: --verifier-target is for --verifier-only", file=sys.stderr)
+            return 2
         boxer = args.negatives_detector or args.distill or args.init
         if args.negatives and boxer is None:
             print("pallet6d train: --negatives needs a bundle whose detector boxes the crops (--negatives-detector, "
@@ -341,7 +348,7 @@ def main(args: argparse.Namespace) -> int:
                                negatives=negatives, negative_conf_weight=args.negative_conf_weight,
                                conf_head_only=args.conf_head_only, mismatched_frames=args.mismatched_frames,
                                keep_pallet_conf=args.keep_pallet_conf, negative_conf_top=args.negative_conf_top,
-                               verifier_only=args.verifier_only, **common)
+                               verifier_only=args.verifier_only, verifier_target=args.verifier_target, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

@@ -25,7 +25,8 @@ own instead of DenseFusion's confidence term, so that only the negatives move: r
 head gives modest pallets confidences near `w / error`, under the runtime's floor. `trainable="verifier"` trains a
 network's verifier head alone (`PoseConfig.verifier`): at the pallets' points it follows the confidence head (binary
 cross-entropy), at the negatives' chosen points (the confidence head's best, as the graph reads it) it learns to be
-low; the confidence head keeps choosing, so every pose stays as it was. After training, its output is shifted by one
+low (or, with `verifier_target="pallet"`, at the pallets' chosen points it learns to be 1: pallet or not, whatever the
+pose's error); the confidence head keeps choosing, so every pose stays as it was. After training, its output is shifted by one
 constant in logit space (`calibrate_verifier`) so that the runtime's floor keeps as many validation pallets as the
 confidence head kept: the floor then refuses only what the verifier ranks below those pallets.
 """
@@ -64,6 +65,7 @@ log = logging.getLogger(__name__)
 MODEL_POINTS = 500   # DenseFusion's num_pt_mesh_small: points of the model in the loss
 TRAINABLE = ("all", "fusion", "conf", "verifier")
 FIXED_FUSION = ("conf", "verifier")   # trainables under which the fusion network runs fixed, in inference mode
+VERIFIER_TARGETS = ("confidence", "pallet")
 CONF_FLOOR = EstimatorOptions().min_confidence   # validation reports the share of best confidences above it
 
 
@@ -162,7 +164,8 @@ class PoseTrainer:
                  amp: bool = False, num_points: int | None = None, teacher: torch.nn.Module | None = None,
                  distill_weight: float = 1.0, negatives: NegativeCrops | None = None,
                  negatives_per_step: int = 4, negative_conf_weight: float = 0.0, trainable: str = "all",
-                 conf_teacher: torch.nn.Module | None = None, negative_conf_top: float = 1.0) -> None:
+                 conf_teacher: torch.nn.Module | None = None, negative_conf_top: float = 1.0,
+                 verifier_target: str = "confidence") -> None:
         """:param num_points: use this many of each sample's points (fewer than prepared: the first ones, a
             uniform random subset since the points are sampled in random order), re-centred on their mean.
         :param teacher: a fusion network whose per-point features the trained one should also give (module
@@ -178,13 +181,17 @@ class PoseTrainer:
             confidence head alone: every point's rotation and translation stay; the fusion network runs without
             gradients in inference mode), or "verifier" (the verifier head alone, the same way; module docstring).
         :param conf_teacher: with trainable "conf", a pose network (frozen) whose confidence on the pallets is the
-            target (binary cross-entropy per point) in place of the eq. 4 loss (module docstring)."""
+            target (binary cross-entropy per point) in place of the eq. 4 loss (module docstring).
+        :param verifier_target: with trainable "verifier", its target on the pallets: "confidence" (the confidence
+            head's, at every point) or "pallet" (1 at the chosen point: pallet or not, the pose's error aside)."""
         if trainable not in TRAINABLE:
             raise ValueError(f"trainable must be one of {TRAINABLE}, got {trainable!r}")
         if trainable == "verifier" and not cfg.pose.verifier:
             raise ValueError(f"config {cfg.name!r} has no verifier head to train (e.g. edge2-verified has)")
         if trainable == "verifier" and negative_conf_top != 1.0:
             raise ValueError("the verifier learns at each negative's chosen point: negative_conf_top does not apply")
+        if verifier_target not in VERIFIER_TARGETS:
+            raise ValueError(f"verifier_target must be one of {VERIFIER_TARGETS}, got {verifier_target!r}")
         if conf_teacher is not None and trainable != "conf":
             raise ValueError("a confidence teacher needs trainable='conf' (--conf-head-only): its targets hold only "
                              "for the points and features the trained network also has")
@@ -214,7 +221,7 @@ class PoseTrainer:
         self.last_confidence = torch.zeros(0)  # the last batch's confidence as the graph gives it (B,)
         self.negatives, self.negatives_per_step = negatives, negatives_per_step
         self.negative_conf_weight, self.trainable = float(negative_conf_weight), trainable
-        self.negative_conf_top = float(negative_conf_top)
+        self.negative_conf_top, self.verifier_target = float(negative_conf_top), verifier_target
         if negatives is not None and self.num_points < negatives.choose.shape[1]:
             pts = negatives.points[:, :self.num_points]       # a uniform random subset, re-centred (as positives)
             self.negatives = NegativeCrops(negatives.rgb_crops, negatives.depth_crops,
@@ -254,8 +261,12 @@ class PoseTrainer:
             with autocast(self.device.type, amp):
                 verdict, _ = self.pose.verify(pts, point_feats)
             verdict = verdict.float()
-            loss = F.binary_cross_entropy(verdict.clamp(1e-6, 1 - 1e-6), conf.detach())
-            self.last_confidence = verdict.detach().gather(1, conf.argmax(1, keepdim=True))[:, 0]
+            chosen = verdict.gather(1, conf.argmax(1, keepdim=True))[:, 0]
+            if self.verifier_target == "pallet":    # a pallet: 1 at the chosen point, whatever its pose's error
+                loss = -torch.log(chosen.clamp(min=1e-6)).mean()
+            else:
+                loss = F.binary_cross_entropy(verdict.clamp(1e-6, 1 - 1e-6), conf.detach())
+            self.last_confidence = chosen.detach()
         if self.teacher is not None:
             with torch.no_grad(), autocast(self.device.type, amp):
                 target = self._features(self.teacher, rgb, depth, choose).float()
@@ -423,7 +434,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                num_points: int | None = None, distill: str | Path | None = None, distill_weight: float = 1.0,
                freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
                conf_head_only: bool = False, mismatched_frames: int = 0, keep_pallet_conf: bool = False,
-               negative_conf_top: float = 1.0, verifier_only: bool = False) -> dict:
+               negative_conf_top: float = 1.0, verifier_only: bool = False,
+               verifier_target: str = "confidence") -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -447,6 +459,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     :param verifier_only: train the verifier head alone (a config with one, `PoseConfig.verifier`; `PoseTrainer`),
         everything else fixed: every pose stays. Started from a network without one (`init`), it starts as a copy
         of the confidence head. The checkpoints are then calibrated (`calibrate_verifier`).
+    :param verifier_target: the verifier's target on the pallets (`PoseTrainer`).
     """
     if sum((freeze_pose, conf_head_only, verifier_only)) > 1:
         raise ValueError("--freeze-pose, --conf-head-only and --verifier-only exclude each other")
@@ -482,7 +495,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     trainer = PoseTrainer(cfg, pd, settings.device, amp=settings.amp, num_points=num_points, teacher=teacher,
                           distill_weight=distill_weight, negatives=neg_crops,
                           negative_conf_weight=negative_conf_weight, trainable=trainable, conf_teacher=conf_teacher,
-                          negative_conf_top=negative_conf_top)
+                          negative_conf_top=negative_conf_top, verifier_target=verifier_target)
     if trainable != "all":
         trainer.pose.requires_grad_(False)
     if trainable in FIXED_FUSION:
@@ -503,6 +516,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         provenance["negatives"] = {**neg_record, "conf_weight": negative_conf_weight, "conf_top": negative_conf_top}
     if conf_head_only or verifier_only:
         provenance["trainable"] = "conf_head" if conf_head_only else "verifier_head"
+    if verifier_only:
+        provenance["verifier_target"] = verifier_target
     if keep_pallet_conf:
         provenance["pallet_conf_target"] = "init"
     if freeze_pose:

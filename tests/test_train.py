@@ -621,6 +621,8 @@ def test_train_cli_keeps_pallet_conf_only_for_the_confidence_head(sim_bop_datase
     assert main(["train", "detector", "--config", "tiny", "--data", str(sim_bop_dataset), "--out",
                  str(tmp_path / "d"), "--keep-pallet-conf"]) == 2
     assert "are for the pose stage" in capsys.readouterr().err
+    assert main([*base, "--verifier-target", "pallet"]) == 2
+    assert "--verifier-target is for --verifier-only" in capsys.readouterr().err
 
 
 def _pose_inputs(trainer, idx):

@@ -146,3 +146,22 @@ def test_calibration_needs_a_verifier(sim_bop_dataset, tmp_path):
                         progress=False)
     with pytest.raises(ValueError, match="no verifier head"):
         calibrate_verifier(PoseTrainer(CFG, pd))
+
+
+def test_the_pallet_target_is_one_at_the_chosen_point(sim_bop_dataset, tmp_path):
+    pd = load_pose_data(TINY_V, [sim_bop_dataset], variants=1, seed=0, aug=NO_AUGMENT, cache_dir=tmp_path,
+                        progress=False)
+    torch.manual_seed(3)
+    trainer = PoseTrainer(TINY_V, pd, trainable="verifier", verifier_target="pallet")
+    for net in trainer.nets.values():
+        net.eval()
+    idx = pd.train_idx[:4]
+    loss, _, _ = trainer.forward_loss(idx)
+    chosen = trainer.last_confidence
+    torch.testing.assert_close(loss, -torch.log(chosen).mean())
+    trainer.verifier_target = "confidence"          # the other target: the confidence head's, at every point
+    other, _, _ = trainer.forward_loss(idx)
+    torch.testing.assert_close(trainer.last_confidence, chosen)
+    assert not torch.isclose(other, loss)
+    with pytest.raises(ValueError, match="verifier_target must be one of"):
+        PoseTrainer(TINY_V, pd, trainable="verifier", verifier_target="pose")
