@@ -417,7 +417,8 @@ def _calibrate_checkpoints(trainer: PoseTrainer, run_dir: Path) -> None:
         if not path.is_file():
             continue
         ckpt = load_checkpoint(path)
-        trainer.pose.load_state_dict(ckpt["pose"])
+        for k, net in trainer.nets.items():
+            net.load_state_dict(ckpt[k])
         record = calibrate_verifier(trainer)
         ckpt["pose"] = trainer.pose.state_dict()
         ckpt["provenance"] = {**ckpt["provenance"], "verifier_calibration": record}
