@@ -26,9 +26,9 @@ head gives modest pallets confidences near `w / error`, under the runtime's floo
 network's verifier head alone (`PoseConfig.verifier`): at the pallets' points it follows the confidence head (binary
 cross-entropy), at the negatives' chosen points (the confidence head's best, as the graph reads it) it learns to be
 low (or, with `verifier_target="pallet"`, at the pallets' chosen points it learns to be 1: pallet or not, whatever the
-pose's error); the confidence head keeps choosing, so every pose stays as it was. After training, its output is shifted by one
-constant in logit space (`calibrate_verifier`) so that the runtime's floor keeps as many validation pallets as the
-confidence head kept: the floor then refuses only what the verifier ranks below those pallets.
+pose's error); the confidence head keeps choosing, so every pose stays as it was. After training, its output is
+shifted by one constant in logit space (`calibrate_verifier`) so that the runtime's floor keeps as many validation
+pallets as the confidence head kept: the floor then refuses only what the verifier ranks below those pallets.
 """
 from __future__ import annotations
 

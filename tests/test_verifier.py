@@ -112,7 +112,8 @@ def _val_shares(trainer):
     trainer.trainable = "verifier"
     with torch.no_grad():
         _, _, conf = trainer.forward_loss(trainer.data.val_idx)
-    return float((trainer.last_confidence >= CONF_FLOOR).float().mean()), float((conf.amax(1) >= CONF_FLOOR).float().mean())
+    verifier_share = float((trainer.last_confidence >= CONF_FLOOR).float().mean())
+    return verifier_share, float((conf.amax(1) >= CONF_FLOOR).float().mean())
 
 
 @pytest.mark.parametrize("offset", [-4.0, 0.0, 4.0])
