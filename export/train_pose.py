@@ -257,15 +257,16 @@ class PoseTrainer:
                 target = self.conf_teacher(pts, point_feats)[2].float()
             loss = F.binary_cross_entropy(conf.clamp(1e-6, 1 - 1e-6), target)
         self.last_confidence = conf.detach().amax(1)
-        if self.trainable == "verifier":      # poses fixed: the verifier follows the confidence head on pallets
+        if self.pose.head_v is not None:      # the graph's confidence is the verifier's at the chosen point
             with autocast(self.device.type, amp):
                 verdict, _ = self.pose.verify(pts, point_feats)
             verdict = verdict.float()
             chosen = verdict.gather(1, conf.argmax(1, keepdim=True))[:, 0]
-            if self.verifier_target == "pallet":    # a pallet: 1 at the chosen point, whatever its pose's error
-                loss = -torch.log(chosen.clamp(min=1e-6)).mean()
-            else:
-                loss = F.binary_cross_entropy(verdict.clamp(1e-6, 1 - 1e-6), conf.detach())
+            if self.trainable == "verifier":  # poses fixed: only the verifier learns
+                if self.verifier_target == "pallet":    # a pallet: 1 at the chosen point, whatever its pose's error
+                    loss = -torch.log(chosen.clamp(min=1e-6)).mean()
+                else:                                   # the confidence head's confidences, at every point
+                    loss = F.binary_cross_entropy(verdict.clamp(1e-6, 1 - 1e-6), conf.detach())
             self.last_confidence = chosen.detach()
         if self.teacher is not None:
             with torch.no_grad(), autocast(self.device.type, amp):
@@ -380,19 +381,14 @@ def calibrate_verifier(trainer: PoseTrainer, batch: int = 16) -> dict:
     idx_all = trainer.data.val_idx
     if len(idx_all) == 0:
         raise ValueError("calibrate_verifier: no validation samples to calibrate on")
-    mode = trainer.trainable
-    trainer.trainable = "verifier"            # forward_loss then reports the verifier's confidence at the choice
     verdicts, best_conf = [], []
-    try:
-        for net in trainer.nets.values():
-            net.eval()
-        with torch.no_grad():
-            for i in range(0, len(idx_all), batch):
-                _, _, conf = trainer.forward_loss(idx_all[i:i + batch])
-                verdicts.append(trainer.last_confidence.cpu().numpy())
-                best_conf.append(conf.amax(1).cpu().numpy())
-    finally:
-        trainer.trainable = mode
+    for net in trainer.nets.values():
+        net.eval()
+    with torch.no_grad():
+        for i in range(0, len(idx_all), batch):
+            _, _, conf = trainer.forward_loss(idx_all[i:i + batch])
+            verdicts.append(trainer.last_confidence.cpu().numpy())      # the verifier's, at the chosen points
+            best_conf.append(conf.amax(1).cpu().numpy())
     v = np.sort(np.concatenate(verdicts).astype(np.float64))[::-1]
     k = int((np.concatenate(best_conf) >= CONF_FLOOR).sum())    # pallets the confidence head keeps
     if k == 0:

@@ -109,7 +109,6 @@ def test_verifier_training_needs_a_verifier_and_excludes_the_other_heads_trainin
 
 def _val_shares(trainer):
     """(share of verifier confidences at the chosen points >= the floor, share of best confidences >= it)."""
-    trainer.trainable = "verifier"
     with torch.no_grad():
         _, _, conf = trainer.forward_loss(trainer.data.val_idx)
     verifier_share = float((trainer.last_confidence >= CONF_FLOOR).float().mean())
