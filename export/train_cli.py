@@ -133,6 +133,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pose, with --verifier-only: on the pallets the verifier follows the confidence head "
                              "(confidence, default) or learns 1 at the chosen point (pallet: pallet or not, whatever "
                              "the pose's error)")
+    parser.add_argument("--calibrate-share", type=float, metavar="S",
+                        help="pose: after training, shift the confidence's output logit in each checkpoint so that the "
+                             "runtime's floor (min_confidence 0.1) keeps share S of the validation pallets (every pose "
+                             "and its ranking stay; recorded in the provenance); with --resume on a finished run, only "
+                             "that. Not with --verifier-only, which calibrates the verifier to the confidence head")
     parser.add_argument("--freeze-pose", action="store_true",
                         help="pose: train the fusion network alone, the pose network fixed as --init gives it")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
@@ -321,12 +326,17 @@ def main(args: argparse.Namespace) -> int:
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
         if (args.distill is not None or args.freeze_pose or args.negatives or args.mismatched_frames
-                or args.conf_head_only or args.keep_pallet_conf or args.verifier_only) and args.stage != "pose":
+                or args.conf_head_only or args.keep_pallet_conf or args.verifier_only
+                or args.calibrate_share is not None) and args.stage != "pose":
             print("pallet6d train: --distill, --freeze-pose, --negatives, --mismatched-frames, --conf-head-only, "
-                  "--keep-pallet-conf and --verifier-only are for the pose stage", file=sys.stderr)
+                  "--keep-pallet-conf, --verifier-only and --calibrate-share are for the pose stage", file=sys.stderr)
             return 2
         if args.verifier_target != "confidence" and not args.verifier_only:
             print("pallet6d train: --verifier-target is for --verifier-only", file=sys.stderr)
+            return 2
+        if args.calibrate_share is not None and (args.verifier_only or not 0.0 < args.calibrate_share <= 1.0):
+            print("pallet6d train: --calibrate-share takes a share in (0, 1] and is not for --verifier-only (which "
+                  "calibrates the verifier to the confidence head)", file=sys.stderr)
             return 2
         boxer = args.negatives_detector or args.distill or args.init
         if args.negatives and boxer is None:
@@ -348,7 +358,8 @@ def main(args: argparse.Namespace) -> int:
                                negatives=negatives, negative_conf_weight=args.negative_conf_weight,
                                conf_head_only=args.conf_head_only, mismatched_frames=args.mismatched_frames,
                                keep_pallet_conf=args.keep_pallet_conf, negative_conf_top=args.negative_conf_top,
-                               verifier_only=args.verifier_only, verifier_target=args.verifier_target, **common)
+                               verifier_only=args.verifier_only, verifier_target=args.verifier_target,
+                               calibrate_share=args.calibrate_share, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

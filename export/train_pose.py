@@ -29,6 +29,9 @@ low (or, with `verifier_target="pallet"`, at the pallets' chosen points it learn
 pose's error); the confidence head keeps choosing, so every pose stays as it was. After training, its output is
 shifted by one constant in logit space (`calibrate_verifier`) so that the runtime's floor keeps as many validation
 pallets as the confidence head kept: the floor then refuses only what the verifier ranks below those pallets.
+Training that moves the confidence head's level (the eq. 4 loss lowers it as the poses get better) can end the same
+way for the confidence head (`calibrate_floor` to a chosen share of validation pallets), since the floor was chosen
+for a network whose confidences sit where the shipped one's do.
 """
 from __future__ import annotations
 
@@ -57,8 +60,8 @@ from .train_loop import (BEST, LAST, LoopSettings, autocast, load_checkpoint, lo
                          train_epochs)
 from .warm_start import init_config, warm_start
 
-__all__ = ["PoseData", "load_pose_data", "PoseTrainer", "calibrate_verifier", "gather_points", "subsample_points",
-           "train_pose"]
+__all__ = ["PoseData", "load_pose_data", "PoseTrainer", "calibrate_floor", "calibrate_verifier", "gather_points",
+           "subsample_points", "train_pose"]
 
 log = logging.getLogger(__name__)
 
@@ -367,47 +370,66 @@ def _logit(p: float) -> float:
     return float(np.log(p / (1 - p)))
 
 
-def calibrate_verifier(trainer: PoseTrainer, batch: int = 16) -> dict:
-    """Shift the verifier head's output logit (its last bias) so that, on the validation pallets, as many of the
-    verifier's confidences at the chosen points clear the runtime's floor (`CONF_FLOOR`) as the confidence head's best
-    confidences do. Ranking is unchanged; the floor then keeps the pallets the confidence head kept, by count, and
-    refuses what the verifier scores below them. Idempotent (a second call shifts by about 0).
-
-    :return: {"logit_shift", "threshold_before" (the verifier's confidence that now maps to the floor),
-        "pallet_share" (the share kept, both heads), "val_pallets"}.
-    :raises ValueError: the trainer's network has no verifier head, or no validation samples."""
-    if trainer.pose.head_v is None:
-        raise ValueError("calibrate_verifier: the pose network has no verifier head")
+def _floor_scores(trainer: PoseTrainer, batch: int) -> tuple[np.ndarray, np.ndarray]:
+    """The graph's confidence at the chosen point and the confidence head's best, per validation pallet."""
     idx_all = trainer.data.val_idx
     if len(idx_all) == 0:
-        raise ValueError("calibrate_verifier: no validation samples to calibrate on")
-    verdicts, best_conf = [], []
+        raise ValueError("no validation samples to calibrate the confidence floor on")
+    graph, best = [], []
     for net in trainer.nets.values():
         net.eval()
     with torch.no_grad():
         for i in range(0, len(idx_all), batch):
             _, _, conf = trainer.forward_loss(idx_all[i:i + batch])
-            verdicts.append(trainer.last_confidence.cpu().numpy())      # the verifier's, at the chosen points
-            best_conf.append(conf.amax(1).cpu().numpy())
-    v = np.sort(np.concatenate(verdicts).astype(np.float64))[::-1]
-    k = int((np.concatenate(best_conf) >= CONF_FLOOR).sum())    # pallets the confidence head keeps
+            graph.append(trainer.last_confidence.cpu().numpy())
+            best.append(conf.amax(1).cpu().numpy())
+    return np.concatenate(graph).astype(np.float64), np.concatenate(best).astype(np.float64)
+
+
+def calibrate_floor(trainer: PoseTrainer, share: float, batch: int = 16, scores: np.ndarray | None = None) -> dict:
+    """Shift the output logit (the last bias) of the head the graph's confidence comes from (the verifier where the
+    network has one, else the confidence head) so that the runtime's floor (`CONF_FLOOR`) keeps `share` of the
+    validation pallets. One constant for every point: each pallet's chosen hypothesis and the ranking stay; only
+    where the floor cuts moves. Idempotent (a second call shifts by about 0).
+
+    :param scores: the graph's confidences of the validation pallets, if already computed.
+    :return: {"logit_shift", "threshold_before" (the confidence that now maps to the floor), "pallet_share" (the
+        share kept), "val_pallets"}.
+    :raises ValueError: `share` outside [0, 1], or no validation samples."""
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"calibrate_floor: share must be in [0, 1], got {share}")
+    v = np.sort(scores if scores is not None else _floor_scores(trainer, batch)[0])[::-1]
+    k = int(round(share * len(v)))                              # pallets the floor must keep
     if k == 0:
-        cut = _logit(v[0]) + 1e-3                               # none: every verdict goes under the floor
+        cut = _logit(v[0]) + 1e-3                               # none: every confidence goes under the floor
     elif k == len(v):
         cut = _logit(v[-1]) - 1e-3
-    else:                                                       # between the k-th and (k+1)-th verdicts
+    else:                                                       # between the k-th and (k+1)-th confidences
         cut = 0.5 * (_logit(v[k - 1]) + _logit(v[k]))
     shift = _logit(CONF_FLOOR) - cut
-    last = trainer.pose.head_v[-1]
+    head = trainer.pose.head_v if trainer.pose.head_v is not None else trainer.pose.head_c
     with torch.no_grad():
-        last.bias += shift
-    return {"logit_shift": shift, "threshold_before": float(1 / (1 + np.exp(-cut))),
-            "pallet_share": k / len(v), "val_pallets": len(v)}
+        head[-1].bias += shift
+    return {"logit_shift": shift, "threshold_before": float(1 / (1 + np.exp(-cut))), "pallet_share": k / len(v),
+            "val_pallets": len(v)}
 
 
-def _calibrate_checkpoints(trainer: PoseTrainer, run_dir: Path) -> None:
-    """`calibrate_verifier` on each checkpoint the run wrote (each from its own weights), recorded in its
-    provenance."""
+def calibrate_verifier(trainer: PoseTrainer, batch: int = 16) -> dict:
+    """`calibrate_floor` of the verifier head to the confidence head's share: the floor then keeps as many
+    validation pallets as the confidence head's best confidences clear it, and refuses what the verifier ranks below
+    them.
+
+    :raises ValueError: the trainer's network has no verifier head, or no validation samples."""
+    if trainer.pose.head_v is None:
+        raise ValueError("calibrate_verifier: the pose network has no verifier head")
+    graph, best = _floor_scores(trainer, batch)
+    return calibrate_floor(trainer, float((best >= CONF_FLOOR).mean()), batch, scores=graph)
+
+
+def _calibrate_checkpoints(trainer: PoseTrainer, run_dir: Path, share: float | None) -> None:
+    """Calibrate each checkpoint the run wrote (each from its own weights): to `share` (`calibrate_floor`), or the
+    verifier to the confidence head (`calibrate_verifier`) when `share` is None; recorded in its provenance."""
+    key = "verifier_calibration" if share is None else "confidence_calibration"
     for name in (LAST, BEST):
         path = run_dir / name
         if not path.is_file():
@@ -415,12 +437,12 @@ def _calibrate_checkpoints(trainer: PoseTrainer, run_dir: Path) -> None:
         ckpt = load_checkpoint(path)
         for k, net in trainer.nets.items():
             net.load_state_dict(ckpt[k])
-        record = calibrate_verifier(trainer)
+        record = calibrate_verifier(trainer) if share is None else calibrate_floor(trainer, share)
         ckpt["pose"] = trainer.pose.state_dict()
-        ckpt["provenance"] = {**ckpt["provenance"], "verifier_calibration": record}
+        ckpt["provenance"] = {**ckpt["provenance"], key: record}
         save_checkpoint(path, ckpt)
-        log.info("%s: verifier shifted by %.3f in logit space (%.4f -> the floor %.2f; %.1f %% of %d validation "
-                 "pallets kept)", path, record["logit_shift"], record["threshold_before"], CONF_FLOOR,
+        log.info("%s: %s shifted by %.3f in logit space (%.4f -> the floor %.2f; %.1f %% of %d validation pallets "
+                 "kept)", path, key.split("_")[0], record["logit_shift"], record["threshold_before"], CONF_FLOOR,
                  100 * record["pallet_share"], record["val_pallets"])
 
 
@@ -432,7 +454,7 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
                conf_head_only: bool = False, mismatched_frames: int = 0, keep_pallet_conf: bool = False,
                negative_conf_top: float = 1.0, verifier_only: bool = False,
-               verifier_target: str = "confidence") -> dict:
+               verifier_target: str = "confidence", calibrate_share: float | None = None) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -457,7 +479,13 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         everything else fixed: every pose stays. Started from a network without one (`init`), it starts as a copy
         of the confidence head. The checkpoints are then calibrated (`calibrate_verifier`).
     :param verifier_target: the verifier's target on the pallets (`PoseTrainer`).
+    :param calibrate_share: after training, shift the graph confidence's output logit in each checkpoint so that the
+        runtime's floor keeps this share of the validation pallets (`calibrate_floor`); with `resume` on a finished
+        run, only that. Not with `verifier_only`, which calibrates to the confidence head.
     """
+    if calibrate_share is not None and (verifier_only or not 0.0 < calibrate_share <= 1.0):
+        raise ValueError(f"--calibrate-share {calibrate_share}: a share in (0, 1], and not with --verifier-only (which "
+                         "calibrates the verifier to the confidence head)")
     if sum((freeze_pose, conf_head_only, verifier_only)) > 1:
         raise ValueError("--freeze-pose, --conf-head-only and --verifier-only exclude each other")
     if keep_pallet_conf and not (conf_head_only and init is not None and not resume):
@@ -529,8 +557,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     entry = train_epochs(run_dir, "pose", cfg.name, trainer.nets, optimizer, settings, len(pd.train_idx),
                          lambda idx, rng: trainer.step(pd.train_idx[idx], rng), trainer.validate, provenance,
                          resume=resume, progress=progress, init=init)
-    if verifier_only:
-        _calibrate_checkpoints(trainer, run_dir)
+    if verifier_only or calibrate_share is not None:
+        _calibrate_checkpoints(trainer, run_dir, calibrate_share)
     return entry
 
 

@@ -16,8 +16,8 @@ from pallet6d.export.fusion import build_fusion  # noqa: E402
 from pallet6d.export.pose import MostConfidentPose, build_pose  # noqa: E402
 from pallet6d.export.train_loop import LoopSettings, load_checkpoint  # noqa: E402
 from pallet6d.export.train_data import NO_AUGMENT  # noqa: E402
-from pallet6d.export.train_pose import (CONF_FLOOR, PoseTrainer, calibrate_verifier, load_pose_data,  # noqa: E402
-                                        train_pose)
+from pallet6d.export.train_pose import (CONF_FLOOR, PoseTrainer, calibrate_floor, calibrate_verifier,  # noqa: E402
+                                        load_pose_data, train_pose)
 
 CFG = get_config("tiny")
 TINY_V = CFG.replace(name="tiny-verified", pose=dataclasses.replace(CFG.pose, verifier=True))
@@ -129,15 +129,14 @@ def test_calibration_makes_the_floor_keep_as_many_validation_pallets_as_the_conf
     for net in trainer.nets.values():
         net.eval()
     before, kept = _val_shares(trainer)
-    poses = trainer.pose.state_dict()
+    poses = {k: v.clone() for k, v in trainer.pose.state_dict().items()}
     record = calibrate_verifier(trainer)
     after, kept_after = _val_shares(trainer)
     assert after == pytest.approx(kept) and kept_after == kept
     assert record["pallet_share"] == pytest.approx(kept) and record["val_pallets"] == len(pd.val_idx)
     assert np.sign(record["logit_shift"]) == -np.sign(offset) or before == pytest.approx(kept)
-    for k, v in trainer.pose.state_dict().items():           # only the verifier's last bias moved
-        if k != "head_v.6.bias":
-            assert torch.equal(v, poses[k]), k
+    moved = [k for k, v in trainer.pose.state_dict().items() if not torch.equal(v, poses[k])]
+    assert moved == ([] if record["logit_shift"] == 0 else ["head_v.6.bias"])     # only the verifier's last bias
     assert abs(calibrate_verifier(trainer)["logit_shift"]) < 1e-6      # idempotent
 
 
@@ -146,6 +145,56 @@ def test_calibration_needs_a_verifier(sim_bop_dataset, tmp_path):
                         progress=False)
     with pytest.raises(ValueError, match="no verifier head"):
         calibrate_verifier(PoseTrainer(CFG, pd))
+
+
+def _chosen_points(trainer):
+    with torch.no_grad():
+        _, _, conf = trainer.forward_loss(trainer.data.val_idx)
+    return conf.argmax(1), float((conf.amax(1) >= CONF_FLOOR).float().mean())
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5, 1.0])
+def test_the_confidence_head_calibrated_keeps_the_share_asked_for_and_every_chosen_point(sim_bop_dataset, tmp_path,
+                                                                                         share):
+    pd = load_pose_data(CFG, [sim_bop_dataset], variants=1, seed=0, aug=NO_AUGMENT, cache_dir=tmp_path,
+                        progress=False)
+    pd = dataclasses.replace(pd, val_idx=np.arange(len(pd.samples.points)))
+    torch.manual_seed(3)
+    trainer = PoseTrainer(CFG, pd)
+    for net in trainer.nets.values():
+        net.eval()
+    chosen, _ = _chosen_points(trainer)
+    poses = {k: v.clone() for k, v in trainer.pose.state_dict().items()}
+    record = calibrate_floor(trainer, share)
+    chosen_after, kept = _chosen_points(trainer)
+    n = len(pd.val_idx)
+    assert kept == pytest.approx(round(share * n) / n) and record["pallet_share"] == pytest.approx(kept)
+    assert torch.equal(chosen_after, chosen)                    # every pallet keeps its hypothesis
+    moved = [k for k, v in trainer.pose.state_dict().items() if not torch.equal(v, poses[k])]
+    assert moved == [f"head_c.{len(trainer.pose.head_c) - 1}.bias"]
+    assert abs(calibrate_floor(trainer, share)["logit_shift"]) < 1e-6      # idempotent
+    with pytest.raises(ValueError, match="share must be in"):
+        calibrate_floor(trainer, 1.2)
+
+
+def test_a_run_calibrated_to_a_share_records_it_and_a_finished_run_resumed_only_calibrates(sim_bop_dataset,
+                                                                                           tmp_path):
+    run = tmp_path / "r"
+    settings = LoopSettings(epochs=1, batch=4, lr=1e-3, seed=1)
+    train_pose(CFG, [sim_bop_dataset], run, settings, variants=1, progress=False, calibrate_share=0.75)
+    ckpt = load_checkpoint(run / "last.pt")
+    record = ckpt["provenance"]["confidence_calibration"]
+    assert record["val_pallets"] >= 1 and abs(record["pallet_share"] - 0.75) <= 0.5 / record["val_pallets"]
+    entry = train_pose(CFG, [sim_bop_dataset], run, settings, variants=1, progress=False, resume=True,
+                       calibrate_share=0.75)
+    assert entry == {}                                          # no epoch left to train
+    again = load_checkpoint(run / "last.pt")
+    assert abs(again["provenance"]["confidence_calibration"]["logit_shift"]) < 1e-5
+    for k, v in ckpt["pose"].items():
+        torch.testing.assert_close(again["pose"][k], v, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="not with --verifier-only"):
+        train_pose(TINY_V, [sim_bop_dataset], tmp_path / "v", settings, variants=1, progress=False,
+                   verifier_only=True, calibrate_share=0.5)
 
 
 def test_the_pallet_target_is_one_at_the_chosen_point(sim_bop_dataset, tmp_path):
