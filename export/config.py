@@ -29,6 +29,7 @@ Variants (`CONFIGS`):
 - ``edge2-pruned``: ``edge2-slim`` with a projection shortcut at the start of layer4, so that ``--init`` from
   ``edge2-dilated`` fills layer4, the PSP stages and bottleneck and the output convs with the most important half
   of their channels (`export/channel_prune.py`) instead of leaving them to train from scratch.
+- ``edge2-pruned-verified``: ``edge2-pruned`` with a verifier head, as ``edge2-verified`` is to ``edge2-dilated``.
 - ``densefusion``: ``paper`` without any attention block (the paper's ablation baseline).
 - ``edge-densefusion``: ``edge`` without any attention block (the same ablation at the shipped size).
 - ``tiny``: minimal widths for fast tests (never for deployment).
@@ -288,6 +289,8 @@ CONFIGS["edge2-slim"] = CONFIGS["edge2-dilated"].replace(
                                                   psp_out=256))
 CONFIGS["edge2-pruned"] = CONFIGS["edge2-slim"].replace(
     name="edge2-pruned", fusion=dataclasses.replace(CONFIGS["edge2-slim"].fusion, project_layer4=True))
+CONFIGS["edge2-pruned-verified"] = CONFIGS["edge2-pruned"].replace(
+    name="edge2-pruned-verified", pose=dataclasses.replace(CONFIGS["edge2-pruned"].pose, verifier=True))
 
 
 def get_config(name: str) -> ModelConfig:
