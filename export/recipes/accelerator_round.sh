@@ -10,8 +10,9 @@
 #      BUNDLE), POSE_LR (2e-4), DET_LR (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
 #      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55),
 #      DET_REPEAT (name prefixes of chunks the detector sees twice, e.g. "vo- in-"; none), POSE_CONFIG (edge2-dilated),
-#      POSE_ARGS (more `pallet6d train pose` flags, e.g. "--distill models/epal-default --freeze-pose" with
-#      POSE_CONFIG=edge2-pruned, which starts from the bundle's most important layer4 / PSP channels; none)
+#      POSE_ARGS (more `pallet6d train pose` flags, e.g. "--distill models/epal-default --calibrate-share 0.944"
+#      with POSE_CONFIG=edge2-pruned, which starts from the bundle's most important layer4 / PSP channels, trains
+#      the pose network with it and ends with the floor keeping the shipped networks' share of pallets; none)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
 OUT_DIR=$1 REAL=$2
