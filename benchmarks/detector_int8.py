@@ -1,7 +1,7 @@
 """Int8 recipes for the detector: quantize a bundle's float detector several ways, time each graph, write
 candidate bundles whose recall `benchmarks/detector_recall.py --int8` then measures.
 
-    .venv/bin/python benchmarks/detector_int8.py --bundle models/epal-default --out /work/runs/speed-refine/det
+    .venv/bin/python benchmarks/detector_int8.py --bundle models/epal-default --out runs/speed-refine/det
 
 Recipes (`export/quantize.py`): "convs" quantizes the convolutions but the box/class output convs (the
 shipped recipe), "graph" also the SiLU activations, residual adds, concats, pooling and upsampling

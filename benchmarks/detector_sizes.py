@@ -3,7 +3,7 @@ dynamic height/width costs against a static one at the same size, and how far in
 size when it was calibrated on frames letterboxed at every size.
 
     nice -n 15 .venv/bin/python benchmarks/detector_sizes.py --bundle models/epal-default \\
-        --sizes 192x640,288x384,256x448 --out /work/runs/detinput
+        --sizes 192x640,288x384,256x448 --out runs/detinput
 
 Weights: the bundle's detector read back into torch (`export.bundle_weights.bundle_checkpoint`). Graphs: one
 static at the bundle's input_hw, one with dynamic height/width (`bundle_export.DET_DYNAMIC_AXES`), each

@@ -1,7 +1,7 @@
 """Calibration accuracy on simulated views: the floor fit (pitch, roll, height; exact and D435-like depth of a
 floor with boxes on it) and board extrinsics (a ChArUco board rendered into a grey view, 1.2-2.2 m ahead).
 
-    python benchmarks/forklift_calib.py --floors 60 --boards 60 --frames /work/data/forklift-frames \
+    python benchmarks/forklift_calib.py --floors 60 --boards 60 --frames data/forklift-frames \
         --out benchmarks/results/forklift/calib.json
 
 With `--frames` (cached forklift-approach frames, `benchmarks/forklift_frames.py`) it also counts how often the

@@ -1,7 +1,7 @@
 """Render forklift-approach frames once and cache what the forklift benchmarks need (numpy .npz per frame).
 
-    python benchmarks/forklift_frames.py --out /work/data/forklift-frames --frames 100 --seed 7
-    python benchmarks/forklift_frames.py --out /work/data/forklift-frames-epal --frames 60 --seed 8 --models epal
+    python benchmarks/forklift_frames.py --out data/forklift-frames --frames 100 --seed 7
+    python benchmarks/forklift_frames.py --out data/forklift-frames-epal --frames 60 --seed 8 --models epal
 
 Target 1-4 m ahead (`target_distance_m`), obstacles in pockets with probability `--obstacle-prob`, depth both
 D435-like (`depth_m`) and exact (`depth_ideal_m`).

@@ -1,7 +1,7 @@
 """Accepted poses on calibrated forklift frames whose inputs do not belong together, with and without the levelled
 search and climb.
 
-    python benchmarks/forklift_mismatched.py --bundle models/epal-default --data /work/data/val/forklift-approach
+    python benchmarks/forklift_mismatched.py --bundle models/epal-default --data data/val/forklift-approach
 
 Every frame of a BOP dataset with `scene_forklift.json` goes to `PalletEstimator.estimate(..., T_vehicle_cam=...)` as
 recorded and mismatched: the next frame's depth, the focal lengths doubled, the depth 10x too near, a flat wall at the

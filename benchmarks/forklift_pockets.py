@@ -2,10 +2,10 @@
 confusion table, per pallet type, on cached forklift-approach frames (`benchmarks/forklift_frames.py`, exact and
 D435-like depth) or on a generated BOP dataset with `scene_forklift.json` (its one depth).
 
-    python benchmarks/forklift_pockets.py --frames /work/data/forklift-frames \
+    python benchmarks/forklift_pockets.py --frames data/forklift-frames \
         --out benchmarks/results/forklift/pockets.json
-    python benchmarks/forklift_pockets.py --bop /work/data/gen/test-forklift-approach --max-frames 20
-    python benchmarks/forklift_pockets.py --frames /work/data/forklift-frames-epal --estimator models/epal-default \
+    python benchmarks/forklift_pockets.py --bop data/gen/test-forklift-approach --max-frames 20
+    python benchmarks/forklift_pockets.py --frames data/forklift-frames-epal --estimator models/epal-default \
         [--gt-boxes] --out benchmarks/results/forklift/pockets-e2e.json
 
 Each pallet is scored with its own type: without `--estimator` the ground-truth pose with the geometry and

@@ -1,6 +1,6 @@
 """What the levelled refinement costs on calibrated frames: with and without its yaw and position search and climb.
 
-    python benchmarks/level_cost.py --bundle models/epal-default --data /work/data/val/forklift-approach [--int8]
+    python benchmarks/level_cost.py --bundle models/epal-default --data data/val/forklift-approach [--int8]
 
 Runs `PalletEstimator.estimate(..., T_vehicle_cam=...)` on every frame of a BOP dataset with `scene_forklift.json`
 (each frame's calibration) with the search and the climb off (`LevelParams(search_yaw_step_deg=0,

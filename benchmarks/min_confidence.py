@@ -6,7 +6,7 @@ inputs (a flat wall at 3 m as depth, another frame's depth, uint16 depth read wi
 lengths 2x too large) where every pose is made up. It prints the share of each group kept at a few thresholds.
 
     python benchmarks/min_confidence.py --bundle models/epal-default --int8 \\
-        --data /work/data/val-virtual-occluded /work/data/val-indoor-noisy --frames 8
+        --data data/val-virtual-occluded data/val-indoor-noisy --frames 8
 """
 from __future__ import annotations
 

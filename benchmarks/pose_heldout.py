@@ -5,8 +5,8 @@ Each ground-truth pallet (visible >= 10 %) is prepared once, unjittered and unau
 confident per-point hypothesis, the runtime's choice, before refinement. A checkpoint of any config works
 (`pallet6d train pose` runs, `train merge` files, or `bundle_weights.bundle_checkpoint` saved with torch.save).
 
-    .venv/bin/python benchmarks/pose_heldout.py --ckpt edge=/work/runs/edge-net/edge/best.pt \\
-        --ckpt edge2=/work/runs/edge-net/edge2/best.pt --data /work/data/edge-net/val-* --out results.json
+    .venv/bin/python benchmarks/pose_heldout.py --ckpt edge=runs/edge-net/edge/best.pt \\
+        --ckpt edge2=runs/edge-net/edge2/best.pt --data data/edge-net/val-* --out results.json
 """
 from __future__ import annotations
 

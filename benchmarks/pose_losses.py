@@ -1,6 +1,6 @@
 """Where a BOP dataset's pallets are lost: for each counted pallet (>= 10 % visible), what the estimator made of it.
 
-    python benchmarks/pose_losses.py --bundle B --int8 --data /work/data/val/forklift-approach [--gt-boxes]
+    python benchmarks/pose_losses.py --bundle B --int8 --data data/val/forklift-approach [--gt-boxes]
         [--known-type] [--calibrated] [--out report.md]
 
 A pallet is matched to the accepted pose or rejected detection whose box overlaps its visible box most (IoU >= 0.5,

@@ -1,7 +1,7 @@
 """A bundle's detector on the held-out real photographs: recall and precision at IoU 0.5, false positives on
 pallet-free photos.
 
-    python benchmarks/real_data.py --bundle models/epal-default [--int8] --data /work/data/real \
+    python benchmarks/real_data.py --bundle models/epal-default [--int8] --data data/real \
         --out benchmarks/results/real-data/epal-default
 
 The data is what `python -m pallet6d.export.real_data import` writes (`labels.json`, one record per image).
@@ -117,7 +117,7 @@ def write_examples(records: list[dict], detections: list, root: Path, out_dir: P
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", type=Path, required=True)
-    ap.add_argument("--data", type=Path, default=Path("/work/data/real"), help="the imported real data")
+    ap.add_argument("--data", type=Path, default=Path("data/real"), help="the imported real data")
     ap.add_argument("--split", default="heldout", help="split to measure (default: the held-out one)")
     ap.add_argument("--int8", action="store_true")
     ap.add_argument("--score-threshold", type=float, default=0.25)

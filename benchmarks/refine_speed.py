@@ -1,7 +1,7 @@
 """Refinement for all pallets of a frame at once (`refine_batch`) against the detection-by-detection path.
 
     .venv/bin/python benchmarks/refine_speed.py --bundle models/epal-default \
-        --data /work/data/val-virtual-clean /work/data/val-virtual-occluded /work/data/val-indoor-noisy
+        --data data/val-virtual-clean data/val-virtual-occluded data/val-indoor-noisy
 
 For each frame and each count P in --pallets, the estimator poses the frame's P most visible ground-truth
 boxes (`PalletEstimator.candidates` on those boxes, so P does not depend on the detector); the inputs of its

@@ -9,7 +9,7 @@ Phases (fractions of --minutes): warm-up (no clients, not scored), quiet (no cli
   the snapshot ring fills first: `snapshot.frames` frames of about 2.3 MB at 1224x370);
 - tracebacks and ERROR lines in the daemon's log.
 
-    python benchmarks/serve_soak.py --minutes 10 --out /work/runs/serve-soak
+    python benchmarks/serve_soak.py --minutes 10 --out runs/serve-soak
     python benchmarks/serve_soak.py --minutes 1 --clients 5 --out /tmp/soak     # a quick look
 
 The recording defaults to 8 generated frames (virtual-occluded, seed 7) turned into a replay folder; `--cpus

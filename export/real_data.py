@@ -1,8 +1,8 @@
 """Real pallet photographs with box labels: one detection dataset from licensed public sources, and its data card.
 
-    python -m pallet6d.export.real_data extract --mirrors /work/.mirror --out /work/data/real/raw
-    python -m pallet6d.export.real_data import --raw /work/data/real/raw --out /work/data/real
-    python -m pallet6d.export.real_data card --data /work/data/real --bundle models/NAME
+    python -m pallet6d.export.real_data extract --mirrors MIRRORS --out data/real/raw
+    python -m pallet6d.export.real_data import --raw data/real/raw --out data/real
+    python -m pallet6d.export.real_data card --data data/real --bundle models/NAME
 
 `extract` copies each source's labelled folders out of its git snapshot (`git archive` at the pinned commit);
 `import` turns them into `OUT/images/<source>/<stem>.jpg`, `OUT/labels.json` (one record per image, boxes in
