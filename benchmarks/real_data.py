@@ -142,7 +142,13 @@ def main(argv: list[str] | None = None) -> int:
 
     from pallet6d.runtime.estimator import PalletEstimator
 
-    records = [r for r in json.loads((args.data / "labels.json").read_text())
+    labels = args.data / "labels.json"
+    if not labels.is_file():
+        print(f"real_data.py: {labels} not found: import the licensed photographs first (docs/data.md, "
+              f"python -m pallet6d.export.real_data import ... --out {args.data}) or name them with --data",
+              file=sys.stderr)
+        return 2
+    records = [r for r in json.loads(labels.read_text())
                if r["split"] == args.split and (args.include_augmented or not r["augmented"])]
     if args.max_images:
         records = records[:args.max_images]

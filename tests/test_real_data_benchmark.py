@@ -25,3 +25,16 @@ def test_report_tallies_size_kind_convention_and_negatives():
     assert d["other_convention"]["b"]["recall"] == pytest.approx(1 / 3)
     assert d["negative_frames"] == 1 and d["false_positives_per_negative_frame"] == 3.0
     assert "overall" in markdown("t", d, {"split": "heldout"})
+
+
+def test_the_benchmark_without_imported_photographs_says_what_to_run(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).parents[1] / "benchmarks" / "real_data.py"
+    spec = importlib.util.spec_from_file_location("real_data_benchmark", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--bundle", str(tmp_path / "bundle"), "--data", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err
+    assert "labels.json not found" in err and "pallet6d.export.real_data import" in err
