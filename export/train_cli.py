@@ -334,10 +334,6 @@ def main(args: argparse.Namespace) -> int:
         if args.verifier_target != "confidence" and not args.verifier_only:
             print("pallet6d train: --verifier-target is for --verifier-only", file=sys.stderr)
             return 2
-        if args.calibrate_share is not None and (args.verifier_only or not 0.0 < args.calibrate_share <= 1.0):
-            print("pallet6d train: --calibrate-share takes a share in (0, 1] and is not for --verifier-only (which "
-                  "calibrates the verifier to the confidence head)", file=sys.stderr)
-            return 2
         boxer = args.negatives_detector or args.distill or args.init
         if args.negatives and boxer is None:
             print("pallet6d train: --negatives needs a bundle whose detector boxes the crops (--negatives-detector, "

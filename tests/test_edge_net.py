@@ -59,9 +59,9 @@ def test_configs_pick_the_graph_and_validate_the_sampled_structure():
     assert not any(CONFIGS[n].fusion.sampled for n in ("paper", "edge", "densefusion", "edge-densefusion"))
     e2d, e = CONFIGS["edge2-dilated"].fusion, CONFIGS["edge"].fusion
     assert e2d.sampled and e2d.dilated and e2d.crop_hw == e.crop_hw and e2d.psp_out == e.psp_out
-    for plain in ("edge2-dilated", "edge2-pruned"):      # each verified config: its plain one with a verifier head
-        verified = CONFIGS[{"edge2-dilated": "edge2-verified"}.get(plain, plain + "-verified")]
-        assert verified.fusion == CONFIGS[plain].fusion and verified.pose.verifier and not CONFIGS[plain].pose.verifier
+    for plain, verified in (("edge2-dilated", "edge2-verified"), ("edge2-pruned", "edge2-pruned-verified")):
+        v, p = CONFIGS[verified], CONFIGS[plain]      # the plain config with a verifier head
+        assert v.fusion == p.fusion and v.pose.verifier and not p.pose.verifier
     with pytest.raises(ValueError, match="up_channels must be empty"):
         FusionConfig(crop_hw=(80, 80), sample_stride=8)
     with pytest.raises(ValueError, match="sample_stride must be"):

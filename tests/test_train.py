@@ -623,11 +623,11 @@ def test_train_cli_keeps_pallet_conf_only_for_the_confidence_head(sim_bop_datase
     assert "are for the pose stage" in capsys.readouterr().err
     assert main([*base, "--verifier-target", "pallet"]) == 2
     assert "--verifier-target is for --verifier-only" in capsys.readouterr().err
-    for bad in ("0", "1.5"):
-        assert main([*base, "--calibrate-share", bad]) == 2
-        assert "--calibrate-share takes a share in (0, 1]" in capsys.readouterr().err
-    assert main([*base, "--calibrate-share", "0.9", "--verifier-only"]) == 2
-    assert "not for --verifier-only" in capsys.readouterr().err
+    for bad in ("0", "1.5"):                # refused by train_pose before any data is read
+        assert main([*base, "--calibrate-share", bad]) == 1
+        assert f"--calibrate-share {float(bad)}: a share in (0, 1]" in capsys.readouterr().err
+    assert main([*base, "--calibrate-share", "0.9", "--verifier-only"]) == 1
+    assert "not with --verifier-only" in capsys.readouterr().err
 
 
 def _pose_inputs(trainer, idx):
