@@ -5,7 +5,11 @@ up. This reads a recording in a loop through the same camera layer as `pallet6d 
 frames, records the process's resident memory and the window's latency percentiles (never run by the tests).
 
     python benchmarks/soak.py --bundle models/epal-default [--int8] [--source bop:DIR|replay:DIR] --minutes 10 \\
-        --out benchmarks/results/soak
+        [--fps F] --out benchmarks/results/soak
+
+`--fps F` delivers the frames at most F a second, as a camera does (the estimator then idles between frames, as
+it does on a forklift; back to back without it). Each window also records the machine's 1-minute load average, so a
+window slowed by other work on the machine shows as such.
 
 Without `--source` it makes a 30-frame `virtual-occluded` recording (seed 7, as `make run`) in a temporary folder.
 Writes soak.json and soak.md in `--out`.
@@ -47,7 +51,7 @@ def default_source(root: Path) -> str:
 
 
 def soak(bundle: str, precision: str, threads: int, source: str, minutes: float, window: int,
-         refine_starts: int | None = None) -> dict:
+         refine_starts: int | None = None, fps: float | None = None) -> dict:
     from pallet6d.runtime.cameras import open_source
     from pallet6d.runtime.estimator import PalletEstimator
 
@@ -55,9 +59,15 @@ def soak(bundle: str, precision: str, threads: int, source: str, minutes: float,
     extra = {} if refine_starts is None else {"refine_starts": refine_starts}
     est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, **extra)
     windows, ms, poses, frames = [], [], 0, 0
+    period_s = 1.0 / fps if fps else 0.0
     t_start = time.perf_counter()
+    t_next = t_start
     with open_source(source, loop=True) as cam:
         for frame in cam:
+            if period_s:
+                # the camera's next frame: wait for it, or take it at once when the last one ran late
+                time.sleep(max(0.0, t_next - time.perf_counter()))
+                t_next = max(t_next + period_s, time.perf_counter())
             result = est.estimate(frame)
             ms.append(result.timings_ms["total"])
             poses += len(result.poses)
@@ -66,14 +76,15 @@ def soak(bundle: str, precision: str, threads: int, source: str, minutes: float,
                 elapsed = time.perf_counter() - t_start
                 windows.append({"frames": frames, "minutes": round(elapsed / 60, 2), "rss_mb": round(rss_mb(), 1),
                                 "p50_ms": round(float(np.percentile(ms, 50)), 1),
-                                "p95_ms": round(float(np.percentile(ms, 95)), 1), "poses_per_frame": poses / len(ms)})
+                                "p95_ms": round(float(np.percentile(ms, 95)), 1), "poses_per_frame": poses / len(ms),
+                                "load_1min": round(os.getloadavg()[0], 2)})
                 print(json.dumps(windows[-1]), flush=True)
                 ms, poses = [], 0
                 if elapsed >= minutes * 60:
                     break
     if len(windows) < 3:
         raise SystemExit("soak: fewer than three windows; run longer or use a smaller --window")
-    return {"bundle": bundle, "precision": precision, "threads": threads,
+    return {"bundle": bundle, "precision": precision, "threads": threads, "fps": fps,
             "refine_starts": est.options.refine_starts, "source": source, "frames": frames,
             "rss_before_mb": round(rss_start, 1), **rss_summary(windows), **latency_summary(windows),
             "windows": windows}
@@ -103,15 +114,18 @@ def latency_summary(windows: list[dict]) -> dict:
 def markdown(doc: dict, command: str) -> str:
     w = doc["windows"]
     lines = ["# Soak run", "", f"`{command}` on {doc['created']}, {doc['machine']}.", "",
-             f"{doc['frames']} frames of `{doc['source']}` in a loop, {doc['precision']}, onnxruntime threads={doc['threads']}, "
+             f"{doc['frames']} frames of `{doc['source']}` in a loop"
+             f"{' at ' + format(doc['fps'], 'g') + ' frames/s' if doc.get('fps') else ', back to back'}, "
+             f"{doc['precision']}, onnxruntime threads={doc['threads']}, "
              f"{doc['refine_starts']} extra ICP starts. "
              f"RSS before loading the bundle {doc['rss_before_mb']} MB; after the first window it stays within "
              f"{doc['rss_min_mb']}-{doc['rss_max_mb']} MB, and the peak of the second half minus that of the first "
              f"is {doc['rss_peak_growth_mb']:+} MB. Latency drift (median window of the second half minus the "
              f"first, after the first window): p50 {doc['p50_drift_ms']:+} ms, p95 {doc['p95_drift_ms']:+} ms.", "",
-             "| frames | minutes | RSS (MB) | p50 ms | p95 ms | poses / frame |", "|---|---|---|---|---|---|"]
+             "| frames | minutes | RSS (MB) | p50 ms | p95 ms | poses / frame | load (1 min) |",
+             "|---|---|---|---|---|---|---|"]
     lines += [f"| {x['frames']} | {x['minutes']} | {x['rss_mb']} | {x['p50_ms']} | {x['p95_ms']} | "
-              f"{x['poses_per_frame']:.2f} |" for x in w]
+              f"{x['poses_per_frame']:.2f} | {x.get('load_1min', '-')} |" for x in w]
     return "\n".join(lines) + "\n"
 
 
@@ -125,11 +139,16 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-starts", type=int, default=None,
                     help="extra ICP starts (default: EstimatorOptions.refine_starts)")
     ap.add_argument("--window", type=int, default=200, help="frames per reported window")
+    ap.add_argument("--fps", type=float, default=None,
+                    help="deliver at most this many frames a second, as a camera does (default: back to back)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/soak"))
     args = ap.parse_args(argv)
+    if args.fps is not None and not args.fps > 0:
+        ap.error(f"--fps must be positive, got {args.fps}")
     with tempfile.TemporaryDirectory() as tmp:
         source = args.source or default_source(Path(tmp) / "recording")
-        doc = soak(args.bundle, "int8" if args.int8 else "fp32", args.threads, source, args.minutes, args.window)
+        doc = soak(args.bundle, "int8" if args.int8 else "fp32", args.threads, source, args.minutes, args.window,
+                   args.refine_starts, args.fps)
     if not args.source:
         doc["source"] = "generated: pallet6d sim --preset virtual-occluded --frames 30 --seed 7"
     doc["created"] = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")

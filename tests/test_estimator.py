@@ -357,3 +357,22 @@ def test_noisy_depth_keeps_the_network_pose(bundle_dir, frame, boxes):
     assert len(r.poses) == len(r0.poses) == len(boxes) >= 1
     for p, p0 in zip(r.poses, r0.poses):
         np.testing.assert_allclose(p.T_cam_pallet, p0.T_cam_pallet)
+
+
+def test_the_confidence_floor_is_on_by_default(bundle_dir, frame, boxes, monkeypatch):
+    """Without being asked, a pose whose network confidence is under 0.1 is refused ("low_confidence"), one at or
+    over it is not."""
+    from pallet6d.runtime.stage_pose import PoseNetworkStage
+
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, min_fit=0.0, structure=None)
+    assert est.options.min_confidence == 0.1
+    post = PoseNetworkStage.postprocess
+
+    def fixed_confidences(self, quat, trans, conf, batch):
+        T, confidence = post(self, quat, trans, conf, batch)
+        return T, np.resize([0.05, 0.1], len(confidence))
+
+    monkeypatch.setattr(PoseNetworkStage, "postprocess", fixed_confidences)
+    r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:2], scores=[0.9, 0.8])
+    assert [x.reason for x in r.rejected] == ["low_confidence"]
+    assert [p.confidence for p in r.poses] == [pytest.approx(0.1)]

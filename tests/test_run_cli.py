@@ -126,3 +126,21 @@ def test_ground_truths_from_bop_frame(bop_dir):
     assert skipped == 0 and len(gts) == len(frame.gts)
     x, y, w, h = frame.gts[0].bbox_visib_xywh
     assert gts[0].box_visib_xyxy.tolist() == [x, y, x + w, y + h]
+
+
+def test_an_unreadable_bop_file_is_an_error_line_and_the_run_goes_on(bundle_dir, bop_dir, tmp_path, capsys):
+    """A damaged colour or depth file of a BOP dataset is that frame's error line, not the end of the run."""
+    import shutil
+
+    root = tmp_path / "bop"
+    shutil.copytree(bop_dir, root)
+    scene = next(p for p in root.rglob("rgb") if p.is_dir()).parent
+    rgb = sorted((scene / "rgb").iterdir())[0]
+    rgb.write_bytes(b"garbage")
+    rc = main(["run", "--source", f"bop:{root}", "--bundle", str(bundle_dir), "--threads", "1",
+               "--frame", "camera", "--score-threshold", "0", "--min-fit", "0", "--no-structure-check"])
+    assert rc == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["frame"] for x in lines[:-1]] == [0, 1]
+    assert "error" in lines[0] and rgb.name in lines[0]["error"] and "poses" in lines[1]
+    assert lines[-1]["summary"]["frames"] == 2 and lines[-1]["summary"]["errors"] == 1
