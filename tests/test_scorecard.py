@@ -1,0 +1,74 @@
+"""benchmarks/scorecard.py: the table of several bundles' figures, kept results read back instead of measured again,
+and what it refuses (the measures themselves are the benchmarks' own, tested with them)."""
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).parents[1] / "benchmarks" / "scorecard.py"
+
+
+@pytest.fixture
+def scorecard():
+    spec = importlib.util.spec_from_file_location("scorecard_benchmark", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_table_puts_each_bundles_figures_beside_the_target(scorecard):
+    a = {"presets": {"virtual-clean": 97.5, "indoor-noisy": 91.0}, "mismatched": {"kept": 14}}
+    b = {"presets": {"virtual-clean": 98.0}, "mismatched": {"kept": 9},
+         "real": {"missing": "data/real/labels.json not found"}}
+    text = scorecard.table(["shipped", "candidate"], [a, b])
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in text.splitlines()}
+    assert rows["ADD-sym within 5 cm, virtual-clean (%)"].endswith("| 97.5 | 98 | >= 98.1 |")
+    assert rows["ADD-sym within 5 cm, indoor-noisy (%)"].endswith("| 91 | - | >= 93.7 |")
+    assert rows["mismatched inputs: poses kept"].endswith("| 14 | 9 | 0 |")
+    assert not any("virtual-occluded" in r for r in rows)          # no bundle has it: no row
+    assert "- `candidate`: data/real/labels.json not found" in text
+
+
+def test_kept_results_are_read_back_not_measured_again(scorecard, tmp_path, monkeypatch, capsys):
+    bundle = tmp_path / "cand"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text("{}")
+    kept = tmp_path / "out" / "cand"
+    kept.mkdir(parents=True)
+    (kept / "mismatched-int8.json").write_text(json.dumps({"kept": 3, "accepted": 40}))
+    calls = []
+
+    def fake(name, *args):
+        calls.append(name)
+        return {"exact": 90.0, "d435": 85.0, "blocked_safe": 0}
+
+    monkeypatch.setattr(scorecard, "run_measure", fake)
+    assert scorecard.main(["--bundle", str(bundle), "--measures", "mismatched,pockets", "--out",
+                           str(tmp_path / "out")]) == 0
+    assert calls == ["pockets"]
+    assert json.loads((kept / "pockets-int8.json").read_text())["exact"] == 90.0
+    md = (tmp_path / "out" / "scorecard.md").read_text()
+    assert "| mismatched inputs: poses kept | 3 | 0 |" in md and "| blocked pockets called safe | 0 | 0 |" in md
+    assert md == "\n".join(capsys.readouterr().out.splitlines()[:len(md.splitlines())]) + "\n"
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--measures", "speed"], "unknown measures"),
+    (["--bundle", "NOT-A-BUNDLE"], "not a bundle folder"),
+    (["--bundle", "SAME-NAME"], "different names"),
+])
+def test_bad_arguments_are_refused(scorecard, tmp_path, capsys, args, words):
+    bundle = tmp_path / "a" / "b1"
+    bundle.mkdir(parents=True)
+    (bundle / "manifest.json").write_text("{}")
+    argv = ["--bundle", str(bundle), "--out", str(tmp_path / "out")]
+    if args[1] == "NOT-A-BUNDLE":
+        args = ["--bundle", str(tmp_path / "nothing")]
+    elif args[1] == "SAME-NAME":
+        shutil.copytree(bundle, tmp_path / "b1")
+        args = ["--bundle", str(tmp_path / "b1")]
+    with pytest.raises(SystemExit):
+        scorecard.main(argv + args)
+    assert words in capsys.readouterr().err
