@@ -23,9 +23,15 @@ the same data (a candidate that gains on one set and loses on another must show 
 - `real`: detector recall and precision at IoU 0.5 on the held-out real photographs (`data/real`, imported as in
   docs/data.md; not measured, with a note, where it is missing).
 
-Every measure runs the bundle at `--precision` (int8: the edge configuration) with its default options. Results are
-kept per bundle and measure (`OUT/<bundle name>/<measure>.json`): a second call measures only what is missing (delete
-a file to measure it again). `--quick` uses a fraction of the frames, for trying the command, never for a decision.
+Every measure runs the bundle at `--precision` (int8: the edge configuration) with its default options, and once
+more for each `--variant LABEL=JSON` with those `EstimatorOptions` overrides (`"structure"`: `StructureParams`
+overrides), so a change of the runtime's options is judged like a new bundle:
+
+    python benchmarks/scorecard.py --bundle models/epal-default --variant 'peak05={"structure":
+        {"min_registration_peak": 0.05}}' --out runs/scorecard
+
+Results are kept per bundle, variant and measure (`OUT/<bundle name>[+<label>]/<measure>-<precision>.json`): a second
+call measures only what is missing (delete a file to measure it again). `--quick` uses a fraction of the frames, for trying the command, never for a decision.
 Writes `OUT/scorecard.md`. Latency is not here: it needs an otherwise idle machine (`benchmarks/latency.py`).
 """
 from __future__ import annotations
@@ -76,9 +82,31 @@ def _pct(x: float) -> float:
     return round(100.0 * float(x), 2)
 
 
-def _estimator(bundle: Path, precision: str, **options):
+def estimator_options(overrides: dict) -> dict:
+    """`EstimatorOptions` keyword arguments from JSON overrides ("structure": a dict of `StructureParams` fields).
+    :raises ValueError: an unknown option or field, or a value the options refuse."""
+    from dataclasses import fields
+
+    from pallet6d.runtime.estimator import EstimatorOptions
+    from pallet6d.runtime.structure import StructureParams
+
+    known = {f.name for f in fields(EstimatorOptions)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise ValueError(f"unknown estimator options {unknown}")
+    out = dict(overrides)
+    if isinstance(out.get("structure"), dict):
+        bad = sorted(set(out["structure"]) - {f.name for f in fields(StructureParams)})
+        if bad:
+            raise ValueError(f"unknown structure check fields {bad}")
+        out["structure"] = StructureParams(**out["structure"])
+    EstimatorOptions(**out)                      # its own checks, before any measuring
+    return out
+
+
+def _estimator(bundle: Path, precision: str, options: dict, **fixed):
     from pallet6d.runtime.estimator import PalletEstimator
-    return PalletEstimator.from_bundle(bundle, threads=2, precision=precision, **options)
+    return PalletEstimator.from_bundle(bundle, threads=2, precision=precision, **{**options, **fixed})
 
 
 def _bop_set(root: Path, preset: str, seed: int, frames: int, split: str) -> Path:
@@ -98,11 +126,11 @@ def _bop_set(root: Path, preset: str, seed: int, frames: int, split: str) -> Pat
     return out
 
 
-def measure_presets(bundle: Path, precision: str, frames: int, data_root: Path) -> dict:
+def measure_presets(bundle: Path, precision: str, options: dict, frames: int, data_root: Path) -> dict:
     from pallet6d.export.accuracy_report import TEST_SEEDS, ensure_test_set
     from pallet6d.runtime.eval_cli import evaluate_dataset
 
-    est = _estimator(bundle, precision)
+    est = _estimator(bundle, precision, options)
     out = {}
     for preset in PAPER_PRESETS:
         s = evaluate_dataset(est, ensure_test_set(preset, frames, data_root), "test")["summary"]
@@ -112,10 +140,10 @@ def measure_presets(bundle: Path, precision: str, frames: int, data_root: Path) 
     return out
 
 
-def measure_forklift(bundle: Path, precision: str, frames: int, data_root: Path) -> dict:
+def measure_forklift(bundle: Path, precision: str, options: dict, frames: int, data_root: Path) -> dict:
     from pallet6d.runtime.eval_cli import evaluate_dataset
 
-    est = _estimator(bundle, precision)
+    est = _estimator(bundle, precision, options)
     out = {}
     for preset, seed in FORKLIFT_SEEDS.items():
         root = _bop_set(data_root, preset, seed, frames, "test")
@@ -126,14 +154,16 @@ def measure_forklift(bundle: Path, precision: str, frames: int, data_root: Path)
     return out
 
 
-def measure_mismatched(bundle: Path, precision: str, frames: int, val_root: Path) -> dict:
+def measure_mismatched(bundle: Path, precision: str, options: dict, frames: int, val_root: Path) -> dict:
     import structure_check
 
     from pallet6d.runtime.structure import StructureParams
 
     roots = [str(_bop_set(val_root, p, seed, frames, "train")) for p, seed in VAL_SEEDS.items()]
+    rest = {k: v for k, v in options.items() if k != "structure"}
     with contextlib.redirect_stdout(sys.stderr):     # its progress lines; stdout is the table's
-        res = structure_check.run(str(bundle), roots, frames, StructureParams(), precision == "int8", None)
+        res = structure_check.run(str(bundle), roots, frames, options.get("structure", StructureParams()),
+                                  precision == "int8", None, options=rest)
     out = {"kept": 0, "accepted": 0, "by_variant": {}}
     for key, v in res.items():
         if key == "poses":
@@ -149,10 +179,10 @@ def measure_mismatched(bundle: Path, precision: str, frames: int, val_root: Path
     return out
 
 
-def measure_negatives(bundle: Path, precision: str, frames: int) -> dict:
+def measure_negatives(bundle: Path, precision: str, options: dict, frames: int) -> dict:
     from real_data import sim_negatives
 
-    est = _estimator(bundle, precision)
+    est = _estimator(bundle, precision, options)
     runs = {"set_down": [(list(NEGATIVE_PRESETS), s, False, True) for s in (9100, 9200)],
             "calibrated": [(["forklift-approach", "mixed"], s, True, True) for s in (9100, 9200)],
             "hanging": [(list(NEGATIVE_PRESETS), 9100, False, False)]}
@@ -183,13 +213,13 @@ def _forklift_frames(root: Path, frames: int) -> Path:
     return root
 
 
-def measure_pockets(bundle: Path, precision: str, frames: int, frames_dir: Path) -> dict:
+def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, frames_dir: Path) -> dict:
     from forklift_pockets import evaluate, npz_frames
 
     from pallet6d.runtime.forklift import ForkliftParams
 
     root = _forklift_frames(frames_dir, frames)
-    est = _estimator(bundle, precision)
+    est = _estimator(bundle, precision, options)
     first = {p.stem for p in sorted(root.glob("*.npz"))[:frames]}
     res = evaluate((fr for fr in npz_frames(root) if fr["frame"] in first), ForkliftParams(), est)
     out = {}
@@ -202,7 +232,7 @@ def measure_pockets(bundle: Path, precision: str, frames: int, frames_dir: Path)
     return out
 
 
-def measure_real(bundle: Path, precision: str, frames: int, real_root: Path) -> dict:
+def measure_real(bundle: Path, precision: str, options: dict, frames: int, real_root: Path) -> dict:
     from real_data import evaluate
 
     labels = real_root / "labels.json"
@@ -211,33 +241,35 @@ def measure_real(bundle: Path, precision: str, frames: int, real_root: Path) -> 
     records = [r for r in json.loads(labels.read_text()) if r["split"] == "heldout" and not r["augmented"]]
     if frames:
         records = records[:frames]
-    est = _estimator(bundle, precision, max_pallets=300)
+    est = _estimator(bundle, precision, options, max_pallets=300)
     r = evaluate(est, records, real_root).to_dict()
     return {"recall": _pct(r["overall"]["recall"] or 0.0), "precision": _pct(r["overall"]["precision"] or 0.0),
             "images": r["overall"]["images"], "negative_fp": round(r["false_positives_per_negative_frame"] or 0.0, 2)}
 
 
-def run_measure(name: str, bundle: Path, precision: str, quick: bool, data_root: Path, data: Path) -> dict:
-    """One measure of one bundle: its figures, plus the frames it used and its seconds."""
+def run_measure(name: str, bundle: Path, precision: str, options: dict, quick: bool, data_root: Path,
+                data: Path) -> dict:
+    """One measure of one bundle with `options` (`estimator_options`): its figures, plus the frames it used and its
+    seconds."""
     t0 = time.perf_counter()
     if name == "presets":
         frames = 30 if quick else 100
-        res = measure_presets(bundle, precision, frames, data_root)
+        res = measure_presets(bundle, precision, options, frames, data_root)
     elif name == "forklift":
         frames = 20 if quick else 100
-        res = measure_forklift(bundle, precision, frames, data_root)
+        res = measure_forklift(bundle, precision, options, frames, data_root)
     elif name == "mismatched":
         frames = 10 if quick else 30
-        res = measure_mismatched(bundle, precision, frames, data)
+        res = measure_mismatched(bundle, precision, options, frames, data)
     elif name == "negatives":
         frames = 8 if quick else 40
-        res = measure_negatives(bundle, precision, frames)
+        res = measure_negatives(bundle, precision, options, frames)
     elif name == "pockets":
         frames = 15 if quick else 60
-        res = measure_pockets(bundle, precision, frames, data / "forklift-frames-epal")
+        res = measure_pockets(bundle, precision, options, frames, data / "forklift-frames-epal")
     elif name == "real":
         frames = 100 if quick else 0
-        res = measure_real(bundle, precision, frames, data / "real")
+        res = measure_real(bundle, precision, options, frames, data / "real")
     else:
         raise ValueError(f"unknown measure {name!r}; known: {', '.join(MEASURES)}")
     return {**res, "frames": frames, "quick": quick, "precision": precision,
@@ -276,8 +308,23 @@ def main(argv: list[str] | None = None) -> int:
                     help="the held-out test sets (as benchmarks/accuracy.py)")
     ap.add_argument("--data", type=Path, default=Path("data"),
                     help="validation frames, forklift frames and the imported real photographs")
+    ap.add_argument("--variant", action="append", default=[], metavar="LABEL=JSON",
+                    help="also measure each bundle with these EstimatorOptions overrides, e.g. "
+                         "'grid24={\"structure\": {\"grid\": 24}}' (repeatable)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
+    variants, shown = [("", {})], []
+    for v in args.variant:
+        label, sep, text = v.partition("=")
+        if not sep or not label.replace("-", "").replace("_", "").isalnum():
+            ap.error(f"--variant {v!r}: give a label (letters, digits, - and _), '=' and the options as JSON")
+        try:
+            variants.append((label, estimator_options(json.loads(text))))
+            shown.append(f"- `+{label}`: `{text}`")
+        except (ValueError, TypeError) as exc:      # json.JSONDecodeError is a ValueError
+            ap.error(f"--variant {label}: {exc}")
+    if len({label for label, _ in variants}) != len(variants):
+        ap.error("--variant labels must differ")
     measures = [m for m in args.measures.split(",") if m]
     unknown = sorted(set(measures) - set(MEASURES))
     if unknown:
@@ -288,24 +335,28 @@ def main(argv: list[str] | None = None) -> int:
     names = [b.resolve().name for b in args.bundle]
     if len(set(names)) != len(names):
         ap.error(f"bundle folders must have different names, got {names}")
-    results = []
+    columns, results = [], []
     for bundle, name in zip(args.bundle, names):
-        folder = args.out / name
-        folder.mkdir(parents=True, exist_ok=True)
-        res = {}
-        for m in measures:
-            path = folder / f"{m}{'-quick' if args.quick else ''}-{args.precision}.json"
-            if not path.is_file():
-                print(f"scorecard: {name}: {m}", file=sys.stderr, flush=True)
-                path.write_text(json.dumps(run_measure(m, bundle, args.precision, args.quick, args.data_root,
-                                                       args.data), indent=1) + "\n")
-            res[m] = json.loads(path.read_text())
-        results.append(res)
+        for label, options in variants:
+            column = f"{name}+{label}" if label else name
+            folder = args.out / column
+            folder.mkdir(parents=True, exist_ok=True)
+            res = {}
+            for m in measures:
+                path = folder / f"{m}{'-quick' if args.quick else ''}-{args.precision}.json"
+                if not path.is_file():
+                    print(f"scorecard: {column}: {m}", file=sys.stderr, flush=True)
+                    path.write_text(json.dumps(run_measure(m, bundle, args.precision, options, args.quick,
+                                                           args.data_root, args.data), indent=1) + "\n")
+                res[m] = json.loads(path.read_text())
+            columns.append(column)
+            results.append(res)
     created = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     command = " ".join(["python benchmarks/scorecard.py", *(argv if argv is not None else sys.argv[1:])])
     text = (f"# Scorecard\n\n`{command}` on {created}; {args.precision}"
             f"{', quick (a fraction of the frames: not for a decision)' if args.quick else ''}.\n\n"
-            + table(names, results))
+            + ("Variants (estimator options):\n\n" + "\n".join(shown) + "\n\n" if shown else "")
+            + table(columns, results))
     (args.out / "scorecard.md").write_text(text)
     print(text)
     return 0

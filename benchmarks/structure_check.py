@@ -111,7 +111,9 @@ def score(ds: BopDataset, variant: str, n: int, poses: dict, boxes_m: np.ndarray
 
 
 def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8: bool, cache: Path | None,
-        no_rgb: bool = False) -> dict:
+        no_rgb: bool = False, options: dict | None = None) -> dict:
+    """:param options: `EstimatorOptions` overrides for the estimator that makes the poses (its own structure check
+        stays off: `params` scores them)."""
     est = None
     out, rows = {}, []
     for root in data:
@@ -123,7 +125,7 @@ def run(bundle: str, data: list[str], frames: int, params: StructureParams, int8
                 poses = dict(np.load(path))
             else:
                 est = est or PalletEstimator.from_bundle(bundle, threads=2, precision="int8" if int8 else "fp32",
-                                                         structure=None)
+                                                         **{**(options or {}), "structure": None})
                 poses = estimate(est, ds, variant, n)
                 if path is not None:
                     path.parent.mkdir(parents=True, exist_ok=True)

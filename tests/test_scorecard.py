@@ -54,8 +54,38 @@ def test_kept_results_are_read_back_not_measured_again(scorecard, tmp_path, monk
     assert md == "\n".join(capsys.readouterr().out.splitlines()[:len(md.splitlines())]) + "\n"
 
 
+def test_a_variant_is_measured_with_its_options_under_its_own_name(scorecard, tmp_path, monkeypatch, capsys):
+    from pallet6d.runtime.structure import StructureParams
+
+    bundle = tmp_path / "cand"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text("{}")
+    seen = []
+
+    def fake(name, bundle, precision, options, *args):
+        seen.append(options)
+        return {"kept": len(options)}
+
+    monkeypatch.setattr(scorecard, "run_measure", fake)
+    assert scorecard.main(["--bundle", str(bundle), "--measures", "mismatched", "--out", str(tmp_path / "out"),
+                           "--variant", 'g24={"structure": {"grid": 24}, "min_fit": 0.3}']) == 0
+    assert seen[0] == {} and seen[1]["min_fit"] == 0.3 and seen[1]["structure"] == StructureParams(grid=24)
+    assert (tmp_path / "out" / "cand+g24" / "mismatched-int8.json").is_file()
+    md = capsys.readouterr().out
+    assert "| `cand` | `cand+g24` | target |" in md and "| mismatched inputs: poses kept | 0 | 2 | 0 |" in md
+    assert '- `+g24`: `{"structure": {"grid": 24}, "min_fit": 0.3}`' in md
+
+
 @pytest.mark.parametrize("args, words", [
     (["--measures", "speed"], "unknown measures"),
+    (["--variant", "x"], "give a label"),
+    (["--variant", "a b={}"], "give a label"),
+    (["--variant", "={}"], "give a label"),
+    (["--variant", "v={not json"], "--variant v"),
+    (["--variant", 'v={"speed": 1}'], "unknown estimator options"),
+    (["--variant", 'v={"structure": {"speed": 1}}'], "unknown structure check fields"),
+    (["--variant", 'v={"min_fit": 2}'], "min_fit"),
+    (["--variant", "v={}", "--variant", "v={}"], "labels must differ"),
     (["--bundle", "NOT-A-BUNDLE"], "not a bundle folder"),
     (["--bundle", "SAME-NAME"], "different names"),
 ])
