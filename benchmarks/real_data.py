@@ -32,19 +32,37 @@ import numpy as np
 from pallet6d.export.real_data_report import RealDataReport, markdown   # numpy only: no torch
 
 
-def sim_negatives(est, presets: list[str], n_frames: int, seed: int, calibrated: bool = False,
-                  set_down: bool = False) -> dict:
-    """Accepted poses and detections per frame on simulated pallet-free frames, per preset; `calibrated`: the
-    forklift views' camera calibration goes to the estimator, as a forklift's would; `set_down`: the loads stand
-    where their pallets stood."""
+def pallet_free_frame(preset: str, seed: int, index: int, set_down: bool, cache: Path | None = None):
+    """`sim.pallet_free.render_pallet_free`, kept in `cache` (one .npz a frame) when given, so that a second bundle
+    is measured on the same frames without rendering them again.
+    :return: (rgb, depth_m, K, T_vehicle_cam or None)."""
     from pallet6d.sim.pallet_free import render_pallet_free
 
+    path = None if cache is None else cache / ("set-down" if set_down else "hanging") / f"{preset}-{seed}-{index}.npz"
+    if path is not None and path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            return z["rgb"], z["depth_m"], z["K"], (z["T_vehicle_cam"] if "T_vehicle_cam" in z else None)
+    rgb, depth_m, K, T_vc = render_pallet_free(preset, seed, index, set_down)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        extra = {} if T_vc is None else {"T_vehicle_cam": T_vc}
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, rgb=rgb, depth_m=depth_m.astype(np.float32), K=K, **extra)
+        tmp.replace(path)
+    return rgb, depth_m, K, T_vc
+
+
+def sim_negatives(est, presets: list[str], n_frames: int, seed: int, calibrated: bool = False,
+                  set_down: bool = False, cache: Path | None = None) -> dict:
+    """Accepted poses and detections per frame on simulated pallet-free frames, per preset; `calibrated`: the
+    forklift views' camera calibration goes to the estimator, as a forklift's would; `set_down`: the loads stand
+    where their pallets stood; `cache`: a folder that keeps the rendered frames (`pallet_free_frame`)."""
     out = {}
     for preset in presets:
         accepted = detections = 0
         fits = []
         for i in range(n_frames):
-            rgb, depth_m, K, T_vc = render_pallet_free(preset, seed, i, set_down)
+            rgb, depth_m, K, T_vc = pallet_free_frame(preset, seed, i, set_down, cache)
             res = est.estimate(rgb, depth_m.astype(np.float32), K, T_vehicle_cam=T_vc if calibrated else None)
             accepted += len(res.poses)
             detections += len(est.detect(rgb))

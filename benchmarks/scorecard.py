@@ -16,7 +16,7 @@ the same data (a candidate that gains on one set and loses on another must show 
   does).
 - `negatives`: accepted poses on simulated pallet-free frames (`benchmarks/real_data.py --sim-negatives`): loads set
   down (five presets x 40 frames, seeds 9100 and 9200), the same in calibrated forklift views (forklift-approach and
-  mixed), loads hanging (seed 9100).
+  mixed), loads hanging (seed 9100); the rendered frames are kept under `DATA/pallet-free/`.
 - `pockets`: the 60 EPAL forklift targets 1-4 m ahead (`benchmarks/forklift_pockets.py` on
   `data/forklift-frames-epal`, made here when missing): both pockets within 2 cm and the face yaw within 1 degree,
   exact and D435-like depth; blocked pockets called safe.
@@ -179,7 +179,7 @@ def measure_mismatched(bundle: Path, precision: str, options: dict, frames: int,
     return out
 
 
-def measure_negatives(bundle: Path, precision: str, options: dict, frames: int) -> dict:
+def measure_negatives(bundle: Path, precision: str, options: dict, frames: int, cache: Path) -> dict:
     from real_data import sim_negatives
 
     est = _estimator(bundle, precision, options)
@@ -190,7 +190,7 @@ def measure_negatives(bundle: Path, precision: str, options: dict, frames: int) 
     for name, specs in runs.items():
         total, frames_seen, by_preset = 0, 0, {}
         for presets, seed, calibrated, set_down in specs:
-            for preset, r in sim_negatives(est, presets, frames, seed, calibrated, set_down).items():
+            for preset, r in sim_negatives(est, presets, frames, seed, calibrated, set_down, cache).items():
                 n = round(r["accepted_poses_per_frame"] * r["frames"])
                 total += n
                 frames_seen += r["frames"]
@@ -263,7 +263,7 @@ def run_measure(name: str, bundle: Path, precision: str, options: dict, quick: b
         res = measure_mismatched(bundle, precision, options, frames, data)
     elif name == "negatives":
         frames = 8 if quick else 40
-        res = measure_negatives(bundle, precision, options, frames)
+        res = measure_negatives(bundle, precision, options, frames, data / "pallet-free")
     elif name == "pockets":
         frames = 15 if quick else 60
         res = measure_pockets(bundle, precision, options, frames, data / "forklift-frames-epal")
