@@ -38,3 +38,20 @@ def test_the_benchmark_without_imported_photographs_says_what_to_run(tmp_path, c
     assert mod.main(["--bundle", str(tmp_path / "bundle"), "--data", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err
     assert "labels.json not found" in err and "pallet6d.export.real_data import" in err
+
+
+def test_pallet_free_frames_kept_in_a_cache_come_back_the_same(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).parents[1] / "benchmarks" / "real_data.py"
+    spec = importlib.util.spec_from_file_location("real_data_benchmark", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rendered = mod.pallet_free_frame("forklift-approach", 3, 0, True, tmp_path)
+    assert [p.name for p in tmp_path.rglob("*.npz")] == ["forklift-approach-3-0.npz"]
+    again = mod.pallet_free_frame("forklift-approach", 3, 0, True, tmp_path)
+    for a, b in zip(rendered, again):
+        np.testing.assert_array_equal(a, b)
+    assert again[3].shape == (4, 4)                       # a forklift view keeps its calibration
+    assert mod.pallet_free_frame("virtual-clean", 3, 0, False, tmp_path)[3] is None
