@@ -272,8 +272,21 @@ def run_measure(name: str, bundle: Path, precision: str, options: dict, quick: b
         res = measure_real(bundle, precision, options, frames, data / "real")
     else:
         raise ValueError(f"unknown measure {name!r}; known: {', '.join(MEASURES)}")
-    return {**res, "frames": frames, "quick": quick, "precision": precision,
+    return {**res, "frames": frames, "quick": quick, "graphs": precision, "options": options_json(options),
             "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def options_json(options: dict) -> dict:
+    """`options` as JSON (`StructureParams` overrides as the fields that differ from the defaults)."""
+    from dataclasses import asdict
+
+    from pallet6d.runtime.structure import StructureParams
+
+    out = dict(options)
+    if isinstance(out.get("structure"), StructureParams):
+        default = asdict(StructureParams())
+        out["structure"] = {k: v for k, v in asdict(out["structure"]).items() if v != default[k]}
+    return out
 
 
 def lookup(results: dict, key: str):

@@ -31,6 +31,16 @@ def test_table_puts_each_bundles_figures_beside_the_target(scorecard):
     assert "- `candidate`: data/real/labels.json not found" in text
 
 
+def test_a_measures_own_figures_are_not_overwritten_by_its_run_record(scorecard, monkeypatch, tmp_path):
+    from pallet6d.runtime.structure import StructureParams
+
+    monkeypatch.setattr(scorecard, "measure_real", lambda *a: {"recall": 30.0, "precision": 56.0})
+    res = scorecard.run_measure("real", tmp_path, "int8", {"structure": StructureParams(grid=24)}, False, tmp_path,
+                                tmp_path)
+    assert res["precision"] == 56.0 and res["graphs"] == "int8" and res["options"] == {"structure": {"grid": 24}}
+    json.dumps(res)
+
+
 def test_kept_results_are_read_back_not_measured_again(scorecard, tmp_path, monkeypatch, capsys):
     bundle = tmp_path / "cand"
     bundle.mkdir()
