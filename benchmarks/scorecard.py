@@ -39,6 +39,8 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
+import shlex
 import sys
 import time
 from dataclasses import replace
@@ -364,9 +366,11 @@ def main(argv: list[str] | None = None) -> int:
                 res[m] = json.loads(path.read_text())
             columns.append(column)
             results.append(res)
+    from latency import cpu_model
+
     created = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-    command = " ".join(["python benchmarks/scorecard.py", *(argv if argv is not None else sys.argv[1:])])
-    text = (f"# Scorecard\n\n`{command}` on {created}; {args.precision}"
+    command = shlex.join(["python", "benchmarks/scorecard.py", *(argv if argv is not None else sys.argv[1:])])
+    text = (f"# Scorecard\n\n`{command}` on {created}, {os.cpu_count()} CPUs ({cpu_model()}); {args.precision}"
             f"{', quick (a fraction of the frames: not for a decision)' if args.quick else ''}.\n\n"
             + ("Variants (estimator options):\n\n" + "\n".join(shown) + "\n\n" if shown else "")
             + table(columns, results))

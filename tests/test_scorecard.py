@@ -11,7 +11,8 @@ SCRIPT = Path(__file__).parents[1] / "benchmarks" / "scorecard.py"
 
 
 @pytest.fixture
-def scorecard():
+def scorecard(monkeypatch):
+    monkeypatch.syspath_prepend(str(SCRIPT.parent))     # as `python benchmarks/scorecard.py` runs: its siblings import
     spec = importlib.util.spec_from_file_location("scorecard_benchmark", SCRIPT)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
