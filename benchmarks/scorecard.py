@@ -34,8 +34,9 @@ overrides), so a change of the runtime's options is judged like a new bundle:
         {"min_registration_peak": 0.05}}' --out runs/scorecard
 
 Results are kept per bundle, variant and measure (`OUT/<bundle name>[+<label>]/<measure>-<precision>.json`): a second
-call measures only what is missing (delete a file to measure it again). `--quick` uses a fraction of the frames, for trying the command, never for a decision.
-Writes `OUT/scorecard.md`. Latency is not here: it needs an otherwise idle machine (`benchmarks/latency.py`).
+call measures only what is missing (delete a file to measure it again). `--quick` uses a fraction of the frames, for
+trying the command, never for a decision. Writes `OUT/scorecard.md`. Latency is not here: it needs an otherwise idle
+machine (`benchmarks/latency.py`).
 """
 from __future__ import annotations
 
@@ -46,11 +47,9 @@ import os
 import shlex
 import sys
 import time
-from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
-import numpy as np
 
 MEASURES = ("presets", "forklift", "mismatched", "negatives", "negatives-heldout", "pockets", "real")
 PAPER_PRESETS = ("virtual-clean", "virtual-occluded", "indoor-noisy")
