@@ -119,23 +119,6 @@ def _estimator(bundle: Path, precision: str, options: dict, **fixed):
     return PalletEstimator.from_bundle(bundle, threads=2, precision=precision, **{**options, **fixed})
 
 
-def _bop_set(root: Path, preset: str, seed: int, frames: int, split: str) -> Path:
-    """A generated BOP set of `preset` (reused when it holds `frames` frames)."""
-    from pallet6d.runtime.bop import BopDataset
-    from pallet6d.sim.dataset import write_dataset
-    from pallet6d.sim.presets import get_preset
-
-    out = root / f"{preset}-seed{seed}-{frames}"
-    try:
-        if len(BopDataset(out, split)) == frames:
-            return out
-    except (OSError, ValueError):
-        pass
-    print(f"scorecard: generating {out}", file=sys.stderr, flush=True)
-    write_dataset(get_preset(preset), frames, seed, out, split=split)
-    return out
-
-
 def measure_presets(bundle: Path, precision: str, options: dict, frames: int, data_root: Path) -> dict:
     from pallet6d.export.accuracy_report import TEST_SEEDS, ensure_test_set
     from pallet6d.runtime.eval_cli import evaluate_dataset
@@ -151,12 +134,13 @@ def measure_presets(bundle: Path, precision: str, options: dict, frames: int, da
 
 
 def measure_forklift(bundle: Path, precision: str, options: dict, frames: int, data_root: Path) -> dict:
+    from pallet6d.export.accuracy_report import ensure_test_set
     from pallet6d.runtime.eval_cli import evaluate_dataset
 
     est = _estimator(bundle, precision, options)
     out = {}
     for preset, seed in FORKLIFT_SEEDS.items():
-        root = _bop_set(data_root, preset, seed, frames, "test")
+        root = ensure_test_set(preset, frames, data_root, seed)
         s = evaluate_dataset(est, root, "test", calibrated=True)["summary"]
         out[preset] = _pct(s["add_sym_acc"]["0.05"])
         out[f"{preset}-precision"] = round(float(s["precision"]), 3)
@@ -167,9 +151,10 @@ def measure_forklift(bundle: Path, precision: str, options: dict, frames: int, d
 def measure_mismatched(bundle: Path, precision: str, options: dict, frames: int, val_root: Path) -> dict:
     import structure_check
 
+    from pallet6d.export.accuracy_report import ensure_test_set
     from pallet6d.runtime.structure import StructureParams
 
-    roots = [str(_bop_set(val_root, p, seed, frames, "train")) for p, seed in VAL_SEEDS.items()]
+    roots = [str(ensure_test_set(p, frames, val_root, seed)) for p, seed in VAL_SEEDS.items()]
     rest = {k: v for k, v in options.items() if k != "structure"}
     with contextlib.redirect_stdout(sys.stderr):     # its progress lines; stdout is the table's
         res = structure_check.run(str(bundle), roots, frames, options.get("structure", StructureParams()),

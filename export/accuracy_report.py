@@ -22,14 +22,15 @@ PAPER = {"virtual-clean": {"0.05": 1.00, "0.1": None}, "virtual-occluded": {"0.0
          "indoor-noisy": {"0.05": 0.56, "0.1": 0.82}}
 
 
-def ensure_test_set(preset: str, frames: int, root: Path) -> Path:
+def ensure_test_set(preset: str, frames: int, root: Path, seed: int | None = None) -> Path:
     """The test set of `preset` with `frames` frames (generated when missing, of another size, or annotated by
-    an older generator: `GT_INFO_VERSION`)."""
+    an older generator: `GT_INFO_VERSION`), from `seed` (default: the preset's `TEST_SEEDS` entry)."""
     from pallet6d.runtime.bop import BopDataset
     from pallet6d.sim.dataset import GT_INFO_VERSION, write_dataset
     from pallet6d.sim.presets import get_preset
 
-    out = root / f"{preset}-seed{TEST_SEEDS[preset]}-{frames}"
+    seed = TEST_SEEDS[preset] if seed is None else int(seed)
+    out = root / f"{preset}-seed{seed}-{frames}"
     try:
         meta = json.loads((out / "test" / "sim_config_000000.json").read_text())
         if len(BopDataset(out)) == frames and meta.get("gt_info_version", 1) == GT_INFO_VERSION:
@@ -39,9 +40,9 @@ def ensure_test_set(preset: str, frames: int, root: Path) -> Path:
         pass
     if out.exists():
         shutil.rmtree(out)
-    log.info("generating %s (%d frames, seed %d)", out, frames, TEST_SEEDS[preset])
+    log.info("generating %s (%d frames, seed %d)", out, frames, seed)
     t = time.perf_counter()
-    write_dataset(get_preset(preset), frames, TEST_SEEDS[preset], out, split="test")
+    write_dataset(get_preset(preset), frames, seed, out, split="test")
     log.info("generated in %.0f s", time.perf_counter() - t)
     return out
 

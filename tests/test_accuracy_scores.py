@@ -56,3 +56,11 @@ def test_test_sets_annotated_by_an_older_generator_are_made_again(tmp_path):
     meta_path.write_text(json.dumps(meta))
     accuracy.ensure_test_set("indoor-noisy", 1, tmp_path)
     assert json.loads(meta_path.read_text())["gt_info_version"] == GT_INFO_VERSION
+
+
+def test_a_test_set_of_another_seed_is_made_beside_the_presets_own(tmp_path):
+    own = accuracy.ensure_test_set("indoor-noisy", 1, tmp_path)
+    other = accuracy.ensure_test_set("indoor-noisy", 1, tmp_path, seed=8013)
+    assert own.name == f"indoor-noisy-seed{accuracy.TEST_SEEDS['indoor-noisy']}-1"
+    assert other.name == "indoor-noisy-seed8013-1"
+    assert json.loads((other / "test" / "sim_config_000000.json").read_text())["seed"] == 8013
