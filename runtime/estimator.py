@@ -105,7 +105,9 @@ class EstimatorOptions:
         too, and the type choice above decides by the depth. 1: the best class's types alone.
     :ivar type_margin: in that choice, a candidate keeps the first of its types (its class's first type in the
         bundle's order, e.g. the EPAL) unless another type's score (fit times structure agreement, 0-1) is higher by
-        more than this: types that look alike from the pallet's side then keep the common one.
+        more than this: types that look alike from the pallet's side then keep the common one. 0.1 keeps the
+        paper presets' EPALs EPALs with every type in the bundle (docs/experiments/pallet-types.md); 0 for a site
+        whose types are equally common.
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's
@@ -160,7 +162,7 @@ class EstimatorOptions:
     refine_start_max_rms_m: float = 0.003
     type_candidates: int = 2
     type_score_ratio: float = 0.5
-    type_margin: float = 0.0
+    type_margin: float = 0.1
     nonfinite_depth: str = "raise"
     seed: int = 0
     structure: StructureParams | None = StructureParams()

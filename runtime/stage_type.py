@@ -11,15 +11,20 @@ several types (`Candidates.type_options`):
    inlier fraction times one minus the free-space violation) times the structure check's agreement with its
    boards and openings (`structure.structure_check`: rays that find a board where the type has one or see into
    an opening where it has one). The fit alone cannot tell types apart: a solid-deck or wider model explains an
-   EPAL's front face as well as the EPAL does; the rays into its fork pockets tell;
+   EPAL's front face as well as the EPAL does; the rays into its fork pockets tell. The rays are cast only for the
+   candidate's first type and the `RANK_BY_FIT` best others by fit, since the fit rules out types of another size;
 2. the best `keep` of them are refined (`RefinerStage.refine`, each with its own boards and starts), and the
    type whose refined pose scores best the same way wins, with that pose and fit: the refiner stage then leaves
    the row as it is. Types without boards, or refinement off: step 1's best type wins, unrefined.
 
 In both steps every type but the candidate's first option (its class's first type) has `margin` taken off its score,
-so a look-alike type must fit clearly better to replace the common one.
+so a look-alike type must fit clearly better to replace the common one. In step 2 another type must also show clear
+structure at its refined pose (`StructureParams.replace_min_agreement`, `replace_min_open_fraction`): a carton stack
+that no type explains is otherwise given the look-alike that explains it least badly. Where no kept type qualifies,
+the candidate keeps its first type, and the refiner stage refines it.
 
-Cost: a structure check per type and one refinement per kept type, instead of one refinement per candidate.
+Cost: a fit score per type, a structure check for four of them, and one refinement and structure check per kept
+type, instead of one refinement per candidate.
 """
 from __future__ import annotations
 
@@ -34,7 +39,9 @@ from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
 from .structure import StructureParams, structure_check
 
-__all__ = ["TypeChoiceStage"]
+__all__ = ["TypeChoiceStage", "RANK_BY_FIT"]
+
+RANK_BY_FIT = 3   # types besides a candidate's first whose structure is looked at when ranking (the best by fit)
 
 
 class TypeChoiceStage:
@@ -67,32 +74,47 @@ class TypeChoiceStage:
 
     def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
         """Fit score times structure agreement of each type at the network's pose of each row (-inf for the types
-        not among its options). :return: (len(rows), number of types)."""
-        score = np.full((len(rows), len(self.geometries)), -np.inf)
+        not among its options). The agreement is computed for the row's first type and its `RANK_BY_FIT` best
+        others by fit alone; the others keep -inf. Most of a bundle's types are ruled out by their size, which the
+        fit sees; the rays tell the look-alikes apart.
+        :return: (len(rows), number of types)."""
+        n_types = len(self.geometries)
+        fit = np.full((len(rows), n_types), -np.inf)
         for j, g in enumerate(self.geometries):
             mine = np.flatnonzero([j in o for o in cands.type_options[rows]])
-            if len(mine) == 0:
-                continue
-            r = rows[mine]
-            score[mine, j] = fit_scores(cands.T_net[r], cands.points_cam[r], None, g.points_m, depth_m, K, self.tol_m,
-                                        model_boxes_m=g.boxes_m)[2] * self.agreement(
-                cands.T_net[r], cands.boxes_xyxy[r], np.full(len(r), j), depth_m, K)
-            score[mine, j] -= self.margin * np.array([o[0] != j for o in cands.type_options[r]])
+            if len(mine):
+                r = rows[mine]
+                fit[mine, j] = fit_scores(cands.T_net[r], cands.points_cam[r], None, g.points_m, depth_m, K,
+                                          self.tol_m, model_boxes_m=g.boxes_m)[2]
+        first = np.array([o[0] for o in cands.type_options[rows]], int)
+        others = fit.copy()
+        others[np.arange(len(rows)), first] = -np.inf
+        ranked = np.argsort(-others, axis=1, kind="stable")[:, :RANK_BY_FIT]
+        scored = np.zeros_like(fit, bool)
+        scored[np.arange(len(rows)), first] = True
+        scored[np.arange(len(rows))[:, None], ranked] = True
+        scored &= np.isfinite(fit)
+        k, j = np.nonzero(scored)
+        score = np.full_like(fit, -np.inf)
+        score[k, j] = fit[k, j] * self.evidence(cands.T_net[rows[k]], cands.boxes_xyxy[rows[k]], j, depth_m, K)[0] \
+            - self.margin * (j != first[k])
         return score
 
-    def agreement(self, T: np.ndarray, boxes_xyxy: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
-                  K: np.ndarray) -> np.ndarray:
+    def evidence(self, T: np.ndarray, boxes_xyxy: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
+                 K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The structure check's agreement of each pose with its own type's boards and openings (rays that find
-        a board where the type has one, or see into an opening where it has one). :return: (n,)."""
-        out = np.ones(len(T))
+        a board where the type has one, or see into an opening where it has one), and its open fraction (1 for a
+        type without boards). :return: (n,), (n,)."""
+        agreement, open_fraction = np.ones(len(T)), np.ones(len(T))
         for j in np.unique(type_index):
             g = self.geometries[int(j)]
             if g.boxes_m is None:
                 continue
             mine = np.flatnonzero(type_index == j)
             scores = structure_check(T[mine], g.boxes_m, depth_m, K, boxes_xyxy[mine], self.structure)
-            out[mine] = [sc.agreement for sc in scores]
-        return out
+            agreement[mine] = [sc.agreement for sc in scores]
+            open_fraction[mine] = [sc.open_fraction for sc in scores]
+        return agreement, open_fraction
 
     def choose(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
         """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined."""
@@ -115,12 +137,18 @@ class TypeChoiceStage:
         T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
                                      pair_type, depth_m, K)
         first = np.array([cands.type_options[i][0] for i in src])
-        select = fit[:, 2] * self.agreement(T, cands.boxes_xyxy[src], pair_type, depth_m, K) \
-            - self.margin * (pair_type != first)
+        agreement, open_fraction = self.evidence(T, cands.boxes_xyxy[src], pair_type, depth_m, K)
+        other = pair_type != first
+        select = fit[:, 2] * agreement - self.margin * other
+        s = self.structure
+        select[other & ((agreement < s.replace_min_agreement) | (open_fraction < s.replace_min_open_fraction))] = -np.inf
         for k in np.unique(pair_row):
             mine = np.flatnonzero(pair_row == k)
             win = mine[int(np.argmax(select[mine]))]
-            cands.assign([rows[k]], type_index=[pair_type[win]], T_cam_pallet=T[win][None], fit=fit[win][None])
+            if np.isfinite(select[win]):
+                cands.assign([rows[k]], type_index=[pair_type[win]], T_cam_pallet=T[win][None], fit=fit[win][None])
+            else:                     # no other type qualifies, and the first was not refined: the refiner stage does it
+                cands.assign([rows[k]], type_index=[first[win]])
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
                  deadline: Deadline | None = None) -> None:

@@ -143,6 +143,12 @@ class StructureParams:
         and as many colour edges (else no evidence either way: no depth, a flat scene, a constant or dark image).
     :ivar registration_colour_edge: a pair whose colour difference (sum of absolute RGB differences, 0-765) is at
         least this is a colour edge.
+    :ivar replace_min_agreement: with several pallet types, a type other than a detection's first replaces it only
+        when its refined pose's agreement is at least this (`stage_type.py`): carton stacks that no pallet type
+        explains well are otherwise given the look-alike type that explains them least badly (closed decks,
+        blocks). Chosen with `replace_min_open_fraction` on the pallet-free frames of seeds 9100 and 9200 and
+        forklift-approach frames of seed 8014 (docs/experiments/pallet-types.md); 0 turns it off.
+    :ivar replace_min_open_fraction: the same for the pose's open fraction (a pallet shows its pockets open).
     :ivar frame_size_veto: when at least this many candidates of a frame fail the metric-size test, every candidate
         of the frame -> "size_mismatch" (the depth scale or the focal length is the frame's, so wrong for all of
         them); 0 turns it off, the default.
@@ -184,6 +190,8 @@ class StructureParams:
     registration_samples: int = 16384
     registration_min_pairs: int = 50
     registration_colour_edge: int = 30
+    replace_min_agreement: float = 0.7
+    replace_min_open_fraction: float = 0.6
     frame_size_veto: int = 0
     frame_size_majority: bool = False
 
@@ -197,7 +205,8 @@ class StructureParams:
             raise ValueError(f"tol_m must be positive, got {self.tol_m}")
         for name in ("min_agreement", "min_agreement_levelled", "min_open_fraction", "min_pocket_open_fraction",
                      "min_box_cover", "min_box_solid",
-                     "min_seen_iou", "min_edge_auc", "min_box_height_of_type", "min_whole_box_height_of_type"):
+                     "min_seen_iou", "min_edge_auc", "min_box_height_of_type", "min_whole_box_height_of_type",
+                     "replace_min_agreement", "replace_min_open_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if int(self.min_evidence) < 1 or int(self.min_opening_evidence) < 1 or int(self.min_pocket_evidence) < 1:

@@ -15,6 +15,7 @@ from pallet6d.runtime.detector import Detections
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
 from pallet6d.runtime.fit import fit_score
 from pallet6d.runtime.pallet_geometry import default_refine_starts
+from pallet6d.runtime.structure import StructureParams
 from pallet6d.sim.pallets import get_pallet_model
 
 from estimator_fixtures import scene, visible_boxes
@@ -349,6 +350,39 @@ def test_type_margin_keeps_the_first_type_unless_another_fits_clearly_better(bun
             EstimatorOptions(type_margin=bad)
 
 
+@pytest.mark.parametrize("structure, expected, refined", [
+    (StructureParams(), "eur6", True),                                  # clear structure: the EUR 6 replaces it
+    (StructureParams(replace_min_agreement=1.0), "epal", False),        # not clear enough: the first type stays,
+    (StructureParams(replace_min_open_fraction=1.0, replace_min_agreement=0.0), "epal", False),   # for the refiner
+])
+def test_another_type_replaces_the_first_only_with_clear_structure(bundle_dir, structure, expected, refined):
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6"))
+    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
+    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
+        k: v for k, v in KW.items() if k not in ("threads", "structure")}, type_candidates=1, structure=structure))
+    f = _scene_of("eur6")
+    p = max(f.pallets, key=lambda p: p.visib_fract)
+    x, y, w, h = p.bbox_visib_xywh
+    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
+    box = np.array([[x, y, x + w, y + h]], float)
+    c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=est._type_options(
+        Detections(box, [0.9], [0])))
+    est.pose_network(rgb, depth_m, K, c, {})
+    c.assign([0], T_net=p.T_cam_pallet[None], T_cam_pallet=p.T_cam_pallet[None])
+    est.type_choice(c, depth_m, K, {})       # one type refined: the EUR 6, which fits far better
+    assert est.pallet_types[int(c.type_index[0])].name == expected
+    assert np.isnan(c.fit[0, 2]) != refined
+    if not refined:
+        est.refiner(c, depth_m, K, {})        # the first type, refined as if it had been the only one
+        assert np.isfinite(c.fit[0, 2]) and est.pallet_types[int(c.type_index[0])].name == "epal"
+
+
+@pytest.mark.parametrize("name", ["replace_min_agreement", "replace_min_open_fraction"])
+def test_replacement_thresholds_are_checked(name):
+    with pytest.raises(ValueError, match=name):
+        StructureParams(**{name: 1.5})
+
+
 @pytest.fixture
 def typed(bundle_dir):
     """Makes an estimator whose detector has a class per type (epal 0, eur6 1, gma 2) with the given options."""
@@ -448,7 +482,8 @@ SHIPPED = Path(__file__).resolve().parents[1] / "models" / "epal-default"
 def test_with_the_calibration_poses_stand_level_on_the_floor():
     f = _scene_of("epal")
     T_vc = f.T_vehicle_cam
-    est = PalletEstimator.from_bundle(SHIPPED, threads=1, structure=None)
+    # the scene's pallets are EPALs: the levelling snaps to the EPAL's half height
+    est = PalletEstimator.from_bundle(SHIPPED, threads=1, structure=None, pallet_types=("epal",))
     boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.5)]
     free = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes)
     level = est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
@@ -465,7 +500,7 @@ def test_with_the_calibration_poses_stand_level_on_the_floor():
         assert z == pytest.approx(0.072) if abs(nearest - 0.072) < 1e-6 else abs(z - nearest) < 0.02
     tilts = [np.degrees(np.arccos(np.clip((T_vc @ p.T_cam_pallet)[2, 2], -1, 1))) for p in free.poses]
     assert max(tilts) > 1e-3                                          # without it the estimate keeps its tilt
-    off = PalletEstimator.from_bundle(SHIPPED, threads=1, structure=None, level=None)
+    off = PalletEstimator.from_bundle(SHIPPED, threads=1, structure=None, level=None, pallet_types=("epal",))
     same = off.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
     for a, b in zip(same.poses, free.poses):
         np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet)
