@@ -327,12 +327,13 @@ def test_the_depth_picks_the_type_among_a_classes_types(bundle_dir, truth, refin
         assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.02
 
 
-@pytest.mark.parametrize("margin, expected", [(0.0, "eur6"), (0.9, "epal")])
-def test_type_margin_keeps_the_first_type_unless_another_fits_clearly_better(bundle_dir, margin, expected):
+def _eur6_at_its_pose(bundle_dir, **options):
+    """An estimator of an EPAL-first, EUR 6 bundle (one detector class) with `options`, the EUR 6 scene's most
+    visible pallet as its one candidate with the true pose as the network's, and the frame's depth and K."""
     types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6"))
     multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
     est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
-        k: v for k, v in KW.items() if k != "threads"}, type_candidates=2, type_margin=margin))
+        k: v for k, v in KW.items() if k not in ("threads", *options)}, **options))
     f = _scene_of("eur6")
     p = max(f.pallets, key=lambda p: p.visib_fract)
     x, y, w, h = p.bbox_visib_xywh
@@ -341,8 +342,13 @@ def test_type_margin_keeps_the_first_type_unless_another_fits_clearly_better(bun
     c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=est._type_options(
         Detections(box, [0.9], [0])))
     est.pose_network(rgb, depth_m, K, c, {})
-    T = p.T_cam_pallet.copy()
-    c.assign([0], T_net=T[None], T_cam_pallet=T[None])
+    c.assign([0], T_net=p.T_cam_pallet[None], T_cam_pallet=p.T_cam_pallet[None])
+    return est, c, depth_m, K
+
+
+@pytest.mark.parametrize("margin, expected", [(0.0, "eur6"), (0.9, "epal")])
+def test_type_margin_keeps_the_first_type_unless_another_fits_clearly_better(bundle_dir, margin, expected):
+    est, c, depth_m, K = _eur6_at_its_pose(bundle_dir, type_candidates=2, type_margin=margin)
     est.type_choice(c, depth_m, K, {})
     assert est.pallet_types[int(c.type_index[0])].name == expected   # an EUR 6 fits far better than an EPAL,
     for bad in (-0.1, 1.0, float("nan")):                               # but not by 0.9 of the 0-1 score
@@ -356,19 +362,7 @@ def test_type_margin_keeps_the_first_type_unless_another_fits_clearly_better(bun
     (StructureParams(replace_min_open_fraction=1.0, replace_min_agreement=0.0), "epal", False),   # for the refiner
 ])
 def test_another_type_replaces_the_first_only_with_clear_structure(bundle_dir, structure, expected, refined):
-    types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6"))
-    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
-    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
-        k: v for k, v in KW.items() if k not in ("threads", "structure")}, type_candidates=1, structure=structure))
-    f = _scene_of("eur6")
-    p = max(f.pallets, key=lambda p: p.visib_fract)
-    x, y, w, h = p.bbox_visib_xywh
-    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
-    box = np.array([[x, y, x + w, y + h]], float)
-    c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=est._type_options(
-        Detections(box, [0.9], [0])))
-    est.pose_network(rgb, depth_m, K, c, {})
-    c.assign([0], T_net=p.T_cam_pallet[None], T_cam_pallet=p.T_cam_pallet[None])
+    est, c, depth_m, K = _eur6_at_its_pose(bundle_dir, type_candidates=1, type_margin=0.0, structure=structure)
     est.type_choice(c, depth_m, K, {})       # one type refined: the EUR 6, which fits far better
     assert est.pallet_types[int(c.type_index[0])].name == expected
     assert np.isnan(c.fit[0, 2]) != refined
