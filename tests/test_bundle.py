@@ -109,10 +109,13 @@ def test_v2_round_trip_gives_the_same_dataclasses(exported, good):
     assert load_bundle(good).pallet_types == exported.manifest.pallet_types
 
 
-def test_shipped_bundle_reads_as_one_epal_type():
+def test_shipped_bundle_reads_as_every_trained_type_epal_first():
     b = load_bundle(SHIPPED)
     assert b.classes == ("pallet",)
-    (epal,) = b.pallet_types
+    epal = b.pallet_types[0]                      # a detection's first type: the type margin's common one
+    trained = b.report["provenance"]["training"]["pose"]["pallet_types"]
+    assert [t.name for t in b.pallet_types] == [trained[k] for k in sorted(trained, key=int)]
+    assert {t.class_id for t in b.pallet_types} == {0}      # one detector class; the depth picks the type
     assert epal.name == "epal" and epal.class_id == 0 and epal.points().shape == (2000, 3)
     # today's ICP starts, in today's order
     np.testing.assert_allclose(epal.start_offsets(), start_offsets(MAX_STARTS), atol=1e-12)
