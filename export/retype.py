@@ -65,6 +65,7 @@ def retype_bundle(src: str | Path, out: str | Path, names: tuple[str, ...], *, c
     class_ids = class_ids_for_types(names, tuple(det.classes), det.source == "external")
 
     manifest = json.loads((bundle.root / MANIFEST).read_text(encoding="utf-8"))
+    old_names = [t["name"] for t in manifest["pallet_types"]]
     old_points = {t["points_file"] for t in manifest["pallet_types"]}
     shutil.copytree(src, out, dirs_exist_ok=True, ignore=lambda d, fs: [
         f for f in fs if (Path(d) / f).relative_to(src).as_posix() in old_points])
@@ -77,8 +78,7 @@ def retype_bundle(src: str | Path, out: str | Path, names: tuple[str, ...], *, c
         report.setdefault("provenance", {})["pallet_types"] = {
             "command": command, "git_commit": git_commit(),
             "created": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-            "from": {"bundle": str(src), "pallet_types": [t["name"] for t in
-                                                          json.loads((src / MANIFEST).read_text())["pallet_types"]]},
+            "from": {"bundle": str(src), "pallet_types": old_names},
             "pallet_types": list(names), "trained_on": None if trained is None else list(trained)}
         (out / REPORT).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
         load_bundle(out)   # the runtime must accept what was written
