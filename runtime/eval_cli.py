@@ -80,10 +80,13 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
     if calibrated and n_calibrated < n:
         log.warning("%s: %d of %d frames have no vehicle calibration (scene_forklift.json): estimated without one",
                     data, n - n_calibrated, n)
+    names = {int(k): info.get("name") for k, info in ds.models_info.items()}
     summary = {"frames": n, "detector": "ground-truth boxes" if gt_boxes else "bundle",
                "calibrated_frames": n_calibrated,
                "seconds": round(time.perf_counter() - t0, 2), **tally.summary(),
                "true_positives": tally.true_positives, "false_positives": tally.false_positives}
+    for b in summary.get("by_object", []):
+        b["name"] = names.get(b["obj_id"])
     return {"summary": summary, "records": records_to_dicts(tally.records)}
 
 
@@ -125,7 +128,8 @@ def rescore(results: dict, data: str | Path, split: str | None = None, tol_m: fl
         g = gts[j]
         errors = {k: math.inf if r[k] is None else float(r[k]) for k in RESCORED_ERROR_KEYS}
         records.append(PalletRecord(frame=frame, distance_m=float(r["distance_m"]), visib_fract=float(g.visib_fract),
-                                    detected=bool(r["detected"]), truncated=bool(g.truncated), **errors))
+                                    detected=bool(r["detected"]), truncated=bool(g.truncated), obj_id=g.obj_id,
+                                    **errors))
     return summarize(records, results["true_positives"] - dropped_detected, results["false_positives"])
 
 
@@ -144,13 +148,14 @@ def format_table(summary: dict) -> str:
         to = "inf" if b["to_m"] is None else f"{b['to_m']:g}"
         acc = ", ".join(f"@{float(k) * 100:.0f}cm {v:.2f}" for k, v in b["add_sym_acc"].items())
         lines.append(f"  {b['from_m']:g}-{to} m: n={b['n_gt']:<4} ADD-sym {acc}")
-    for b in summary.get("by_visibility", []):
-        lines.append(f"  {b['from']:g}-{b['to']:g} visible: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, "
-                     f"5-10cm {b['add_sym_5_10cm']:.2f}, >=10cm {b['add_sym_ge_10cm']:.2f}, missed {b['missed']:.2f}")
-    for b in summary.get("by_truncation", []):
-        where = "cut by the image border" if b["truncated"] else "wholly in view"
-        lines.append(f"  {where}: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, "
-                     f"5-10cm {b['add_sym_5_10cm']:.2f}, >=10cm {b['add_sym_ge_10cm']:.2f}, missed {b['missed']:.2f}")
+    def outcome(label: str, b: dict) -> str:
+        return (f"  {label}: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, 5-10cm {b['add_sym_5_10cm']:.2f}, "
+                f">=10cm {b['add_sym_ge_10cm']:.2f}, missed {b['missed']:.2f}")
+
+    lines += [outcome(f"{b['from']:g}-{b['to']:g} visible", b) for b in summary.get("by_visibility", [])]
+    lines += [outcome("cut by the image border" if b["truncated"] else "wholly in view", b)
+              for b in summary.get("by_truncation", [])]
+    lines += [outcome(b.get("name") or f"object {b['obj_id']}", b) for b in summary.get("by_object", [])]
     return "\n".join(lines)
 
 

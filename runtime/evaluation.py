@@ -77,6 +77,7 @@ class PalletRecord:
     rot_err_sym_deg: float
     trans_err_m: float
     truncated: bool = False
+    obj_id: int | None = None     # the ground truth's model (pallet type) in the dataset
 
 
 class FrameScore(NamedTuple):
@@ -221,7 +222,7 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
                         trans_err_m=metrics.translation_error_m(t, t_gt))
         records.append(PalletRecord(frame=frame, distance_m=float(np.linalg.norm(t_gt)),
                                     visib_fract=float(g.visib_fract), detected=j in matched_est,
-                                    truncated=bool(g.truncated), **errs))
+                                    truncated=bool(g.truncated), obj_id=g.obj_id, **errs))
     return FrameScore(records, tp, fp)
 
 
@@ -284,7 +285,8 @@ def summarize(records: Iterable[PalletRecord], true_positives: int, false_positi
     (keys are the thresholds in metres as strings, e.g. "0.05"), AUC to 10 cm, accuracy by distance, and by
     visible fraction where the failures are: missed (no pose reported), symmetric ADD >= 10 cm, 5-10 cm, < 5 cm
     (fractions of that bin's pallets; the last bin includes its upper edge), and the same split for pallets
-    wholly in view and pallets cut by the image border (`by_truncation`)."""
+    wholly in view and pallets cut by the image border (`by_truncation`), and per dataset model (`by_object`, when the
+    pallets are of more than one: several pallet types)."""
     records = list(records)
     n_gt = len(records)
     n_pred = true_positives + false_positives
@@ -332,6 +334,9 @@ def summarize(records: Iterable[PalletRecord], true_positives: int, false_positi
     truncated = np.array([r.truncated for r in records], dtype=bool)
     out["by_truncation"] = [{"truncated": bool(t), **outcome(truncated == t)} for t in (False, True)
                             if (truncated == t).any()]
+    obj = np.array([-1 if r.obj_id is None else r.obj_id for r in records], int)
+    if len(set(obj.tolist())) > 1:
+        out["by_object"] = [{"obj_id": int(k), **outcome(obj == k)} for k in sorted(set(obj.tolist()))]
     return out
 
 

@@ -79,6 +79,19 @@ def test_outcomes_in_view_and_cut_by_the_image_border():
          "add_sym_lt_5cm": 1.0}]   # a group without pallets is left out
 
 
+def test_outcomes_per_pallet_type_when_there_are_several():
+    def typed(x, box, obj_id):
+        return GroundTruth(make_T(np.eye(3), [x, 0, 3.0]), np.array(box, float), 1.0, obj_id=obj_id)
+
+    gts = [typed(0.0, [0, 0, 100, 50], 1), typed(2.0, [200, 0, 300, 50], 10), typed(4.0, [400, 0, 500, 50], 10)]
+    records, tp, fp = evaluate_frame(0, [est(0.01, [0, 0, 100, 50]), est(2.0, [200, 0, 300, 50])], gts, PTS, SYMS)
+    assert [r.obj_id for r in records] == [1, 10, 10] and records_to_dicts(records)[1]["obj_id"] == 10
+    one, ten = summarize(records, tp, fp)["by_object"]
+    assert (one["obj_id"], one["n_gt"], one["add_sym_lt_5cm"]) == (1, 1, 1.0)
+    assert (ten["obj_id"], ten["n_gt"], ten["add_sym_lt_5cm"], ten["missed"]) == (10, 2, 0.5, 0.5)
+    assert "by_object" not in summarize(records[1:], 1, 0)      # one type: nothing to split
+
+
 @pytest.mark.parametrize("bbox_obj, image_hw, truncated", [
     ([10, 10, 50, 20], (100, 200), False),
     ([150, 10, 50, 20], (100, 200), False),   # touches the right edge: still in view
