@@ -33,12 +33,8 @@ log = logging.getLogger(__name__)
 
 def _trained_types(report: dict) -> tuple[str, ...] | None:
     """The pallet types the bundle's pose stage was trained on, from its provenance; None when it records none."""
-    training = (report.get("provenance") or {}).get("training")
-    if not isinstance(training, dict) or not isinstance(training.get("pose"), dict):
-        return None
-    if training["pose"].get("pallet_types") is None:
-        return None
-    return trained_pallet_types(training, "")
+    names = trained_pallet_types((report.get("provenance") or {}).get("training"), "")
+    return None if names == ("",) else names
 
 
 def retype_bundle(src: str | Path, out: str | Path, names: tuple[str, ...], *, command: str = "",
