@@ -1,7 +1,7 @@
 /* The runtime's per-point loops, compiled: robust point-to-plane ICP of observed points onto a union of
    axis-aligned boxes (pallet6d_icp), the fit scores of posed models against the depth (pallet6d_fit), the
-   registration test's pair counts (pallet6d_registration_counts) and the viewing rays' hits and scores of posed
-   pallets (pallet6d_ray_hits, pallet6d_ray_scores).
+   registration test's pair counts (pallet6d_registration_counts), the viewing rays' hits and scores of posed
+   pallets (pallet6d_ray_hits, pallet6d_ray_scores) and the structure check's rays (pallet6d_cast_rays).
 
    ICP is the same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
    per step, every observed point near the model's bounding box is matched with the closest point on the
@@ -20,7 +20,7 @@
 
 /* The functions' signatures as kernels.py declares them: a library built from another version of this file (a
    stale in-place build) is refused there instead of being called with the wrong arguments. */
-#define PALLET6D_KERNELS_ABI 2
+#define PALLET6D_KERNELS_ABI 3
 int pallet6d_kernels_abi(void) { return PALLET6D_KERNELS_ABI; }
 
 /* max / min as comparisons: fmaxf / fminf are library calls unless NaN semantics are given up (the points and
@@ -651,6 +651,43 @@ int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, 
         const int64_t n = n_pts[i] < N ? n_pts[i] : N;
         for (int64_t j = 0; j < n; j++)
             s_out[i * N + j] = first_hit(R_pc, o, pts + 3 * (i * N + j), blo, bhi, boxes, k, order, dist);
+    }
+    return 0;
+}
+
+/* The structure check's rays (structure.cast_rays_boxes is the specification), for P poses that may each have
+   their own pallet type: ray j of pose i is origin[i] + s dirs[i, j] (pallet frame), s > 0. t_box[i * R + j] = s of
+   its first hit with the pose's boxes (boxes[box_start[i] : box_start[i] + box_count[i]], min / max corners),
+   INFINITY when none; t_bbox[i * R + j] = s where it enters their bounding box (0 when it starts inside), INFINITY
+   when it misses it. Double arithmetic, as numpy's. Returns 0, or 1 (nothing written) when a pose has no box or
+   more than MAX_BOXES. */
+int pallet6d_cast_rays(int64_t P, int64_t R, const double *origin, const double *dirs, const int64_t *box_start,
+                       const int64_t *box_count, const double *boxes, double *t_box, double *t_bbox) {
+    for (int64_t i = 0; i < P; i++)
+        if (box_count[i] < 1 || box_count[i] > MAX_BOXES) return 1;
+    double dist[MAX_BOXES];
+    int64_t order[MAX_BOXES];
+    for (int64_t i = 0; i < P; i++) {
+        const double *b = boxes + 6 * box_start[i], *o = origin + 3 * i;
+        const int64_t k = box_count[i];
+        double blo[3], bhi[3];
+        boxes_bounds(b, k, blo, bhi);
+        order_boxes(o, b, k, order, dist);
+        for (int64_t j = 0; j < R; j++) {
+            const double *d = dirs + 3 * (i * R + j);
+            double inv[3], e, s = INFINITY, d2 = 0.0;
+            for (int r = 0; r < 3; r++) {
+                inv[r] = fabs(d[r]) > 1e-12 ? 1.0 / d[r] : 1e12;
+                d2 += d[r] * d[r];
+            }
+            t_bbox[i * R + j] = ray_box(o, inv, blo, bhi, &e) ? e : INFINITY;
+            if (isfinite(t_bbox[i * R + j])) {
+                const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;   /* as first_hit */
+                for (int64_t q = 0; q < k && dist[q] <= s * reach; q++)
+                    if (ray_box(o, inv, b + 6 * order[q], b + 6 * order[q] + 3, &e) && e < s) s = e;
+            }
+            t_box[i * R + j] = s;
+        }
     }
     return 0;
 }

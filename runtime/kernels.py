@@ -1,6 +1,6 @@
 """The runtime's compiled kernels (`kernels.c`): refinement's point-to-plane ICP (`icp`), the fit scores (`fit`),
-the levelled refinement's ray hits and scores (`ray_hits`, `ray_scores`) and the registration test's pair counts
-(`registration_counts`), the per-point loops that numpy runs as thousands of small calls a frame.
+the levelled refinement's ray hits and scores (`ray_hits`, `ray_scores`), the structure check's rays (`cast_rays`)
+and the registration test's pair counts (`registration_counts`), the per-point loops that numpy runs as thousands of small calls a frame.
 
 The package builds them as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
 a library of a few tens of kB, loaded in well under a millisecond. Where no C compiler was at hand when the
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "box_grid", "BoxGrid", "fit", "icp", "library_path", "MAX_BOXES", "ray_hits", "ray_scores",
+__all__ = ["available", "box_grid", "BoxGrid", "cast_rays", "fit", "icp", "library_path", "MAX_BOXES", "ray_hits", "ray_scores",
            "registration_counts"]
 
 log = logging.getLogger(__name__)
@@ -31,7 +31,7 @@ _u8 = np.ctypeslib.ndpointer(np.uint8, flags="C_CONTIGUOUS")
 _ptr = ctypes.c_void_p
 _i = ctypes.c_int64
 _d = ctypes.c_double
-ABI = 2                              # kernels.c's PALLET6D_KERNELS_ABI: the signatures below
+ABI = 3                              # kernels.c's PALLET6D_KERNELS_ABI: the signatures below
 
 
 def library_path() -> str | None:
@@ -53,6 +53,7 @@ _ARGTYPES = {
                                      _i64],
     "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _i, _i, _f64],
     "pallet6d_ray_hits": [_i, _f64, _i, _f64, _i64, _i, _f64, _f64],
+    "pallet6d_cast_rays": [_i, _i, _f64, _f64, _i64, _i64, _f64, _f64, _f64],
 }
 
 
@@ -262,6 +263,36 @@ def ray_hits(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, b
     out = np.full(pts.shape[:2], np.inf)
     fn(len(T), T, pts.shape[1], pts, n, len(boxes), boxes, out)
     return out
+
+
+def cast_rays(origin: np.ndarray, dirs: np.ndarray, boxes_m: tuple[np.ndarray, ...] | list[np.ndarray],
+              which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`structure.cast_rays_boxes` for poses that may each have their own boxes (`pallet6d_cast_rays` in kernels.c).
+
+    :param origin: (P, 3) ray origins in each pose's pallet frame. :param dirs: (P, R, 3) ray directions.
+    :param boxes_m: per pallet type, its (k, 2, 3) min / max corners. :param which: (P,) each pose's entry of `boxes_m`.
+    :return: (P, R) parameter of the first box hit (inf when none), (P, R) where the ray enters the boxes' bounding
+        box (inf when it misses it).
+    """
+    fn = _function("pallet6d_cast_rays")
+    c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
+    o, d = c64(origin).reshape(-1, 3), c64(dirs)
+    if d.ndim != 3 or d.shape[0] != len(o) or d.shape[2] != 3:
+        raise ValueError(f"dirs must be ({len(o)}, R, 3), got shape {d.shape}")
+    sets = [c64(b).reshape(-1, 2, 3) for b in boxes_m]
+    for b in sets:
+        _check_boxes(b)
+    count = np.array([len(b) for b in sets], dtype=np.int64)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
+    which = np.asarray(which, dtype=np.int64).reshape(len(o))
+    if len(which) and (which.min() < 0 or which.max() >= len(sets)):
+        raise ValueError(f"which must index the {len(sets)} box sets, got {which.min()}..{which.max()}")
+    boxes = c64(np.concatenate(sets) if sets else np.zeros((0, 2, 3)))
+    t_box, t_bbox = np.empty(d.shape[:2]), np.empty(d.shape[:2])
+    if fn(len(o), d.shape[1], o, d, np.ascontiguousarray(start[which]), np.ascontiguousarray(count[which]), boxes,
+          t_box, t_bbox) != 0:
+        raise ValueError("cast_rays: every box set must hold 1 to MAX_BOXES boxes")
+    return t_box, t_bbox
 
 
 def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarray, window_m: float,

@@ -23,8 +23,9 @@ structure at its refined pose (`StructureParams.replace_min_agreement`, `replace
 that no type explains is otherwise given the look-alike that explains it least badly. Where no kept type qualifies,
 the candidate keeps its first type, and the refiner stage refines it.
 
-Cost: a fit score per type, a structure check for four of them, and one refinement and structure check per kept
-type, instead of one refinement per candidate.
+Cost: a fit score per type, the structure agreement of four of them, and one refinement and structure agreement per
+kept type, instead of one refinement per candidate; the agreements of all candidates and types go in one pass
+(`structure.structure_agreement`, its rays in the compiled kernel).
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ from .deadline import Deadline, elapsed_ms
 from .fit import fit_scores
 from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
-from .structure import StructureParams, structure_check
+from .structure import StructureParams, structure_agreement
 
 __all__ = ["TypeChoiceStage", "RANK_BY_FIT"]
 
@@ -66,6 +67,10 @@ class TypeChoiceStage:
         self.tol_m, self.keep = float(tol_m), int(keep)
         self.structure = structure
         self.margin = float(margin)
+        # the types with boards, as `structure_agreement`'s box sets; _box_set: type -> its set (-1: none)
+        self._box_sets = [g.boxes_m for g in self.geometries if g.boxes_m is not None]
+        self._box_set = np.cumsum([g.boxes_m is not None for g in self.geometries]) - 1
+        self._box_set[[g.boxes_m is None for g in self.geometries]] = -1
 
     @property
     def needed(self) -> bool:
@@ -96,24 +101,21 @@ class TypeChoiceStage:
         scored &= np.isfinite(fit)
         k, j = np.nonzero(scored)
         score = np.full_like(fit, -np.inf)
-        score[k, j] = fit[k, j] * self.evidence(cands.T_net[rows[k]], cands.boxes_xyxy[rows[k]], j, depth_m, K)[0] \
+        score[k, j] = fit[k, j] * self.evidence(cands.T_net[rows[k]], j, depth_m, K)[0] \
             - self.margin * (j != first[k])
         return score
 
-    def evidence(self, T: np.ndarray, boxes_xyxy: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
-                 K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def evidence(self, T: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray, K: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
         """The structure check's agreement of each pose with its own type's boards and openings (rays that find
-        a board where the type has one, or see into an opening where it has one), and its open fraction (1 for a
-        type without boards). :return: (n,), (n,)."""
+        a board where the type has one, or see into an opening where it has one), and its open fraction (1, 1 for a
+        type without boards): every pose in one pass (`structure.structure_agreement`). :return: (n,), (n,)."""
         agreement, open_fraction = np.ones(len(T)), np.ones(len(T))
-        for j in np.unique(type_index):
-            g = self.geometries[int(j)]
-            if g.boxes_m is None:
-                continue
-            mine = np.flatnonzero(type_index == j)
-            scores = structure_check(T[mine], g.boxes_m, depth_m, K, boxes_xyxy[mine], self.structure)
-            agreement[mine] = [sc.agreement for sc in scores]
-            open_fraction[mine] = [sc.open_fraction for sc in scores]
+        which = self._box_set[np.asarray(type_index, np.int64)]
+        boxed = np.flatnonzero(which >= 0)
+        if len(boxed):
+            agreement[boxed], open_fraction[boxed] = structure_agreement(T[boxed], self._box_sets, which[boxed],
+                                                                         depth_m, K, self.structure)
         return agreement, open_fraction
 
     def choose(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
@@ -137,7 +139,7 @@ class TypeChoiceStage:
         T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
                                      pair_type, depth_m, K)
         first = np.array([cands.type_options[i][0] for i in src])
-        agreement, open_fraction = self.evidence(T, cands.boxes_xyxy[src], pair_type, depth_m, K)
+        agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
         other = pair_type != first
         select = fit[:, 2] * agreement - self.margin * other
         s = self.structure

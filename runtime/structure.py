@@ -1,4 +1,5 @@
-"""Pallet structure check: does the depth show a pallet of this type where the pose puts it? (numpy only)
+"""Pallet structure check: does the depth show a pallet of this type where the pose puts it? (numpy; the rays in
+the compiled kernel where it is built)
 
 The fit score (`fit.py`) asks whether the observed points lie on the posed model's surface. A pallet's face is
 mostly a plane, so a wall, a carton face or the floor can pass it. This check looks for what only a pallet shows,
@@ -47,10 +48,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import kernels
 from .geometry import check_K
 from .registration import RegistrationScore, registration_score
 
-__all__ = ["StructureParams", "StructureScore", "structure_check", "cast_rays_boxes", "box_metric_size",
+__all__ = ["StructureParams", "StructureScore", "structure_check", "structure_agreement", "cast_rays_boxes",
+           "box_metric_size",
            "edge_agreement", "frame_registration", "frame_size_rule"]
 
 _BIG = 1e12
@@ -363,10 +366,11 @@ def pocket_open_fractions(origin: np.ndarray, dirs: np.ndarray, t_bbox: np.ndarr
     return np.where(best >= 0, best, np.nan)
 
 
-def _projected_boxes(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(n, 4) xyxy image box of the posed boxes' bounding-box corners (corners behind the camera dropped)."""
-    lo, hi = boxes_m[:, 0].min(0), boxes_m[:, 1].max(0)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+def _projected_bounds(T_cam_pallet: np.ndarray, lo: np.ndarray, hi: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(n, 4) xyxy image box of each pose's model bounding box lo..hi ((n, 3) each; corners behind the camera
+    dropped)."""
+    pick = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], bool)       # (8, 3): hi where True
+    corners = np.where(pick[None], hi[:, None, :], lo[:, None, :])                          # (n, 8, 3)
     pc = corners @ T_cam_pallet[:, :3, :3].transpose(0, 2, 1) + T_cam_pallet[:, None, :3, 3]   # (n, 8, 3)
     z = pc[..., 2]
     front = z > 1e-3
@@ -376,6 +380,142 @@ def _projected_boxes(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, K: np.ndarra
     with np.errstate(invalid="ignore"):
         out = np.stack([np.nanmin(u, 1), np.nanmin(v, 1), np.nanmax(u, 1), np.nanmax(v, 1)], 1)
     return out
+
+
+@dataclass(frozen=True)
+class _Rays:
+    """The grid of rays over each posed model's projected bounding box, and what the depth shows along them.
+
+    proj (n, 4) the projected box, valid_proj (n,) whether it is in the image; u, v (n, R) the rays' pixel
+    positions, ui, vi (n, R) the pixels read; z_obs (n, R) their depth; origin (n, 3) and dirs (n, R, 3) the rays
+    in the pallet frame (parameter = camera depth); t_box, t_bbox (n, R) where they hit a box / enter the bounding
+    box; the ray classes (n, R) bool: solid, see_through, opened, closed, mouth_open, mouth_closed.
+    """
+
+    proj: np.ndarray
+    valid_proj: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    ui: np.ndarray
+    vi: np.ndarray
+    z_obs: np.ndarray
+    origin: np.ndarray
+    dirs: np.ndarray
+    t_box: np.ndarray
+    t_bbox: np.ndarray
+    solid: np.ndarray
+    see_through: np.ndarray
+    opened: np.ndarray
+    closed: np.ndarray
+    mouth_open: np.ndarray
+    mouth_closed: np.ndarray
+
+    def agreement(self) -> tuple[np.ndarray, np.ndarray]:
+        """(n,) agreement: (solid + open) / (solid + see-through + open + closed), 0 without evidence; (n,) open
+        fraction of the openings and mouths judged, 1 when none is."""
+        s, st, op, cl, mo, mc = (m.sum(1) for m in (self.solid, self.see_through, self.opened, self.closed,
+                                                     self.mouth_open, self.mouth_closed))
+        evidence, judged = s + st + op + cl, op + cl + mo + mc
+        agreement = np.where(evidence > 0, (s + op) / np.maximum(evidence, 1), 0.0)
+        open_fraction = np.where(judged > 0, (op + mo) / np.maximum(judged, 1), 1.0)
+        return agreement, open_fraction
+
+
+def _cast(origin: np.ndarray, dirs: np.ndarray, box_sets: list[np.ndarray], which: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """`cast_rays_boxes` of poses each with the boxes `box_sets[which[i]]`: in the compiled kernel where it is
+    built, else in numpy one box set at a time (the same values)."""
+    if kernels.available() and all(len(b) <= kernels.MAX_BOXES for b in box_sets):
+        return kernels.cast_rays(origin, dirs, box_sets, which)
+    t_box, t_bbox = np.empty(dirs.shape[:2]), np.empty(dirs.shape[:2])
+    for j in np.unique(which):
+        mine = which == j
+        t_box[mine], t_bbox[mine] = cast_rays_boxes(origin[mine], dirs[mine], box_sets[int(j)])
+    return t_box, t_bbox
+
+
+def _cast_grid(T: np.ndarray, box_sets: list[np.ndarray], which: np.ndarray, depth: np.ndarray, K: np.ndarray,
+               params: StructureParams) -> _Rays:
+    """The structure check's rays for poses T (n, 4, 4), pose i with the boxes `box_sets[which[i]]`, and their
+    classes (the module's docstring)."""
+    h, w = depth.shape
+    n = len(T)
+    lo = np.stack([b[:, 0].min(0) for b in box_sets])[which]                   # (n, 3)
+    hi = np.stack([b[:, 1].max(0) for b in box_sets])[which]
+    proj = _projected_bounds(T, lo, hi, K)
+    clip = np.stack([np.clip(proj[:, 0], 0, w - 1), np.clip(proj[:, 1], 0, h - 1),
+                     np.clip(proj[:, 2], 0, w - 1), np.clip(proj[:, 3], 0, h - 1)], 1)
+    valid_proj = np.all(np.isfinite(proj), 1) & (clip[:, 2] > clip[:, 0]) & (clip[:, 3] > clip[:, 1])
+    clip = np.where(valid_proj[:, None], clip, 0.0)
+
+    # a grid of pixel centres over each projected box (clipped to the image)
+    g = (np.arange(params.grid) + 0.5) / params.grid
+    gu = clip[:, 0:1] + g[None] * (clip[:, 2:3] - clip[:, 0:1])                 # (n, G)
+    gv = clip[:, 1:2] + g[None] * (clip[:, 3:4] - clip[:, 1:2])
+    u = np.repeat(gu[:, None, :], params.grid, 1).reshape(n, -1)                # (n, G*G)
+    v = np.repeat(gv[:, :, None], params.grid, 2).reshape(n, -1)
+    ui = np.clip(np.round(u).astype(np.int64), 0, w - 1)
+    vi = np.clip(np.round(v).astype(np.int64), 0, h - 1)
+    z_obs = depth[vi, ui].astype(np.float64)                                    # (n, R)
+
+    # rays in the pallet frame, scaled so the parameter is the camera depth
+    # through the centres of the pixels whose depth is read
+    d_cam = np.stack([(ui - K[0, 2]) / K[0, 0], (vi - K[1, 2]) / K[1, 1], np.ones(ui.shape)], -1)
+    R = T[:, :3, :3]
+    dirs = d_cam @ R                                    # R^T d for each ray: (n, R, 3)
+    origin = -np.einsum("nji,nj->ni", R, T[:, :3, 3])   # camera centre in the pallet frame
+    t_box, t_bbox = _cast(origin, dirs, box_sets, which)
+
+    known = z_obs > 0
+    z_ref = np.where(np.isfinite(t_box), t_box, t_bbox)
+    tol = params.tol_m + params.tol_quad_per_m * np.where(np.isfinite(z_ref), z_ref, 0.0) ** 2
+    hit = np.isfinite(t_box) & known
+    gap = ~np.isfinite(t_box) & np.isfinite(t_bbox) & known
+    # entered through an opening, a board or block deeper in: the ray judges the opening's mouth (seen from a little
+    # below or aside, a pocket's rays meet the blocks and bottom boards inside; a carton face where the pallet's front
+    # should be closes every mouth)
+    mouth = hit & (t_box > t_bbox + 2 * tol)
+    return _Rays(proj, valid_proj, u, v, ui, vi, z_obs, origin, dirs, t_box, t_bbox,
+                 solid=hit & (np.abs(z_obs - t_box) <= tol), see_through=hit & (z_obs > t_box + tol),
+                 opened=gap & (z_obs > t_bbox + tol), closed=gap & (np.abs(z_obs - t_bbox) <= tol),
+                 mouth_open=mouth & (z_obs > t_bbox + tol), mouth_closed=mouth & (np.abs(z_obs - t_bbox) <= tol))
+
+
+def _check_box_set(boxes_m: np.ndarray, name: str = "boxes_m") -> np.ndarray:
+    boxes = np.asarray(boxes_m, dtype=np.float64)
+    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0 or not np.all(np.isfinite(boxes)):
+        raise ValueError(f"{name} must be a finite (k, 2, 3) array with k >= 1, got shape {boxes.shape}")
+    return boxes
+
+
+def structure_agreement(T_cam_pallet: np.ndarray, box_sets: list[np.ndarray] | tuple[np.ndarray, ...],
+                        which: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                        params: StructureParams = StructureParams()) -> tuple[np.ndarray, np.ndarray]:
+    """The structure check's agreement and open fraction (`StructureScore.agreement`, `.open_fraction`) of poses of
+    several pallet types in one pass, without its other tests: what the type choice compares.
+
+    :param T_cam_pallet: (n, 4, 4) poses, metres. :param box_sets: per pallet type, its (k, 2, 3) boards and blocks,
+        pallet frame, metres. :param which: (n,) each pose's type (an index into `box_sets`).
+    :param depth_m: (H, W) float metres, 0 = no data. :param K: 3x3 intrinsics. :param params: the ray grid and
+        tolerances.
+    :return: (n,) agreement, (n,) open fraction: the values `structure_check` gives each pose with its type's boxes.
+    """
+    K = check_K(K)
+    T = np.asarray(T_cam_pallet, dtype=np.float64).reshape(-1, 4, 4)
+    sets = [_check_box_set(b, f"box_sets[{i}]") for i, b in enumerate(box_sets)]
+    which = np.asarray(which, dtype=np.int64).reshape(-1)
+    if len(which) != len(T):
+        raise ValueError(f"{len(T)} poses but {len(which)} type indexes")
+    if len(T) and (which.min() < 0 or which.max() >= len(sets)):
+        raise ValueError(f"which must index the {len(sets)} box sets, got {which.min()}..{which.max()}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError("T_cam_pallet must be finite")
+    depth = np.asarray(depth_m, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got shape {depth.shape}")
+    if len(T) == 0:
+        return np.zeros(0), np.zeros(0)
+    return _cast_grid(T, sets, which, depth, K, params).agreement()
 
 
 def box_metric_size(boxes_xyxy: np.ndarray, depth_m: np.ndarray, K: np.ndarray, samples: int = 16) -> np.ndarray:
@@ -455,9 +595,7 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     """
     K = check_K(K)
     T = np.asarray(T_cam_pallet, dtype=np.float64).reshape(-1, 4, 4)
-    boxes = np.asarray(boxes_m, dtype=np.float64)
-    if boxes.ndim != 3 or boxes.shape[1:] != (2, 3) or len(boxes) == 0 or not np.all(np.isfinite(boxes)):
-        raise ValueError(f"boxes_m must be a finite (k, 2, 3) array with k >= 1, got shape {boxes.shape}")
+    boxes = _check_box_set(boxes_m)
     depth = np.asarray(depth_m, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth_m must be (H, W), got shape {depth.shape}")
@@ -470,47 +608,13 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         raise ValueError(f"rgb must be (H, W, 3) like depth_m {depth.shape}, got shape {np.shape(rgb)}")
     if len(T) == 0:
         return []
-    h, w = depth.shape
+    h = depth.shape[0]
 
-    proj = _projected_boxes(T, boxes, K)
-    clip = np.stack([np.clip(proj[:, 0], 0, w - 1), np.clip(proj[:, 1], 0, h - 1),
-                     np.clip(proj[:, 2], 0, w - 1), np.clip(proj[:, 3], 0, h - 1)], 1)
-    valid_proj = np.all(np.isfinite(proj), 1) & (clip[:, 2] > clip[:, 0]) & (clip[:, 3] > clip[:, 1])
-    clip = np.where(valid_proj[:, None], clip, 0.0)
-
-    # a grid of pixel centres over each projected box (clipped to the image)
-    g = (np.arange(params.grid) + 0.5) / params.grid
-    gu = clip[:, 0:1] + g[None] * (clip[:, 2:3] - clip[:, 0:1])                 # (n, G)
-    gv = clip[:, 1:2] + g[None] * (clip[:, 3:4] - clip[:, 1:2])
-    u = np.repeat(gu[:, None, :], params.grid, 1).reshape(len(T), -1)           # (n, G*G)
-    v = np.repeat(gv[:, :, None], params.grid, 2).reshape(len(T), -1)
-    ui = np.clip(np.round(u).astype(np.int64), 0, w - 1)
-    vi = np.clip(np.round(v).astype(np.int64), 0, h - 1)
-    z_obs = depth[vi, ui].astype(np.float64)                                    # (n, R)
-
-    # rays in the pallet frame, scaled so the parameter is the camera depth
-    # through the centres of the pixels whose depth is read
-    d_cam = np.stack([(ui - K[0, 2]) / K[0, 0], (vi - K[1, 2]) / K[1, 1], np.ones(ui.shape)], -1)
-    R = T[:, :3, :3]
-    dirs = d_cam @ R                                    # R^T d for each ray: (n, R, 3)
-    origin = -np.einsum("nji,nj->ni", R, T[:, :3, 3])   # camera centre in the pallet frame
-    t_box, t_bbox = cast_rays_boxes(origin, dirs, boxes)
-
-    known = z_obs > 0
-    z_ref = np.where(np.isfinite(t_box), t_box, t_bbox)
-    tol = params.tol_m + params.tol_quad_per_m * np.where(np.isfinite(z_ref), z_ref, 0.0) ** 2
-    hit = np.isfinite(t_box) & known
-    gap = ~np.isfinite(t_box) & np.isfinite(t_bbox) & known
-    solid = hit & (np.abs(z_obs - t_box) <= tol)
-    see_through = hit & (z_obs > t_box + tol)
-    opened = gap & (z_obs > t_bbox + tol)
-    closed = gap & (np.abs(z_obs - t_bbox) <= tol)
-    # entered through an opening, a board or block deeper in: the ray judges the opening's mouth (seen from a little
-    # below or aside, a pocket's rays meet the blocks and bottom boards inside; a carton face where the pallet's front
-    # should be closes every mouth)
-    mouth = hit & (t_box > t_bbox + 2 * tol)
-    mouth_open = mouth & (z_obs > t_bbox + tol)
-    mouth_closed = mouth & (np.abs(z_obs - t_bbox) <= tol)
+    rays = _cast_grid(T, [boxes], np.zeros(len(T), np.int64), depth, K, params)
+    proj, valid_proj, u, v, ui, vi, z_obs = rays.proj, rays.valid_proj, rays.u, rays.v, rays.ui, rays.vi, rays.z_obs
+    origin, dirs, t_bbox, R = rays.origin, rays.dirs, rays.t_bbox, T[:, :3, :3]
+    solid, see_through, opened, closed = rays.solid, rays.see_through, rays.opened, rays.closed
+    mouth_open, mouth_closed = rays.mouth_open, rays.mouth_closed
 
     pocket_open = pocket_open_fractions(origin, dirs, t_bbox, boxes, opened | mouth_open, closed | mouth_closed,
                                         int(params.min_pocket_evidence))

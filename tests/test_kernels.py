@@ -462,3 +462,33 @@ def test_ray_hits_and_the_move_along_the_rays_in_the_kernel_equal_numpy():
         numpy = _along_rays(T, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor, compiled=False)
         np.testing.assert_allclose(kernel, numpy, rtol=0, atol=1e-12)
     assert not np.allclose(kernel[1], T[1])                                       # the noisy pose did move
+
+
+@needs_kernel
+def test_the_structure_checks_rays_in_the_kernel_equal_numpy():
+    """`cast_rays` gives `cast_rays_boxes`' values exactly, for poses each with its own boxes: random overlapping
+    boxes, rays from outside and from inside a box, rays along the axes (zero components), rays that miss."""
+    from pallet6d.runtime.structure import cast_rays_boxes
+
+    rng = np.random.default_rng(21)
+    sets = []
+    for k in (1, 7, 40):
+        lo = rng.uniform(-1.0, 1.0, (k, 3))
+        sets.append(np.stack([lo, lo + rng.uniform(0.01, 0.6, (k, 3))], axis=1))
+    which = np.array([2, 0, 1, 2, 1])
+    origin = np.stack([[0.0, 0.0, -4.0], [3.0, 0.5, 0.2], [0.1, -3.0, 0.0], sets[2][0].mean(0), [0.0, 0.0, 5.0]])
+    dirs = rng.uniform(-1.0, 1.0, (5, 300, 3)) - origin[:, None] * 0.25
+    dirs[:, :30] = np.eye(3)[rng.integers(0, 3, (5, 30))] * rng.choice([-1.0, 1.0], (5, 30, 1))   # along an axis
+    t_box, t_bbox = kernels.cast_rays(origin, dirs, sets, which)
+    for i, j in enumerate(which):
+        want_box, want_bbox = cast_rays_boxes(origin[i:i + 1], dirs[i:i + 1], sets[j])
+        np.testing.assert_array_equal(t_box[i], want_box[0])
+        np.testing.assert_array_equal(t_bbox[i], want_bbox[0])
+    assert np.isinf(t_box).any() and np.isfinite(t_box).any() and np.all(t_box[3] == 0.0)   # pose 3 starts inside
+    assert np.all((t_bbox <= t_box) | np.isinf(t_box))
+    with pytest.raises(ValueError, match="at most"):
+        kernels.cast_rays(origin, dirs, [np.zeros((kernels.MAX_BOXES + 1, 2, 3))], np.zeros(5, int))
+    with pytest.raises(ValueError, match="which"):
+        kernels.cast_rays(origin, dirs, sets, which + 1)
+    with pytest.raises(ValueError, match="dirs"):
+        kernels.cast_rays(origin, dirs[:4], sets, which)

@@ -4,7 +4,7 @@ import pytest
 
 from pallet6d.runtime.geometry import make_T, quat_to_rot
 from pallet6d.runtime.structure import (StructureParams, box_metric_size, cast_rays_boxes, edge_agreement,
-                                        structure_check)
+                                        structure_agreement, structure_check)
 from pallet6d.sim.pallets import get_pallet_model
 
 EPAL = get_pallet_model("epal")
@@ -378,3 +378,41 @@ def test_fit_check_stage_names_the_whole_box_height_in_its_rejection():
     stage.check_structure(wrong, np.arange(1), depth, K_focal)
     assert right.reason[0] == "", right.detail[0]          # the eur6 at its true pose passes
     assert wrong.reason[0] == "size_mismatch" and "tall at the pallet's depth" in wrong.detail[0], wrong.detail[0]
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_structure_agreement_of_several_types_equals_the_structure_check(monkeypatch, compiled):
+    """Poses of several types in one pass give each pose the agreement and open fraction that `structure_check`
+    gives it with its own type's boxes, with the rays in the kernel or in numpy."""
+    from pallet6d.runtime import kernels
+
+    if not compiled:
+        monkeypatch.setattr(kernels, "available", lambda: False)
+    elif not kernels.available():
+        pytest.skip("the compiled kernels are not built here")
+    names = ["epal", "plastic_closed", "gma"]
+    sets = [get_pallet_model(n).boxes_m for n in names]
+    T = np.stack([T_TRUE, make_T(R_CAM_PALLET, np.array([0.2, 0.45, 3.0])), T_TRUE, make_T(_rot_x(20) @ R_CAM_PALLET,
+                  np.array([0.1, 0.4, 3.2])), T_TRUE])
+    which = np.array([0, 0, 1, 2, 2])
+    agreement, open_fraction = structure_agreement(T, sets, which, DEPTH, K)
+    for i, j in enumerate(which):
+        s = structure_check(T[i:i + 1], sets[j], DEPTH, K, BOX)[0]
+        assert agreement[i] == s.agreement and open_fraction[i] == s.open_fraction, (i, s)
+    assert agreement[0] > 0.9 and agreement[2] < agreement[0]           # the EPAL's depth agrees with the EPAL best
+    empty = structure_agreement(np.zeros((0, 4, 4)), sets, np.zeros(0, int), DEPTH, K)
+    assert empty[0].shape == empty[1].shape == (0,)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"which": np.array([3])}, "which"),
+    ({"which": np.array([0, 0])}, "type indexes"),
+    ({"box_sets": [np.zeros((0, 2, 3))]}, "box_sets"),
+    ({"depth_m": DEPTH[0]}, "depth_m"),
+    ({"T_cam_pallet": np.full((1, 4, 4), np.nan)}, "finite"),
+])
+def test_structure_agreement_bad_input(kwargs, match):
+    args = {"T_cam_pallet": T_TRUE[None], "box_sets": [EPAL.boxes_m], "which": np.array([0]), "depth_m": DEPTH,
+            "K": K} | kwargs
+    with pytest.raises(ValueError, match=match):
+        structure_agreement(**args)
