@@ -28,6 +28,14 @@ int pallet6d_kernels_abi(void) { return PALLET6D_KERNELS_ABI; }
 static inline float maxf(float a, float b) { return a > b ? a : b; }
 static inline float minf(float a, float b) { return a < b ? a : b; }
 
+/* x rounded to the nearest integer, ties to even (numpy's round, nearbyint in the default rounding mode) for
+   |x| < 2^51, without a library call: adding and taking away 1.5 * 2^52 leaves no fraction bits. Larger values
+   (and inf, NaN) come out beyond any image and are dropped by the callers' range tests. */
+static inline double round_even(double x) {
+    const double magic = 6755399441055744.0;
+    return (x + magic) - magic;
+}
+
 enum { MAX_BOXES = 256 };
 
 /* Closest point on the surface of a union of boxes (structure of arrays: lo[a][b], hi[a][b]) to p, its outward
@@ -452,7 +460,10 @@ int pallet6d_fit(int64_t P, int64_t N, const double *obs, const int64_t *n_obs, 
     const int64_t cells_w = (W + cell_px - 1) / cell_px;
     int64_t *uv = malloc((size_t)(m > 0 ? m : 1) * 2 * sizeof(int64_t));
     double *zs = malloc((size_t)(m > 0 ? m : 1) * sizeof(double));
-    if (uv == NULL || zs == NULL) { free(uv); free(zs); return -2; }
+    int64_t *row_cell = malloc((size_t)(H + W > 0 ? H + W : 1) * sizeof(int64_t)), *col_cell = row_cell + H;
+    if (uv == NULL || zs == NULL || row_cell == NULL) { free(uv); free(zs); free(row_cell); return -2; }
+    for (int64_t v = 0; v < H; v++) row_cell[v] = (v / cell_px) * cells_w;   /* a pixel's cell: no division per point */
+    for (int64_t u = 0; u < W; u++) col_cell[u] = u / cell_px;
     int rc = 0;
     for (int64_t i = 0; i < P && rc == 0; i++) {
         const double *Ti = T + 16 * i;
@@ -473,10 +484,11 @@ int pallet6d_fit(int64_t P, int64_t N, const double *obs, const int64_t *n_obs, 
             for (int r = 0; r < 3; r++)
                 c[r] = Ti[4 * r] * q[0] + Ti[4 * r + 1] * q[1] + Ti[4 * r + 2] * q[2] + Ti[4 * r + 3];
             if (!(c[2] > 1e-6)) continue;
-            double u = nearbyint(c[0] * K[0] / c[2] + K[2]), v = nearbyint(c[1] * K[4] / c[2] + K[5]);
+            double u = round_even(c[0] * K[0] / c[2] + K[2]), v = round_even(c[1] * K[4] / c[2] + K[5]);
             if (!(u >= 0.0 && u < (double)W && v >= 0.0 && v < (double)H)) continue;
-            uv[2 * n] = (int64_t)u, uv[2 * n + 1] = (int64_t)v, zs[n] = c[2];
-            int64_t cell = (uv[2 * n + 1] / cell_px) * cells_w + uv[2 * n] / cell_px;
+            /* uv: the point's pixel (row-major index) and its z-buffer cell, each found once */
+            const int64_t iu = (int64_t)u, iv = (int64_t)v, cell = row_cell[iv] + col_cell[iu];
+            uv[2 * n] = iv * W + iu, uv[2 * n + 1] = cell, zs[n] = c[2];
             cell_lo = cell < cell_lo ? cell : cell_lo;
             cell_hi = cell > cell_hi ? cell : cell_hi;
             n++;
@@ -487,14 +499,13 @@ int pallet6d_fit(int64_t P, int64_t N, const double *obs, const int64_t *n_obs, 
         if (z_near == NULL) { rc = -2; break; }
         for (int64_t c = 0; c < span; c++) z_near[c] = INFINITY;
         for (int64_t j = 0; j < n; j++) {
-            int64_t c = (uv[2 * j + 1] / cell_px) * cells_w + uv[2 * j] / cell_px - cell_lo;
+            const int64_t c = uv[2 * j + 1] - cell_lo;
             z_near[c] = zs[j] < z_near[c] ? zs[j] : z_near[c];
         }
         int64_t n_use = 0, n_bad = 0;
         for (int64_t j = 0; j < n; j++) {
-            int64_t c = (uv[2 * j + 1] / cell_px) * cells_w + uv[2 * j] / cell_px - cell_lo;
-            float d_obs = depth[uv[2 * j + 1] * W + uv[2 * j]];
-            if (zs[j] <= z_near[c] + tol && d_obs > 0.0f) {
+            const float d_obs = depth[uv[2 * j]];
+            if (zs[j] <= z_near[uv[2 * j + 1] - cell_lo] + tol && d_obs > 0.0f) {
                 n_use++;
                 n_bad += zs[j] < (double)(d_obs - (float)tol);   /* float32, as numpy subtracts from float32 depth */
             }
@@ -504,6 +515,7 @@ int pallet6d_fit(int64_t P, int64_t N, const double *obs, const int64_t *n_obs, 
     }
     free(uv);
     free(zs);
+    free(row_cell);
     return rc;
 }
 
