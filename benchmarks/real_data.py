@@ -141,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--score-threshold", type=float, default=0.25)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-images", type=int, default=0, help="0: all")
+    ap.add_argument("--source", help="only these sources of the data (comma-separated), e.g. a site's own photographs "
+                                     "(python -m pallet6d.export.site_data)")
     ap.add_argument("--include-augmented", action="store_true",
                     help="also the uploaders' augmented (rotated) copies of held-out images")
     ap.add_argument("--sim-negatives", type=int, default=0,
@@ -167,11 +169,13 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     records = [r for r in json.loads(labels.read_text())
-               if r["split"] == args.split and (args.include_augmented or not r["augmented"])]
+               if r["split"] == args.split and (args.include_augmented or not r["augmented"])
+               and (args.source is None or r["source"] in args.source.split(","))]
     if args.max_images:
         records = records[:args.max_images]
     if not records:
-        print(f"no images in split {args.split!r} of {args.data}", file=sys.stderr)
+        print(f"no images in split {args.split!r} of {args.data}"
+              + (f" from source(s) {args.source}" if args.source else ""), file=sys.stderr)
         return 2
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
                                       score_threshold=args.score_threshold, max_pallets=300)
@@ -187,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
         report["sim_negatives"] = sim_negatives(full, args.sim_presets.split(","), args.sim_negatives,
                                                 args.sim_seed, args.sim_calibrated, args.sim_loads == "set-down")
     settings = {"bundle": str(args.bundle), "precision": "int8" if args.int8 else "fp32", "split": args.split,
-                "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data),
+                "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data), "source": args.source,
                 "augmented_copies": args.include_augmented, "sim_calibrated": args.sim_calibrated,
                 "sim_loads": args.sim_loads, "sim_score_threshold": args.sim_score_threshold}
     text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)

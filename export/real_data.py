@@ -500,6 +500,12 @@ def card_markdown(card: dict) -> str:
                          f"{c.get('medium', 0)}/{c.get('large', 0)} | {c.get('sequences', 0)} |")
     lines.append("")
     for s in card["sources"]:
+        if not s["repository"]:           # a site's own photographs (`export/site_data.py`)
+            lines += [f"## {s['name']}", "", f"- the site's own photographs, folder {', '.join(s['folders'])}",
+                      f"- licence: {s['licence']}", f"- attribution: {s['attribution'] or '-'}",
+                      f"- kinds: {', '.join(s['kinds'])}; label convention: {s['label_convention']}",
+                      f"- split: {s['split_rule']}", f"- dropped: {s['dropped']}", ""]
+            continue
         lines += [f"## {s['name']}", "", f"- repository: {s['repository']} at {s['commit']}, "
                   f"folders {', '.join(s['folders'])}", f"- licence: {s['licence']} ({s['licence_file']})",
                   f"- attribution: {s['attribution']}", f"- url: {s['url']}", f"- shows: {s['shows']}",

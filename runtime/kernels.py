@@ -1,6 +1,7 @@
 """The runtime's compiled kernels (`kernels.c`): refinement's point-to-plane ICP (`icp`), the fit scores (`fit`),
 the levelled refinement's ray hits and scores (`ray_hits`, `ray_scores`), the structure check's rays (`cast_rays`)
-and the registration test's pair counts (`registration_counts`), the per-point loops that numpy runs as thousands of small calls a frame.
+and the registration test's pair counts (`registration_counts`), the per-point loops that numpy runs as thousands
+of small calls a frame.
 
 The package builds them as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
 a library of a few tens of kB, loaded in well under a millisecond. Where no C compiler was at hand when the
@@ -17,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "box_grid", "BoxGrid", "cast_rays", "fit", "icp", "library_path", "MAX_BOXES", "ray_hits", "ray_scores",
-           "registration_counts"]
+__all__ = ["available", "box_grid", "BoxGrid", "cast_rays", "fit", "icp", "library_path", "MAX_BOXES", "ray_hits",
+           "ray_scores", "registration_counts"]
 
 log = logging.getLogger(__name__)
 
