@@ -5,8 +5,8 @@ trains on and `benchmarks/real_data.py` measures), so the detector can be fine-t
         [--pallet-classes 0] [--kinds wood,plastic] [--sequence-length 25] [--heldout-fraction 0.2]
 
 - images: every .jpg / .jpeg / .png under `--images` (sub-folders included), e.g. the `rgb/` folders of
-  `pallet6d record` recordings; labels: YOLO text files at the same relative path under `--labels` (`class cx cy w h` or a
-  polygon per line, normalised), boxes around each pallet's visible extent without its load (the detector's
+  `pallet6d record` recordings; labels: YOLO text files at the same relative path under `--labels` (`class cx cy w
+  h` or a polygon per line, normalised), boxes around each pallet's visible extent without its load (the detector's
   convention). An image without a label file is skipped as unlabelled; an empty label file (or one with other classes
   only) marks a pallet-free photo, which trains the detector not to box floors, racks and cartons.
 - sequences and the held-out split: the images of one folder in name order, `--sequence-length` at a time, are one
@@ -79,8 +79,10 @@ def import_site(images_dir: str | Path, labels_dir: str | Path, into: str | Path
     if not images:
         raise ValueError(f"no .jpg, .jpeg or .png images under {images_dir}")
 
-    out_dir = into / "images" / name
-    shutil.rmtree(out_dir, ignore_errors=True)              # importing the site again replaces its images
+    # the photographs go to a new folder that replaces the site's old one only once every label has been read: a
+    # failed import leaves the dataset as it was
+    out_dir, new_dir = into / "images" / name, into / "images" / f".{name}.new"
+    shutil.rmtree(new_dir, ignore_errors=True)
     dropped = {"unlabelled": 0, "unreadable": 0}
     records, index_in_folder = [], {}
     for path in images:
@@ -92,6 +94,7 @@ def import_site(images_dir: str | Path, labels_dir: str | Path, into: str | Path
         try:
             boxes_n, _ = parse_yolo_label(label.read_text(), pallet_classes)
         except ValueError as exc:
+            shutil.rmtree(new_dir, ignore_errors=True)
             raise ValueError(f"{label}: {exc}") from None
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
@@ -99,19 +102,20 @@ def import_site(images_dir: str | Path, labels_dir: str | Path, into: str | Path
             continue
         h, w = bgr.shape[:2]
         stem = "__".join(rel.with_suffix("").parts)
-        stored = Path("images") / name / f"{stem}.jpg"
-        stored_abs = into / stored
-        stored_abs.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(stored_abs), bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]):
-            raise ValueError(f"could not write {stored_abs}")
+        written = new_dir / f"{stem}.jpg"
+        written.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(written), bgr, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality]):
+            shutil.rmtree(new_dir, ignore_errors=True)
+            raise ValueError(f"could not write {written}")
         k = index_in_folder.get(rel.parent, 0)
         index_in_folder[rel.parent] = k + 1
-        records.append(ImageRecord(image=str(stored), source=name, stem=stem, width=w, height=h,
-                                   boxes_xyxy=np.round(boxes_n * np.array([w, h, w, h]), 2).tolist(),
+        records.append(ImageRecord(image=str(Path("images") / name / written.name), source=name, stem=stem,
+                                   width=w, height=h, boxes_xyxy=np.round(boxes_n * np.array([w, h, w, h]), 2).tolist(),
                                    convention="whole_pallet", kinds=list(kinds),
                                    sequence=f"{name}/{rel.parent.as_posix()}/{k // int(sequence_length):04d}",
                                    negative=len(boxes_n) == 0, origin=str(rel)))
     if not records:
+        shutil.rmtree(new_dir, ignore_errors=True)
         raise ValueError(f"none of the {len(images)} images under {images_dir} has a readable label file under "
                          f"{labels_dir} (the same relative path, .txt)")
     for r, split in zip(records, split_by_sequence([r.sequence for r in records], heldout_fraction,
@@ -120,7 +124,8 @@ def import_site(images_dir: str | Path, labels_dir: str | Path, into: str | Path
 
     others = [r for r in load_records(into) if r.source != name] if (into / "labels.json").exists() else []
     everything = others + records
-    into.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(out_dir, ignore_errors=True)              # importing the site again replaces its photographs
+    new_dir.rename(out_dir)
     (into / "labels.json").write_text(json.dumps([asdict(r) for r in everything], indent=0))
     _write_card(into, everything, _site_entry(name, images_dir, licence, attribution, kinds, sequence_length,
                                               dropped), heldout_fraction, seed)

@@ -84,6 +84,11 @@ def test_a_site_joins_the_dataset_and_replaces_itself_when_imported_again(tmp_pa
     assert card["sources"][0]["counts"]["train"]["images"] == 1
     assert card["sources"][1]["licence"] == "own photographs, CC BY 4.0"
     assert len(list((into / "images" / "hall-3").glob("*.jpg"))) == 39
+    (labels / "rec-b" / "frame-0003.txt").write_text("0 0.5\n")          # a damaged label: nothing changes
+    with pytest.raises(ValueError, match="frame-0003.txt"):
+        import_site(images, labels, into, "hall-3", "own photographs")
+    assert load_records(into) == again and len(list((into / "images" / "hall-3").glob("*.jpg"))) == 39
+    assert sorted(p.name for p in (into / "images").iterdir()) == ["hall-3", "loco"]
 
 
 @pytest.mark.parametrize("change, match", [
