@@ -126,3 +126,28 @@ def test_the_command_line(tmp_path, capsys):
     assert main(["--images", str(images), "--labels", str(labels), "--name", "epal!", "--licence", "own",
                  "--into", str(into)]) == 1
     assert "name must be" in capsys.readouterr().err
+
+
+def test_the_real_data_benchmark_measures_the_sites_held_out_part_alone(tmp_path, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    images, labels = _site(tmp_path)
+    into = tmp_path / "data"
+    _other_source(into)
+    recs = import_site(images, labels, into, "hall-3", "own photographs", sequence_length=10)
+    script = Path(__file__).parents[1] / "benchmarks" / "real_data.py"
+    spec = importlib.util.spec_from_file_location("real_data_benchmark", script)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    bundle = Path(__file__).parents[1] / "models" / "epal-default"
+    assert mod.main(["--bundle", str(bundle), "--data", str(into), "--source", "elsewhere"]) == 2
+    assert "from source(s) elsewhere" in capsys.readouterr().err
+    out = tmp_path / "report"
+    assert mod.main(["--bundle", str(bundle), "--int8", "--data", str(into), "--source", "hall-3", "--out",
+                     str(out)]) == 0
+    report = json.loads(out.with_suffix(".json").read_text())
+    held = [r for r in recs if r.split == "heldout"]
+    assert report["settings"]["source"] == "hall-3"
+    assert report["overall"]["boxes"] == sum(len(r.boxes_xyxy) for r in held)
+    assert report["negative_frames"] == sum(r.negative for r in held)
