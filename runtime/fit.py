@@ -67,15 +67,14 @@ def distance_to_points(pts: np.ndarray, model_pts: np.ndarray, chunk: int = 512)
 
 class ModelPointIndex:
     """Model points bucketed on a grid of `tol_m` cells: the distance to the nearest model point of every query
-    point within `tol_m` of one, from only the points near its cell (no search over all of them).
+    point within `tol_m` of one, from only the points of its cell and the 26 around it (no search over all of them).
 
-    A query point in cell k has every model point within `tol_m` of it inside that cell grown by `tol_m`, so
-    each cell keeps exactly those (padded to the fullest cell's count with a far point).
+    A model point within `tol_m` of a query point lies in the query's cell or a neighbouring one, so the nearest
+    distance found there is exact wherever it is at most `tol_m`. Cell k holds `points[offsets[k]:offsets[k + 1]]`
+    (cells x-major): each model point once, about 24 kB a thousand points.
 
     :param model_pts: (m, 3) model points, model frame, metres. :param tol_m: the largest distance asked for.
     """
-
-    _FAR = 1e3                                    # padding: a model point no query point comes near
 
     def __init__(self, model_pts: np.ndarray, tol_m: float) -> None:
         model = np.asarray(model_pts, dtype=np.float64).reshape(-1, 3)
@@ -84,40 +83,38 @@ class ModelPointIndex:
         self.tol_m = float(tol_m)
         self.origin = model.min(0) - 2.0 * self.tol_m
         self.shape = np.floor((model.max(0) + 2.0 * self.tol_m - self.origin) / self.tol_m).astype(np.int64) + 1
-        lo = np.floor((model - self.tol_m - self.origin) / self.tol_m).astype(np.int64)      # (m, 3) first cell
-        hi = np.floor((model + self.tol_m - self.origin) / self.tol_m).astype(np.int64)      # (m, 3) last cell
-        cells, owners = [], []
-        for off in np.ndindex(3, 3, 3):                          # tol_m cells: a point reaches 2-3 per axis
-            c = lo + np.array(off)
-            ok = np.all(c <= hi, axis=1)
-            cells.append(np.ravel_multi_index(c[ok].T, self.shape))
-            owners.append(np.flatnonzero(ok))
-        cell, owner = np.concatenate(cells), np.concatenate(owners)
-        order = np.lexsort((owner, cell))
-        cell, owner = cell[order], owner[order]
+        cell = np.ravel_multi_index(np.floor((model - self.origin) / self.tol_m).astype(np.int64).T, self.shape)
+        order = np.argsort(cell, kind="stable")
         counts = np.bincount(cell, minlength=int(np.prod(self.shape)))
-        rank = np.arange(len(cell)) - np.repeat(np.cumsum(counts) - counts, counts)[:len(cell)]
-        # row 0 holds only padding: empty cells (most of the grid) share it
-        self.row = np.zeros(len(counts), dtype=np.int64)
-        self.row[counts > 0] = np.arange(1, int((counts > 0).sum()) + 1)
-        self.points = np.full((int((counts > 0).sum()) + 1, int(counts.max()), 3), self._FAR)   # (rows, L, 3)
-        self.points[self.row[cell], rank] = model[owner]
+        self.offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)          # (cells + 1,)
+        self.points = np.ascontiguousarray(model[order])                                   # (m, 3)
 
     def distances(self, pts: np.ndarray) -> np.ndarray:
         """(n,) distance from (n, 3) points (model frame, metres) to the nearest model point where that is
         at most `tol_m`; some value above `tol_m` elsewhere."""
         pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
         idx = np.floor((pts - self.origin) / self.tol_m).astype(np.int64)
-        inside = np.all((idx >= 0) & (idx < self.shape), axis=1)
+        inside = np.flatnonzero(np.all((idx >= 0) & (idx < self.shape), axis=1))
         out = np.full(len(pts), np.inf)
-        if inside.any():
-            near = self.points[self.row[np.ravel_multi_index(idx[inside].T, self.shape)]]     # (n', L, 3)
+        if len(inside):
+            # the query's cell and its neighbours inside the grid: (n', 27) cell numbers, -1 outside
+            near = idx[inside, None, :] + np.array(list(np.ndindex(3, 3, 3)))[None] - 1        # (n', 27, 3)
+            ok = np.all((near >= 0) & (near < self.shape), axis=2)
+            cells = np.where(ok, np.ravel_multi_index(np.where(ok[..., None], near, 0).transpose(2, 0, 1),
+                                                      self.shape), -1)
+            query, k = np.nonzero(cells >= 0)
+            cell = cells[query, k]
+            start, count = self.offsets[cell], self.offsets[cell + 1] - self.offsets[cell]
+            pair_query = np.repeat(query, count)                    # one pair per (query point, model point near it)
+            entry = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count) + np.repeat(start, count)
             p = pts[inside]
-            d2 = np.zeros(near.shape[:2])
+            d2 = np.zeros(len(pair_query))
             for c in range(3):                        # not a sum over the short last axis: slow in numpy
-                diff = near[..., c] - p[:, c, None]
+                diff = self.points[entry, c] - p[pair_query, c]
                 d2 += diff * diff
-            out[inside] = np.sqrt(d2.min(1))
+            best = np.full(len(inside), np.inf)
+            np.minimum.at(best, pair_query, d2)
+            out[inside] = np.sqrt(best)
         return out
 
 

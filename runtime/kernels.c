@@ -392,10 +392,9 @@ static double distance_to_boxes(const double p[3], const double *boxes, int64_t 
 struct fit_model {
     int64_t m, k, k_in;
     const double *points, *boxes, *in_boxes, *lo, *hi;
-    const double *idx_origin, *idx_points;            /* ModelPointIndex: padded rows of L points per cell */
-    double idx_cell;
-    const int64_t *idx_shape, *idx_row;
-    int64_t idx_len;
+    const double *idx_origin, *idx_points;            /* ModelPointIndex: the points in cell c are */
+    double idx_cell;                                   /* idx_points[idx_offsets[c] : idx_offsets[c + 1]] */
+    const int64_t *idx_shape, *idx_offsets;
 };
 
 /* Whether model-frame point p is within tol of the model (fit_scores' inlier test, same branches). */
@@ -412,21 +411,26 @@ static int is_inlier(const struct fit_model *f, const double p[3], double tol) {
     if (f->in_boxes && !(distance_to_boxes(p, f->in_boxes, f->k_in) <= tol + 1e-6)) return 0;
     double best = INFINITY;
     if (f->idx_points) {
-        int64_t c = 0;
+        int64_t lo[3], hi[3];
         for (int a = 0; a < 3; a++) {
             double x = floor((p[a] - f->idx_origin[a]) / f->idx_cell);
             if (!(x >= 0.0 && x < (double)f->idx_shape[a])) return 0;   /* outside the index: no point within */
-            c = c * f->idx_shape[a] + (int64_t)x;
+            lo[a] = (int64_t)x > 0 ? (int64_t)x - 1 : 0;                 /* the cell and its neighbours */
+            hi[a] = (int64_t)x + 1 < f->idx_shape[a] ? (int64_t)x + 1 : f->idx_shape[a] - 1;
         }
-        const double *row = f->idx_points + 3 * f->idx_len * f->idx_row[c];
-        for (int64_t j = 0; j < f->idx_len; j++) {
-            double e2 = 0.0;
-            for (int a = 0; a < 3; a++) {
-                double e = row[3 * j + a] - p[a];
-                e2 += e * e;
-            }
-            best = e2 < best ? e2 : best;
-        }
+        for (int64_t cx = lo[0]; cx <= hi[0]; cx++)
+            for (int64_t cy = lo[1]; cy <= hi[1]; cy++)
+                for (int64_t cz = lo[2]; cz <= hi[2]; cz++) {
+                    const int64_t c = (cx * f->idx_shape[1] + cy) * f->idx_shape[2] + cz;
+                    for (int64_t j = f->idx_offsets[c]; j < f->idx_offsets[c + 1]; j++) {
+                        double e2 = 0.0;
+                        for (int a = 0; a < 3; a++) {
+                            double e = f->idx_points[3 * j + a] - p[a];
+                            e2 += e * e;
+                        }
+                        best = e2 < best ? e2 : best;
+                    }
+                }
     } else {
         for (int64_t j = 0; j < f->m; j++) {
             double e2 = 0.0;
@@ -452,11 +456,11 @@ static int is_inlier(const struct fit_model *f, const double p[3], double tol) {
 int pallet6d_fit(int64_t P, int64_t N, const double *obs, const int64_t *n_obs, const double *T, int64_t m,
                  const double *points, const double *lo, const double *hi, int64_t k, const double *boxes,
                  int64_t k_in, const double *in_boxes, const double *idx_origin, double idx_cell,
-                 const int64_t *idx_shape, const int64_t *idx_row, const double *idx_points, int64_t idx_len,
+                 const int64_t *idx_shape, const int64_t *idx_offsets, const double *idx_points,
                  const float *depth, int64_t H, int64_t W, const double *K, double tol, int64_t cell_px,
                  double *inlier_out, double *violation_out) {
     struct fit_model f = {m, k, k_in, points, boxes, in_boxes, lo, hi, idx_origin, idx_points, idx_cell, idx_shape,
-                          idx_row, idx_len};
+                          idx_offsets};
     const int64_t cells_w = (W + cell_px - 1) / cell_px;
     int64_t *uv = malloc((size_t)(m > 0 ? m : 1) * 2 * sizeof(int64_t));
     double *zs = malloc((size_t)(m > 0 ? m : 1) * sizeof(double));

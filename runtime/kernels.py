@@ -49,7 +49,7 @@ _ARGTYPES = {
     "pallet6d_icp": [_i, _i, _f32, _i64, _i, _f64, _f64, _f64, _i, _d, _d, _i, _d, _ptr, _d,
                      _ptr, _d, _ptr, _ptr, _ptr, _i, _f64, _i64, _i64, _f64, _u8, _u8],
     "pallet6d_fit": [_i, _i, _f64, _i64, _f64, _i, _f64, _f64, _f64, _i, _ptr, _i, _ptr, _ptr, _d, _ptr, _ptr, _ptr,
-                     _i, _f32, _i, _i, _f64, _d, _i, _f64, _f64],
+                     _f32, _i, _i, _f64, _d, _i, _f64, _f64],
     "pallet6d_registration_counts": [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64,
                                      _i64],
     "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _i, _i, _f64],
@@ -233,9 +233,9 @@ def fit(T: np.ndarray, obs: np.ndarray, n_obs: np.ndarray, model_pts: np.ndarray
 
     P = len(T)
     inlier, violation = np.empty(P), np.empty(P)
-    idx = (None, 0.0, None, None, None, 0) if index is None else (
-        ptr(index.origin), float(index.tol_m), ptr(index.shape, np.int64), ptr(index.row, np.int64),
-        ptr(index.points), int(index.points.shape[1]))
+    idx = (None, 0.0, None, None, None) if index is None else (
+        ptr(index.origin), float(index.tol_m), ptr(index.shape, np.int64), ptr(index.offsets, np.int64),
+        ptr(index.points))
     rc = fn(P, obs.shape[1], obs, n_obs, T, len(model), model, lo, hi, 0 if boxes_m is None else len(boxes_m),
             ptr(boxes_m), 0 if in_boxes_m is None else len(in_boxes_m), ptr(in_boxes_m), *idx, depth_m,
             depth_m.shape[0], depth_m.shape[1], K, float(tol_m), int(cell_px), inlier, violation)

@@ -119,7 +119,9 @@ def test_model_point_index_finds_every_model_point_within_tol(tol_m):
                           MODEL_PTS[:200] + rng.normal(0, tol_m / 2, (200, 3)),   # near the surface
                           [[50.0, 0.0, 0.0], [-3.0, -3.0, -3.0]]])                # far outside the grid
     ref = distance_to_points(pts, MODEL_PTS)
-    got = ModelPointIndex(MODEL_PTS, 0.04).distances(pts)
+    index = ModelPointIndex(MODEL_PTS, 0.04)
+    assert index.points.shape == MODEL_PTS.shape and index.offsets[-1] == len(MODEL_PTS)   # each point held once
+    got = index.distances(pts)
     within = ref <= tol_m
     assert 100 < within.sum() < len(pts) - 100
     np.testing.assert_array_equal(got <= tol_m, within)
