@@ -53,8 +53,7 @@ from .geometry import check_K
 from .registration import RegistrationScore, registration_score
 
 __all__ = ["StructureParams", "StructureScore", "structure_check", "structure_agreement", "cast_rays_boxes",
-           "box_metric_size",
-           "edge_agreement", "frame_registration", "frame_size_rule"]
+           "box_metric_size", "edge_agreement", "frame_registration", "frame_size_rule"]
 
 _BIG = 1e12
 
