@@ -149,7 +149,8 @@ def format_table(summary: dict) -> str:
         acc = ", ".join(f"@{float(k) * 100:.0f}cm {v:.2f}" for k, v in b["add_sym_acc"].items())
         lines.append(f"  {b['from_m']:g}-{to} m: n={b['n_gt']:<4} ADD-sym {acc}")
     def outcome(label: str, b: dict) -> str:
-        return (f"  {label}: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, 5-10cm {b['add_sym_5_10cm']:.2f}, "
+        return (f"  {label}: n={b['n_gt']:<4} ADD-sym <5cm {b['add_sym_lt_5cm']:.2f}, "
+                f"5-10cm {b['add_sym_5_10cm']:.2f}, "
                 f">=10cm {b['add_sym_ge_10cm']:.2f}, missed {b['missed']:.2f}")
 
     lines += [outcome(f"{b['from']:g}-{b['to']:g} visible", b) for b in summary.get("by_visibility", [])]

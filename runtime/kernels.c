@@ -628,26 +628,37 @@ static void order_boxes(const double o[3], const double *boxes, int64_t k, int64
     }
 }
 
-/* The first s > 0 at which the ray o + s R_pc p (s = 1: at the camera-frame point p) meets one of the k boxes,
-   INFINITY when none (a ray that misses their bounding box misses every box). The boxes are tried in `order_boxes`'
-   order until none can be met earlier (a small margin keeps rounding from skipping a box): the same s as trying
-   all of them. */
-static double first_hit(const double R_pc[9], const double o[3], const double *p, const double blo[3],
-                        const double bhi[3], const double *boxes, int64_t k, const int64_t *order,
-                        const double *dist) {
+/* The first s > 0 at which the ray o + s d meets one of the k boxes, INFINITY when none; *entry: where it enters
+   their bounding box blo..bhi (0 when o is inside), INFINITY when it misses it (then it misses every box). The boxes
+   are tried in `order_boxes`' order until none can be met earlier (a small margin keeps rounding from skipping a
+   box): the same s as trying all of them. */
+static double first_hit_along(const double o[3], const double d[3], const double blo[3], const double bhi[3],
+                              const double *boxes, int64_t k, const int64_t *order, const double *dist,
+                              double *entry) {
     double inv[3], s = INFINITY, e, d2 = 0.0;
     for (int r = 0; r < 3; r++) {
-        const double d = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
-        inv[r] = fabs(d) > 1e-12 ? 1.0 / d : 1e12;
-        d2 += d * d;
+        inv[r] = fabs(d[r]) > 1e-12 ? 1.0 / d[r] : 1e12;
+        d2 += d[r] * d[r];
     }
-    if (!ray_box(o, inv, blo, bhi, &e)) return INFINITY;
+    if (!ray_box(o, inv, blo, bhi, entry)) {
+        *entry = INFINITY;
+        return INFINITY;
+    }
     const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;   /* distance per unit of s, rounded up */
     for (int64_t j = 0; j < k && dist[j] <= s * reach; j++) {
         const int64_t b = order[j];
         if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) s = e;
     }
     return s;
+}
+
+/* `first_hit_along` for the ray o + s R_pc p: s = 1 at the camera-frame point p. */
+static double first_hit(const double R_pc[9], const double o[3], const double *p, const double blo[3],
+                        const double bhi[3], const double *boxes, int64_t k, const int64_t *order,
+                        const double *dist) {
+    double d[3], entry;
+    for (int r = 0; r < 3; r++) d[r] = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
+    return first_hit_along(o, d, blo, bhi, boxes, k, order, dist, &entry);
 }
 
 /* The first hit of each point's viewing ray with its pose's boxes: s_out[i * N + j] = first_hit of pose i's point j
@@ -676,7 +687,7 @@ int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, 
    its first hit with the pose's boxes (boxes[box_start[i] : box_start[i] + box_count[i]], min / max corners),
    INFINITY when none; t_bbox[i * R + j] = s where it enters their bounding box (0 when it starts inside), INFINITY
    when it misses it. Double arithmetic, as numpy's. Returns 0, or 1 (nothing written) when a pose has no box or
-   more than MAX_BOXES. */
+   more than MAX_BOXES (kernels.py checks the starts and counts against the boxes given). */
 int pallet6d_cast_rays(int64_t P, int64_t R, const double *origin, const double *dirs, const int64_t *box_start,
                        const int64_t *box_count, const double *boxes, double *t_box, double *t_bbox) {
     for (int64_t i = 0; i < P; i++)
@@ -689,21 +700,9 @@ int pallet6d_cast_rays(int64_t P, int64_t R, const double *origin, const double 
         double blo[3], bhi[3];
         boxes_bounds(b, k, blo, bhi);
         order_boxes(o, b, k, order, dist);
-        for (int64_t j = 0; j < R; j++) {
-            const double *d = dirs + 3 * (i * R + j);
-            double inv[3], e, s = INFINITY, d2 = 0.0;
-            for (int r = 0; r < 3; r++) {
-                inv[r] = fabs(d[r]) > 1e-12 ? 1.0 / d[r] : 1e12;
-                d2 += d[r] * d[r];
-            }
-            t_bbox[i * R + j] = ray_box(o, inv, blo, bhi, &e) ? e : INFINITY;
-            if (isfinite(t_bbox[i * R + j])) {
-                const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;   /* as first_hit */
-                for (int64_t q = 0; q < k && dist[q] <= s * reach; q++)
-                    if (ray_box(o, inv, b + 6 * order[q], b + 6 * order[q] + 3, &e) && e < s) s = e;
-            }
-            t_box[i * R + j] = s;
-        }
+        for (int64_t j = 0; j < R; j++)
+            t_box[i * R + j] = first_hit_along(o, dirs + 3 * (i * R + j), blo, bhi, b, k, order, dist,
+                                               &t_bbox[i * R + j]);
     }
     return 0;
 }

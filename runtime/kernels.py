@@ -266,33 +266,29 @@ def ray_hits(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, b
     return out
 
 
-def cast_rays(origin: np.ndarray, dirs: np.ndarray, boxes_m: tuple[np.ndarray, ...] | list[np.ndarray],
-              which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cast_rays(origin: np.ndarray, dirs: np.ndarray, boxes_m: np.ndarray, box_start: np.ndarray,
+              box_count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`structure.cast_rays_boxes` for poses that may each have their own boxes (`pallet6d_cast_rays` in kernels.c).
 
     :param origin: (P, 3) ray origins in each pose's pallet frame. :param dirs: (P, R, 3) ray directions.
-    :param boxes_m: per pallet type, its (k, 2, 3) min / max corners. :param which: (P,) each pose's entry of `boxes_m`.
+    :param boxes_m: (K, 2, 3) min / max corners of every box set, one after the other (`structure.BoxSets`).
+    :param box_start, box_count: (P,) pose i's boxes are `boxes_m[box_start[i]:box_start[i] + box_count[i]]`.
     :return: (P, R) parameter of the first box hit (inf when none), (P, R) where the ray enters the boxes' bounding
         box (inf when it misses it).
     """
     fn = _function("pallet6d_cast_rays")
     c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
-    o, d = c64(origin).reshape(-1, 3), c64(dirs)
+    o, d, boxes = c64(origin).reshape(-1, 3), c64(dirs), c64(boxes_m).reshape(-1, 2, 3)
     if d.ndim != 3 or d.shape[0] != len(o) or d.shape[2] != 3:
         raise ValueError(f"dirs must be ({len(o)}, R, 3), got shape {d.shape}")
-    sets = [c64(b).reshape(-1, 2, 3) for b in boxes_m]
-    for b in sets:
-        _check_boxes(b)
-    count = np.array([len(b) for b in sets], dtype=np.int64)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64)
-    which = np.asarray(which, dtype=np.int64).reshape(len(o))
-    if len(which) and (which.min() < 0 or which.max() >= len(sets)):
-        raise ValueError(f"which must index the {len(sets)} box sets, got {which.min()}..{which.max()}")
-    boxes = c64(np.concatenate(sets) if sets else np.zeros((0, 2, 3)))
+    start = np.ascontiguousarray(box_start, dtype=np.int64).reshape(len(o))
+    count = np.ascontiguousarray(box_count, dtype=np.int64).reshape(len(o))
+    if len(o) and (start.min() < 0 or count.min() < 1 or count.max() > MAX_BOXES
+                   or (start + count).max() > len(boxes)):
+        raise ValueError(f"each pose needs 1 to {MAX_BOXES} boxes within the {len(boxes)} given, got starts "
+                         f"{start.min()}..{start.max()} and counts {count.min()}..{count.max()}")
     t_box, t_bbox = np.empty(d.shape[:2]), np.empty(d.shape[:2])
-    if fn(len(o), d.shape[1], o, d, np.ascontiguousarray(start[which]), np.ascontiguousarray(count[which]), boxes,
-          t_box, t_bbox) != 0:
-        raise ValueError("cast_rays: every box set must hold 1 to MAX_BOXES boxes")
+    fn(len(o), d.shape[1], o, d, start, count, boxes, t_box, t_bbox)
     return t_box, t_bbox
 
 

@@ -38,7 +38,7 @@ from .deadline import Deadline, elapsed_ms
 from .fit import fit_scores
 from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
-from .structure import StructureParams, structure_agreement
+from .structure import BoxSets, StructureParams, structure_agreement
 
 __all__ = ["TypeChoiceStage", "RANK_BY_FIT"]
 
@@ -67,10 +67,11 @@ class TypeChoiceStage:
         self.tol_m, self.keep = float(tol_m), int(keep)
         self.structure = structure
         self.margin = float(margin)
-        # the types with boards, as `structure_agreement`'s box sets; _box_set: type -> its set (-1: none)
-        self._box_sets = [g.boxes_m for g in self.geometries if g.boxes_m is not None]
-        self._box_set = np.cumsum([g.boxes_m is not None for g in self.geometries]) - 1
-        self._box_set[[g.boxes_m is None for g in self.geometries]] = -1
+        # the types with boards, laid out once for `structure_agreement`; _box_set: type -> its set (-1: none)
+        boxed = [j for j, g in enumerate(self.geometries) if g.boxes_m is not None]
+        self._box_sets = BoxSets([self.geometries[j].boxes_m for j in boxed]) if boxed else None
+        self._box_set = np.full(len(self.geometries), -1, np.int64)
+        self._box_set[boxed] = np.arange(len(boxed))
 
     @property
     def needed(self) -> bool:
@@ -143,13 +144,14 @@ class TypeChoiceStage:
         other = pair_type != first
         select = fit[:, 2] * agreement - self.margin * other
         s = self.structure
-        select[other & ((agreement < s.replace_min_agreement) | (open_fraction < s.replace_min_open_fraction))] = -np.inf
+        unclear = (agreement < s.replace_min_agreement) | (open_fraction < s.replace_min_open_fraction)
+        select[other & unclear] = -np.inf
         for k in np.unique(pair_row):
             mine = np.flatnonzero(pair_row == k)
             win = mine[int(np.argmax(select[mine]))]
             if np.isfinite(select[win]):
                 cands.assign([rows[k]], type_index=[pair_type[win]], T_cam_pallet=T[win][None], fit=fit[win][None])
-            else:                     # no other type qualifies, and the first was not refined: the refiner stage does it
+            else:       # no other type qualifies, and the first was not refined: the refiner stage refines it
                 cands.assign([rows[k]], type_index=[first[win]])
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],

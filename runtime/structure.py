@@ -52,7 +52,7 @@ from . import kernels
 from .geometry import check_K
 from .registration import RegistrationScore, registration_score
 
-__all__ = ["StructureParams", "StructureScore", "structure_check", "structure_agreement", "cast_rays_boxes",
+__all__ = ["BoxSets", "StructureParams", "StructureScore", "structure_check", "structure_agreement", "cast_rays_boxes",
            "box_metric_size", "edge_agreement", "frame_registration", "frame_size_rule"]
 
 _BIG = 1e12
@@ -420,28 +420,47 @@ class _Rays:
         return agreement, open_fraction
 
 
-def _cast(origin: np.ndarray, dirs: np.ndarray, box_sets: list[np.ndarray], which: np.ndarray
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """`cast_rays_boxes` of poses each with the boxes `box_sets[which[i]]`: in the compiled kernel where it is
+class BoxSets:
+    """The boards and blocks of several pallet types, checked and laid out once (a type choice casts rays against
+    them twice a frame): per set its (k, 2, 3) min / max corners (`sets`), its bounding box (`lo`, `hi`, (t, 3)) and
+    its place in one concatenated (K, 2, 3) array (`flat[start[j]:start[j] + count[j]]`), the compiled kernel's form.
+
+    :param box_sets: per pallet type, its (k, 2, 3) boxes, pallet frame, metres (finite, k >= 1).
+    """
+
+    def __init__(self, box_sets) -> None:
+        self.sets = tuple(_check_box_set(b, f"box_sets[{i}]") for i, b in enumerate(box_sets))
+        if not self.sets:
+            raise ValueError("box_sets must hold at least one set of boxes")
+        self.lo = np.stack([b[:, 0].min(0) for b in self.sets])
+        self.hi = np.stack([b[:, 1].max(0) for b in self.sets])
+        self.count = np.array([len(b) for b in self.sets], dtype=np.int64)
+        self.start = np.concatenate([[0], np.cumsum(self.count)[:-1]]).astype(np.int64)
+        self.flat = np.ascontiguousarray(np.concatenate(self.sets))
+
+    def __len__(self) -> int:
+        return len(self.sets)
+
+
+def _cast(origin: np.ndarray, dirs: np.ndarray, sets: BoxSets, which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`cast_rays_boxes` of poses each with the boxes `sets.sets[which[i]]`: in the compiled kernel where it is
     built, else in numpy one box set at a time (the same values)."""
-    if kernels.available() and all(len(b) <= kernels.MAX_BOXES for b in box_sets):
-        return kernels.cast_rays(origin, dirs, box_sets, which)
+    if kernels.available() and sets.count.max() <= kernels.MAX_BOXES:
+        return kernels.cast_rays(origin, dirs, sets.flat, sets.start[which], sets.count[which])
     t_box, t_bbox = np.empty(dirs.shape[:2]), np.empty(dirs.shape[:2])
     for j in np.unique(which):
         mine = which == j
-        t_box[mine], t_bbox[mine] = cast_rays_boxes(origin[mine], dirs[mine], box_sets[int(j)])
+        t_box[mine], t_bbox[mine] = cast_rays_boxes(origin[mine], dirs[mine], sets.sets[int(j)])
     return t_box, t_bbox
 
 
-def _cast_grid(T: np.ndarray, box_sets: list[np.ndarray], which: np.ndarray, depth: np.ndarray, K: np.ndarray,
+def _cast_grid(T: np.ndarray, sets: BoxSets, which: np.ndarray, depth: np.ndarray, K: np.ndarray,
                params: StructureParams) -> _Rays:
-    """The structure check's rays for poses T (n, 4, 4), pose i with the boxes `box_sets[which[i]]`, and their
+    """The structure check's rays for poses T (n, 4, 4), pose i with the boxes `sets.sets[which[i]]`, and their
     classes (the module's docstring)."""
     h, w = depth.shape
     n = len(T)
-    lo = np.stack([b[:, 0].min(0) for b in box_sets])[which]                   # (n, 3)
-    hi = np.stack([b[:, 1].max(0) for b in box_sets])[which]
-    proj = _projected_bounds(T, lo, hi, K)
+    proj = _projected_bounds(T, sets.lo[which], sets.hi[which], K)
     clip = np.stack([np.clip(proj[:, 0], 0, w - 1), np.clip(proj[:, 1], 0, h - 1),
                      np.clip(proj[:, 2], 0, w - 1), np.clip(proj[:, 3], 0, h - 1)], 1)
     valid_proj = np.all(np.isfinite(proj), 1) & (clip[:, 2] > clip[:, 0]) & (clip[:, 3] > clip[:, 1])
@@ -463,7 +482,7 @@ def _cast_grid(T: np.ndarray, box_sets: list[np.ndarray], which: np.ndarray, dep
     R = T[:, :3, :3]
     dirs = d_cam @ R                                    # R^T d for each ray: (n, R, 3)
     origin = -np.einsum("nji,nj->ni", R, T[:, :3, 3])   # camera centre in the pallet frame
-    t_box, t_bbox = _cast(origin, dirs, box_sets, which)
+    t_box, t_bbox = _cast(origin, dirs, sets, which)
 
     known = z_obs > 0
     z_ref = np.where(np.isfinite(t_box), t_box, t_bbox)
@@ -487,21 +506,22 @@ def _check_box_set(boxes_m: np.ndarray, name: str = "boxes_m") -> np.ndarray:
     return boxes
 
 
-def structure_agreement(T_cam_pallet: np.ndarray, box_sets: list[np.ndarray] | tuple[np.ndarray, ...],
+def structure_agreement(T_cam_pallet: np.ndarray, box_sets: BoxSets | list[np.ndarray] | tuple[np.ndarray, ...],
                         which: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
                         params: StructureParams = StructureParams()) -> tuple[np.ndarray, np.ndarray]:
     """The structure check's agreement and open fraction (`StructureScore.agreement`, `.open_fraction`) of poses of
     several pallet types in one pass, without its other tests: what the type choice compares.
 
     :param T_cam_pallet: (n, 4, 4) poses, metres. :param box_sets: per pallet type, its (k, 2, 3) boards and blocks,
-        pallet frame, metres. :param which: (n,) each pose's type (an index into `box_sets`).
+        pallet frame, metres (or a `BoxSets` of them, prepared once). :param which: (n,) each pose's type (an index
+        into `box_sets`).
     :param depth_m: (H, W) float metres, 0 = no data. :param K: 3x3 intrinsics. :param params: the ray grid and
         tolerances.
     :return: (n,) agreement, (n,) open fraction: the values `structure_check` gives each pose with its type's boxes.
     """
     K = check_K(K)
     T = np.asarray(T_cam_pallet, dtype=np.float64).reshape(-1, 4, 4)
-    sets = [_check_box_set(b, f"box_sets[{i}]") for i, b in enumerate(box_sets)]
+    sets = box_sets if isinstance(box_sets, BoxSets) else BoxSets(box_sets)
     which = np.asarray(which, dtype=np.int64).reshape(-1)
     if len(which) != len(T):
         raise ValueError(f"{len(T)} poses but {len(which)} type indexes")
@@ -609,7 +629,7 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         return []
     h = depth.shape[0]
 
-    rays = _cast_grid(T, [boxes], np.zeros(len(T), np.int64), depth, K, params)
+    rays = _cast_grid(T, BoxSets([boxes]), np.zeros(len(T), np.int64), depth, K, params)
     proj, valid_proj, u, v, ui, vi, z_obs = rays.proj, rays.valid_proj, rays.u, rays.v, rays.ui, rays.vi, rays.z_obs
     origin, dirs, t_bbox, R = rays.origin, rays.dirs, rays.t_bbox, T[:, :3, :3]
     solid, see_through, opened, closed = rays.solid, rays.see_through, rays.opened, rays.closed

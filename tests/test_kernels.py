@@ -479,16 +479,20 @@ def test_the_structure_checks_rays_in_the_kernel_equal_numpy():
     origin = np.stack([[0.0, 0.0, -4.0], [3.0, 0.5, 0.2], [0.1, -3.0, 0.0], sets[2][0].mean(0), [0.0, 0.0, 5.0]])
     dirs = rng.uniform(-1.0, 1.0, (5, 300, 3)) - origin[:, None] * 0.25
     dirs[:, :30] = np.eye(3)[rng.integers(0, 3, (5, 30))] * rng.choice([-1.0, 1.0], (5, 30, 1))   # along an axis
-    t_box, t_bbox = kernels.cast_rays(origin, dirs, sets, which)
+    from pallet6d.runtime.structure import BoxSets
+
+    laid = BoxSets(sets)
+    t_box, t_bbox = kernels.cast_rays(origin, dirs, laid.flat, laid.start[which], laid.count[which])
     for i, j in enumerate(which):
         want_box, want_bbox = cast_rays_boxes(origin[i:i + 1], dirs[i:i + 1], sets[j])
         np.testing.assert_array_equal(t_box[i], want_box[0])
         np.testing.assert_array_equal(t_bbox[i], want_bbox[0])
     assert np.isinf(t_box).any() and np.isfinite(t_box).any() and np.all(t_box[3] == 0.0)   # pose 3 starts inside
     assert np.all((t_bbox <= t_box) | np.isinf(t_box))
-    with pytest.raises(ValueError, match="at most"):
-        kernels.cast_rays(origin, dirs, [np.zeros((kernels.MAX_BOXES + 1, 2, 3))], np.zeros(5, int))
-    with pytest.raises(ValueError, match="which"):
-        kernels.cast_rays(origin, dirs, sets, which + 1)
+    many = np.zeros((kernels.MAX_BOXES + 1, 2, 3))
+    with pytest.raises(ValueError, match="1 to 256 boxes"):
+        kernels.cast_rays(origin, dirs, many, np.zeros(5, int), np.full(5, kernels.MAX_BOXES + 1))
+    with pytest.raises(ValueError, match=f"within the {len(laid.flat)} given"):   # a set past the boxes' end
+        kernels.cast_rays(origin, dirs, laid.flat, laid.start[which] + 1, laid.count[which])
     with pytest.raises(ValueError, match="dirs"):
-        kernels.cast_rays(origin, dirs[:4], sets, which)
+        kernels.cast_rays(origin, dirs[:4], laid.flat, laid.start[which], laid.count[which])

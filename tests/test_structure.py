@@ -408,6 +408,7 @@ def test_structure_agreement_of_several_types_equals_the_structure_check(monkeyp
     ({"which": np.array([3])}, "which"),
     ({"which": np.array([0, 0])}, "type indexes"),
     ({"box_sets": [np.zeros((0, 2, 3))]}, "box_sets"),
+    ({"box_sets": []}, "at least one"),
     ({"depth_m": DEPTH[0]}, "depth_m"),
     ({"T_cam_pallet": np.full((1, 4, 4), np.nan)}, "finite"),
 ])
