@@ -256,7 +256,8 @@ class PalletEstimator:
         self._check_graphs_match_manifest()
         self.refiner = RefinerStage(self.pallet_types, o, self.threads)
         self.type_choice = TypeChoiceStage(self.pallet_types, self._types_of_class, self.refiner, o.fit_tol_m,
-                                           o.type_candidates, o.structure or StructureParams(), o.type_margin)
+                                           o.type_candidates, o.structure or StructureParams(), o.type_margin,
+                                           o.level)
         self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure)
 
     @classmethod
@@ -452,7 +453,7 @@ class PalletEstimator:
             registration = self.fit_check.start_registration(cands.boxes_xyxy[cands.alive], depth_m, rgb)
         try:
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
-            self.type_choice(cands, depth_m, K, timings, deadline)
+            self.type_choice(cands, depth_m, K, timings, deadline, T_vehicle_cam)
             self.refiner(cands, depth_m, K, timings, deadline)
             up_cam = None
             if T_vehicle_cam is not None and self.options.level is not None:

@@ -16,6 +16,7 @@ import numpy as np
 from . import kernels
 from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
+from .fit import fit_scores
 from .geometry import backproject_pixels
 from .refine import RefineGeometry, RefineOptions, refine_batch
 from .stage_geometry import PalletGeometry
@@ -84,6 +85,26 @@ class RefinerStage:
             keep = np.linspace(0, len(v) - 1, self.options.refine_points).round().astype(np.int64)
             v, u = v[keep], u[keep]
         return backproject_pixels(u, v, depth_m[v, u], K)
+
+    def fit(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
+            K: np.ndarray) -> np.ndarray:
+        """The fit of n poses of refined types, as `refine` reports it for its own poses.
+
+        :param T_cam_pallet: (n, 4, 4). :param obs_cam: (n, N, 3) each pose's sampled points, camera frame, metres.
+        :param type_index: (n,) pallet type of each pose. :return: (n, 3) inlier fraction, free-space violation,
+            score."""
+        type_index = np.asarray(type_index, np.int64)
+        out = np.full((len(type_index), 3), np.nan)
+        o = self.refine_options
+        for j in np.unique(type_index):
+            g = self._refine_geometry[int(j)]
+            if g is None:
+                raise ValueError(f"fit: pallet type {int(j)} is not refined (no boxes_m, or refinement is off)")
+            m = type_index == j
+            out[m] = np.stack(fit_scores(T_cam_pallet[m], obs_cam[m], None, g.model_points_m, depth_m, K, o.fit_tol_m,
+                                         points_in_boxes_m=g.in_boxes, point_index=g.point_index(o.fit_tol_m),
+                                         compiled=o.compiled), 1)
+        return out
 
     def refine(self, T_net: np.ndarray, obs_cam: np.ndarray, box_obs_cam: list[np.ndarray], type_index: np.ndarray,
                depth_m: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

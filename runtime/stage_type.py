@@ -23,6 +23,12 @@ structure at its refined pose (`StructureParams.replace_min_agreement`, `replace
 that no type explains is otherwise given the look-alike that explains it least badly. Where no kept type qualifies,
 the candidate keeps its first type, and the refiner stage refines it.
 
+With the camera's calibration (`EstimatorOptions.level`), each kept type's refined pose is levelled on the floor and
+refined in yaw and position first (`level.level_poses`, as the estimator levels every pose), and the candidate's first
+type is always among the kept ones: the types are judged, and the winner keeps, the pose the fit check will see. On
+stereo depth the six-degree refinement is rarely trusted, so without this a look-alike type would be judged at the
+network's pose, often 10-30 cm off, and lose to the first type, which was then levelled alone.
+
 Cost: a fit score per type, the structure agreement of four of them, and one refinement and structure agreement per
 kept type, instead of one refinement per candidate; the agreements of all candidates and types go in one pass
 (`structure.structure_agreement`, its rays in the compiled kernel).
@@ -36,6 +42,8 @@ import numpy as np
 from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .fit import fit_scores
+from .geometry import invert_T
+from .level import LevelParams, level_poses
 from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
 from .structure import BoxSets, StructureParams, structure_agreement
@@ -54,11 +62,13 @@ class TypeChoiceStage:
     :param keep: how many of a candidate's best-ranked types are refined (>= 1).
     :param structure: the structure check's ray parameters for the agreement.
     :param margin: how much better (score 0-1) another type must be than the candidate's first option.
+    :param level: how the estimator levels poses on a calibrated camera's floor (`EstimatorOptions.level`); with a
+        calibration the kept types are judged at their levelled poses. None: never levelled.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], types_of_class: dict[int, tuple[int, ...]],
                  refiner: RefinerStage, tol_m: float, keep: int, structure: StructureParams = StructureParams(),
-                 margin: float = 0.0) -> None:
+                 margin: float = 0.0, level: LevelParams | None = None) -> None:
         if int(keep) < 1:
             raise ValueError(f"keep must be >= 1, got {keep}")
         self.geometries = tuple(geometries)
@@ -67,6 +77,7 @@ class TypeChoiceStage:
         self.tol_m, self.keep = float(tol_m), int(keep)
         self.structure = structure
         self.margin = float(margin)
+        self.level = level
         # the types with boards, laid out once for `structure_agreement`; _box_set: type -> its set (-1: none)
         boxed = [j for j, g in enumerate(self.geometries) if g.boxes_m is not None]
         self._box_sets = BoxSets([self.geometries[j].boxes_m for j in boxed]) if boxed else None
@@ -119,18 +130,23 @@ class TypeChoiceStage:
                                                                          depth_m, K, self.structure)
         return agreement, open_fraction
 
-    def choose(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> None:
-        """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined."""
+    def choose(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+               T_vehicle_cam: np.ndarray | None = None) -> None:
+        """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined.
+        :param T_vehicle_cam: (4, 4) the camera's calibration: the kept types are judged levelled (with `level`)."""
         score = self.rank(cands, rows, depth_m, K)
         order = np.argsort(-score, axis=1, kind="stable")[:, :self.keep]
         best = order[:, 0]
         refines = np.asarray(self.refiner.refines_type, bool)
+        levelled = T_vehicle_cam is not None and self.level is not None
         pair_row, pair_type = [], []
         for k, types in enumerate(order):
-            for j in types:
-                if np.isfinite(score[k, j]) and refines[j]:
-                    pair_row.append(k)
-                    pair_type.append(int(j))
+            kept = [int(j) for j in types if np.isfinite(score[k, j]) and refines[j]]
+            first = cands.type_options[rows[k]][0]
+            if levelled and refines[first] and first not in kept:
+                kept.append(first)      # levelled, the row keeps the pose judged here: its first type's too
+            pair_row += [k] * len(kept)
+            pair_type += kept
         cands.assign(rows, type_index=best)
         if not pair_row:
             return
@@ -139,6 +155,13 @@ class TypeChoiceStage:
         box_obs = {int(i): self.refiner.box_points(cands.pixels[i], depth_m, K) for i in np.unique(src)}
         T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
                                      pair_type, depth_m, K)
+        if levelled:
+            geoms = [self.geometries[j] for j in pair_type]
+            T_vp = level_poses(T, T_vehicle_cam, np.array([g.size_m[2] for g in geoms]), self.level,
+                               [g.boxes_m for g in geoms], pts_cam=[box_obs[int(i)] for i in src],
+                               threads=self.refiner.refine_options.threads)
+            T = invert_T(T_vehicle_cam) @ T_vp
+            fit = self.refiner.fit(T, cands.points_cam[src], pair_type, depth_m, K)
         first = np.array([cands.type_options[i][0] for i in src])
         agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
         other = pair_type != first
@@ -155,7 +178,7 @@ class TypeChoiceStage:
                 cands.assign([rows[k]], type_index=[first[win]])
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
-                 deadline: Deadline | None = None) -> None:
+                 deadline: Deadline | None = None, T_vehicle_cam: np.ndarray | None = None) -> None:
         """The stage on the alive rows with several type options. Its time counts as refinement. Under a time
         budget the rows go `refiner.budget_chunk` at a time, highest score first; those left when it expires keep
         their first type, unrefined (the refiner stage then rejects them for the budget)."""
@@ -169,5 +192,5 @@ class TypeChoiceStage:
         for k in range(0, len(rows), step):
             if deadline is not None and deadline.expired():
                 break
-            self.choose(cands, rows[k:k + step], depth_m, K)
+            self.choose(cands, rows[k:k + step], depth_m, K, T_vehicle_cam)
         timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)

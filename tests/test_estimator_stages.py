@@ -1,4 +1,5 @@
 """The estimator's stages on their own, the pipeline they make, time budgets and pallet types per detection."""
+import copy
 import dataclasses
 import functools
 import itertools
@@ -288,14 +289,14 @@ def _catalogue_type(name: str, class_id: int) -> PalletType:
 
 
 @functools.lru_cache(maxsize=4)
-def _scene_of(name: str):
-    """A forklift-approach frame whose pallets are all of one type, with exact depth."""
+def _scene_of(name: str, exact: bool = True):
+    """A forklift-approach frame whose pallets are all of one type, with exact depth (or the preset's stereo)."""
     from pallet6d.sim.generate import generate_frame
     from pallet6d.sim.presets import get_preset
 
     cfg = dataclasses.replace(get_preset("forklift-approach"), pallet_models=(name,))
     f = generate_frame(cfg, seed=3)
-    return dataclasses.replace(f, depth_m=f.depth_ideal_m)
+    return dataclasses.replace(f, depth_m=f.depth_ideal_m) if exact else f
 
 
 @pytest.mark.parametrize("truth, refine", [("epal", True), ("eur6", True), ("plastic_9leg", True),
@@ -369,6 +370,62 @@ def test_another_type_replaces_the_first_only_with_clear_structure(bundle_dir, s
     if not refined:
         est.refiner(c, depth_m, K, {})        # the first type, refined as if it had been the only one
         assert np.isfinite(c.fit[0, 2]) and est.pallet_types[int(c.type_index[0])].name == "epal"
+
+
+def _block_seen_by_a_calibrated_camera(bundle_dir, **options):
+    """An estimator of an EPAL-first, 1200 x 1000 block pallet bundle (one detector class, alike from the front)
+    with `options`, the block scene's most visible pallet as its one candidate with a network pose 15 degrees and
+    10 cm off (and tilted 2 degrees), and the frame's stereo depth (too noisy to trust the six-degree ICP), K and calibration."""
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", "block_1210"))
+    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
+    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
+        k: v for k, v in KW.items() if k not in ("threads", *options)}, **options))
+    f = _scene_of("block_1210", exact=False)
+    p = max(f.pallets, key=lambda p: p.visib_fract)
+    x, y, w, h = p.bbox_visib_xywh
+    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
+    box = np.array([[x, y, x + w, y + h]], float)
+    c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=est._type_options(
+        Detections(box, [0.9], [0])))
+    est.pose_network(rgb, depth_m, K, c, {})
+    yaw, roll = np.radians(15.0), np.radians(2.0)         # a network's pose is never exactly level
+    off = np.eye(4)
+    off[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]) @ \
+        np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
+    off[0, 3] = 0.1
+    T_net = p.T_cam_pallet @ off
+    c.assign([0], T_net=T_net[None], T_cam_pallet=T_net[None])
+    return est, c, p, depth_m, K, f.T_vehicle_cam
+
+
+@pytest.mark.parametrize("structure, expected", [
+    (StructureParams(), "block_1210"),                              # its own type, found at its levelled pose
+    (StructureParams(replace_min_agreement=1.0), "epal"),          # no replacement: the first type, levelled
+])
+def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundle_dir, structure, expected):
+    est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
+        bundle_dir, type_candidates=2, type_margin=0.0, structure=structure)
+    est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
+    assert est.pallet_types[int(c.type_index[0])].name == expected
+    T_vp = T_vc @ c.T_cam_pallet[0]
+    assert abs(T_vp[2, 2] - 1.0) < 1e-9                 # level on the vehicle's floor
+    assert np.isfinite(c.fit[0, 2])                     # judged with its fit: the refiner stage leaves it
+    T_before = c.T_cam_pallet.copy()
+    est.refiner(c, depth_m, K, {})
+    np.testing.assert_array_equal(c.T_cam_pallet, T_before)
+    if expected == "block_1210":                         # the front face and the depth behind it
+        assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.05
+
+
+def test_with_the_calibration_the_type_choice_finds_what_it_misses_without(bundle_dir):
+    est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(bundle_dir, type_candidates=2, type_margin=0.0)
+    free = copy.deepcopy(c)
+    est.type_choice(free, depth_m, K, {})            # the six-degree refinement alone, on stereo depth
+    est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
+    assert est.pallet_types[int(c.type_index[0])].name == "block_1210"
+    err_free = np.linalg.norm(free.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3])
+    err_level = np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3])
+    assert err_level < 0.05 < err_free
 
 
 @pytest.mark.parametrize("name", ["replace_min_agreement", "replace_min_open_fraction"])
