@@ -328,14 +328,15 @@ def test_the_depth_picks_the_type_among_a_classes_types(bundle_dir, truth, refin
         assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.02
 
 
-def _eur6_at_its_pose(bundle_dir, **options):
-    """An estimator of an EPAL-first, EUR 6 bundle (one detector class) with `options`, the EUR 6 scene's most
-    visible pallet as its one candidate with the true pose as the network's, and the frame's depth and K."""
-    types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6"))
+def _epal_first_candidate(bundle_dir, truth: str, exact: bool, T_net_of_truth: np.ndarray, **options):
+    """An estimator of an EPAL-first, `truth` bundle (one detector class) with `options`, the `truth` scene's most
+    visible pallet as its one candidate with the network pose `T_net_of_truth` in its true pallet frame, and the
+    frame's depth, K, calibration and that pallet."""
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", truth))
     multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
     est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
         k: v for k, v in KW.items() if k not in ("threads", *options)}, **options))
-    f = _scene_of("eur6")
+    f = _scene_of(truth, exact)
     p = max(f.pallets, key=lambda p: p.visib_fract)
     x, y, w, h = p.bbox_visib_xywh
     rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
@@ -343,7 +344,14 @@ def _eur6_at_its_pose(bundle_dir, **options):
     c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=est._type_options(
         Detections(box, [0.9], [0])))
     est.pose_network(rgb, depth_m, K, c, {})
-    c.assign([0], T_net=p.T_cam_pallet[None], T_cam_pallet=p.T_cam_pallet[None])
+    T_net = p.T_cam_pallet @ T_net_of_truth
+    c.assign([0], T_net=T_net[None], T_cam_pallet=T_net[None])
+    return est, c, depth_m, K, f.T_vehicle_cam, p
+
+
+def _eur6_at_its_pose(bundle_dir, **options):
+    """`_epal_first_candidate` of the EUR 6 scene with exact depth and the true pose as the network's."""
+    est, c, depth_m, K, _, _ = _epal_first_candidate(bundle_dir, "eur6", True, np.eye(4), **options)
     return est, c, depth_m, K
 
 
@@ -373,29 +381,16 @@ def test_another_type_replaces_the_first_only_with_clear_structure(bundle_dir, s
 
 
 def _block_seen_by_a_calibrated_camera(bundle_dir, **options):
-    """An estimator of an EPAL-first, 1200 x 1000 block pallet bundle (one detector class, alike from the front)
-    with `options`, the block scene's most visible pallet as its one candidate with a network pose 15 degrees and
-    10 cm off (and tilted 2 degrees), and the frame's stereo depth (too noisy to trust the six-degree ICP), K and calibration."""
-    types = tuple(_catalogue_type(n, 0) for n in ("epal", "block_1210"))
-    multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
-    est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
-        k: v for k, v in KW.items() if k not in ("threads", *options)}, **options))
-    f = _scene_of("block_1210", exact=False)
-    p = max(f.pallets, key=lambda p: p.visib_fract)
-    x, y, w, h = p.bbox_visib_xywh
-    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
-    box = np.array([[x, y, x + w, y + h]], float)
-    c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points, type_options=est._type_options(
-        Detections(box, [0.9], [0])))
-    est.pose_network(rgb, depth_m, K, c, {})
-    yaw, roll = np.radians(15.0), np.radians(2.0)         # a network's pose is never exactly level
+    """`_epal_first_candidate` of a 1200 x 1000 block pallet (alike an EPAL from the front) on the preset's stereo
+    depth (too noisy to trust the six-degree ICP), the network's pose 15 degrees and 10 cm off and tilted 2 degrees
+    (a network's pose is never exactly level)."""
+    yaw, roll = np.radians(15.0), np.radians(2.0)
     off = np.eye(4)
     off[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]) @ \
         np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
     off[0, 3] = 0.1
-    T_net = p.T_cam_pallet @ off
-    c.assign([0], T_net=T_net[None], T_cam_pallet=T_net[None])
-    return est, c, p, depth_m, K, f.T_vehicle_cam
+    est, c, depth_m, K, T_vc, p = _epal_first_candidate(bundle_dir, "block_1210", False, off, **options)
+    return est, c, p, depth_m, K, T_vc
 
 
 @pytest.mark.parametrize("structure, expected", [
