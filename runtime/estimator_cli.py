@@ -8,7 +8,8 @@ import sys
 
 def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """--bundle, --int8, --threads, --score-threshold, --max-pallets, --min-fit, --seed, --no-refine,
-    --refine-starts, --type-candidates, --pallet-types, --time-budget-ms, --pallet-lanes, --no-structure-check."""
+    --refine-starts, --type-candidates, --type-candidates-levelled, --pallet-types, --time-budget-ms,
+    --pallet-lanes, --no-structure-check."""
     parser.add_argument("--bundle", help="model bundle folder (default: $PALLET6D_BUNDLE, else the installed "
                                          "pallet6d-models package's epal-default, else ./models/epal-default)")
     parser.add_argument("--no-structure-check", action="store_true",
@@ -29,6 +30,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--type-candidates", type=int, default=None,
                         help="where one detector class reports several pallet types, refine each pallet with this "
                              "many of them and keep the best fit (default: EstimatorOptions.type_candidates, 2)")
+    parser.add_argument("--type-candidates-levelled", type=int, default=None,
+                        help="the same with the camera's calibration, where each is levelled before it is judged "
+                             "(default: EstimatorOptions.type_candidates_levelled, 4)")
     parser.add_argument("--type-margin", type=float, default=None,
                         help="where the depth chooses among several types, how much better (fit score 0-1) another "
                              "type must be to replace a detection's first type (default: EstimatorOptions.type_margin)")
@@ -61,6 +65,7 @@ def load_estimator(args: argparse.Namespace, command: str):
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
         extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
                                    ("type_candidates", args.type_candidates),
+                                   ("type_candidates_levelled", args.type_candidates_levelled),
                                    ("type_margin", args.type_margin),
                                    ("pallet_types", args.pallet_types or None),
                                    ("time_budget_ms", args.time_budget_ms),

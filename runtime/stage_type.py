@@ -23,8 +23,8 @@ structure at its refined pose (`StructureParams.replace_min_agreement`, `replace
 that no type explains is otherwise given the look-alike that explains it least badly. Where no kept type qualifies,
 the candidate keeps its first type, and the refiner stage refines it.
 
-With the camera's calibration (`EstimatorOptions.level`), each kept type's refined pose is levelled on the floor and
-refined in yaw and position first (`level.level_poses`, as the estimator levels every pose), and the candidate's first
+With the camera's calibration (`EstimatorOptions.level`), `keep_levelled` types are kept, and each one's refined pose
+is levelled on the floor and refined in yaw and position first (`level.level_poses`, as the estimator levels every pose), and the candidate's first
 type is always among the kept ones: the types are judged, and the winner keeps, the pose the fit check will see. On
 stereo depth the six-degree refinement is rarely trusted, so without this a look-alike type would be judged at the
 network's pose, often 10-30 cm off, and lose to the first type, which was then levelled alone.
@@ -64,17 +64,19 @@ class TypeChoiceStage:
     :param margin: how much better (score 0-1) another type must be than the candidate's first option.
     :param level: how the estimator levels poses on a calibrated camera's floor (`EstimatorOptions.level`); with a
         calibration the kept types are judged at their levelled poses. None: never levelled.
+    :param keep_levelled: how many types are kept where they are levelled (>= 1; default `keep`).
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], types_of_class: dict[int, tuple[int, ...]],
                  refiner: RefinerStage, tol_m: float, keep: int, structure: StructureParams = StructureParams(),
-                 margin: float = 0.0, level: LevelParams | None = None) -> None:
-        if int(keep) < 1:
-            raise ValueError(f"keep must be >= 1, got {keep}")
+                 margin: float = 0.0, level: LevelParams | None = None, keep_levelled: int | None = None) -> None:
+        keep_levelled = keep if keep_levelled is None else keep_levelled
+        if int(keep) < 1 or int(keep_levelled) < 1:
+            raise ValueError(f"keep and keep_levelled must be >= 1, got {keep}, {keep_levelled}")
         self.geometries = tuple(geometries)
         self.types_of_class = {int(c): tuple(int(j) for j in t) for c, t in types_of_class.items()}
         self.refiner = refiner
-        self.tol_m, self.keep = float(tol_m), int(keep)
+        self.tol_m, self.keep, self.keep_levelled = float(tol_m), int(keep), int(keep_levelled)
         self.structure = structure
         self.margin = float(margin)
         self.level = level
@@ -134,11 +136,11 @@ class TypeChoiceStage:
                T_vehicle_cam: np.ndarray | None = None) -> None:
         """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined.
         :param T_vehicle_cam: (4, 4) the camera's calibration: the kept types are judged levelled (with `level`)."""
+        levelled = T_vehicle_cam is not None and self.level is not None
         score = self.rank(cands, rows, depth_m, K)
-        order = np.argsort(-score, axis=1, kind="stable")[:, :self.keep]
+        order = np.argsort(-score, axis=1, kind="stable")[:, :self.keep_levelled if levelled else self.keep]
         best = order[:, 0]
         refines = np.asarray(self.refiner.refines_type, bool)
-        levelled = T_vehicle_cam is not None and self.level is not None
         pair_row, pair_type = [], []
         for k, types in enumerate(order):
             kept = [int(j) for j in types if np.isfinite(score[k, j]) and refines[j]]

@@ -399,7 +399,7 @@ def _block_seen_by_a_calibrated_camera(bundle_dir, **options):
 ])
 def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundle_dir, structure, expected):
     est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
-        bundle_dir, type_candidates=2, type_margin=0.0, structure=structure)
+        bundle_dir, type_candidates=1, type_candidates_levelled=2, type_margin=0.0, structure=structure)
     est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
     assert est.pallet_types[int(c.type_index[0])].name == expected
     T_vp = T_vc @ c.T_cam_pallet[0]
@@ -413,7 +413,8 @@ def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundl
 
 
 def test_with_the_calibration_the_type_choice_finds_what_it_misses_without(bundle_dir):
-    est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(bundle_dir, type_candidates=2, type_margin=0.0)
+    est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(bundle_dir, type_candidates=2,
+                                                                      type_candidates_levelled=2, type_margin=0.0)
     free = copy.deepcopy(c)
     est.type_choice(free, depth_m, K, {})            # the six-degree refinement alone, on stereo depth
     est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
@@ -484,6 +485,8 @@ def test_types_may_share_a_detector_class(bundle_dir):
     assert [t.class_id for t in shared.pallet_types] == [0, 0]
     with pytest.raises(ValueError, match="type_candidates"):
         EstimatorOptions(type_candidates=0)
+    with pytest.raises(ValueError, match="type_candidates_levelled"):
+        EstimatorOptions(type_candidates_levelled=0)
     for ratio in (0.0, 1.5, float("nan")):
         with pytest.raises(ValueError, match="type_score_ratio"):
             EstimatorOptions(type_score_ratio=ratio)
