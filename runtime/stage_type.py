@@ -155,8 +155,14 @@ class TypeChoiceStage:
         pair_row, pair_type = np.asarray(pair_row), np.asarray(pair_type)
         src = rows[pair_row]
         box_obs = {int(i): self.refiner.box_points(cands.pixels[i], depth_m, K) for i in np.unique(src)}
-        T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
-                                     pair_type, depth_m, K)
+        first = np.array([cands.type_options[i][0] for i in src])
+        # levelled, the other types start from the network's pose: the levelling's own search of yaw and position
+        # takes the place of the six-degree refinement, which stereo depth rarely lets count anyway
+        six = np.flatnonzero(pair_type == first) if levelled else np.arange(len(src))
+        T, fit = cands.T_net[src].copy(), np.full((len(src), 3), np.nan)
+        if len(six):
+            T[six], fit[six] = self.refiner.refine(cands.T_net[src[six]], cands.points_cam[src[six]],
+                                                   [box_obs[int(i)] for i in src[six]], pair_type[six], depth_m, K)
         if levelled:
             geoms = [self.geometries[j] for j in pair_type]
             T_vp = level_poses(T, T_vehicle_cam, np.array([g.size_m[2] for g in geoms]), self.level,
@@ -164,7 +170,6 @@ class TypeChoiceStage:
                                threads=self.refiner.refine_options.threads)
             T = invert_T(T_vehicle_cam) @ T_vp
             fit = self.refiner.fit(T, cands.points_cam[src], pair_type, depth_m, K)
-        first = np.array([cands.type_options[i][0] for i in src])
         agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
         other = pair_type != first
         select = fit[:, 2] * agreement - self.margin * other
