@@ -103,9 +103,10 @@ class EstimatorOptions:
     :ivar type_candidates_levelled: the same with the camera's calibration, where each of them is also levelled
         before it is judged (`level`), and the first type always counts among them. At most four are ranked (the
         first and `stage_type.RANK_BY_FIT` others). Calibrated forklift-approach test frames, within 5 cm: 36.95 %
-        with 2, 41.13 % with 4, for one more pallet-free pose in two of the scorecard's six sets and about 8 ms a
-        pallet more on a two-core Xeon (docs/experiments/pallet-types.md); without a calibration 4 types gain a
-        quarter of a point on the paper presets for as much time, so `type_candidates` stays 2.
+        with 2, 40.89 % with 4, for one more pallet-free pose in one of the scorecard's six sets and, on a two-core
+        Xeon's forklift frames of about five pallets, about 80 ms a frame (2: 25 ms; docs/experiments/pallet-types.md);
+        without a calibration 4 types gain a quarter of a point on the paper presets for 8-10 ms a pallet, so
+        `type_candidates` stays 2.
     :ivar type_score_ratio: a detector with a class per pallet type can be unsure between look-alike types: a
         pallet class that scores a detection at least this fraction of its best class's score offers its types
         too, and the type choice above decides by the depth. 1: the best class's types alone.

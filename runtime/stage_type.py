@@ -23,15 +23,16 @@ structure at its refined pose (`StructureParams.replace_min_agreement`, `replace
 that no type explains is otherwise given the look-alike that explains it least badly. Where no kept type qualifies,
 the candidate keeps its first type, and the refiner stage refines it.
 
-With the camera's calibration (`EstimatorOptions.level`), `keep_levelled` types are kept, and each one's refined pose
-is levelled on the floor and refined in yaw and position first (`level.level_poses`, as the estimator levels every pose), and the candidate's first
-type is always among the kept ones: the types are judged, and the winner keeps, the pose the fit check will see. On
-stereo depth the six-degree refinement is rarely trusted, so without this a look-alike type would be judged at the
-network's pose, often 10-30 cm off, and lose to the first type, which was then levelled alone.
+With the camera's calibration (`EstimatorOptions.level`), `keep_levelled` types are kept, the candidate's first type
+always among them, and each is levelled on the floor and searched and refined in yaw and position (`level.level_poses`,
+as the estimator levels every pose) before it is judged: the first type from its refined pose, the others from the
+network's (the levelling's search does what the refinement's starts would). The winner keeps that pose, the one the
+fit check will see. On stereo depth the six-degree refinement is rarely trusted, so without this a look-alike type
+would be judged at the network's pose, often 10-30 cm off, and lose to the first type, which was then levelled alone.
 
-Cost: a fit score per type, the structure agreement of four of them, and one refinement and structure agreement per
-kept type, instead of one refinement per candidate; the agreements of all candidates and types go in one pass
-(`structure.structure_agreement`, its rays in the compiled kernel).
+Cost: a fit score per type, the structure agreement of four of them, and one refinement (levelled: one levelling) and
+structure agreement per kept type, instead of one refinement per candidate; the agreements of all candidates and
+types go in one pass (`structure.structure_agreement`, its rays in the compiled kernel).
 """
 from __future__ import annotations
 
