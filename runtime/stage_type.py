@@ -145,9 +145,9 @@ class TypeChoiceStage:
         pair_row, pair_type = [], []
         for k, types in enumerate(order):
             kept = [int(j) for j in types if np.isfinite(score[k, j]) and refines[j]]
-            first = cands.type_options[rows[k]][0]
-            if levelled and refines[first] and first not in kept:
-                kept.append(first)      # levelled, the row keeps the pose judged here: its first type's too
+            first_type = cands.type_options[rows[k]][0]
+            if levelled and refines[first_type] and first_type not in kept:
+                kept.append(first_type)     # levelled, the row keeps the pose judged here: its first type's too
             pair_row += [k] * len(kept)
             pair_type += kept
         cands.assign(rows, type_index=best)
