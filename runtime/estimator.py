@@ -34,8 +34,7 @@ from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .detector import Detections
 from .inputs import check_rgb, check_rgbd
-from .geometry import invert_T
-from .level import LevelParams, climb_poses, level_poses, up_in_camera
+from .level import LevelParams, climb_poses, level_in_camera, up_in_camera
 from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel
@@ -522,10 +521,8 @@ class PalletEstimator:
         if len(rows):
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
             pts = [self.refiner.box_points(cands.pixels[i], depth_m, K) for i in rows]   # the refiner's ICP points
-            T_vp = level_poses(cands.T_cam_pallet[rows], T_vehicle_cam, np.array([g.size_m[2] for g in geoms]),
-                               self.options.level, [g.boxes_m for g in geoms], pts_cam=pts,
-                               threads=self.refiner.refine_options.threads)
-            T_cp = invert_T(T_vehicle_cam) @ T_vp
+            T_cp = level_in_camera(cands.T_cam_pallet[rows], T_vehicle_cam, geoms, self.options.level, pts,
+                                   self.refiner.refine_options.threads)
             moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
             cands.assign(rows, T_cam_pallet=T_cp)
             cands.assign(moved, fit=np.full((len(moved), 3), np.nan))

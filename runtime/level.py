@@ -36,7 +36,7 @@ from .geometry import check_K, invert_T
 from .pallet_geometry import asymmetric
 from .structure import cast_rays_boxes
 
-__all__ = ["LevelParams", "climb_poses", "level_poses", "ray_scores", "up_in_camera"]
+__all__ = ["LevelParams", "climb_poses", "level_in_camera", "level_poses", "ray_scores", "up_in_camera"]
 
 # 1 sigma of the held degrees of freedom (radians, metres): held, not frozen; the free ones keep the refiner's own
 _HELD = 1e-3
@@ -145,6 +145,19 @@ def _level(R: np.ndarray) -> np.ndarray:
     out[:, 0, 1], out[:, 1, 1] = -x[:, 1], x[:, 0]                     # z x x with z vertical
     out[:, 2, 2] = 1.0
     return out
+
+
+def level_in_camera(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, geometries: list, params: LevelParams,
+                    pts_cam: list, threads: int = 1) -> np.ndarray:
+    """`level_poses` of n posed pallets, each refined on its own type's boards and depth points, as camera poses.
+
+    :param geometries: n pallet types (`size_m` and `boxes_m` of each, e.g. `stage_geometry.PalletGeometry`).
+    :param pts_cam: n arrays (m_i, 3), each pose's depth points, camera frame, metres.
+    :return: (n, 4, 4) T_cam_pallet.
+    """
+    T_vp = level_poses(T_cam_pallet, T_vehicle_cam, np.array([g.size_m[2] for g in geometries]), params,
+                       [g.boxes_m for g in geometries], pts_cam=pts_cam, threads=threads)
+    return invert_T(T_vehicle_cam) @ T_vp
 
 
 def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: np.ndarray,

@@ -43,8 +43,7 @@ import numpy as np
 from .candidates import Candidates
 from .deadline import Deadline, elapsed_ms
 from .fit import fit_scores
-from .geometry import invert_T
-from .level import LevelParams, level_poses
+from .level import LevelParams, level_in_camera
 from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
 from .structure import BoxSets, StructureParams, structure_agreement
@@ -165,11 +164,8 @@ class TypeChoiceStage:
             T[six], fit[six] = self.refiner.refine(cands.T_net[src[six]], cands.points_cam[src[six]],
                                                    [box_obs[int(i)] for i in src[six]], pair_type[six], depth_m, K)
         if levelled:
-            geoms = [self.geometries[j] for j in pair_type]
-            T_vp = level_poses(T, T_vehicle_cam, np.array([g.size_m[2] for g in geoms]), self.level,
-                               [g.boxes_m for g in geoms], pts_cam=[box_obs[int(i)] for i in src],
-                               threads=self.refiner.refine_options.threads)
-            T = invert_T(T_vehicle_cam) @ T_vp
+            T = level_in_camera(T, T_vehicle_cam, [self.geometries[j] for j in pair_type], self.level,
+                                [box_obs[int(i)] for i in src], self.refiner.refine_options.threads)
             fit = self.refiner.fit(T, cands.points_cam[src], pair_type, depth_m, K)
         agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
         other = pair_type != first
