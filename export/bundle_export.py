@@ -286,14 +286,20 @@ class Int8Graphs:
     checks: dict
 
 
-def quantize_graphs(g: Graphs, out: Path, stages: tuple[str, ...] = INT8_STAGES) -> Int8Graphs:
-    """Static int8 (QDQ) copies of `stages`; the other stages run their float graph at int8 too."""
+def quantize_graphs(g: Graphs, out: Path, stages: tuple[str, ...] = INT8_STAGES,
+                    kept: tuple[str, ...] = ()) -> Int8Graphs:
+    """Static int8 (QDQ) copies of `stages`; the other stages run their float graph at int8 too. A stage in `kept`
+    gets its int8 graph from another bundle (`graph_reuse.take_graphs`): its path is named, nothing is quantized."""
     files: dict[str, Path] = {}
     checks: dict = {}
     for stage in STAGES:
         if stage not in stages:
             files[stage] = g.files[stage]
             checks[stage] = "float graph (not quantized)"
+            continue
+        if stage in kept:
+            files[stage] = out / f"{stage}.int8.onnx"
+            checks[stage] = "kept from another bundle"
             continue
         # what each stage quantizes and keeps float: quantize.INT8_RECIPES
         files[stage] = quantize_graph(g.files[stage], out / f"{stage}.int8.onnx", g.feeds[stage][:g.split[stage]],
@@ -434,7 +440,8 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
         per output channel, a quarter of the size), "fp16" (half), "fp32"; the arithmetic is float32 in every
         case, and int8 graphs are quantized from the full float32 weights before that.
     :param keep_from: stage ("detector", "fusion") -> a bundle whose graphs of that stage the new bundle keeps
-        unchanged (`graph_reuse`); the checkpoint's network of the stage must be that bundle's.
+        unchanged (`graph_reuse`); the checkpoint's network of the stage must be that bundle's. A kept stage is
+        not quantized again: its int8 graph is that bundle's.
     :raises ExportError: bad arguments, checkpoint or external detector.
     :raises onnx_io.ParityError: an exported graph does not reproduce its torch model.
     """
@@ -469,7 +476,7 @@ def export_bundle(cfg: ModelConfig, out: str | Path, *, seed: int = 0, checkpoin
     out.mkdir(parents=True, exist_ok=True)
     g = export_graphs(n, out)
     checks = dict(g.checks)
-    q = quantize_graphs(g, out, tuple(int8_stages)) if int8 else None
+    q = quantize_graphs(g, out, tuple(int8_stages), kept=tuple(keep_from)) if int8 else None
     if q is not None:
         checks["int8"] = q.checks
     if float_weights != "fp32":

@@ -166,3 +166,31 @@ def test_export_keeps_another_bundles_detector_and_fusion_graphs_for_the_same_ne
     with pytest.raises(ExportError, match="not \\['pose'\\]"):
         export_bundle(CFG, tmp_path / "pose", checkpoint=tmp_path / "model.pt", calib=calib,
                       keep_from={"pose": bundle_dir})
+
+
+def test_a_kept_stage_is_not_quantized_again(tmp_path, monkeypatch):
+    """With `--int8`, a stage kept from another bundle takes that bundle's int8 graph; only the others are
+    quantized."""
+    import pallet6d.export.bundle_export as bundle_export
+    from pallet6d.export.train_cli import merge_checkpoints
+    from pallet6d.runtime.bundle import sha256_file
+
+    calib = make_calibration_set(CFG, frames=2, max_crops=4, seed=3)
+    source = bundle_export.export_bundle(CFG, tmp_path / "source", random_init=True, seed=4, calib=calib,
+                                         int8=True).root
+    merge_checkpoints(source, source, tmp_path / "model.pt")
+    quantized = []
+    real_quantize = bundle_export.quantize_graph
+
+    def recording_quantize(path, *args, **kwargs):
+        quantized.append(path.name)
+        return real_quantize(path, *args, **kwargs)
+
+    monkeypatch.setattr(bundle_export, "quantize_graph", recording_quantize)
+    out = bundle_export.export_bundle(CFG, tmp_path / "kept", checkpoint=tmp_path / "model.pt", calib=calib,
+                                      int8=True, keep_from={"fusion": source})
+    assert quantized == ["detector.onnx"]
+    assert sha256_file(out.root / "fusion.int8.onnx") == sha256_file(source / "fusion.int8.onnx")
+    assert out.manifest.files["fusion.int8.onnx"] == sha256_file(source / "fusion.int8.onnx")
+    theirs = json.loads((source / "report.json").read_text())["checks"]["int8"]
+    assert out.report["checks"]["int8"]["fusion"] == theirs["fusion"]
