@@ -92,24 +92,33 @@ def _pct(x: float) -> float:
     return round(100.0 * float(x), 2)
 
 
+def _nested_options() -> dict:
+    """The options given as a dict of a dataclass's fields in the JSON overrides: option name -> (that dataclass,
+    what it is called in an error)."""
+    from pallet6d.runtime.structure import StructureParams
+    from pallet6d.runtime.weak_boxes import WeakBoxes
+    return {"structure": (StructureParams, "structure check"), "weak_boxes": (WeakBoxes, "weak box")}
+
+
 def estimator_options(overrides: dict) -> dict:
-    """`EstimatorOptions` keyword arguments from JSON overrides ("structure": a dict of `StructureParams` fields).
+    """`EstimatorOptions` keyword arguments from JSON overrides ("structure", "weak_boxes": a dict of
+    `StructureParams`, `WeakBoxes` fields).
     :raises ValueError: an unknown option or field, or a value the options refuse."""
     from dataclasses import fields
 
     from pallet6d.runtime.estimator import EstimatorOptions
-    from pallet6d.runtime.structure import StructureParams
 
     known = {f.name for f in fields(EstimatorOptions)}
     unknown = sorted(set(overrides) - known)
     if unknown:
         raise ValueError(f"unknown estimator options {unknown}")
     out = dict(overrides)
-    if isinstance(out.get("structure"), dict):
-        bad = sorted(set(out["structure"]) - {f.name for f in fields(StructureParams)})
-        if bad:
-            raise ValueError(f"unknown structure check fields {bad}")
-        out["structure"] = StructureParams(**out["structure"])
+    for name, (cls, called) in _nested_options().items():
+        if isinstance(out.get(name), dict):
+            bad = sorted(set(out[name]) - {f.name for f in fields(cls)})
+            if bad:
+                raise ValueError(f"unknown {called} fields {bad}")
+            out[name] = cls(**out[name])
     EstimatorOptions(**out)                      # its own checks, before any measuring
     return out
 
@@ -277,15 +286,14 @@ def run_measure(name: str, bundle: Path, precision: str, options: dict, quick: b
 
 
 def options_json(options: dict) -> dict:
-    """`options` as JSON (`StructureParams` overrides as the fields that differ from the defaults)."""
+    """`options` as JSON (the nested options' fields that differ from their defaults)."""
     from dataclasses import asdict
 
-    from pallet6d.runtime.structure import StructureParams
-
     out = dict(options)
-    if isinstance(out.get("structure"), StructureParams):
-        default = asdict(StructureParams())
-        out["structure"] = {k: v for k, v in asdict(out["structure"]).items() if v != default[k]}
+    for name, (cls, _) in _nested_options().items():
+        if isinstance(out.get(name), cls):
+            default = asdict(cls())
+            out[name] = {k: v for k, v in asdict(out[name]).items() if v != default[k]}
     return out
 
 

@@ -156,7 +156,7 @@ class Detections:
         object.__setattr__(self, "class_ids", class_ids)
         if self.class_scores is not None:
             cs = np.asarray(self.class_scores, dtype=np.float64)
-            cs = cs.reshape(len(boxes), -1) if cs.size == 0 else cs
+            cs = cs.reshape(len(boxes), 0) if cs.size == 0 and cs.ndim != 2 else cs
             if cs.ndim != 2 or len(cs) != len(boxes):
                 raise ValueError(f"Detections.class_scores: expected ({len(boxes)}, nc), got {cs.shape}")
             object.__setattr__(self, "class_scores", cs)

@@ -35,6 +35,7 @@ from .deadline import Deadline, elapsed_ms
 from .detector import Detections
 from .inputs import check_rgb, check_rgbd
 from .level import LevelParams, climb_poses, level_in_camera, up_in_camera
+from .overlap import duplicate_of
 from .refine import MAX_STARTS
 from .results import FitScore, FrameResult, PalletPose, Rejection
 from .sessions import OnnxModel
@@ -46,6 +47,7 @@ from .stage_geometry import bundle_geometries
 from .stage_type import TypeChoiceStage
 from .stage_pose import PoseNetworkStage
 from .stage_refine import RefinerStage
+from .weak_boxes import WeakBoxes
 
 __all__ = ["EstimatorOptions", "PalletEstimator"]
 
@@ -147,6 +149,10 @@ class EstimatorOptions:
         detector class that reports none of them is dropped. A warehouse knows its pallets; telling the estimator
         spares it guessing between look-alike types (an EPAL's front face fits a closed-deck model too), which
         costs accuracy and a refinement per extra type. None: every type of the bundle.
+    :ivar weak_boxes: with the camera's calibration, detections scoring under `score_threshold` but at least
+        `WeakBoxes.score_threshold` are posed after the others, and kept only where the levelled pose shows a
+        pallet's structure clearly (`weak_boxes.py`; rejected "no_pallet_structure" otherwise). Without a
+        calibration, and in `detect`, only `score_threshold` counts. None: off.
     """
 
     score_threshold: float = 0.25
@@ -178,6 +184,7 @@ class EstimatorOptions:
     pallet_lanes: int | None = 1
     pallet_types: tuple[str, ...] | None = None
     level: LevelParams | None = LevelParams()
+    weak_boxes: WeakBoxes | None = None
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.score_threshold <= 1.0:
@@ -227,6 +234,8 @@ class EstimatorOptions:
                 raise ValueError(f"pallet_types must be a non-empty sequence of type names or None, "
                                  f"got {self.pallet_types!r}")
             object.__setattr__(self, "pallet_types", tuple(self.pallet_types))
+        if self.weak_boxes is not None and not isinstance(self.weak_boxes, WeakBoxes):
+            raise TypeError(f"weak_boxes must be a WeakBoxes or None, got {type(self.weak_boxes).__name__}")
 
 
 class PalletEstimator:
@@ -257,7 +266,10 @@ class PalletEstimator:
             spec = replace(spec, depth_range_m=tuple(o.depth_range_m))
         self.spec = spec
         self.pallet_types, self._types_of_class = bundle_geometries(bundle, o.pallet_types)
-        self.detector = DetectorStage(bundle, precision, self.threads, tuple(self._types_of_class), o.score_threshold,
+        # weak boxes (calibrated frames only) come from the same decoding; `_strong` drops them where they do not count
+        decode_threshold = o.score_threshold if o.weak_boxes is None else \
+            min(o.score_threshold, o.weak_boxes.score_threshold)
+        self.detector = DetectorStage(bundle, precision, self.threads, tuple(self._types_of_class), decode_threshold,
                                       o.iou_threshold, o.max_pallets)
         self.pose_network = PoseNetworkStage(bundle, precision, self.threads, spec, o.seed, o.min_valid_points,
                                              lanes=self.threads if o.pallet_lanes is None else o.pallet_lanes)
@@ -266,7 +278,8 @@ class PalletEstimator:
         self.type_choice = TypeChoiceStage(self.pallet_types, self._types_of_class, self.refiner, o.fit_tol_m,
                                            o.type_candidates, o.structure or StructureParams(), o.type_margin,
                                            o.level, o.type_candidates_levelled)
-        self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure)
+        self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure,
+                                       o.weak_boxes or WeakBoxes())
 
     @classmethod
     def from_bundle(cls, path: str | Path, threads: int = 2, precision: str = "fp32",
@@ -354,7 +367,7 @@ class PalletEstimator:
             depth_m = np.asarray(depth_m)
             if depth_m.shape != rgb.shape[:2]:
                 raise ValueError(f"depth_m is {depth_m.shape}, expected {rgb.shape[:2]} (the rgb image's H, W)")
-        return self._detect(rgb, {}, depth_m)
+        return self._strong(self._detect(rgb, {}, depth_m))
 
     def estimate(self, rgb, depth=None, K=None, depth_scale=None, T_vehicle_cam=None) -> FrameResult:
         """Like `predict`, but the whole `FrameResult` (accepted, rejected, timings).
@@ -367,7 +380,9 @@ class PalletEstimator:
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
         T_vc = _check_T_vehicle_cam(T_vehicle_cam)
         timings: dict[str, float] = {}
-        cands = self._run(rgb, depth_m, K, self._detect(rgb, timings, depth_m), timings, deadline, T_vc)
+        det = self._detect(rgb, timings, depth_m)
+        cands = self._run(rgb, depth_m, K, det if T_vc is not None else self._strong(det), timings, deadline, T_vc,
+                          weak_below=self.options.score_threshold)
         return self._result(cands, depth_m.shape, timings, t0)
 
     def estimate_boxes(self, rgb, depth=None, K=None, depth_scale=None, boxes_xyxy=None, scores=None,
@@ -392,8 +407,12 @@ class PalletEstimator:
         deadline = Deadline(self.options.time_budget_ms, clock=self.clock)
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
         timings = {} if timings is None else timings
-        det = self._detect(rgb, timings, depth_m) if detections is None else detections
-        return self._run(rgb, depth_m, K, det, timings, deadline, _check_T_vehicle_cam(T_vehicle_cam))
+        T_vc = _check_T_vehicle_cam(T_vehicle_cam)
+        if detections is not None:
+            return self._run(rgb, depth_m, K, detections, timings, deadline, T_vc)
+        det = self._detect(rgb, timings, depth_m)
+        return self._run(rgb, depth_m, K, det if T_vc is not None else self._strong(det), timings, deadline, T_vc,
+                         weak_below=self.options.score_threshold)
 
     def check_inputs(self, rgb, depth=None, K=None, depth_scale=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The validated frame: (rgb (H, W, 3) uint8, depth float32 metres (H, W), K (3, 3)), from arrays or
@@ -422,6 +441,12 @@ class PalletEstimator:
         timings["decode_nms"] = elapsed_ms(t)
         return det
 
+    def _strong(self, det: Detections) -> Detections:
+        """`det` without the weak boxes (those under `score_threshold`, decoded for `weak_boxes`)."""
+        if self.options.weak_boxes is None:
+            return det
+        return det.take(np.flatnonzero(det.scores >= self.options.score_threshold))
+
     def _boxes(self, boxes_xyxy, scores, class_ids) -> Detections:
         if boxes_xyxy is None:
             raise ValueError("estimate_boxes needs boxes_xyxy (n, 4)")
@@ -440,14 +465,17 @@ class PalletEstimator:
         return Detections(boxes, scores, class_ids)
 
     def _run(self, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, det: Detections,
-             timings: dict[str, float], deadline: Deadline, T_vehicle_cam: np.ndarray | None = None) -> Candidates:
-        """The stages after the detector on `det`, highest score first, at most `max_pallets`."""
+             timings: dict[str, float], deadline: Deadline, T_vehicle_cam: np.ndarray | None = None,
+             weak_below: float | None = None) -> Candidates:
+        """The stages after the detector on `det`, highest score first, at most `max_pallets`; with `weak_below`
+        (the detector's own boxes), those scoring under it are weak boxes (`weak_boxes.py`)."""
         for s in STAGES:
             timings.setdefault(s, 0.0)
         det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
         options = self._type_options(det)
         type_index = [o[0] for o in options]   # the type choice may change it
         cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points, options)
+        weak = None if weak_below is None or self.options.weak_boxes is None else cands.scores < weak_below
         if self.options.roi is not None:
             keep, why = roi_filter(cands.boxes_xyxy, depth_m, self.options.roi)
             drop = np.flatnonzero(~keep)
@@ -467,13 +495,28 @@ class PalletEstimator:
             if T_vehicle_cam is not None and self.options.level is not None:
                 pts_of = self._level(cands, depth_m, K, T_vehicle_cam, timings)
                 up_cam = up_in_camera(T_vehicle_cam)
-            self.fit_check(cands, depth_m, K, timings, rgb, up_cam, registration)
+            self.fit_check(cands, depth_m, K, timings, rgb, up_cam, registration, weak)
             if up_cam is not None:
                 self._climb(cands, depth_m, K, up_cam, pts_of, timings)
+            self._drop_duplicates(cands, timings)
         finally:
             if registration is not None:        # it reads the caller's arrays: done before they are handed back
                 wait([registration[1]])
         return cands
+
+    def _drop_duplicates(self, cands: Candidates, timings: dict[str, float]) -> None:
+        """Of accepted poses that occupy the same space (`overlap.py`), the highest-scoring detection's stays."""
+        t = time.perf_counter()
+        rows = np.flatnonzero(cands.alive)          # highest detector score first
+        if len(rows) > 1:
+            sizes = np.array([self.pallet_types[int(j)].size_m for j in cands.type_index[rows]])
+            dup = duplicate_of(cands.T_cam_pallet[rows], sizes)
+            for k in np.flatnonzero(dup >= 0):
+                first = rows[dup[k]]
+                cands.reject([rows[k]], "duplicate",
+                             f"duplicate: the pose occupies the space of the pose of a higher-scoring detection "
+                             f"(score {cands.scores[first]:.2f}, box {np.round(cands.boxes_xyxy[first]).astype(int).tolist()})")
+        timings["fit"] = timings.get("fit", 0.0) + elapsed_ms(t)
 
     def _type_options(self, det: Detections) -> list[tuple[int, ...]]:
         """Each detection's type indexes: its class's types first, then those of the pallet classes that score it

@@ -14,6 +14,7 @@ from .registration import RegistrationScore
 from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
 from .structure import StructureParams, frame_registration, frame_size_rule, structure_check
+from .weak_boxes import WeakBoxes, weak_box_failures
 
 __all__ = ["FitCheckStage", "StartedRegistration"]
 
@@ -37,13 +38,17 @@ class FitCheckStage:
         every candidate as "size_mismatch" when they outnumber the whole boxes that pass it (`frame_size_majority`)
         or reach `frame_size_veto`. The registration test needs only the depth, the image and the boxes, so
         `start_registration` runs it on a worker thread while the networks run (`close` stops that thread).
+    :param weak: what a weak detection's pose must show besides (`weak_boxes.py`); the rows the caller marks weak
+        are rejected ("no_pallet_structure") where it is not shown, or where no structure check can judge them.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], tol_m: float, min_fit: float,
-                 min_confidence: float, structure: StructureParams | None = StructureParams()) -> None:
+                 min_confidence: float, structure: StructureParams | None = StructureParams(),
+                 weak: WeakBoxes = WeakBoxes()) -> None:
         self.geometries = tuple(geometries)
         self.tol_m, self.min_fit, self.min_confidence = float(tol_m), float(min_fit), float(min_confidence)
         self.structure = structure
+        self.weak = weak
         self._pool: ThreadPoolExecutor | None = None
 
     def close(self) -> None:
@@ -68,14 +73,16 @@ class FitCheckStage:
 
     def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
                         rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None,
-                        registration: StartedRegistration | None = None) -> None:
+                        registration: StartedRegistration | None = None, weak: np.ndarray | None = None) -> None:
         """The structure check on `rows` of `cands`: first the frame-level registration test over all of them, then
         one batched call per pallet type, then the frame's size rules (`frame_size_rule`); failures are rejected.
         :param rgb: the colour image registered to `depth_m`, for the edge and registration tests (None skips
             them). :param up_cam: (3,) the vehicle's up in the camera frame, for the tilt test (None skips it).
         :param registration: the test started on the frame's boxes (`start_registration`), used when those are
-            the boxes of `rows`."""
+            the boxes of `rows`. :param weak: (n,) bool over all rows of `cands`: weak detections (`weak_boxes.py`),
+            or None."""
         p = self.structure
+        weak = np.zeros(len(cands), bool) if weak is None else weak
         if rgb is not None and p.min_registration_peak > 0 and len(rows):
             boxes = cands.boxes_xyxy[rows]
             if registration is not None and np.array_equal(registration[0], boxes):
@@ -89,6 +96,10 @@ class FitCheckStage:
                              f"(AUC {reg.auc_shifted:.2f}, peak {reg.peak:.3f} < {p.min_registration_peak}): depth of "
                              "another frame, or not registered to the colour image?")
                 return
+        unjudged = np.array([i for i in rows if weak[i] and self.geometries[int(cands.type_index[i])].boxes_m is None],
+                            dtype=np.int64)
+        cands.reject(unjudged, "no_pallet_structure",
+                     [_weak_detail(cands.scores[i], "its type has no boards to judge") for i in unjudged])
         scores_all = []
         for j, geom in enumerate(self.geometries):
             mine = rows[cands.type_index[rows] == j]
@@ -100,6 +111,12 @@ class FitCheckStage:
             for reason in ("size_mismatch", "depth_image_mismatch", "no_pallet_structure"):
                 bad = [k for k, sc in enumerate(scores) if not sc.ok and _rejection_reason(sc.reason) == reason]
                 cands.reject(mine[bad], reason, [_structure_detail(scores[k]) for k in bad])
+            judged = [k for k, sc in enumerate(scores) if sc.ok and weak[mine[k]]]
+            why = weak_box_failures([scores[k].agreement for k in judged], [scores[k].open_fraction for k in judged],
+                                    self.weak)
+            short = [(mine[k], w) for k, w in zip(judged, why) if w]
+            cands.reject(np.array([i for i, _ in short], dtype=np.int64), "no_pallet_structure",
+                         [_weak_detail(cands.scores[i], w) for i, w in short])
         rule = frame_size_rule(scores_all, p)
         if rule:
             n_size = sum(sc.reason == "size_mismatch" for sc in scores_all)
@@ -118,11 +135,11 @@ class FitCheckStage:
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
                  rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None,
-                 registration: StartedRegistration | None = None) -> None:
+                 registration: StartedRegistration | None = None, weak: np.ndarray | None = None) -> None:
         """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates.
         :param rgb: the frame's colour image, for the structure check's edge test (None skips that test).
         :param up_cam: the vehicle's up in the camera frame, for the structure check's tilt test (None skips it).
-        :param registration: see `check_structure`."""
+        :param registration, weak: see `check_structure`."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
         todo = rows[np.isnan(cands.fit[rows, 2])]
@@ -134,8 +151,13 @@ class FitCheckStage:
         cands.reject(rows[low], "low_confidence", [f"confidence {c:.3f} < {self.min_confidence}" for c in conf[low]])
         cands.reject(rows[poor], "poor_fit", [f"fit {s:.3f} < {self.min_fit} (inliers {i:.2f}, free-space violation "
                                               f"{v:.2f})" for i, v, s in fit[poor]])
+        rest = rows[~low & ~poor]
         if self.structure is not None:
-            self.check_structure(cands, rows[~low & ~poor], depth_m, K, rgb, up_cam, registration)
+            self.check_structure(cands, rest, depth_m, K, rgb, up_cam, registration, weak)
+        elif weak is not None:
+            unjudged = rest[weak[rest]]
+            cands.reject(unjudged, "no_pallet_structure",
+                         [_weak_detail(s, "the structure check is off") for s in cands.scores[unjudged]])
         timings["fit"] = elapsed_ms(t)
 
 
@@ -143,6 +165,10 @@ def _rejection_reason(structure_reason: str) -> str:
     """The candidates' rejection reason of a failed structure test: the tests that say the inputs do not belong
     together keep their own, the others are "no_pallet_structure"."""
     return structure_reason if structure_reason in ("size_mismatch", "depth_image_mismatch") else "no_pallet_structure"
+
+
+def _weak_detail(score: float, why: str) -> str:
+    return f"no_pallet_structure: a weak detection (score {score:.2f}) is kept only with clear structure: {why}"
 
 
 def _structure_detail(s) -> str:

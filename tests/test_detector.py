@@ -95,6 +95,8 @@ def test_decode_keeps_every_class_score_of_each_detection():
     np.testing.assert_allclose(det.class_scores, [(0.9, 0.5), (0.2, 0.6)])   # the second box lost the NMS
     np.testing.assert_allclose(det.take(np.array([1])).class_scores, [(0.2, 0.6)])
     assert det.class_scores.dtype == np.float64
+    none = det.take(np.flatnonzero(det.scores > 1))                          # taking nothing keeps the classes
+    assert len(none) == 0 and none.class_scores.shape == (0, 2)
 
 
 def test_decode_max_detections_and_empty():

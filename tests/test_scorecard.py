@@ -87,6 +87,21 @@ def test_a_variant_is_measured_with_its_options_under_its_own_name(scorecard, tm
     assert '- `+g24`: `{"structure": {"grid": 24}, "min_fit": 0.3}`' in md
 
 
+def test_a_variant_may_set_the_weak_boxes(scorecard, tmp_path, monkeypatch):
+    from pallet6d.runtime.weak_boxes import WeakBoxes
+
+    bundle = tmp_path / "cand"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text("{}")
+    seen = []
+    monkeypatch.setattr(scorecard, "run_measure", lambda name, bundle, precision, options, *a: seen.append(options)
+                        or {"kept": 0})
+    assert scorecard.main(["--bundle", str(bundle), "--measures", "mismatched", "--out", str(tmp_path / "out"),
+                           "--variant", 'weak={"weak_boxes": {"min_agreement": 0.9}}']) == 0
+    assert seen[1]["weak_boxes"] == WeakBoxes(min_agreement=0.9)
+    assert scorecard.options_json(seen[1]) == {"weak_boxes": {"min_agreement": 0.9}}
+
+
 @pytest.mark.parametrize("args, words", [
     (["--measures", "speed"], "unknown measures"),
     (["--variant", "x"], "give a label"),
@@ -95,6 +110,8 @@ def test_a_variant_is_measured_with_its_options_under_its_own_name(scorecard, tm
     (["--variant", "v={not json"], "--variant v"),
     (["--variant", 'v={"speed": 1}'], "unknown estimator options"),
     (["--variant", 'v={"structure": {"speed": 1}}'], "unknown structure check fields"),
+    (["--variant", 'v={"weak_boxes": {"speed": 1}}'], "unknown weak box fields"),
+    (["--variant", 'v={"weak_boxes": {"min_agreement": 2}}'], "WeakBoxes.min_agreement"),
     (["--variant", 'v={"min_fit": 2}'], "min_fit"),
     (["--variant", "v={}", "--variant", "v={}"], "labels must differ"),
     (["--bundle", "NOT-A-BUNDLE"], "not a bundle folder"),

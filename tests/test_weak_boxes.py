@@ -1,0 +1,126 @@
+"""Weak detections: posed only with a calibration, kept only with clear structure, never seen by `detect`."""
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pallet6d.runtime.detector import Detections
+from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
+from pallet6d.runtime.weak_boxes import WeakBoxes, weak_box_failures
+
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "epal-default"
+
+
+@pytest.mark.parametrize("agreement, open_fraction, expected", [
+    ([0.9], [0.9], [""]),
+    ([0.85], [0.85], [""]),                                   # the thresholds themselves pass
+    ([0.8], [0.9], ["agreement 0.80 < 0.85"]),
+    ([0.9], [0.4], ["openings open 0.40 < 0.85"]),
+    ([0.5], [0.1], ["agreement 0.50 < 0.85, openings open 0.10 < 0.85"]),
+    ([np.nan], [0.9], ["agreement nan < 0.85"]),             # no evidence is no clear structure
+    ([0.9], [np.nan], ["openings open nan < 0.85"]),
+    ([], [], []),
+])
+def test_weak_box_failures(agreement, open_fraction, expected):
+    assert weak_box_failures(agreement, open_fraction, WeakBoxes()) == expected
+
+
+def test_weak_box_failures_needs_one_value_of_each_per_pose():
+    with pytest.raises(ValueError, match="2 agreements but 1 open"):
+        weak_box_failures([0.9, 0.9], [0.9], WeakBoxes())
+
+
+@pytest.mark.parametrize("field, value", [("score_threshold", -0.1), ("min_agreement", 1.5),
+                                          ("min_open_fraction", "0.8"), ("score_threshold", True),
+                                          ("min_agreement", float("nan"))])
+def test_weak_box_params_are_checked(field, value):
+    with pytest.raises(ValueError, match=f"WeakBoxes.{field}"):
+        WeakBoxes(**{field: value})
+
+
+def test_the_option_takes_weak_box_params_only():
+    with pytest.raises(TypeError, match="weak_boxes must be a WeakBoxes"):
+        EstimatorOptions(weak_boxes={"score_threshold": 0.1})
+
+
+@pytest.fixture(scope="module")
+def forklift_frame():
+    """A calibrated forklift-approach frame of EPALs (exact depth) and the boxes of its most visible pallets."""
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    f = generate_frame(dataclasses.replace(get_preset("forklift-approach"), pallet_models=("epal",)), seed=3)
+    f = dataclasses.replace(f, depth_m=f.depth_ideal_m)
+    boxes = np.array([[x, y, x + w, y + h] for x, y, w, h in
+                      (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.5)], float)
+    assert len(boxes) >= 2
+    return f, boxes
+
+
+def _estimator(boxes, scores, **options):
+    """The shipped bundle whose detector reports `boxes` with `scores` (the decoding's threshold applied)."""
+    est = PalletEstimator.from_bundle(SHIPPED, threads=1, pallet_types=("epal",), **options)
+    threshold = est.detector.score_threshold
+    keep = np.asarray(scores) >= threshold
+    det = Detections(boxes[keep], np.asarray(scores, float)[keep], np.zeros(int(keep.sum()), np.int64))
+    est.detector.postprocess = lambda raw, lb: det
+    return est
+
+
+def _outcome(res):
+    return sorted([(tuple(p.box_xyxy.round(3)), "accepted") for p in res.poses] +
+                  [(tuple(r.box_xyxy.round(3)), r.reason) for r in res.rejected])
+
+
+def test_weak_boxes_count_only_with_a_calibration_and_never_in_detect(forklift_frame):
+    f, boxes = forklift_frame
+    scores = np.full(len(boxes), 0.15)
+    est = _estimator(boxes, scores, weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0))
+    assert est.detector.score_threshold == pytest.approx(0.1)     # the boxes are decoded down to the weak threshold
+    assert len(est.detect(f.rgb)) == 0                           # `detect` keeps the detector's own threshold
+    plain = est.estimate(f.rgb, f.depth_m, f.K)
+    assert plain.poses == [] and plain.rejected == []            # without a calibration they are not detections
+    calibrated = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert len(calibrated.poses) + len(calibrated.rejected) == len(boxes)
+    assert calibrated.poses                                      # what the structure check accepts is kept
+    off = _estimator(boxes, scores)                               # the option off: under the threshold is nothing
+    assert off.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam).poses == []
+
+
+def test_weak_boxes_are_judged_as_strong_ones_and_must_also_show_clear_structure(forklift_frame):
+    f, boxes = forklift_frame
+    T_vc = f.T_vehicle_cam
+    strong = _estimator(boxes, np.full(len(boxes), 0.6), weak_boxes=WeakBoxes())
+    ref = strong.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    assert ref.poses
+    # weak boxes without demands beyond the structure check: the same poses and rejections
+    lax = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0))
+    res = lax.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    assert _outcome(res) == _outcome(ref)
+    for a, b in zip(res.poses, ref.poses):
+        np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet)
+    # demands no pose meets: every pose the structure check accepted is refused, and says why
+    strict = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(min_agreement=1.0,
+                                                                                 min_open_fraction=1.0))
+    res = strict.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    accepted = {tuple(p.box_xyxy.round(3)) for p in ref.poses}
+    refused_weak = [r for r in res.rejected if "weak detection (score 0.15)" in r.detail]
+    assert {tuple(r.box_xyxy.round(3)) for r in res.poses} <= accepted
+    assert len(res.poses) + len(refused_weak) == len(accepted)
+    assert refused_weak and all(r.reason == "no_pallet_structure" and r.pose is not None for r in refused_weak)
+    # a strong box beside weak ones is judged as before
+    mixed_scores = np.full(len(boxes), 0.15)
+    mixed_scores[0] = 0.6
+    res = _estimator(boxes, mixed_scores, weak_boxes=WeakBoxes(min_agreement=1.0, min_open_fraction=1.0)).estimate(
+        f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    first = tuple(boxes[0].round(3))
+    assert dict(_outcome(res))[first] == dict(_outcome(ref))[first]
+
+
+def test_weak_boxes_without_a_structure_check_are_refused(forklift_frame):
+    f, boxes = forklift_frame
+    est = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(), structure=None)
+    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert res.poses == []
+    assert any("the structure check is off" in r.detail for r in res.rejected)
