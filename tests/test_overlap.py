@@ -66,3 +66,4 @@ def test_the_estimator_reports_one_pallet_posed_twice_once():
     np.testing.assert_allclose(twice.poses[0].box_xyxy, box)
     (dup,) = twice.rejected
     assert dup.reason == "duplicate" and "score 0.90" in dup.detail and dup.pose is not None
+

@@ -40,6 +40,7 @@ def test_weak_box_params_are_checked(field, value):
 
 
 def test_the_option_takes_weak_box_params_only():
+    assert EstimatorOptions().weak_boxes == WeakBoxes()          # on by default (it acts with a calibration only)
     with pytest.raises(TypeError, match="weak_boxes must be a WeakBoxes"):
         EstimatorOptions(weak_boxes={"score_threshold": 0.1})
 
@@ -84,7 +85,7 @@ def test_weak_boxes_count_only_with_a_calibration_and_never_in_detect(forklift_f
     calibrated = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
     assert len(calibrated.poses) + len(calibrated.rejected) == len(boxes)
     assert calibrated.poses                                      # what the structure check accepts is kept
-    off = _estimator(boxes, scores)                               # the option off: under the threshold is nothing
+    off = _estimator(boxes, scores, weak_boxes=None)             # the option off: under the threshold is nothing
     assert off.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam).poses == []
 
 
