@@ -125,3 +125,15 @@ def test_weak_boxes_without_a_structure_check_are_refused(forklift_frame):
     res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
     assert res.poses == []
     assert any("the structure check is off" in r.detail for r in res.rejected)
+
+
+@pytest.mark.parametrize("flags, expected", [([], WeakBoxes()), (["--no-weak-boxes"], None)])
+def test_the_command_line_turns_weak_boxes_off(flags, expected):
+    import argparse
+
+    from pallet6d.runtime.estimator_cli import add_estimator_arguments, load_estimator
+
+    parser = argparse.ArgumentParser()
+    add_estimator_arguments(parser)
+    est = load_estimator(parser.parse_args(["--bundle", str(SHIPPED), "--threads", "1", *flags]), "run")
+    assert est.options.weak_boxes == expected
