@@ -39,6 +39,9 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     assert load(tmp_path, "[estimator]\nstructure = false\n" + CAMERA_FRAME).estimator.structure is None
     relaxed = load(tmp_path, "[estimator]\nstructure = {min_agreement = 0.5}\n" + CAMERA_FRAME).estimator.structure
     assert relaxed.min_agreement == 0.5 and relaxed.grid == 32
+    assert load(tmp_path, "[estimator]\nweak_boxes = false\n" + CAMERA_FRAME).estimator.weak_boxes is None
+    weak = load(tmp_path, "[estimator]\nweak_boxes = {score_threshold = 0.15}\n" + CAMERA_FRAME).estimator.weak_boxes
+    assert weak.score_threshold == 0.15 and weak.min_open_fraction == 0.85
     assert load(tmp_path, '[camera]\nsource = "realsense:123"\n' + CAMERA_FRAME).camera.source == "realsense:123"
 
 
