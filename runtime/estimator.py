@@ -47,7 +47,7 @@ from .stage_geometry import bundle_geometries
 from .stage_type import TypeChoiceStage
 from .stage_pose import PoseNetworkStage
 from .stage_refine import RefinerStage
-from .weak_boxes import WeakBoxes
+from .weak_boxes import WeakBoxes, inside_fraction
 
 __all__ = ["EstimatorOptions", "PalletEstimator"]
 
@@ -478,6 +478,8 @@ class PalletEstimator:
         type_index = [o[0] for o in options]   # the type choice may change it
         cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points, options)
         weak = None if weak_below is None or self.options.weak_boxes is None else cands.scores < weak_below
+        if weak is not None:
+            self._screen_weak_boxes(cands, weak)
         if self.options.roi is not None:
             keep, why = roi_filter(cands.boxes_xyxy, depth_m, self.options.roi)
             drop = np.flatnonzero(~keep)
@@ -491,6 +493,10 @@ class PalletEstimator:
             registration = self.fit_check.start_registration(cands.boxes_xyxy[cands.alive], depth_m, rgb)
         try:
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
+            if weak is not None:           # the fit check would refuse them: not worth the type choice and refinement
+                low = np.flatnonzero(weak & cands.alive & (cands.confidence < self.options.min_confidence))
+                cands.reject(low, "low_confidence",
+                             [f"confidence {c:.3f} < {self.options.min_confidence}" for c in cands.confidence[low]])
             self.type_choice(cands, depth_m, K, timings, deadline, T_vehicle_cam)
             self.refiner(cands, depth_m, K, timings, deadline)
             up_cam = None
@@ -505,6 +511,15 @@ class PalletEstimator:
             if registration is not None:        # it reads the caller's arrays: done before they are handed back
                 wait([registration[1]])
         return cands
+
+    def _screen_weak_boxes(self, cands: Candidates, weak: np.ndarray) -> None:
+        """Weak boxes mostly inside a stronger detection's box are parts of what it found: not posed."""
+        rows = np.flatnonzero(weak & cands.alive)
+        inside = inside_fraction(cands.boxes_xyxy[rows], cands.boxes_xyxy[cands.alive & ~weak])
+        part = inside >= self.options.weak_boxes.max_inside
+        cands.reject(rows[part], "duplicate",
+                     [f"duplicate: a weak detection (score {cands.scores[i]:.2f}) {f:.0%} inside a stronger "
+                      f"detection's box" for i, f in zip(rows[part], inside[part])])
 
     def _drop_duplicates(self, cands: Candidates, timings: dict[str, float]) -> None:
         """Of accepted poses that occupy the same space (`overlap.py`), the highest-scoring detection's stays."""

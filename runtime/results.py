@@ -34,7 +34,8 @@ REJECT_REASONS = (
                              # or depth not registered to the image (registration.py: every candidate of the frame)
     "time_budget",          # skipped: the frame's time budget was spent before this detection was posed
     "outside_roi",          # outside the region of interest or the depth hint (roi.py), dropped before posing
-    "duplicate",            # its pose occupies the space of a higher-scoring detection's accepted pose (overlap.py)
+    "duplicate",            # its pose occupies the space of a higher-scoring detection's accepted pose (overlap.py),
+                            # or, a weak detection, its box lies inside a stronger detection's (weak_boxes.py)
 )
 
 

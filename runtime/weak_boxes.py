@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["WeakBoxes", "weak_box_failures"]
+__all__ = ["WeakBoxes", "weak_box_failures", "inside_fraction"]
 
 
 @dataclass(frozen=True)
@@ -27,14 +27,17 @@ class WeakBoxes:
     :ivar min_agreement: their structure agreement (`StructureScore.agreement`) must reach this...
     :ivar min_open_fraction: ...and their open fraction (`StructureScore.open_fraction`) this. On calibrated
         forklift views the carton stacks and loads posed from weak boxes show open fractions up to 0.43.
+    :ivar max_inside: a weak box that lies at least this much (a fraction of its area) inside a stronger detection's
+        box is a part of what that one found: it is not posed ("duplicate").
     """
 
     score_threshold: float = 0.1
     min_agreement: float = 0.85
     min_open_fraction: float = 0.85
+    max_inside: float = 0.9
 
     def __post_init__(self) -> None:
-        for name in ("score_threshold", "min_agreement", "min_open_fraction"):
+        for name in ("score_threshold", "min_agreement", "min_open_fraction", "max_inside"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
                 raise ValueError(f"WeakBoxes.{name} must be a number in [0, 1], got {v!r}")
@@ -59,3 +62,20 @@ def weak_box_failures(agreement: np.ndarray, open_fraction: np.ndarray, params: 
             short.append(f"openings open {o:.2f} < {params.min_open_fraction}")
         out.append(", ".join(short))
     return out
+
+
+def inside_fraction(boxes_xyxy: np.ndarray, others_xyxy: np.ndarray) -> np.ndarray:
+    """The largest share of each box's area inside one of the other boxes.
+
+    :param boxes_xyxy: (n, 4) pixels. :param others_xyxy: (m, 4) pixels. :return: (n,) in [0, 1] (0 without
+        others, or for a box of no area)."""
+    a = np.asarray(boxes_xyxy, dtype=np.float64).reshape(-1, 4)
+    b = np.asarray(others_xyxy, dtype=np.float64).reshape(-1, 4)
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros(len(a))
+    iw = np.clip(np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0]), 0, None)
+    ih = np.clip(np.minimum(a[:, None, 3], b[None, :, 3]) - np.maximum(a[:, None, 1], b[None, :, 1]), 0, None)
+    area = (a[:, 2] - a[:, 0]) * (a[:, 3] - a[:, 1])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        frac = (iw * ih).max(axis=1) / area
+    return np.where(area > 0, frac, 0.0)

@@ -7,7 +7,7 @@ import pytest
 
 from pallet6d.runtime.detector import Detections
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
-from pallet6d.runtime.weak_boxes import WeakBoxes, weak_box_failures
+from pallet6d.runtime.weak_boxes import WeakBoxes, inside_fraction, weak_box_failures
 
 SHIPPED = Path(__file__).resolve().parents[1] / "models" / "epal-default"
 
@@ -137,3 +137,37 @@ def test_the_command_line_turns_weak_boxes_off(flags, expected):
     add_estimator_arguments(parser)
     est = load_estimator(parser.parse_args(["--bundle", str(SHIPPED), "--threads", "1", *flags]), "run")
     assert est.options.weak_boxes == expected
+
+
+@pytest.mark.parametrize("boxes, others, expected", [
+    ([[0, 0, 10, 10]], [[0, 0, 20, 20]], [1.0]),
+    ([[0, 0, 10, 10]], [[5, 0, 20, 20], [0, 0, 2, 2]], [0.5]),      # the most of it inside one of them
+    ([[0, 0, 10, 10]], [[20, 20, 30, 30]], [0.0]),
+    ([[0, 0, 10, 10]], np.zeros((0, 4)), [0.0]),
+    ([[5, 5, 5, 9]], [[0, 0, 20, 20]], [0.0]),                        # no area
+    (np.zeros((0, 4)), [[0, 0, 1, 1]], []),
+])
+def test_inside_fraction(boxes, others, expected):
+    np.testing.assert_allclose(inside_fraction(boxes, others), expected)
+
+
+def test_a_weak_box_inside_a_stronger_one_is_not_posed(forklift_frame):
+    f, boxes = forklift_frame
+    part = boxes[0] + np.array([0.05, 0.05, -0.05, -0.05]) * (boxes[0][2] - boxes[0][0])
+    est = _estimator(np.vstack([boxes[:1], part[None]]), np.array([0.6, 0.15]))
+    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    (dup,) = [r for r in res.rejected if r.detector_score == pytest.approx(0.15)]
+    assert dup.reason == "duplicate" and "inside a stronger" in dup.detail and dup.pose is None
+
+
+def test_weak_boxes_the_network_is_unsure_of_go_no_further(forklift_frame, monkeypatch):
+    f, boxes = forklift_frame
+    est = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(min_agreement=0, min_open_fraction=0),
+                     min_confidence=1.0)
+    refined = []
+    real = est.refiner.__class__.__call__
+    monkeypatch.setattr(est.refiner.__class__, "__call__",
+                        lambda self, cands, *a, **k: refined.append(int(cands.alive.sum())) or real(self, cands, *a, **k))
+    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert res.poses == [] and {r.reason for r in res.rejected} == {"low_confidence"}
+    assert refined == [0]                                        # none of them reached the refinement
