@@ -153,7 +153,7 @@ class EstimatorOptions:
         `WeakBoxes.score_threshold` are posed after the others, and kept only where the levelled pose shows a
         pallet's structure clearly (`weak_boxes.py`; rejected "no_pallet_structure" otherwise). Without a
         calibration, and in `detect`, only `score_threshold` counts. None: off. Calibrated forklift-approach / mixed
-        test frames 40.9 / 27.8 -> 42.4 / 28.3 % within 5 cm, no pose more on the pallet-free frames
+        test frames 40.9 / 27.8 -> 42.1 / 28.3 % within 5 cm, no pose more on the pallet-free frames
         (docs/experiments/forklift.md, "Weak detections").
     """
 
