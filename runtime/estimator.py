@@ -444,10 +444,10 @@ class PalletEstimator:
         return det
 
     def _strong(self, det: Detections) -> Detections:
-        """`det` without the weak boxes (those under `score_threshold`, decoded for `weak_boxes`)."""
+        """`det` without the weak boxes (those not above `score_threshold`, decoded for `weak_boxes`)."""
         if self.options.weak_boxes is None:
             return det
-        return det.take(np.flatnonzero(det.scores >= self.options.score_threshold))
+        return det.take(np.flatnonzero(det.scores > self.options.score_threshold))    # as the decoding compares
 
     def _boxes(self, boxes_xyxy, scores, class_ids) -> Detections:
         if boxes_xyxy is None:
@@ -477,7 +477,7 @@ class PalletEstimator:
         options = self._type_options(det)
         type_index = [o[0] for o in options]   # the type choice may change it
         cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points, options)
-        weak = None if weak_below is None or self.options.weak_boxes is None else cands.scores < weak_below
+        weak = None if weak_below is None or self.options.weak_boxes is None else cands.scores <= weak_below
         if weak is not None:
             self._screen_weak_boxes(cands, weak)
         if self.options.roi is not None:

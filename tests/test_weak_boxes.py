@@ -171,3 +171,10 @@ def test_weak_boxes_the_network_is_unsure_of_go_no_further(forklift_frame, monke
     res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
     assert res.poses == [] and {r.reason for r in res.rejected} == {"low_confidence"}
     assert refined == [0]                                        # none of them reached the refinement
+
+
+def test_a_box_at_the_threshold_itself_is_weak_as_the_decoding_says(forklift_frame):
+    f, boxes = forklift_frame
+    est = _estimator(boxes, np.full(len(boxes), 0.25))
+    assert len(est.detect(f.rgb)) == 0                           # the decoding keeps scores above its threshold
+    assert est.estimate(f.rgb, f.depth_m, f.K).rejected == []
