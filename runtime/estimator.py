@@ -530,9 +530,10 @@ class PalletEstimator:
             dup = duplicate_of(cands.T_cam_pallet[rows], sizes)
             for k in np.flatnonzero(dup >= 0):
                 first = rows[dup[k]]
+                box = np.round(cands.boxes_xyxy[first]).astype(int).tolist()
                 cands.reject([rows[k]], "duplicate",
                              f"duplicate: the pose occupies the space of the pose of a higher-scoring detection "
-                             f"(score {cands.scores[first]:.2f}, box {np.round(cands.boxes_xyxy[first]).astype(int).tolist()})")
+                             f"(score {cands.scores[first]:.2f}, box {box})")
         timings["fit"] = timings.get("fit", 0.0) + elapsed_ms(t)
 
     def _type_options(self, det: Detections) -> list[tuple[int, ...]]:

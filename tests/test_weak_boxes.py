@@ -166,8 +166,12 @@ def test_weak_boxes_the_network_is_unsure_of_go_no_further(forklift_frame, monke
                      min_confidence=1.0)
     refined = []
     real = est.refiner.__class__.__call__
-    monkeypatch.setattr(est.refiner.__class__, "__call__",
-                        lambda self, cands, *a, **k: refined.append(int(cands.alive.sum())) or real(self, cands, *a, **k))
+
+    def spy(self, cands, *args, **kwargs):
+        refined.append(int(cands.alive.sum()))
+        return real(self, cands, *args, **kwargs)
+
+    monkeypatch.setattr(est.refiner.__class__, "__call__", spy)
     res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
     assert res.poses == [] and {r.reason for r in res.rejected} == {"low_confidence"}
     assert refined == [0]                                        # none of them reached the refinement
