@@ -2,8 +2,8 @@
 where the depth shows a pallet's structure clearly. Pure numpy.
 
 The detector is least sure of what a forklift most needs: pallets seen near and obliquely, and types it saw
-little of (on calibrated forklift views a quarter of the pallets under 4 m have a box on them that scores under
-the detector's 0.25). Lowering the threshold for every box accepts poses on carton stacks and loads, whose
+little of (on calibrated forklift views nearly one in five of the pallets under 4 m has a box on it that scores
+under the detector's 0.25). Lowering the threshold for every box accepts poses on carton stacks and loads, whose
 structure evidence is weak; a box the detector is unsure of is therefore asked for the evidence those lack: with a
 calibration the pose is levelled on the floor and its structure judged there (`level.py`, `structure.py`), and a
 weak box is kept only where nearly every ray agrees with the posed pallet and its openings are open
@@ -22,7 +22,7 @@ __all__ = ["WeakBoxes", "weak_box_failures", "inside_fraction"]
 class WeakBoxes:
     """Which weak detections are posed and what they must show.
 
-    :ivar score_threshold: detections scoring at least this (and under `EstimatorOptions.score_threshold`) are
+    :ivar score_threshold: detections scoring above this (and not above `EstimatorOptions.score_threshold`) are
         posed when the frame comes with the camera's calibration.
     :ivar min_agreement: their structure agreement (`StructureScore.agreement`) must reach this...
     :ivar min_open_fraction: ...and their open fraction (`StructureScore.open_fraction`) this. On calibrated
