@@ -32,15 +32,22 @@ def overlap_fractions(T_cam_pallet: np.ndarray, sizes_m: np.ndarray, grid: int =
     n = len(T)
     if len(sizes) != n:
         raise ValueError(f"overlap_fractions: {n} poses but {len(sizes)} sizes")
-    if n == 0:
-        return np.zeros((0, 0))
-    pts = np.stack([_cell_centres(s, grid) for s in sizes])                       # (n, m, 3) own frames
-    cam = np.einsum("iab,imb->ima", T[:, :3, :3], pts) + T[:, None, :3, 3]       # (n, m, 3) camera frame
-    R_inv = np.transpose(T[:, :3, :3], (0, 2, 1))                                  # (n, 3, 3)
-    # every pose's points in every pose's frame: (n_j, n_i, m, 3)
-    rel = np.einsum("jab,imb->jima", R_inv, cam) - np.einsum("jab,jb->ja", R_inv, T[:, :3, 3])[:, None, None, :]
-    inside = np.all(np.abs(rel) <= sizes[:, None, None, :] / 2, axis=-1)          # (n_j, n_i, m)
-    return inside.mean(axis=-1).T
+    frac = np.eye(n)
+    # only boxes whose bounding spheres meet can overlap: most frames have no such pair
+    reach = np.linalg.norm(sizes, axis=1) / 2
+    centres = T[:, :3, 3]
+    near = np.linalg.norm(centres[:, None] - centres[None], axis=-1) < reach[:, None] + reach[None]
+    np.fill_diagonal(near, False)
+    a, b = np.nonzero(near)                             # ordered pairs: a's points in b's box
+    if len(a):
+        R, half_b = T[:, :3, :3], sizes[b] / 2
+        R_ba = np.transpose(R[b], (0, 2, 1)) @ R[a]                                # pose a's frame -> pose b's
+        t_ba = np.einsum("pji,pj->pi", R[b], centres[a] - centres[b])
+        # a's unit grid scaled to its box, into b's frame, in units of b's half sizes: inside where |coordinates| <= 1
+        M = sizes[a, :, None] * np.transpose(R_ba, (0, 2, 1)) / half_b[:, None, :]
+        rel = np.abs(_cell_centres(np.ones(3), grid) @ M + (t_ba / half_b)[:, None]) <= 1
+        frac[a, b] = (rel[..., 0] & rel[..., 1] & rel[..., 2]).mean(axis=1)
+    return frac
 
 
 def duplicate_of(T_cam_pallet: np.ndarray, sizes_m: np.ndarray, max_overlap: float = 0.5) -> np.ndarray:

@@ -46,6 +46,21 @@ def test_duplicate_of_keeps_the_first_of_each_place():
     poses = np.stack([_pose(), _pose(x=1.2), _pose(x=0.02), _pose(x=1.25, yaw_deg=180), _pose(x=0.6)])
     assert duplicate_of(poses, np.tile(EPAL, (5, 1))).tolist() == [-1, -1, 0, 1, -1]   # half inside is not more
     assert duplicate_of(np.zeros((0, 4, 4)), np.zeros((0, 3))).tolist() == []
+    stack = np.stack([_pose(z=3.0 + 0.144 * k) for k in range(16)])            # a stack of 16: 16 pallets
+    assert duplicate_of(stack, np.tile(EPAL, (16, 1))).tolist() == [-1] * 16
+
+
+def test_overlap_fractions_equal_a_point_by_point_count():
+    rng = np.random.default_rng(0)
+    poses = np.stack([_pose(*rng.uniform(-0.5, 0.5, 2), 3.0 + rng.uniform(-0.1, 0.1), rng.uniform(0, 360))
+                      for _ in range(6)])
+    frac = overlap_fractions(poses, np.tile(EPAL, (6, 1)), grid=4)
+    t = (np.arange(4) + 0.5) / 4 - 0.5
+    own = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * EPAL
+    for i, j in np.ndindex(6, 6):
+        cam = own @ poses[i][:3, :3].T + poses[i][:3, 3]
+        rel = (cam - poses[j][:3, 3]) @ poses[j][:3, :3]
+        assert frac[i, j] == pytest.approx(np.all(np.abs(rel) <= EPAL / 2 + 1e-12, axis=1).mean())
 
 
 def test_the_estimator_reports_one_pallet_posed_twice_once():
