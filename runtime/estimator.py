@@ -382,8 +382,7 @@ class PalletEstimator:
         rgb, depth_m, K = self.check_inputs(rgb, depth, K, depth_scale)
         T_vc = _check_T_vehicle_cam(T_vehicle_cam)
         timings: dict[str, float] = {}
-        det = self._detect(rgb, timings, depth_m)
-        cands = self._run(rgb, depth_m, K, det if T_vc is not None else self._strong(det), timings, deadline, T_vc,
+        cands = self._run(rgb, depth_m, K, self._detect(rgb, timings, depth_m), timings, deadline, T_vc,
                           weak_below=self.options.score_threshold)
         return self._result(cands, depth_m.shape, timings, t0)
 
@@ -412,8 +411,7 @@ class PalletEstimator:
         T_vc = _check_T_vehicle_cam(T_vehicle_cam)
         if detections is not None:
             return self._run(rgb, depth_m, K, detections, timings, deadline, T_vc)
-        det = self._detect(rgb, timings, depth_m)
-        return self._run(rgb, depth_m, K, det if T_vc is not None else self._strong(det), timings, deadline, T_vc,
+        return self._run(rgb, depth_m, K, self._detect(rgb, timings, depth_m), timings, deadline, T_vc,
                          weak_below=self.options.score_threshold)
 
     def check_inputs(self, rgb, depth=None, K=None, depth_scale=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -470,9 +468,12 @@ class PalletEstimator:
              timings: dict[str, float], deadline: Deadline, T_vehicle_cam: np.ndarray | None = None,
              weak_below: float | None = None) -> Candidates:
         """The stages after the detector on `det`, highest score first, at most `max_pallets`; with `weak_below`
-        (the detector's own boxes), those scoring under it are weak boxes (`weak_boxes.py`)."""
+        (the detector's own boxes), those not above it are weak boxes (`weak_boxes.py`), posed with a calibration
+        only."""
         for s in STAGES:
             timings.setdefault(s, 0.0)
+        if weak_below is not None and T_vehicle_cam is None:
+            det = self._strong(det)
         det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
         options = self._type_options(det)
         type_index = [o[0] for o in options]   # the type choice may change it
