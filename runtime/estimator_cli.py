@@ -9,7 +9,7 @@ import sys
 def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """--bundle, --int8, --threads, --score-threshold, --max-pallets, --min-fit, --seed, --no-refine,
     --refine-starts, --type-candidates, --type-candidates-levelled, --pallet-types, --time-budget-ms,
-    --pallet-lanes, --no-structure-check, --no-weak-boxes."""
+    --pallet-lanes, --no-structure-check, --no-weak-boxes, --no-depth-proposals."""
     parser.add_argument("--bundle", help="model bundle folder (default: $PALLET6D_BUNDLE, else the installed "
                                          "pallet6d-models package's epal-default, else ./models/epal-default)")
     parser.add_argument("--no-structure-check", action="store_true",
@@ -17,6 +17,10 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-weak-boxes", action="store_true",
                         help="with a calibration, do not pose detections scoring under --score-threshold (by "
                              "default those scoring at least 0.1 are posed and kept only with clear pallet structure)")
+    parser.add_argument("--no-depth-proposals", action="store_true",
+                        help="with a calibration, do not pose what stands a pallet's height on the floor in the depth "
+                             "where the detector found nothing (by default it is posed and kept only with clear "
+                             "pallet structure)")
     parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
@@ -77,6 +81,8 @@ def load_estimator(args: argparse.Namespace, command: str):
             extra["structure"] = None
         if args.no_weak_boxes:
             extra["weak_boxes"] = None
+        if args.no_depth_proposals:
+            extra["depth_proposals"] = None
         return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32",
                                            score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,

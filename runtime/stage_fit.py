@@ -168,7 +168,8 @@ def _rejection_reason(structure_reason: str) -> str:
 
 
 def _weak_detail(score: float, why: str) -> str:
-    return f"no_pallet_structure: a weak detection (score {score:.2f}) is kept only with clear structure: {why}"
+    what = "a depth proposal" if score == 0.0 else f"a weak detection (score {score:.2f})"   # depth_proposals.py
+    return f"no_pallet_structure: {what} is kept only with clear structure: {why}"
 
 
 def _structure_detail(s) -> str:

@@ -365,7 +365,7 @@ def pocket_open_fractions(origin: np.ndarray, dirs: np.ndarray, t_bbox: np.ndarr
     return np.where(best >= 0, best, np.nan)
 
 
-def _projected_bounds(T_cam_pallet: np.ndarray, lo: np.ndarray, hi: np.ndarray, K: np.ndarray) -> np.ndarray:
+def projected_bounds(T_cam_pallet: np.ndarray, lo: np.ndarray, hi: np.ndarray, K: np.ndarray) -> np.ndarray:
     """(n, 4) xyxy image box of each pose's model bounding box lo..hi ((n, 3) each; corners behind the camera
     dropped)."""
     pick = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], bool)       # (8, 3): hi where True
@@ -460,7 +460,7 @@ def _cast_grid(T: np.ndarray, sets: BoxSets, which: np.ndarray, depth: np.ndarra
     classes (the module's docstring)."""
     h, w = depth.shape
     n = len(T)
-    proj = _projected_bounds(T, sets.lo[which], sets.hi[which], K)
+    proj = projected_bounds(T, sets.lo[which], sets.hi[which], K)
     clip = np.stack([np.clip(proj[:, 0], 0, w - 1), np.clip(proj[:, 1], 0, h - 1),
                      np.clip(proj[:, 2], 0, w - 1), np.clip(proj[:, 3], 0, h - 1)], 1)
     valid_proj = np.all(np.isfinite(proj), 1) & (clip[:, 2] > clip[:, 0]) & (clip[:, 3] > clip[:, 1])

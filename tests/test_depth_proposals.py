@@ -1,0 +1,236 @@
+"""Proposals from the depth alone: boxes around what stands a pallet's height on the floor, posed as weak detections."""
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pallet6d.runtime.depth_proposals import DepthProposals, framing_iou, propose_boxes
+from pallet6d.runtime.detector import Detections
+from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
+from pallet6d.runtime.evaluation import box_iou
+
+SHIPPED = Path(__file__).resolve().parents[1] / "models" / "epal-default"
+H, W = 240, 424
+K = np.array([[300.0, 0, 211.5], [0, 300.0, 119.5], [0, 0, 1]])
+CAM_HEIGHT_M = 0.6
+
+
+def _T_vehicle_cam(pitch_deg: float = 10.0) -> np.ndarray:
+    """A camera 0.6 m above the floor looking forward (vehicle x), pitched down: its axes in the vehicle frame."""
+    p = np.radians(pitch_deg)
+    z_cam = np.array([np.cos(p), 0.0, -np.sin(p)])                 # the optical axis
+    x_cam = np.array([0.0, -1.0, 0.0])                             # image right: the vehicle's right
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2] = x_cam, np.cross(z_cam, x_cam), z_cam
+    T[:3, 3] = [0.0, 0.0, CAM_HEIGHT_M]
+    return T
+
+
+def _render(blocks, T_vc: np.ndarray) -> np.ndarray:
+    """Depth (H, W) metres of a floor (z = 0) and axis-aligned blocks [(x0, x1, y0, y1, z0, z1)] in the vehicle frame,
+    by casting each pixel's ray."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    R, o = T_vc[:3, :3], T_vc[:3, 3]
+    d = rays_cam @ R.T                                             # ray directions in the vehicle frame
+    t_best = np.where(d[..., 2] < -1e-9, -o[2] / np.minimum(d[..., 2], -1e-9), np.inf)    # the floor
+    for x0, x1, y0, y1, z0, z1 in blocks:
+        lo, hi = np.array([x0, y0, z0]), np.array([x1, y1, z1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta, tb = (lo - o) / d, (hi - o) / d
+        t_near = np.nanmax(np.minimum(ta, tb), axis=-1)
+        t_far = np.nanmin(np.maximum(ta, tb), axis=-1)
+        hit = (t_near <= t_far) & (t_far > 0)
+        t_best = np.where(hit & (t_near < t_best), t_near, t_best)
+    depth = t_best * rays_cam[..., 2]                              # z of the hit in the camera frame
+    return np.where(np.isfinite(depth) & (depth < 20), depth, 0.0).astype(np.float32)
+
+
+def _projected_box(block, T_vc: np.ndarray) -> np.ndarray:
+    x0, x1, y0, y1, z0, z1 = block
+    corners = np.array([[x, y, z] for x in (x0, x1) for y in (y0, y1) for z in (z0, z1)])
+    p_cam = (corners - T_vc[:3, 3]) @ T_vc[:3, :3]
+    u = K[0, 0] * p_cam[:, 0] / p_cam[:, 2] + K[0, 2]
+    v = K[1, 1] * p_cam[:, 1] / p_cam[:, 2] + K[1, 2]
+    return np.array([[u.min(), v.min(), u.max(), v.max()]])
+
+
+PALLET = (3.0, 3.8, -0.6, 0.6, 0.0, 0.144)                        # a EUR pallet's footprint 3 m ahead, long side on
+
+
+def test_the_camera_used_by_these_tests_looks_forward_and_down():
+    T = _T_vehicle_cam()
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3)) and np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+    assert T[:3, 2] @ [1, 0, 0] > 0.9 and T[:3, 2][2] < 0                # the optical axis ahead, below level
+    assert T[:3, 1][2] < 0                                                 # image down is vehicle down
+
+
+def test_a_pallet_on_the_floor_is_proposed_around_where_it_is_seen():
+    T = _T_vehicle_cam()
+    boxes = propose_boxes(_render([PALLET], T), K, T)
+    assert boxes.shape == (1, 4)
+    assert box_iou(boxes, _projected_box(PALLET, T))[0, 0] > 0.7
+
+
+@pytest.mark.parametrize("blocks, why", [
+    ([], "a bare floor"),
+    ([(2.0, 2.1, -3.0, 3.0, 0.0, 2.5)], "a wall across the view: far wider than a pallet"),
+    ([(3.0, 3.8, -0.6, 0.6, 0.0, 0.04)], "a mat 4 cm high: under the band"),
+    ([(3.0, 3.1, -0.1, 0.0, 0.0, 0.15)], "a post 10 cm across: narrower than any pallet"),
+    ([(8.0, 8.8, -0.6, 0.6, 0.0, 0.144)], "a pallet beyond the range"),
+])
+def test_nothing_a_pallet_could_not_be_is_proposed(blocks, why):
+    T = _T_vehicle_cam()
+    assert propose_boxes(_render(blocks, T), K, T).shape == (0, 4), why
+
+
+def test_two_pallets_a_hand_apart_are_two_proposals_nearest_first():
+    T = _T_vehicle_cam()
+    far = (3.0, 3.8, 0.1, 1.3, 0.0, 0.144)
+    near = (2.5, 3.3, -1.4, -0.2, 0.0, 0.144)
+    boxes = propose_boxes(_render([far, near], T), K, T)
+    assert boxes.shape == (2, 4)
+    assert box_iou(boxes[:1], _projected_box(near, T))[0, 0] > 0.6
+    assert box_iou(boxes[1:], _projected_box(far, T))[0, 0] > 0.6
+
+
+def test_what_stands_on_the_pallet_does_not_change_its_proposal():
+    T = _T_vehicle_cam()
+    load = (3.0, 3.8, -0.6, 0.6, 0.144, 1.2)
+    boxes = propose_boxes(_render([PALLET, load], T), K, T)
+    assert boxes.shape == (1, 4)
+    assert box_iou(boxes, _projected_box(PALLET, T))[0, 0] > 0.6
+
+
+@pytest.mark.parametrize("depth", [np.zeros((H, W), np.float32), np.full((H, W), np.nan, np.float32)])
+def test_depth_without_data_proposes_nothing(depth):
+    T = _T_vehicle_cam()
+    assert propose_boxes(depth, K, T).shape == (0, 4)
+
+
+def test_depth_must_be_an_image():
+    with pytest.raises(ValueError, match=r"depth_m must be \(H, W\)"):
+        propose_boxes(np.zeros((4, 4, 3)), K, _T_vehicle_cam())
+
+
+@pytest.mark.parametrize("field, value", [
+    ("band_m", (0.2, 0.1)), ("band_m", (-0.1, 0.2)), ("width_m", (1.0, 0.5)), ("max_range_m", 0.0),
+    ("min_height_m", float("nan")), ("cell_m", True), ("stride", 0), ("stride", 1.5), ("min_points", 0),
+    ("margin", 1.5), ("max_iou", -0.1),
+])
+def test_proposal_params_are_checked(field, value):
+    with pytest.raises(ValueError, match=f"DepthProposals.{field}"):
+        DepthProposals(**{field: value})
+
+
+def test_the_option_takes_proposal_params_only():
+    assert EstimatorOptions().depth_proposals == DepthProposals()     # on by default (it acts with a calibration only)
+    with pytest.raises(TypeError, match="depth_proposals must be a DepthProposals"):
+        EstimatorOptions(depth_proposals={"stride": 2})
+
+
+def _pose_at(x: float, y: float, z: float) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+def test_framing_iou_is_that_of_the_box_and_the_pallets_projection_inside_the_image():
+    size = np.array([[1.2, 0.8, 0.2]])
+    T = _pose_at(0.0, 0.0, 3.0)
+    # the pallet frame as the camera's (its 0.2 m "height" along the optical axis): the near face at 2.9 m
+    u = 300.0 * 0.6 / 2.9
+    v = 300.0 * 0.4 / 2.9
+    exact = np.array([[211.5 - u, 119.5 - v, 211.5 + u, 119.5 + v]])
+    assert framing_iou(T[None], size, K, exact, (H, W))[0] == pytest.approx(1.0)
+    left_half = exact.copy()
+    left_half[0, 2] = 211.5
+    assert framing_iou(T[None], size, K, left_half, (H, W))[0] == pytest.approx(0.5)
+    elsewhere = np.array([[0.0, 0.0, 20.0, 20.0]])
+    assert framing_iou(T[None], size, K, elsewhere, (H, W))[0] == 0.0
+    behind = _pose_at(0.0, 0.0, -3.0)
+    assert framing_iou(behind[None], size, K, exact, (H, W))[0] == 0.0
+    # a pallet reaching past the image's edge is judged on its part inside the image, as the box is
+    wide = np.array([[8.0, 0.8, 0.2]])
+    assert framing_iou(T[None], wide, K, np.array([[0.0, 119.5 - v, W, 119.5 + v]]), (H, W))[0] == pytest.approx(1.0)
+    assert framing_iou(np.zeros((0, 4, 4)), np.zeros((0, 3)), K, np.zeros((0, 4)), (H, W)).shape == (0,)
+
+
+@pytest.fixture(scope="module")
+def forklift_frame():
+    """A calibrated forklift-approach frame of EPALs (exact depth)."""
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    f = generate_frame(dataclasses.replace(get_preset("forklift-approach"), pallet_models=("epal",)), seed=3)
+    return dataclasses.replace(f, depth_m=f.depth_ideal_m)
+
+
+def _blind_estimator(det: Detections, **options) -> PalletEstimator:
+    """The shipped bundle whose detector reports `det`."""
+    est = PalletEstimator.from_bundle(SHIPPED, threads=1, pallet_types=("epal",), **options)
+    est.detector.postprocess = lambda raw, lb: det
+    return est
+
+
+def test_with_a_calibration_the_depth_finds_pallets_a_blind_detector_misses(forklift_frame):
+    f = forklift_frame
+    T_vc = f.T_vehicle_cam
+    proposed = propose_boxes(f.depth_m, f.K, T_vc)
+    assert len(proposed) >= 1
+    est = _blind_estimator(Detections.empty(), depth_proposals=DepthProposals())
+    assert est.estimate(f.rgb, f.depth_m, f.K).poses == []           # without a calibration: nothing to pose
+    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    posed = res.poses + res.rejected
+    assert len(posed) == len(proposed)
+    assert all(p.detector_score == 0.0 for p in posed)
+    assert res.timings_ms["proposals"] > 0
+    assert res.poses                                                   # the frame's clear pallets are kept
+    gts = [p.T_cam_pallet for p in f.pallets]
+    for p in res.poses:                                                # on pallets, not somewhere near them
+        assert min(np.linalg.norm(p.T_cam_pallet[:3, 3] - g[:3, 3]) for g in gts) < 0.05
+    off = _blind_estimator(Detections.empty(), depth_proposals=None)   # the option off
+    assert off.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc).poses == []
+
+
+def test_proposals_a_detection_covers_are_not_posed_again(forklift_frame):
+    f = forklift_frame
+    proposed = propose_boxes(f.depth_m, f.K, f.T_vehicle_cam)
+    det = Detections(proposed, np.full(len(proposed), 0.9), np.zeros(len(proposed), np.int64))
+    res = _blind_estimator(det, depth_proposals=DepthProposals()).estimate(f.rgb, f.depth_m, f.K,
+                                                                           T_vehicle_cam=f.T_vehicle_cam)
+    assert all(p.detector_score == 0.9 for p in res.poses + res.rejected)
+
+
+def test_proposals_are_judged_as_weak_detections(forklift_frame):
+    """A proposal is posed and judged exactly as a weak detection on its box would be; without the weak boxes
+    there are no proposals either."""
+    f = forklift_frame
+    T_vc = f.T_vehicle_cam
+    proposed = propose_boxes(f.depth_m, f.K, T_vc)
+    res = _blind_estimator(Detections.empty(), depth_proposals=DepthProposals()).estimate(
+        f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    weak = Detections(proposed, np.full(len(proposed), 0.15), np.zeros(len(proposed), np.int64))
+    as_weak = _blind_estimator(weak, depth_proposals=None).estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+
+    def outcome(r):
+        return sorted([(tuple(p.box_xyxy.round(3)), "accepted", tuple(p.T_cam_pallet.round(6).ravel()))
+                       for p in r.poses] + [(tuple(q.box_xyxy.round(3)), q.reason, ()) for q in r.rejected])
+
+    assert outcome(res) == outcome(as_weak) and res.poses
+    no_weak = _blind_estimator(Detections.empty(), depth_proposals=DepthProposals(), weak_boxes=None)
+    res = no_weak.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    assert res.poses == [] and res.rejected == []
+
+
+@pytest.mark.parametrize("flags, expected", [([], DepthProposals()), (["--no-depth-proposals"], None)])
+def test_the_command_line_turns_depth_proposals_off(flags, expected):
+    import argparse
+
+    from pallet6d.runtime.estimator_cli import add_estimator_arguments, load_estimator
+
+    parser = argparse.ArgumentParser()
+    add_estimator_arguments(parser)
+    est = load_estimator(parser.parse_args(["--bundle", str(SHIPPED), "--threads", "1", *flags]), "run")
+    assert est.options.depth_proposals == expected
