@@ -4,8 +4,11 @@ A forklift runs the estimator for months: memory must level off after the warm-u
 up. This reads a recording in a loop through the same camera layer as `pallet6d run` and, every `--window`
 frames, records the process's resident memory and the window's latency percentiles (never run by the tests).
 
-    python benchmarks/soak.py --bundle models/epal-default [--int8] [--source bop:DIR|replay:DIR] --minutes 10 \\
-        [--fps F] --out benchmarks/results/soak
+    python benchmarks/soak.py --bundle models/epal-default [--int8] [--source bop:DIR|replay:DIR] [--calibrated] \\
+        --minutes 10 [--fps F] --out benchmarks/results/soak
+
+`--calibrated` (with `--source bop:DIR` of a forklift preset) passes each frame's camera calibration, so the
+calibrated path runs too: levelling, the type search, weak boxes and the depth's proposals.
 
 `--fps F` delivers the frames at most F a second, as a camera does (the estimator then idles between frames, as
 it does on a forklift; back to back without it). Each window also records the machine's 1-minute load average, so a
@@ -50,9 +53,30 @@ def default_source(root: Path) -> str:
     return f"bop:{root}"
 
 
-def soak(bundle: str, precision: str, threads: int, source: str, minutes: float, window: int,
-         refine_starts: int | None = None, fps: float | None = None) -> dict:
+def frames_in_a_loop(source: str, calibrated: bool):
+    """(`estimate`'s positional arguments, its `T_vehicle_cam`) of each frame of `source`, played in a loop; with
+    `calibrated` the frames of a BOP dataset (`bop:DIR`) with their own calibrations."""
+    from pallet6d.runtime.bop import BopDataset
     from pallet6d.runtime.cameras import open_source
+
+    if not calibrated:
+        with open_source(source, loop=True) as cam:
+            for frame in cam:
+                yield (frame,), None
+        return
+    if not source.startswith("bop:"):
+        raise SystemExit(f"soak: --calibrated needs --source bop:DIR, got {source!r}")
+    ds = BopDataset(source[len("bop:"):])
+    if len(ds) == 0 or ds[0].T_vehicle_cam is None:
+        raise SystemExit(f"soak: {source} has no frames with a vehicle calibration (scene_forklift.json)")
+    while True:
+        for i in range(len(ds)):
+            f = ds[i]
+            yield (f.rgb, f.depth_m, f.K), f.T_vehicle_cam
+
+
+def soak(bundle: str, precision: str, threads: int, source: str, minutes: float, window: int,
+         refine_starts: int | None = None, fps: float | None = None, calibrated: bool = False) -> dict:
     from pallet6d.runtime.estimator import PalletEstimator
 
     rss_start = rss_mb()
@@ -62,29 +86,28 @@ def soak(bundle: str, precision: str, threads: int, source: str, minutes: float,
     period_s = 1.0 / fps if fps else 0.0
     t_start = time.perf_counter()
     t_next = t_start
-    with open_source(source, loop=True) as cam:
-        for frame in cam:
-            if period_s:
-                # the camera's next frame: wait for it, or take it at once when the last one ran late
-                time.sleep(max(0.0, t_next - time.perf_counter()))
-                t_next = max(t_next + period_s, time.perf_counter())
-            result = est.estimate(frame)
-            ms.append(result.timings_ms["total"])
-            poses += len(result.poses)
-            frames += 1
-            if frames % window == 0:
-                elapsed = time.perf_counter() - t_start
-                windows.append({"frames": frames, "minutes": round(elapsed / 60, 2), "rss_mb": round(rss_mb(), 1),
-                                "p50_ms": round(float(np.percentile(ms, 50)), 1),
-                                "p95_ms": round(float(np.percentile(ms, 95)), 1), "poses_per_frame": poses / len(ms),
-                                "load_1min": round(os.getloadavg()[0], 2)})
-                print(json.dumps(windows[-1]), flush=True)
-                ms, poses = [], 0
-                if elapsed >= minutes * 60:
-                    break
+    for args, T_vehicle_cam in frames_in_a_loop(source, calibrated):
+        if period_s:
+            # the camera's next frame: wait for it, or take it at once when the last one ran late
+            time.sleep(max(0.0, t_next - time.perf_counter()))
+            t_next = max(t_next + period_s, time.perf_counter())
+        result = est.estimate(*args, T_vehicle_cam=T_vehicle_cam)
+        ms.append(result.timings_ms["total"])
+        poses += len(result.poses)
+        frames += 1
+        if frames % window == 0:
+            elapsed = time.perf_counter() - t_start
+            windows.append({"frames": frames, "minutes": round(elapsed / 60, 2), "rss_mb": round(rss_mb(), 1),
+                            "p50_ms": round(float(np.percentile(ms, 50)), 1),
+                            "p95_ms": round(float(np.percentile(ms, 95)), 1), "poses_per_frame": poses / len(ms),
+                            "load_1min": round(os.getloadavg()[0], 2)})
+            print(json.dumps(windows[-1]), flush=True)
+            ms, poses = [], 0
+            if elapsed >= minutes * 60:
+                break
     if len(windows) < 3:
         raise SystemExit("soak: fewer than three windows; run longer or use a smaller --window")
-    return {"bundle": bundle, "precision": precision, "threads": threads, "fps": fps,
+    return {"bundle": bundle, "precision": precision, "threads": threads, "fps": fps, "calibrated": calibrated,
             "refine_starts": est.options.refine_starts, "source": source, "frames": frames,
             "rss_before_mb": round(rss_start, 1), **rss_summary(windows), **latency_summary(windows),
             "windows": windows}
@@ -116,6 +139,7 @@ def markdown(doc: dict, command: str) -> str:
     lines = ["# Soak run", "", f"`{command}` on {doc['created']}, {doc['machine']}.", "",
              f"{doc['frames']} frames of `{doc['source']}` in a loop"
              f"{' at ' + format(doc['fps'], 'g') + ' frames/s' if doc.get('fps') else ', back to back'}, "
+             f"{'each with its camera calibration, ' if doc.get('calibrated') else ''}"
              f"{doc['precision']}, onnxruntime threads={doc['threads']}, "
              f"{doc['refine_starts']} extra ICP starts. "
              f"RSS before loading the bundle {doc['rss_before_mb']} MB; after the first window it stays within "
@@ -141,6 +165,8 @@ def main(argv=None) -> int:
     ap.add_argument("--window", type=int, default=200, help="frames per reported window")
     ap.add_argument("--fps", type=float, default=None,
                     help="deliver at most this many frames a second, as a camera does (default: back to back)")
+    ap.add_argument("--calibrated", action="store_true",
+                    help="pass each frame's camera calibration (needs --source bop:DIR of a forklift preset)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/soak"))
     args = ap.parse_args(argv)
     if args.fps is not None and not args.fps > 0:
@@ -148,7 +174,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         source = args.source or default_source(Path(tmp) / "recording")
         doc = soak(args.bundle, "int8" if args.int8 else "fp32", args.threads, source, args.minutes, args.window,
-                   args.refine_starts, args.fps)
+                   args.refine_starts, args.fps, args.calibrated)
     if not args.source:
         doc["source"] = "generated: pallet6d sim --preset virtual-occluded --frames 30 --seed 7"
     doc["created"] = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
