@@ -3,10 +3,11 @@
 The detector knows pallets by their look, and a look it has not learnt (a blue or black plastic pallet, an
 unusual wood, a face seen at 40 degrees) scores under its threshold or not at all. With the camera's calibration
 the depth says where the floor is, and every pallet, of any colour, is a block of points standing up to its deck
-height (0.1-0.16 m) on it. The points in that band above the floor, split where the depth jumps, give one
-component per object standing on the floor; those a pallet's size across are proposed as boxes. They are posed like
-weak detections and kept only where the posed pallet's structure is clear (`weak_boxes.py`), which a carton
-stack or a load's foot does not show. Pure numpy and OpenCV.
+height (0.1-0.16 m) on it. The points in that band above the floor, joined where neighbouring pixels show no jump in
+depth and where they share a cell of the floor, make one object each; those of a pallet's size across are proposed
+as boxes. The estimator poses them like weak detections and keeps them only where the posed pallet's structure is
+clear (`weak_boxes.py`) and the pose fills the box (`framing_iou`), which a carton stack, a load's foot or a post
+does not show. Pallets on racks or on other pallets stand on no floor and are not proposed. Pure numpy and OpenCV.
 """
 from __future__ import annotations
 
@@ -30,10 +31,10 @@ class DepthProposals:
         noise and the lowered fork tines (4-5 cm thick), up to just over a pallet's deck.
     :ivar max_range_m: farthest point, metres along the floor from the camera; farther pallets are too few pixels
         for the structure check to judge.
-    :ivar width_m: (least, most) horizontal extent of a component, metres: part of a pallet's face to a pallet seen
+    :ivar width_m: (least, most) horizontal extent of an object, metres: part of a pallet's face to a pallet seen
         corner-on (a 1200 x 1000 pallet's diagonal is 1.56 m).
-    :ivar min_height_m: least height a component spans within the band, metres: floor speckle and low clutter span
-        less.
+    :ivar min_height_m: least height an object's points span within the band, metres: floor speckle and low clutter
+        span less.
     :ivar max_jump: neighbouring pixels whose depths differ by more than this fraction of their depth lie on
         different surfaces.
     :ivar cell_m: side of the floor's cells, metres: surfaces with points in one cell are one object.
@@ -46,7 +47,7 @@ class DepthProposals:
     :ivar min_framing_iou: a proposal's pose is kept only where the posed pallet's projected bounding box (clipped
         to the image) overlaps the proposal at least this much (IoU): a proposal is the object's whole extent, and
         a pose that leaves most of it empty (or reaches far beyond it) is the pose of something else. On calibrated
-        forklift validation frames the correct poses frame their proposals at 0.5-0.9, the poses accepted on
+        forklift validation frames the correct poses mostly frame their proposals at 0.5-0.9, the poses accepted on
         pallet-free frames at 0.1-0.2.
     """
 
@@ -94,6 +95,10 @@ def propose_boxes(depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
     depth_m = np.asarray(depth_m)
     if depth_m.ndim != 2:
         raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or np.asarray(T_vehicle_cam).shape != (4, 4):
+        raise ValueError(f"K must be (3, 3) and T_vehicle_cam (4, 4), got {K.shape} and "
+                         f"{np.asarray(T_vehicle_cam).shape}")
     H, W = depth_m.shape
     s = params.stride
     z = depth_m[::s, ::s].astype(np.float32)

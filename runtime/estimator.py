@@ -534,8 +534,8 @@ class PalletEstimator:
 
     def _with_depth_proposals(self, det: Detections, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
                               timings: dict[str, float]) -> Detections:
-        """`det` and the depth's proposals (`depth_proposals.py`) that no detection covers, at score 0: every type
-        is posed on them."""
+        """`det` and the depth's proposals (`depth_proposals.py`) that no detection covers, at score 0 (with class
+        scores 0 where the detector gives them, so the type choice weighs every class's types)."""
         t = time.perf_counter()
         p = self.options.depth_proposals
         boxes = propose_boxes(depth_m, K, T_vehicle_cam, p)

@@ -109,9 +109,14 @@ def test_depth_without_data_proposes_nothing(depth):
     assert propose_boxes(depth, K, T).shape == (0, 4)
 
 
-def test_depth_must_be_an_image():
-    with pytest.raises(ValueError, match=r"depth_m must be \(H, W\)"):
-        propose_boxes(np.zeros((4, 4, 3)), K, _T_vehicle_cam())
+@pytest.mark.parametrize("depth, K_, T, match", [
+    (np.zeros((4, 4, 3)), K, None, r"depth_m must be \(H, W\)"),
+    (np.zeros((H, W)), K[:2], None, r"K must be \(3, 3\)"),
+    (np.zeros((H, W)), K, np.eye(3), r"T_vehicle_cam \(4, 4\)"),
+])
+def test_inputs_of_the_wrong_shape_are_refused(depth, K_, T, match):
+    with pytest.raises(ValueError, match=match):
+        propose_boxes(depth, K_, _T_vehicle_cam() if T is None else T)
 
 
 @pytest.mark.parametrize("field, value", [
