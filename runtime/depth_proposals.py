@@ -102,6 +102,7 @@ def propose_boxes(depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
     H, W = depth_m.shape
     s = params.stride
     z = depth_m[::s, ::s].astype(np.float32)
+    z[~(np.isfinite(z) & (z > 0))] = 0.0                # no data
     h, w = z.shape
     v, u = np.mgrid[0:h, 0:w].astype(np.float32) * s
     x = (u - np.float32(K[0, 2])) / np.float32(K[0, 0]) * z
@@ -111,7 +112,7 @@ def propose_boxes(depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
     fwd = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
     side = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
     lo, hi = params.band_m
-    band = (z > 0) & np.isfinite(z) & (height >= lo) & (height <= hi) & (np.hypot(fwd, side) <= params.max_range_m)
+    band = (z > 0) & (height >= lo) & (height <= hi) & (np.hypot(fwd, side) <= params.max_range_m)
     # pieces: neighbouring pixels of the band without a jump in depth between them (a pallet's face and its deck
     # seen at a grazing angle; not a pallet and the wall behind it)
     jump = params.max_jump * np.maximum(z, 1e-3)

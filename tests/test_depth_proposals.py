@@ -239,3 +239,31 @@ def test_the_command_line_turns_depth_proposals_off(flags, expected):
     add_estimator_arguments(parser)
     est = load_estimator(parser.parse_args(["--bundle", str(SHIPPED), "--threads", "1", *flags]), "run")
     assert est.options.depth_proposals == expected
+
+
+def test_any_depth_gives_boxes_inside_the_image_and_nothing_else():
+    """Property: whatever the depth (random planes and blocks, speckle, NaN, inf, huge values) and the camera's pose,
+    the proposals are finite boxes inside the image, or none."""
+    hypothesis = pytest.importorskip("hypothesis")
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    @settings(max_examples=40, deadline=None, derandomize=True)
+    @given(st.integers(0, 2**31 - 1), st.floats(-30, 60), st.floats(0.1, 3.0),
+           st.sampled_from([0.0, np.nan, np.inf, 1e9, -1.0]))
+    def check(seed, pitch_deg, height_m, odd):
+        rng = np.random.default_rng(seed)
+        T = _T_vehicle_cam(pitch_deg)
+        T[2, 3] = height_m
+        blocks = [(x, x + rng.uniform(0.1, 2.5), y, y + rng.uniform(0.1, 2.5), 0.0, rng.uniform(0.02, 1.5))
+                  for x, y in rng.uniform([0.5, -3.0], [7.0, 3.0], size=(int(rng.integers(0, 6)), 2))]
+        depth = _render(blocks, T)
+        speckle = rng.random(depth.shape) < rng.uniform(0, 0.2)
+        depth[speckle] = odd
+        depth += rng.normal(0, rng.uniform(0, 0.05), depth.shape).astype(np.float32) * (depth > 0)
+        boxes = propose_boxes(depth, K, T)
+        assert boxes.ndim == 2 and boxes.shape[1] == 4 and np.all(np.isfinite(boxes))
+        assert np.all(boxes[:, 0] >= 0) and np.all(boxes[:, 2] <= W) and np.all(boxes[:, 1] >= 0)
+        assert np.all(boxes[:, 3] <= H) and np.all(boxes[:, 2] > boxes[:, 0]) and np.all(boxes[:, 3] > boxes[:, 1])
+
+    check()
