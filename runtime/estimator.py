@@ -496,6 +496,7 @@ class PalletEstimator:
         type_index = [o[0] for o in options]   # the type choice may change it
         cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points, options)
         weak = None if weak_below is None or self.options.weak_boxes is None else cands.scores <= weak_below
+        from_depth = cands.scores == 0.0 if proposed else None       # the depth's proposals: score 0
         if weak is not None:
             self._screen_weak_boxes(cands, weak)
         if self.options.roi is not None:
@@ -508,7 +509,8 @@ class PalletEstimator:
         # thread holds a few MB) it runs while the networks do
         registration = None
         if self.pose_network.lanes > 1:
-            registration = self.fit_check.start_registration(cands.boxes_xyxy[cands.alive], depth_m, rgb)
+            tested = cands.alive if from_depth is None else cands.alive & ~from_depth
+            registration = self.fit_check.start_registration(cands.boxes_xyxy[tested], depth_m, rgb)
         try:
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
             if weak is not None:           # the fit check would refuse them: not worth the type choice and refinement
@@ -521,9 +523,9 @@ class PalletEstimator:
             if T_vehicle_cam is not None and self.options.level is not None:
                 pts_of = self._level(cands, depth_m, K, T_vehicle_cam, timings)
                 up_cam = up_in_camera(T_vehicle_cam)
-            self.fit_check(cands, depth_m, K, timings, rgb, up_cam, registration, weak)
-            if proposed:
-                self._frame_proposals(cands, K, depth_m.shape)
+            self.fit_check(cands, depth_m, K, timings, rgb, up_cam, registration, weak, from_depth)
+            if from_depth is not None:
+                self._frame_proposals(cands, K, depth_m.shape, from_depth)
             if up_cam is not None:
                 self._climb(cands, depth_m, K, up_cam, pts_of, timings)
             self._drop_duplicates(cands, timings)
@@ -550,10 +552,11 @@ class PalletEstimator:
         timings["proposals"] = timings.get("proposals", 0.0) + elapsed_ms(t)
         return det
 
-    def _frame_proposals(self, cands: Candidates, K: np.ndarray, image_hw: tuple[int, int]) -> None:
-        """The depth's proposals (score 0) whose accepted pose leaves their box mostly empty, or reaches far beyond
-        it, posed something else (`DepthProposals.min_framing_iou`)."""
-        rows = np.flatnonzero(cands.alive & (cands.scores == 0.0))
+    def _frame_proposals(self, cands: Candidates, K: np.ndarray, image_hw: tuple[int, int],
+                         from_depth: np.ndarray) -> None:
+        """The depth's proposals (`from_depth` rows) whose accepted pose leaves their box mostly empty, or reaches far
+        beyond it, posed something else (`DepthProposals.min_framing_iou`)."""
+        rows = np.flatnonzero(cands.alive & from_depth)
         if len(rows) == 0:
             return
         sizes = np.array([self.pallet_types[int(j)].size_m for j in cands.type_index[rows]])

@@ -73,18 +73,23 @@ class FitCheckStage:
 
     def check_structure(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
                         rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None,
-                        registration: StartedRegistration | None = None, weak: np.ndarray | None = None) -> None:
-        """The structure check on `rows` of `cands`: first the frame-level registration test over all of them, then
-        one batched call per pallet type, then the frame's size rules (`frame_size_rule`); failures are rejected.
+                        registration: StartedRegistration | None = None, weak: np.ndarray | None = None,
+                        from_depth: np.ndarray | None = None) -> None:
+        """The structure check on `rows` of `cands`: first the frame-level registration test over the detector's
+        boxes among them, then one batched call per pallet type, then the frame's size rules (`frame_size_rule`);
+        failures are rejected.
         :param rgb: the colour image registered to `depth_m`, for the edge and registration tests (None skips
             them). :param up_cam: (3,) the vehicle's up in the camera frame, for the tilt test (None skips it).
         :param registration: the test started on the frame's boxes (`start_registration`), used when those are
-            the boxes of `rows`. :param weak: (n,) bool over all rows of `cands`: weak detections (`weak_boxes.py`),
-            or None."""
+            the boxes it tests. :param weak: (n,) bool over all rows of `cands`: weak detections (`weak_boxes.py`),
+            or None. :param from_depth: (n,) bool: rows whose box the depth proposed (`depth_proposals.py`), or None;
+            the registration test leaves them out (a box drawn from the depth says nothing of where the image's
+            edges lie), and its refusal refuses them too."""
         p = self.structure
         weak = np.zeros(len(cands), bool) if weak is None else weak
-        if rgb is not None and p.min_registration_peak > 0 and len(rows):
-            boxes = cands.boxes_xyxy[rows]
+        tested = rows if from_depth is None else rows[~from_depth[rows]]
+        if rgb is not None and p.min_registration_peak > 0 and len(tested):
+            boxes = cands.boxes_xyxy[tested]
             if registration is not None and np.array_equal(registration[0], boxes):
                 reg, refused = registration[1].result()
             else:
@@ -135,11 +140,12 @@ class FitCheckStage:
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
                  rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None,
-                 registration: StartedRegistration | None = None, weak: np.ndarray | None = None) -> None:
+                 registration: StartedRegistration | None = None, weak: np.ndarray | None = None,
+                 from_depth: np.ndarray | None = None) -> None:
         """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates.
         :param rgb: the frame's colour image, for the structure check's edge test (None skips that test).
         :param up_cam: the vehicle's up in the camera frame, for the structure check's tilt test (None skips it).
-        :param registration, weak: see `check_structure`."""
+        :param registration, weak, from_depth: see `check_structure`."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
         todo = rows[np.isnan(cands.fit[rows, 2])]
@@ -153,7 +159,7 @@ class FitCheckStage:
                                               f"{v:.2f})" for i, v, s in fit[poor]])
         rest = rows[~low & ~poor]
         if self.structure is not None:
-            self.check_structure(cands, rest, depth_m, K, rgb, up_cam, registration, weak)
+            self.check_structure(cands, rest, depth_m, K, rgb, up_cam, registration, weak, from_depth)
         elif weak is not None:
             unjudged = rest[weak[rest]]
             cands.reject(unjudged, "no_pallet_structure",

@@ -267,3 +267,30 @@ def test_any_depth_gives_boxes_inside_the_image_and_nothing_else():
         assert np.all(boxes[:, 3] <= H) and np.all(boxes[:, 2] > boxes[:, 0]) and np.all(boxes[:, 3] > boxes[:, 1])
 
     check()
+
+
+def test_the_registration_test_judges_the_detectors_boxes_only(forklift_frame, monkeypatch):
+    """The frame-level registration test asks whether the image's edges lie on the depth's at the detector's boxes;
+    a proposal's box is drawn from the depth, so it is left out of the test (and a frame of proposals alone is not
+    tested)."""
+    import pallet6d.runtime.stage_fit as stage_fit
+
+    f = forklift_frame
+    seen = []
+    real = stage_fit.frame_registration
+
+    def spy(depth_m, rgb, boxes, params):
+        seen.append(np.array(boxes, copy=True))
+        return real(depth_m, rgb, boxes, params)
+
+    monkeypatch.setattr(stage_fit, "frame_registration", spy)
+    proposed = propose_boxes(f.depth_m, f.K, f.T_vehicle_cam)
+    assert len(proposed) >= 2
+    det = Detections(proposed[:1], np.array([0.9]), np.zeros(1, np.int64))      # the detector found the first only
+    res = _blind_estimator(det, depth_proposals=DepthProposals(max_iou=1.0)).estimate(
+        f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert any(p.detector_score == 0.0 for p in res.poses + res.rejected)        # proposals were posed
+    assert seen and all(np.array_equal(b, proposed[:1]) for b in seen)
+    seen.clear()
+    _blind_estimator(Detections.empty()).estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert seen == []
