@@ -161,8 +161,8 @@ class EstimatorOptions:
         height on the floor in the depth (`depth_proposals.py`) are posed too, as detections of score 0 after the
         detector's, where no detection covers them; they are judged like weak boxes and their poses must frame
         their boxes. They find pallets whose look the detector does not know (another colour or material): on the
-        calibrated forklift test frames with every pallet repainted in a random hue 34.7 / 20.4 -> 36.0 / 20.9 %
-        within 5 cm (as rendered 42.1 / 28.3 -> 42.1 / 28.8 %), no pose more on the pallet-free frames
+        calibrated forklift test frames with every pallet repainted in a random hue 34.7 / 20.4 -> 36.0 / 21.3 %
+        within 5 cm (as rendered 42.1 / 28.3 -> 42.1 / 29.0 %), no pose more on the pallet-free frames
         (docs/experiments/forklift.md, "Proposals from the depth"). None: off.
     """
 
