@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from .evaluation import box_iou
+from .geometry import check_K, invert_T, project_points, transform_points
 from .structure import projected_bounds
 
 __all__ = ["DepthProposals", "propose_boxes", "framing_iou"]
@@ -95,22 +96,23 @@ def propose_boxes(depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
     depth_m = np.asarray(depth_m)
     if depth_m.ndim != 2:
         raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape != (3, 3) or np.asarray(T_vehicle_cam).shape != (4, 4):
-        raise ValueError(f"K must be (3, 3) and T_vehicle_cam (4, 4), got {K.shape} and "
-                         f"{np.asarray(T_vehicle_cam).shape}")
+    K = check_K(K)
+    T_vehicle_cam = np.asarray(T_vehicle_cam, dtype=np.float64)
+    if T_vehicle_cam.shape != (4, 4):
+        raise ValueError(f"T_vehicle_cam must be (4, 4), got {T_vehicle_cam.shape}")
     H, W = depth_m.shape
     s = params.stride
     z = depth_m[::s, ::s].astype(np.float32)
     z[~(np.isfinite(z) & (z > 0))] = 0.0                # no data
     h, w = z.shape
+    # the grid's points in the vehicle frame, in float32 (a frame's worth of points: half the time of float64)
     v, u = np.mgrid[0:h, 0:w].astype(np.float32) * s
     x = (u - np.float32(K[0, 2])) / np.float32(K[0, 0]) * z
     y = (v - np.float32(K[1, 2])) / np.float32(K[1, 1]) * z
-    T = np.asarray(T_vehicle_cam, dtype=np.float32)
-    height = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
+    T = T_vehicle_cam.astype(np.float32)
     fwd = T[0, 0] * x + T[0, 1] * y + T[0, 2] * z + T[0, 3]
     side = T[1, 0] * x + T[1, 1] * y + T[1, 2] * z + T[1, 3]
+    height = T[2, 0] * x + T[2, 1] * y + T[2, 2] * z + T[2, 3]
     lo, hi = params.band_m
     band = (z > 0) & (height >= lo) & (height <= hi) & (np.hypot(fwd, side) <= params.max_range_m)
     # pieces: neighbouring pixels of the band without a jump in depth between them (a pallet's face and its deck
@@ -135,6 +137,7 @@ def propose_boxes(depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
     starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
     ends = np.r_[starts[1:], len(lab)]
     boxes, ranges = [], []
+    T_cam_vehicle = invert_T(T_vehicle_cam)
     for a, b in zip(starts, ends):
         if b - a < params.min_points:
             continue
@@ -145,9 +148,11 @@ def propose_boxes(depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
             continue
         rows, cols = np.divmod(pix[a:b], w)
         # the object stands on the floor: its box reaches down to where its points' feet are seen
-        u_ft, v_ft = _project_floor(xy, T, K)
-        x0, x1 = min(cols.min() * s, u_ft.min()), max((cols.max() + 1) * s, u_ft.max())
-        y0, y1 = rows.min() * s, max((rows.max() + 1) * s, v_ft.max())
+        feet = project_points(transform_points(T_cam_vehicle, np.column_stack([xy, np.zeros(len(xy))])), K)
+        feet = feet[np.isfinite(feet).all(axis=1)]
+        us = np.concatenate([[cols.min() * s, (cols.max() + 1) * s], feet[:, 0]])
+        vs = np.concatenate([[rows.min() * s, (rows.max() + 1) * s], feet[:, 1]])
+        x0, x1, y0, y1 = us.min(), us.max(), vs.min(), vs.max()
         mx, my = params.margin * (x1 - x0), params.margin * (y1 - y0)
         boxes.append([max(0.0, x0 - mx), max(0.0, y0 - my), min(float(W), x1 + mx), min(float(H), y1 + my)])
         ranges.append(float(np.median(np.hypot(xy[:, 0], xy[:, 1]))))
@@ -198,15 +203,6 @@ def _merge_sharing(piece: np.ndarray, cell: np.ndarray, n_pieces: int) -> np.nda
         if np.array_equal(nxt, parent):
             return parent[piece]
         parent = nxt
-
-
-def _project_floor(xy: np.ndarray, T_vehicle_cam: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Image pixels (u, v) of the floor points under vehicle-frame points `xy` (n, 2): (x forward, y left)."""
-    R, t = T_vehicle_cam[:3, :3].astype(np.float64), T_vehicle_cam[:3, 3].astype(np.float64)
-    p_vehicle = np.column_stack([xy, np.zeros(len(xy))])
-    p_cam = (p_vehicle - t) @ R                         # R^T (p - t), row-wise
-    z = np.maximum(p_cam[:, 2], 1e-6)
-    return K[0, 0] * p_cam[:, 0] / z + K[0, 2], K[1, 1] * p_cam[:, 1] / z + K[1, 2]
 
 
 def _extent_m(xy: np.ndarray) -> float:

@@ -111,8 +111,9 @@ def test_depth_without_data_proposes_nothing(depth):
 
 @pytest.mark.parametrize("depth, K_, T, match", [
     (np.zeros((4, 4, 3)), K, None, r"depth_m must be \(H, W\)"),
-    (np.zeros((H, W)), K[:2], None, r"K must be \(3, 3\)"),
-    (np.zeros((H, W)), K, np.eye(3), r"T_vehicle_cam \(4, 4\)"),
+    (np.zeros((H, W)), K[:2], None, r"intrinsics K must be 3x3"),
+    (np.zeros((H, W)), K.T, None, r"transposed\?"),
+    (np.zeros((H, W)), K, np.eye(3), r"T_vehicle_cam must be \(4, 4\)"),
 ])
 def test_inputs_of_the_wrong_shape_are_refused(depth, K_, T, match):
     with pytest.raises(ValueError, match=match):
