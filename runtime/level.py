@@ -374,6 +374,13 @@ def ray_scores(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, boxes_m: np.ndarra
     return (np.sum(inside, 1) - np.sum(hit & (res >= window_m), 1)) / len(p)
 
 
+def _row_medians(values: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """(P,) the median of each row's `count[i]` finite values (the rest of the row is +inf), as np.median takes it."""
+    v = np.sort(values, axis=1)
+    rows = np.arange(len(v))
+    return 0.5 * (v[rows, (count - 1) // 2] + v[rows, count // 2])
+
+
 def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, window_m: float,
                 T_vc: np.ndarray, on_floor: np.ndarray, compiled: bool = True) -> np.ndarray:
     """Step 4 of the module docstring, once, for P poses of one pallet type.
@@ -384,36 +391,43 @@ def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, bo
         the package has it (`kernels.ray_hits`, the same hits), else in numpy.
     :return: (P, 4, 4) the poses moved; a pose with fewer than `_MIN_INLIERS` points within the window stays.
     """
-    R_pc = np.swapaxes(T_cam_pallet[:, :3, :3], 1, 2)                               # camera -> pallet
-    origin = -(R_pc @ T_cam_pallet[:, :3, 3, None])[..., 0]                         # the camera, pallet frame
-    out = T_cam_pallet.copy()
-    up = T_vc[2, :3]                                                                # vehicle up, camera frame
-    use_kernel = compiled and kernels.available() and len(boxes_m) <= kernels.MAX_BOXES
-    hits = kernels.ray_hits(T_cam_pallet, pts, n_pts, boxes_m) if use_kernel else None
-    for i in range(len(T_cam_pallet)):
-        p = pts[i, :n_pts[i]]
-        if hits is not None:
-            s = hits[i, :n_pts[i]]                                                  # 1 = at the point
-        else:
+    P, N = pts.shape[:2]
+    n_pts = np.minimum(np.asarray(n_pts, dtype=np.int64), N)
+    if compiled and kernels.available() and len(boxes_m) <= kernels.MAX_BOXES:
+        s = kernels.ray_hits(T_cam_pallet, pts, n_pts, boxes_m)                    # 1 = at the point
+    else:
+        R_pc = np.swapaxes(T_cam_pallet[:, :3, :3], 1, 2)                           # camera -> pallet
+        origin = -(R_pc @ T_cam_pallet[:, :3, 3, None])[..., 0]                     # the camera, pallet frame
+        s = np.full((P, N), np.inf)
+        for i in range(P):
             # one pose at a time: the (boxes, points) arrays of a pose stay in cache (16 poses at once: 3x slower)
-            s = cast_rays_boxes(origin[i:i + 1], (p @ R_pc[i].T)[None], boxes_m)[0][0]
-        rng_m = np.linalg.norm(p, axis=1)
-        with np.errstate(invalid="ignore"):
-            res = (1.0 - s) * rng_m                              # > 0: the point lies beyond the pallet's surface
-        ok = np.isfinite(res) & (np.abs(res) < window_m)
-        if ok.sum() < _MIN_INLIERS:
-            continue
-        shift_m = float(np.median(res[ok]))
-        ray = (p[ok] / rng_m[ok, None]).mean(0)
-        ray /= np.linalg.norm(ray)
-        if on_floor[i]:
-            # horizontally, by as much as moves the surface by shift_m along the ray; seen steeply from above (rays
-            # more than 45 degrees down) the depth is the deck's height, which a horizontal move cannot explain
-            flat = ray - (ray @ up) * up
-            if flat @ flat < 0.5:
-                continue
-            move = shift_m * flat / float(flat @ flat)
-        else:
-            move = shift_m * ray
-        out[i, :3, 3] += move
+            p = pts[i, :n_pts[i]]
+            s[i, :n_pts[i]] = cast_rays_boxes(origin[i:i + 1], (p @ R_pc[i].T)[None], boxes_m)[0][0]
+    rng_m = np.linalg.norm(pts, axis=2)
+    with np.errstate(invalid="ignore"):
+        res = (1.0 - s) * rng_m                                  # > 0: the point lies beyond the pallet's surface
+    ok = np.isfinite(res) & (np.abs(res) < window_m) & (np.arange(N)[None] < n_pts[:, None])
+    count = ok.sum(1)
+    moved = np.flatnonzero(count >= _MIN_INLIERS)              # fewer points within the window: the pose stays
+    out = T_cam_pallet.copy()
+    if len(moved) == 0:
+        return out
+    ok, res, count = ok[moved], res[moved], count[moved]
+    shift_m = _row_medians(np.where(ok, res, np.inf), count)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = pts[moved] / rng_m[moved, :, None]
+    ray = np.where(ok[..., None], unit, 0.0).sum(1) / count[:, None]
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    move = shift_m[:, None] * ray
+    up = T_vc[2, :3]                                                                # vehicle up, camera frame
+    floor = on_floor[moved]
+    # on the floor: horizontally, by as much as moves the surface by shift_m along the ray; seen steeply from above
+    # (rays more than 45 degrees down) the depth is the deck's height, which a horizontal move cannot explain
+    flat = ray - (ray @ up)[:, None] * up
+    flat2 = np.einsum("ij,ij->i", flat, flat)
+    steep = floor & (flat2 < 0.5)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        move[floor] = (shift_m[floor] / flat2[floor])[:, None] * flat[floor]
+    move[steep] = 0.0
+    out[moved, :3, 3] += move
     return out

@@ -341,3 +341,63 @@ def test_a_pallet_seen_steeply_from_above_is_not_moved_along_the_rays():
     out = [vehicle_pose(T_cp, T_vc, EPAL.size_m, ForkliftParams(level=LevelParams(ray_window_m=w)), EPAL.boxes_m,
                         noisy.astype(np.float32), K, box) for w in (0.0, 0.2)]
     np.testing.assert_allclose(out[1], out[0], atol=1e-12)
+
+
+def _along_rays_one_by_one(T, pts, n_pts, boxes_m, window_m, T_vc, on_floor):
+    """Step 4 of `level`'s docstring written pose by pose: the specification of the batched `_along_rays`."""
+    from pallet6d.runtime.structure import cast_rays_boxes
+
+    out = T.copy()
+    up = T_vc[2, :3]
+    for i in range(len(T)):
+        p = pts[i, :n_pts[i]]
+        R_pc = T[i, :3, :3].T
+        s = cast_rays_boxes((-R_pc @ T[i, :3, 3])[None], (p @ R_pc.T)[None], boxes_m)[0][0]
+        rng_m = np.linalg.norm(p, axis=1)
+        with np.errstate(invalid="ignore"):
+            res = (1.0 - s) * rng_m
+        ok = np.isfinite(res) & (np.abs(res) < window_m)
+        if ok.sum() < 30:
+            continue
+        ray = (p[ok] / rng_m[ok, None]).mean(0)
+        ray /= np.linalg.norm(ray)
+        move = np.median(res[ok]) * ray
+        if on_floor[i]:
+            flat = ray - (ray @ up) * up
+            if flat @ flat < 0.5:
+                continue
+            move = np.median(res[ok]) * flat / (flat @ flat)
+        out[i, :3, 3] += move
+    return out
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_move_along_the_rays_is_the_same_for_every_pose_of_a_batch(compiled):
+    # poses on the floor and off it, seen level and steeply from above, with too few points near the surface to move,
+    # an odd and an even number of points within the window (the median of an even count is the mean of two)
+    from pallet6d.runtime.level import _along_rays
+
+    rng = np.random.default_rng(5)
+    T_vc = camera(height_m=1.5, pitch_deg=20.0)
+    T_vps = [pallet_pose(2.0), pallet_pose(3.0, 20.0, lateral_m=0.3), pallet_pose(2.5, -10.0), pallet_pose(0.6)]
+    T = np.stack([invert_T(T_vc) @ T_vp for T_vp in T_vps])          # the last seen about 65 degrees down
+    pts, n_pts = np.zeros((4, 301, 3)), np.array([301, 300, 20, 250])
+    for i in range(4):
+        surface = EPAL.surface_points(n_pts[i], seed=i) @ T[i, :3, :3].T + T[i, :3, 3]
+        pts[i, :n_pts[i]] = surface + rng.normal(0.0, 0.02, surface.shape)
+    T_moved = T @ _turn_z(3.0, 0.04)
+    for on_floor in (np.zeros(4, bool), np.array([True, False, True, True])):
+        got = _along_rays(T_moved, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor, compiled=compiled)
+        want = _along_rays_one_by_one(T_moved, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        assert np.allclose(got[2], T_moved[2])                         # 20 points: too few to move
+        assert not np.allclose(got[0], T_moved[0])
+        assert np.allclose(got[3], T_moved[3]) == on_floor[3]          # steeply from above: not moved on the floor
+
+
+def _turn_z(deg: float, shift_m: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    T = np.eye(4)
+    T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    T[0, 3] = shift_m
+    return T
