@@ -104,12 +104,12 @@ class EstimatorOptions:
         with this many of them, those that best fit the depth and show their boards and openings at the
         network's pose, and the refined pose that does so best decides its type (`stage_type.py`).
     :ivar type_candidates_levelled: the same with the camera's calibration, where each of them is also levelled
-        before it is judged (`level`), and the first type always counts among them. At most four are ranked (the
-        first and `stage_type.RANK_BY_FIT` others). Calibrated forklift-approach test frames, within 5 cm: 36.95 %
-        with 2, 40.89 % with 4, for one more pallet-free pose in one of the scorecard's six sets and, on a two-core
-        Xeon's forklift frames of about five pallets, about 80 ms a frame (2: 25 ms; docs/experiments/pallet-types.md);
-        without a calibration 4 types gain a quarter of a point on the paper presets for 8-10 ms a pallet, so
-        `type_candidates` stays 2.
+        before it is judged (`level`), and the first type always counts among them; at least as many as a
+        candidate's types (11 in the default bundle): every one, unranked. The ranking at the network's pose is a
+        poor guide: on the calibrated forklift-approach validation frames every type levelled finds 165 of 470
+        pallets within 5 cm, the four best-ranked 150, for about half as much again of a frame's time
+        (docs/experiments/pallet-types.md). Without a calibration 4 types gain a quarter of a point on the paper
+        presets for 8-10 ms a pallet, so `type_candidates` stays 2.
     :ivar type_score_ratio: a detector with a class per pallet type can be unsure between look-alike types: a
         pallet class that scores a detection at least this fraction of its best class's score offers its types
         too, and the type choice above decides by the depth. 1: the best class's types alone.
@@ -184,7 +184,7 @@ class EstimatorOptions:
     refine_select_tol_m: float = 0.015
     refine_start_max_rms_m: float = 0.003
     type_candidates: int = 2
-    type_candidates_levelled: int = 4
+    type_candidates_levelled: int = 11
     type_score_ratio: float = 0.5
     type_margin: float = 0.1
     nonfinite_depth: str = "raise"

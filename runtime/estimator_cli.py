@@ -39,7 +39,8 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
                              "many of them and keep the best fit (default: EstimatorOptions.type_candidates, 2)")
     parser.add_argument("--type-candidates-levelled", type=int, default=None,
                         help="the same with the camera's calibration, where each is levelled before it is judged "
-                             "(default: EstimatorOptions.type_candidates_levelled, 4)")
+                             "(default: EstimatorOptions.type_candidates_levelled, 11: every type of the default "
+                             "bundle)")
     parser.add_argument("--type-margin", type=float, default=None,
                         help="where the depth chooses among several types, how much better (fit score 0-1) another "
                              "type must be to replace a detection's first type (default: EstimatorOptions.type_margin)")

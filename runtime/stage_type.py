@@ -29,6 +29,12 @@ as the estimator levels every pose) before it is judged: the first type from its
 network's (the levelling's search does what the refinement's starts would). The winner keeps that pose, the one the
 fit check will see. On stereo depth the six-degree refinement is rarely trusted, so without this a look-alike type
 would be judged at the network's pose, often 10-30 cm off, and lose to the first type, which was then levelled alone.
+Where every type of a candidate is kept, ranking them is skipped. The ranking at the network's pose is a poor guide:
+levelling a candidate's every type finds about a tenth more of the forklift's pallets within 5 cm than levelling its
+four best-ranked ones (docs/experiments/pallet-types.md). The other types are levelled on fewer points
+(`OTHER_SEARCH_POINTS`, `OTHER_REFINE_POINTS`): they must find the pallet's place well enough to tell its type, and
+on those validation frames the fewer points gave as many pallets within 5 cm as the full levelling, at a third of
+its cost per type.
 
 Cost: a fit score per type, the structure agreement of four of them, and one refinement (levelled: one levelling) and
 structure agreement per kept type, instead of one refinement per candidate; the agreements of all candidates and
@@ -37,6 +43,7 @@ types go in one pass (`structure.structure_agreement`, its rays in the compiled 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -48,9 +55,11 @@ from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
 from .structure import BoxSets, StructureParams, structure_agreement
 
-__all__ = ["TypeChoiceStage", "RANK_BY_FIT"]
+__all__ = ["TypeChoiceStage", "RANK_BY_FIT", "OTHER_SEARCH_POINTS", "OTHER_REFINE_POINTS"]
 
 RANK_BY_FIT = 3   # types besides a candidate's first whose structure is looked at when ranking (the best by fit)
+OTHER_SEARCH_POINTS = 40    # levelled, a candidate's other types: the search's points (`LevelParams.search_points`)
+OTHER_REFINE_POINTS = 150   # and the ICP's (`LevelParams.refine_points`), at most
 
 
 class TypeChoiceStage:
@@ -80,6 +89,9 @@ class TypeChoiceStage:
         self.structure = structure
         self.margin = float(margin)
         self.level = level
+        self.level_other = None if level is None else replace(
+            level, search_points=min(level.search_points, OTHER_SEARCH_POINTS),
+            refine_points=min(level.refine_points, OTHER_REFINE_POINTS))
         # the types with boards, laid out once for `structure_agreement`; _box_set: type -> its set (-1: none)
         boxed = [j for j, g in enumerate(self.geometries) if g.boxes_m is not None]
         self._box_sets = BoxSets([self.geometries[j].boxes_m for j in boxed]) if boxed else None
@@ -91,11 +103,12 @@ class TypeChoiceStage:
         """Whether any detector class reports more than one type."""
         return any(len(t) > 1 for t in self.types_of_class.values())
 
-    def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+             others: int = RANK_BY_FIT) -> np.ndarray:
         """Fit score times structure agreement of each type at the network's pose of each row (-inf for the types
-        not among its options). The agreement is computed for the row's first type and its `RANK_BY_FIT` best
-        others by fit alone; the others keep -inf. Most of a bundle's types are ruled out by their size, which the
-        fit sees; the rays tell the look-alikes apart.
+        not among its options). The agreement is computed for the row's first type and its `others` best others
+        by fit alone; the rest keep -inf. Most of a bundle's types are ruled out by their size, which the fit sees;
+        the rays tell the look-alikes apart.
         :return: (len(rows), number of types)."""
         n_types = len(self.geometries)
         fit = np.full((len(rows), n_types), -np.inf)
@@ -106,9 +119,9 @@ class TypeChoiceStage:
                 fit[mine, j] = fit_scores(cands.T_net[r], cands.points_cam[r], None, g.points_m, depth_m, K,
                                           self.tol_m, model_boxes_m=g.boxes_m)[2]
         first = np.array([o[0] for o in cands.type_options[rows]], int)
-        others = fit.copy()
-        others[np.arange(len(rows)), first] = -np.inf
-        ranked = np.argsort(-others, axis=1, kind="stable")[:, :RANK_BY_FIT]
+        rest = fit.copy()
+        rest[np.arange(len(rows)), first] = -np.inf
+        ranked = np.argsort(-rest, axis=1, kind="stable")[:, :others]
         scored = np.zeros_like(fit, bool)
         scored[np.arange(len(rows)), first] = True
         scored[np.arange(len(rows))[:, None], ranked] = True
@@ -137,10 +150,17 @@ class TypeChoiceStage:
         """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined.
         :param T_vehicle_cam: (4, 4) the camera's calibration: the kept types are judged levelled (with `level`)."""
         levelled = T_vehicle_cam is not None and self.level is not None
-        score = self.rank(cands, rows, depth_m, K)
-        order = np.argsort(-score, axis=1, kind="stable")[:, :self.keep_levelled if levelled else self.keep]
-        best = order[:, 0]
+        keep = self.keep_levelled if levelled else self.keep
         refines = np.asarray(self.refiner.refines_type, bool)
+        if keep >= max(len(cands.type_options[i]) for i in rows):
+            # every type is kept: nothing to rank (the first type is the row's type until one is chosen)
+            order = [[j for j in cands.type_options[i] if refines[j]] for i in rows]
+            best = np.array([cands.type_options[i][0] for i in rows], np.int64)
+            score = np.zeros((len(rows), len(self.geometries)))
+        else:
+            score = self.rank(cands, rows, depth_m, K, max(RANK_BY_FIT, keep - 1))
+            order = np.argsort(-score, axis=1, kind="stable")[:, :keep]
+            best = order[:, 0]
         pair_row, pair_type = [], []
         for k, types in enumerate(order):
             kept = [int(j) for j in types if np.isfinite(score[k, j]) and refines[j]]
@@ -164,8 +184,12 @@ class TypeChoiceStage:
             T[six], fit[six] = self.refiner.refine(cands.T_net[src[six]], cands.points_cam[src[six]],
                                                    [box_obs[int(i)] for i in src[six]], pair_type[six], depth_m, K)
         if levelled:
-            T = level_in_camera(T, T_vehicle_cam, [self.geometries[j] for j in pair_type], self.level,
-                                [box_obs[int(i)] for i in src], self.refiner.refine_options.threads)
+            other = np.flatnonzero(pair_type != first)
+            for idx, params in ((six, self.level), (other, self.level_other)):
+                if len(idx):
+                    T[idx] = level_in_camera(T[idx], T_vehicle_cam, [self.geometries[j] for j in pair_type[idx]],
+                                             params, [box_obs[int(i)] for i in src[idx]],
+                                             self.refiner.refine_options.threads)
             fit = self.refiner.fit(T, cands.points_cam[src], pair_type, depth_m, K)
         agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
         other = pair_type != first

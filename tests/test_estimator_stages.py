@@ -328,11 +328,12 @@ def test_the_depth_picks_the_type_among_a_classes_types(bundle_dir, truth, refin
         assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.02
 
 
-def _epal_first_candidate(bundle_dir, truth: str, exact: bool, T_net_of_truth: np.ndarray, **options):
-    """An estimator of an EPAL-first, `truth` bundle (one detector class) with `options`, the `truth` scene's most
-    visible pallet as its one candidate with the network pose `T_net_of_truth` in its true pallet frame, and the
-    frame's depth, K, calibration and that pallet."""
-    types = tuple(_catalogue_type(n, 0) for n in ("epal", truth))
+def _epal_first_candidate(bundle_dir, truth: str, exact: bool, T_net_of_truth: np.ndarray, more: tuple = (),
+                          **options):
+    """An estimator of an EPAL-first, `truth` bundle (one detector class; `more` types after them) with `options`,
+    the `truth` scene's most visible pallet as its one candidate with the network pose `T_net_of_truth` in its true
+    pallet frame, and the frame's depth, K, calibration and that pallet."""
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", truth, *more))
     multi = dataclasses.replace(load_bundle(bundle_dir), pallet_types=types)
     est = PalletEstimator(multi, threads=1, options=EstimatorOptions(**{
         k: v for k, v in KW.items() if k not in ("threads", *options)}, **options))
@@ -380,7 +381,7 @@ def test_another_type_replaces_the_first_only_with_clear_structure(bundle_dir, s
         assert np.isfinite(c.fit[0, 2]) and est.pallet_types[int(c.type_index[0])].name == "epal"
 
 
-def _block_seen_by_a_calibrated_camera(bundle_dir, **options):
+def _block_seen_by_a_calibrated_camera(bundle_dir, more: tuple = (), **options):
     """`_epal_first_candidate` of a 1200 x 1000 block pallet (alike an EPAL from the front) on the preset's stereo
     depth (too noisy to trust the six-degree ICP), the network's pose 15 degrees and 10 cm off and tilted 2 degrees
     (a network's pose is never exactly level)."""
@@ -389,7 +390,7 @@ def _block_seen_by_a_calibrated_camera(bundle_dir, **options):
     off[:3, :3] = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]) @ \
         np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
     off[0, 3] = 0.1
-    est, c, depth_m, K, T_vc, p = _epal_first_candidate(bundle_dir, "block_1210", False, off, **options)
+    est, c, depth_m, K, T_vc, p = _epal_first_candidate(bundle_dir, "block_1210", False, off, more, **options)
     return est, c, p, depth_m, K, T_vc
 
 
@@ -410,6 +411,39 @@ def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundl
     np.testing.assert_array_equal(c.T_cam_pallet, T_before)
     if expected == "block_1210":                         # the front face and the depth behind it
         assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.05
+
+
+@pytest.mark.parametrize("keep", [2, 4, 5])
+def test_with_the_calibration_every_type_is_levelled_once_as_many_are_kept(bundle_dir, keep, monkeypatch):
+    # five types: kept at least five, none is ranked and each is levelled, the others on fewer points than the first
+    from pallet6d.runtime import stage_type
+
+    est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
+        bundle_dir, ("eur6", "gma", "plastic_closed"), type_candidates_levelled=keep, type_margin=0.0)
+    levelled, ranked = [], []
+    level_in_camera, rank = stage_type.level_in_camera, est.type_choice.rank
+
+    def spy_level(T, T_vehicle_cam, geometries, params, *args):
+        levelled.extend((g.name, params.search_points, params.refine_points) for g in geometries)
+        return level_in_camera(T, T_vehicle_cam, geometries, params, *args)
+
+    def spy_rank(*args):
+        ranked.append(args[-1])
+        return rank(*args)
+
+    monkeypatch.setattr(stage_type, "level_in_camera", spy_level)
+    monkeypatch.setattr(est.type_choice, "rank", spy_rank)
+    est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
+    assert ranked == ([] if keep >= 5 else [stage_type.RANK_BY_FIT])
+    names = [n for n, _, _ in levelled]
+    assert len(names) == len(set(names)) and names[0] == "epal"     # the first type always, refined first
+    assert len(names) == 5 if keep >= 5 else len(names) in (keep, keep + 1)
+    full = est.options.level
+    assert levelled[0][1:] == (full.search_points, full.refine_points)
+    assert all((sp, rp) == (stage_type.OTHER_SEARCH_POINTS, stage_type.OTHER_REFINE_POINTS)
+               for _, sp, rp in levelled[1:])
+    assert est.pallet_types[int(c.type_index[0])].name == "block_1210"
+    assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.05
 
 
 def test_with_the_calibration_the_type_choice_finds_what_it_misses_without(bundle_dir):
