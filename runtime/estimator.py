@@ -107,7 +107,7 @@ class EstimatorOptions:
         before it is judged (`level`), and the first type always counts among them; at least as many as a
         candidate's types (11 in the default bundle): every one, unranked. The ranking at the network's pose is a
         poor guide: on the calibrated forklift-approach validation frames every type levelled finds 165 of 470
-        pallets within 5 cm, the four best-ranked 150, for about half as much again of a frame's time
+        pallets within 5 cm, the four best-ranked 150, for a third to four fifths more of a frame's time
         (docs/experiments/pallet-types.md). Without a calibration 4 types gain a quarter of a point on the paper
         presets for 8-10 ms a pallet, so `type_candidates` stays 2.
     :ivar type_score_ratio: a detector with a class per pallet type can be unsure between look-alike types: a

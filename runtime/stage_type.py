@@ -29,12 +29,11 @@ as the estimator levels every pose) before it is judged: the first type from its
 network's (the levelling's search does what the refinement's starts would). The winner keeps that pose, the one the
 fit check will see. On stereo depth the six-degree refinement is rarely trusted, so without this a look-alike type
 would be judged at the network's pose, often 10-30 cm off, and lose to the first type, which was then levelled alone.
-Where every type of a candidate is kept, ranking them is skipped. The ranking at the network's pose is a poor guide:
-levelling a candidate's every type finds about a tenth more of the forklift's pallets within 5 cm than levelling its
-four best-ranked ones (docs/experiments/pallet-types.md). The other types are levelled on fewer points
+Where every type of a candidate is kept (and refined), ranking them is skipped. The ranking at the network's pose is
+a poor guide: levelling a candidate's every type finds about a tenth more of the forklift's pallets within 5 cm than
+levelling its four best-ranked ones (docs/experiments/pallet-types.md). The other types are levelled on fewer points
 (`OTHER_SEARCH_POINTS`, `OTHER_REFINE_POINTS`): they must find the pallet's place well enough to tell its type, and
-on those validation frames the fewer points gave as many pallets within 5 cm as the full levelling, at a third of
-its cost per type.
+on those validation frames the fewer points gave as many pallets within 5 cm as the full levelling (165 against 163).
 
 Cost: a fit score per type, the structure agreement of four of them, and one refinement (levelled: one levelling) and
 structure agreement per kept type, instead of one refinement per candidate; the agreements of all candidates and
@@ -152,8 +151,9 @@ class TypeChoiceStage:
         levelled = T_vehicle_cam is not None and self.level is not None
         keep = self.keep_levelled if levelled else self.keep
         refines = np.asarray(self.refiner.refines_type, bool)
-        if keep >= max(len(cands.type_options[i]) for i in rows):
-            # every type is kept: nothing to rank (the first type is the row's type until one is chosen)
+        if keep >= max(len(cands.type_options[i]) for i in rows) \
+                and all(refines[j] for i in rows for j in cands.type_options[i]):
+            # every type is kept and refined: nothing to rank (the first type is the row's type until one is chosen)
             order = [[j for j in cands.type_options[i] if refines[j]] for i in rows]
             best = np.array([cands.type_options[i][0] for i in rows], np.int64)
             score = np.zeros((len(rows), len(self.geometries)))
@@ -184,8 +184,8 @@ class TypeChoiceStage:
             T[six], fit[six] = self.refiner.refine(cands.T_net[src[six]], cands.points_cam[src[six]],
                                                    [box_obs[int(i)] for i in src[six]], pair_type[six], depth_m, K)
         if levelled:
-            other = np.flatnonzero(pair_type != first)
-            for idx, params in ((six, self.level), (other, self.level_other)):
+            alike = np.flatnonzero(pair_type != first)
+            for idx, params in ((six, self.level), (alike, self.level_other)):
                 if len(idx):
                     T[idx] = level_in_camera(T[idx], T_vehicle_cam, [self.geometries[j] for j in pair_type[idx]],
                                              params, [box_obs[int(i)] for i in src[idx]],

@@ -446,6 +446,17 @@ def test_with_the_calibration_every_type_is_levelled_once_as_many_are_kept(bundl
     assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.05
 
 
+def test_without_refinement_every_type_kept_is_still_ranked(bundle_dir, monkeypatch):
+    # nothing is levelled without refinement: the ranking at the network's pose names the type
+    est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
+        bundle_dir, ("eur6",), type_candidates_levelled=5, refine=False)
+    scores = []
+    rank = est.type_choice.rank
+    monkeypatch.setattr(est.type_choice, "rank", lambda *a: scores.append(rank(*a)) or scores[-1])
+    est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
+    assert len(scores) == 1 and int(c.type_index[0]) == int(np.argmax(scores[0][0]))
+
+
 def test_with_the_calibration_the_type_choice_finds_what_it_misses_without(bundle_dir):
     est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(bundle_dir, type_candidates=2,
                                                                       type_candidates_levelled=2, type_margin=0.0)
