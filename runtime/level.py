@@ -196,7 +196,8 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
     refine = todo[~already]
     if params.refine_points > 0 and len(refine) and boxes_m is not None:
         if pts_cam is not None:
-            pts = [np.asarray(pts_cam[i], dtype=np.float64).reshape(-1, 3) for i in refine]
+            pts = [_even_subset(np.asarray(pts_cam[i], dtype=np.float64).reshape(-1, 3), int(params.refine_points))
+                   for i in refine]
         elif depth_m is not None and K is not None and boxes_xyxy is not None:
             from .refine import box_points          # here: refine -> results -> forklift -> this module
             K = check_K(K)
@@ -210,6 +211,13 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
         snap = refine[on_floor[refine]]
         out[snap, 2, 3] = half_h[snap]
     return out
+
+
+def _even_subset(pts: np.ndarray, n: int) -> np.ndarray:
+    """At most n of the (m, 3) points, an even stride over them (all when m <= n)."""
+    if len(pts) <= n:
+        return pts
+    return pts[np.linspace(0, len(pts) - 1, n).round().astype(np.int64)]
 
 
 def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: list, pts: list,

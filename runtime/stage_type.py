@@ -32,8 +32,9 @@ would be judged at the network's pose, often 10-30 cm off, and lose to the first
 Where every type of a candidate is kept (and refined), ranking them is skipped. The ranking at the network's pose is
 a poor guide: levelling a candidate's every type finds about a tenth more of the forklift's pallets within 5 cm than
 levelling its four best-ranked ones (docs/experiments/pallet-types.md). The other types are levelled on fewer points
-(`OTHER_SEARCH_POINTS`, `OTHER_REFINE_POINTS`): they must find the pallet's place well enough to tell its type, and
-on those validation frames the fewer points gave as many pallets within 5 cm as the full levelling (165 against 163).
+(`OTHER_SEARCH_POINTS` for the search of turns and slides): they must find the pallet's place well enough to tell its
+type, and on those validation frames the fewer points gave as many pallets within 5 cm as the full levelling (165
+against 163); their ICP keeps its points (150 of 600 lost 11 pallets).
 
 Cost: a fit score per type, the structure agreement of four of them, and one refinement (levelled: one levelling) and
 structure agreement per kept type, instead of one refinement per candidate; the agreements of all candidates and
@@ -54,11 +55,10 @@ from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
 from .structure import BoxSets, StructureParams, structure_agreement
 
-__all__ = ["TypeChoiceStage", "RANK_BY_FIT", "OTHER_SEARCH_POINTS", "OTHER_REFINE_POINTS"]
+__all__ = ["TypeChoiceStage", "RANK_BY_FIT", "OTHER_SEARCH_POINTS"]
 
 RANK_BY_FIT = 3   # types besides a candidate's first whose structure is looked at when ranking (the best by fit)
 OTHER_SEARCH_POINTS = 40    # levelled, a candidate's other types: the search's points (`LevelParams.search_points`)
-OTHER_REFINE_POINTS = 150   # and the ICP's (`LevelParams.refine_points`), at most
 
 
 class TypeChoiceStage:
@@ -89,8 +89,7 @@ class TypeChoiceStage:
         self.margin = float(margin)
         self.level = level
         self.level_other = None if level is None else replace(
-            level, search_points=min(level.search_points, OTHER_SEARCH_POINTS),
-            refine_points=min(level.refine_points, OTHER_REFINE_POINTS))
+            level, search_points=min(level.search_points, OTHER_SEARCH_POINTS))
         # the types with boards, laid out once for `structure_agreement`; _box_set: type -> its set (-1: none)
         boxed = [j for j, g in enumerate(self.geometries) if g.boxes_m is not None]
         self._box_sets = BoxSets([self.geometries[j].boxes_m for j in boxed]) if boxed else None

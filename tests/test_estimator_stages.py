@@ -440,8 +440,7 @@ def test_with_the_calibration_every_type_is_levelled_once_as_many_are_kept(bundl
     assert len(names) == 5 if keep >= 5 else len(names) in (keep, keep + 1)
     full = est.options.level
     assert levelled[0][1:] == (full.search_points, full.refine_points)
-    assert all((sp, rp) == (stage_type.OTHER_SEARCH_POINTS, stage_type.OTHER_REFINE_POINTS)
-               for _, sp, rp in levelled[1:])
+    assert all((sp, rp) == (stage_type.OTHER_SEARCH_POINTS, full.refine_points) for _, sp, rp in levelled[1:])
     assert est.pallet_types[int(c.type_index[0])].name == "block_1210"
     assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.05
 

@@ -288,6 +288,27 @@ def test_level_poses_refines_a_frames_poses_together_as_one_by_one():
     np.testing.assert_allclose(both[:, 2, 2], 1.0, atol=1e-12)
 
 
+def test_points_handed_to_the_levelling_are_thinned_to_its_refine_points():
+    # the caller's points (the estimator's box points) obey LevelParams.refine_points as the levelling's own do
+    from pallet6d.runtime.level import level_poses
+    from pallet6d.runtime.refine import box_points
+
+    T_vc, T_vp = camera(), pallet_pose(2.2, 8.0, lateral_m=0.2)
+    depth = render(T_vc, T_vp)
+    T_cp = invert_T(T_vc) @ _tilted(T_vp, 1.5)
+    pts = box_points(depth, K, _box_of(T_vc, T_vp), 100000, (0.1, 20.0))
+    n = 200
+    assert len(pts) > n
+    params = LevelParams(refine_points=n)
+    given = level_poses(T_cp[None], T_vc, [EPAL.size_m[2]], params, [EPAL.boxes_m], pts_cam=[pts])
+    even = pts[np.linspace(0, len(pts) - 1, n).round().astype(np.int64)]
+    thinned = level_poses(T_cp[None], T_vc, [EPAL.size_m[2]], params, [EPAL.boxes_m], pts_cam=[even])
+    np.testing.assert_array_equal(given, thinned)
+    every = level_poses(T_cp[None], T_vc, [EPAL.size_m[2]], LevelParams(refine_points=len(pts)), [EPAL.boxes_m],
+                        pts_cam=[pts])
+    assert not np.array_equal(given, every)
+
+
 def test_a_pose_the_estimator_levelled_is_not_refined_again():
     T_vc, T_vp = camera(), pallet_pose(2.0, 5.0)
     off = T_vp.copy()
