@@ -280,8 +280,7 @@ def _search_starts(T_vp: np.ndarray, T_cv: np.ndarray, pts: list, boxes_m: np.nd
     keep = min(int(params.search_keep), len(grid))
     out = np.repeat(T_vp[:, None], keep + 1, axis=1)
     for i in range(len(T_vp)):
-        p = np.asarray(pts[i], dtype=np.float64).reshape(-1, 3)
-        p = p[np.linspace(0, len(p) - 1, min(len(p), int(params.search_points))).round().astype(np.int64)]
+        p = _even_subset(np.asarray(pts[i], dtype=np.float64).reshape(-1, 3), int(params.search_points))
         cand = T_vp[i] @ grid
         sc = ray_scores(T_cv @ cand, p, boxes_m, params.search_window_m, threads=threads)
         out[i, 1:] = cand[np.argsort(-sc, kind="stable")[:keep]]

@@ -36,8 +36,8 @@ levelling its four best-ranked ones (docs/experiments/pallet-types.md). The othe
 type, and on those validation frames the fewer points gave as many pallets within 5 cm as the full levelling (165
 against 163); their ICP keeps its points (150 of 600 lost 11 pallets).
 
-Cost: a fit score per type, the structure agreement of four of them, and one refinement (levelled: one levelling) and
-structure agreement per kept type, instead of one refinement per candidate; the agreements of all candidates and
+Cost: a fit score per type and the structure agreement of four of them (none where every type is kept), and one
+refinement (levelled: one levelling) and structure agreement per kept type, instead of one refinement per candidate; the agreements of all candidates and
 types go in one pass (`structure.structure_agreement`, its rays in the compiled kernel).
 """
 from __future__ import annotations
