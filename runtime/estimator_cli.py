@@ -44,6 +44,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--type-margin", type=float, default=None,
                         help="where the depth chooses among several types, how much better (fit score 0-1) another "
                              "type must be to replace a detection's first type (default: EstimatorOptions.type_margin)")
+    parser.add_argument("--type-margin-levelled", type=float, default=None,
+                        help="the same where the types are judged levelled, with the camera's calibration "
+                             "(default: EstimatorOptions.type_margin_levelled)")
     parser.add_argument("--pallet-types", type=lambda v: tuple(t.strip() for t in v.split(",") if t.strip()),
                         default=None, help="comma-separated pallet types this site uses, e.g. epal: only these are "
                                            "posed (default: every type of the bundle)")
@@ -75,6 +78,7 @@ def load_estimator(args: argparse.Namespace, command: str):
                                    ("type_candidates", args.type_candidates),
                                    ("type_candidates_levelled", args.type_candidates_levelled),
                                    ("type_margin", args.type_margin),
+                                   ("type_margin_levelled", args.type_margin_levelled),
                                    ("pallet_types", args.pallet_types or None),
                                    ("time_budget_ms", args.time_budget_ms),
                                    ("pallet_lanes", args.pallet_lanes)) if v is not None}

@@ -18,7 +18,8 @@ several types (`Candidates.type_options`):
    the row as it is. Types without boards, or refinement off: step 1's best type wins, unrefined.
 
 In both steps every type but the candidate's first option (its class's first type) has `margin` taken off its score,
-so a look-alike type must fit clearly better to replace the common one. In step 2 another type must also show clear
+so a look-alike type must fit clearly better to replace the common one (`margin_levelled` where the types are judged
+levelled, below: each has then been placed on the floor in its own right). In step 2 another type must also show clear
 structure at its refined pose (`StructureParams.replace_min_agreement`, `replace_min_open_fraction`): a carton stack
 that no type explains is otherwise given the look-alike that explains it least badly. Where no kept type qualifies,
 the candidate keeps its first type, and the refiner stage refines it.
@@ -73,11 +74,13 @@ class TypeChoiceStage:
     :param level: how the estimator levels poses on a calibrated camera's floor (`EstimatorOptions.level`); with a
         calibration the kept types are judged at their levelled poses. None: never levelled.
     :param keep_levelled: how many types are kept where they are levelled (>= 1; default `keep`).
+    :param margin_levelled: `margin` where they are levelled (default `margin`).
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], types_of_class: dict[int, tuple[int, ...]],
                  refiner: RefinerStage, tol_m: float, keep: int, structure: StructureParams = StructureParams(),
-                 margin: float = 0.0, level: LevelParams | None = None, keep_levelled: int | None = None) -> None:
+                 margin: float = 0.0, level: LevelParams | None = None, keep_levelled: int | None = None,
+                 margin_levelled: float | None = None) -> None:
         keep_levelled = keep if keep_levelled is None else keep_levelled
         if int(keep) < 1 or int(keep_levelled) < 1:
             raise ValueError(f"keep and keep_levelled must be >= 1, got {keep}, {keep_levelled}")
@@ -87,6 +90,7 @@ class TypeChoiceStage:
         self.tol_m, self.keep, self.keep_levelled = float(tol_m), int(keep), int(keep_levelled)
         self.structure = structure
         self.margin = float(margin)
+        self.margin_levelled = self.margin if margin_levelled is None else float(margin_levelled)
         self.level = level
         self.level_other = None if level is None else replace(
             level, search_points=min(level.search_points, OTHER_SEARCH_POINTS))
@@ -102,11 +106,11 @@ class TypeChoiceStage:
         return any(len(t) > 1 for t in self.types_of_class.values())
 
     def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
-             others: int = RANK_BY_FIT) -> np.ndarray:
+             others: int = RANK_BY_FIT, margin: float | None = None) -> np.ndarray:
         """Fit score times structure agreement of each type at the network's pose of each row (-inf for the types
         not among its options). The agreement is computed for the row's first type and its `others` best others
         by fit alone; the rest keep -inf. Most of a bundle's types are ruled out by their size, which the fit sees;
-        the rays tell the look-alikes apart.
+        the rays tell the look-alikes apart. :param margin: taken off the other types' scores (default `margin`).
         :return: (len(rows), number of types)."""
         n_types = len(self.geometries)
         fit = np.full((len(rows), n_types), -np.inf)
@@ -127,7 +131,7 @@ class TypeChoiceStage:
         k, j = np.nonzero(scored)
         score = np.full_like(fit, -np.inf)
         score[k, j] = fit[k, j] * self.evidence(cands.T_net[rows[k]], j, depth_m, K)[0] \
-            - self.margin * (j != first[k])
+            - (self.margin if margin is None else margin) * (j != first[k])
         return score
 
     def evidence(self, T: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray, K: np.ndarray
@@ -148,7 +152,7 @@ class TypeChoiceStage:
         """Set `type_index` of `rows`, and their refined pose and fit where the winner was refined.
         :param T_vehicle_cam: (4, 4) the camera's calibration: the kept types are judged levelled (with `level`)."""
         levelled = T_vehicle_cam is not None and self.level is not None
-        keep = self.keep_levelled if levelled else self.keep
+        keep, margin = (self.keep_levelled, self.margin_levelled) if levelled else (self.keep, self.margin)
         refines = np.asarray(self.refiner.refines_type, bool)
         if keep >= max(len(cands.type_options[i]) for i in rows) \
                 and all(refines[j] for i in rows for j in cands.type_options[i]):
@@ -157,7 +161,7 @@ class TypeChoiceStage:
             best = np.array([cands.type_options[i][0] for i in rows], np.int64)
             score = np.zeros((len(rows), len(self.geometries)))
         else:
-            score = self.rank(cands, rows, depth_m, K, max(RANK_BY_FIT, keep - 1))
+            score = self.rank(cands, rows, depth_m, K, max(RANK_BY_FIT, keep - 1), margin)
             order = np.argsort(-score, axis=1, kind="stable")[:, :keep]
             best = order[:, 0]
         pair_row, pair_type = [], []
@@ -192,7 +196,7 @@ class TypeChoiceStage:
             fit = self.refiner.fit(T, cands.points_cam[src], pair_type, depth_m, K)
         agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
         other = pair_type != first
-        select = fit[:, 2] * agreement - self.margin * other
+        select = fit[:, 2] * agreement - margin * other
         s = self.structure
         unclear = (agreement < s.replace_min_agreement) | (open_fraction < s.replace_min_open_fraction)
         select[other & unclear] = -np.inf

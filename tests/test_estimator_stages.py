@@ -400,7 +400,7 @@ def _block_seen_by_a_calibrated_camera(bundle_dir, more: tuple = (), **options):
 ])
 def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundle_dir, structure, expected):
     est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
-        bundle_dir, type_candidates=1, type_candidates_levelled=2, type_margin=0.0, structure=structure)
+        bundle_dir, type_candidates=1, type_candidates_levelled=2, type_margin_levelled=0.0, structure=structure)
     est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
     assert est.pallet_types[int(c.type_index[0])].name == expected
     T_vp = T_vc @ c.T_cam_pallet[0]
@@ -413,13 +413,29 @@ def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundl
         assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.05
 
 
+@pytest.mark.parametrize("margin, margin_levelled, expected", [
+    (0.9, 0.0, "block_1210"),                       # the calibrated choice takes its own margin,
+    (0.0, 0.9, "epal"),                             # not the one of the choice without a calibration
+])
+def test_with_the_calibration_the_type_choice_takes_the_levelled_margin(bundle_dir, margin, margin_levelled,
+                                                                        expected):
+    est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
+        bundle_dir, type_candidates=1, type_candidates_levelled=2, type_margin=margin,
+        type_margin_levelled=margin_levelled)
+    est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
+    assert est.pallet_types[int(c.type_index[0])].name == expected
+    for bad in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="type_margin_levelled"):
+            EstimatorOptions(type_margin_levelled=bad)
+
+
 @pytest.mark.parametrize("keep", [2, 4, 5])
 def test_with_the_calibration_every_type_is_levelled_once_as_many_are_kept(bundle_dir, keep, monkeypatch):
     # five types: kept at least five, none is ranked and each is levelled, the others on fewer points than the first
     from pallet6d.runtime import stage_type
 
     est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
-        bundle_dir, ("eur6", "gma", "plastic_closed"), type_candidates_levelled=keep, type_margin=0.0)
+        bundle_dir, ("eur6", "gma", "plastic_closed"), type_candidates_levelled=keep, type_margin_levelled=0.0)
     levelled, ranked = [], []
     level_in_camera, rank = stage_type.level_in_camera, est.type_choice.rank
 
@@ -428,7 +444,7 @@ def test_with_the_calibration_every_type_is_levelled_once_as_many_are_kept(bundl
         return level_in_camera(T, T_vehicle_cam, geometries, params, *args)
 
     def spy_rank(*args):
-        ranked.append(args[-1])
+        ranked.append(args[4])                          # how many others it ranks
         return rank(*args)
 
     monkeypatch.setattr(stage_type, "level_in_camera", spy_level)
@@ -458,7 +474,8 @@ def test_without_refinement_every_type_kept_is_still_ranked(bundle_dir, monkeypa
 
 def test_with_the_calibration_the_type_choice_finds_what_it_misses_without(bundle_dir):
     est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(bundle_dir, type_candidates=2,
-                                                                      type_candidates_levelled=2, type_margin=0.0)
+                                                                      type_candidates_levelled=2, type_margin=0.0,
+                                                                      type_margin_levelled=0.0)
     free = copy.deepcopy(c)
     est.type_choice(free, depth_m, K, {})            # the six-degree refinement alone, on stereo depth
     est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
