@@ -35,6 +35,7 @@ from .deadline import Deadline, elapsed_ms
 from .depth_proposals import DepthProposals, framing_iou, propose_boxes
 from .detector import Detections
 from .evaluation import box_iou
+from .floor import FloorPlane, on_floor, refine_floor
 from .inputs import check_rgb, check_rgbd
 from .level import LevelParams, climb_poses, level_in_camera, up_in_camera
 from .overlap import duplicate_of
@@ -494,9 +495,12 @@ class PalletEstimator:
         for s in STAGES:
             timings.setdefault(s, 0.0)
         proposed = False
+        if T_vehicle_cam is not None and self.options.level is not None and self.options.level.floor_from_depth:
+            T_vehicle_cam = self._floor_of_frame(T_vehicle_cam, depth_m, K, timings)
         if weak_below is not None and T_vehicle_cam is None:
             det = self._strong(det)
-        elif weak_below is not None and self.options.weak_boxes is not None and self.options.depth_proposals is not None:
+        elif weak_below is not None and self.options.weak_boxes is not None \
+                and self.options.depth_proposals is not None:
             det = self._with_depth_proposals(det, depth_m, K, T_vehicle_cam, timings)
             proposed = True
         det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
@@ -541,6 +545,17 @@ class PalletEstimator:
             if registration is not None:        # it reads the caller's arrays: done before they are handed back
                 wait([registration[1]])
         return cands
+
+    def _floor_of_frame(self, T_vehicle_cam: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                        timings: dict[str, float]) -> np.ndarray:
+        """The calibration with its floor moved onto this frame's floor where the depth shows it near the calibrated
+        one (`floor.refine_floor`; `LevelParams.floor_from_depth`), else as it is. Its time counts as refine."""
+        if not T_vehicle_cam[2, 3] > 0:             # the camera below its floor: nothing to refine from
+            return T_vehicle_cam
+        t = time.perf_counter()
+        floor = refine_floor(FloorPlane(T_vehicle_cam[2, :3], float(T_vehicle_cam[2, 3])), depth_m, K)
+        timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)
+        return T_vehicle_cam if floor is None else on_floor(T_vehicle_cam, floor)
 
     def _with_depth_proposals(self, det: Detections, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
                               timings: dict[str, float]) -> Detections:

@@ -38,8 +38,9 @@ type, and on those validation frames the fewer points gave as many pallets withi
 against 163); their ICP keeps its points (150 of 600 lost 11 pallets).
 
 Cost: a fit score per type and the structure agreement of four of them (none where every type is kept), and one
-refinement (levelled: one levelling) and structure agreement per kept type, instead of one refinement per candidate; the agreements of all candidates and
-types go in one pass (`structure.structure_agreement`, its rays in the compiled kernel).
+refinement (levelled: one levelling) and structure agreement per kept type, instead of one refinement per candidate;
+the agreements of all candidates and types go in one pass (`structure.structure_agreement`, its rays in the compiled
+kernel).
 """
 from __future__ import annotations
 

@@ -616,6 +616,33 @@ def test_with_the_calibration_poses_stand_level_on_the_floor():
         np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet)
 
 
+@pytest.mark.parametrize("from_depth", [True, False])
+def test_with_a_calibration_a_degree_off_the_poses_stand_on_the_floor_the_depth_shows(from_depth):
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    f = generate_frame(dataclasses.replace(get_preset("forklift-approach"), pallet_models=("epal",)), seed=3)
+    a = np.radians(1.0)                                    # the calibration pitched a degree, 3 cm too high
+    off = f.T_vehicle_cam @ np.array([[1, 0, 0, 0], [0, np.cos(a), -np.sin(a), 0], [0, np.sin(a), np.cos(a), 0],
+                                      [0, 0, 0, 1.0]])
+    off[2, 3] += 0.03
+    boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.3)]
+    est = PalletEstimator.from_bundle(SHIPPED, threads=1, structure=None, pallet_types=("epal",),
+                                      level=LevelParams(floor_from_depth=from_depth))
+    c = est.candidates(f.rgb, f.depth_m, f.K, detections=Detections(np.array(boxes, float), np.full(len(boxes), 0.9),
+                                                                   np.zeros(len(boxes), int)), T_vehicle_cam=off)
+    up_true, up_off = f.T_vehicle_cam[2, :3], off[2, :3]
+    z_axes = c.T_cam_pallet[:, :3, 2]
+    level = np.abs(z_axes @ up_true - 1) < 1e-4 if from_depth else np.abs(z_axes @ up_off - 1) < 1e-9
+    assert level.sum() >= 2                                 # levelled poses (one tilted far may be left as it is)
+    tilt_true = np.degrees(np.arccos(np.clip(z_axes[level] @ up_true, -1, 1)))
+    if from_depth:        # the frame's floor: within a tenth of a degree of the true one
+        assert tilt_true.max() < 0.1
+    else:                 # the calibration's floor, a degree off
+        assert tilt_true == pytest.approx(np.degrees(np.arccos(up_true @ up_off)), abs=1e-6)
+        assert tilt_true.min() > 0.9
+
+
 def test_the_climb_moves_accepted_poses_only_and_never_decides_acceptance():
     from pallet6d.sim.generate import generate_frame
     from pallet6d.sim.presets import get_preset
@@ -675,3 +702,7 @@ def test_with_the_calibration_the_structure_check_tests_the_tilt(bundle_dir, mon
     assert len(seen) == 2 and seen[0] is None
     np.testing.assert_allclose(seen[1], f.T_vehicle_cam[2, :3])
     np.testing.assert_allclose(f.T_vehicle_cam[:3, :3] @ seen[1], [0, 0, 1], atol=1e-12)   # the vehicle's up
+    est = PalletEstimator(load_bundle(bundle_dir), threads=1, options=EstimatorOptions(      # the frame's floor
+        score_threshold=0.0, min_fit=0.0, min_confidence=0.0, level=LevelParams(floor_from_depth=True)))
+    est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=f.T_vehicle_cam)
+    assert np.degrees(np.arccos(np.clip(seen[2] @ f.T_vehicle_cam[2, :3], -1, 1))) < 0.2
