@@ -553,7 +553,8 @@ class PalletEstimator:
         if not T_vehicle_cam[2, 3] > 0:             # the camera below its floor: nothing to refine from
             return T_vehicle_cam
         t = time.perf_counter()
-        floor = refine_floor(FloorPlane(T_vehicle_cam[2, :3], float(T_vehicle_cam[2, 3])), depth_m, K)
+        up = T_vehicle_cam[2, :3] / np.linalg.norm(T_vehicle_cam[2, :3])
+        floor = refine_floor(FloorPlane(up, float(T_vehicle_cam[2, 3])), depth_m, K)
         timings["refine"] = timings.get("refine", 0.0) + elapsed_ms(t)
         return T_vehicle_cam if floor is None else on_floor(T_vehicle_cam, floor)
 
