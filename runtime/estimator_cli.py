@@ -8,8 +8,9 @@ import sys
 
 def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """--bundle, --int8, --threads, --score-threshold, --max-pallets, --min-fit, --seed, --no-refine,
-    --refine-starts, --type-candidates, --type-candidates-levelled, --pallet-types, --time-budget-ms,
-    --pallet-lanes, --no-structure-check, --no-weak-boxes, --no-depth-proposals."""
+    --refine-starts, --type-candidates, --type-candidates-levelled, --type-margin, --type-margin-levelled,
+    --pallet-types, --time-budget-ms, --pallet-lanes, --no-structure-check, --no-weak-boxes, --no-depth-proposals,
+    --floor-from-depth."""
     parser.add_argument("--bundle", help="model bundle folder (default: $PALLET6D_BUNDLE, else the installed "
                                          "pallet6d-models package's epal-default, else ./models/epal-default)")
     parser.add_argument("--no-structure-check", action="store_true",
@@ -21,6 +22,10 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with a calibration, do not pose what stands a pallet's height on the floor in the depth "
                              "where the detector found nothing (by default it is posed and kept only with clear "
                              "pallet structure)")
+    parser.add_argument("--floor-from-depth", action="store_true",
+                        help="with a calibration, level the poses on each frame's own floor where the depth shows it "
+                             "near the calibrated one (for a calibration that drifts or a truck that pitches with its "
+                             "load; by default on the calibration's floor)")
     parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
@@ -88,6 +93,9 @@ def load_estimator(args: argparse.Namespace, command: str):
             extra["weak_boxes"] = None
         if args.no_depth_proposals:
             extra["depth_proposals"] = None
+        if args.floor_from_depth:
+            from .level import LevelParams
+            extra["level"] = LevelParams(floor_from_depth=True)
         return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
                                            precision="int8" if args.int8 else "fp32",
                                            score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,

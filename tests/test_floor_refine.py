@@ -70,3 +70,17 @@ def test_the_calibration_on_the_frame_floor_keeps_its_heading_and_place(view):
     turn = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3].T @ moved[:3, :3]) - 1) / 2, -1, 1)))
     assert turn == pytest.approx(plane_angle_deg(T[2, :3], floor.normal), abs=1e-6)   # the least turn
     np.testing.assert_allclose(on_floor(T, _floor(T)), T, atol=1e-12)
+
+
+@pytest.mark.parametrize("flags, expected", [([], False), (["--floor-from-depth"], True)])
+def test_the_command_line_turns_the_frame_floor_on(flags, expected):
+    import argparse
+    from pathlib import Path
+
+    from pallet6d.runtime.estimator_cli import add_estimator_arguments, load_estimator
+
+    parser = argparse.ArgumentParser()
+    add_estimator_arguments(parser)
+    bundle = Path(__file__).resolve().parents[1] / "models" / "epal-default"
+    est = load_estimator(parser.parse_args(["--bundle", str(bundle), "--threads", "1", *flags]), "run")
+    assert est.options.level.floor_from_depth is expected
