@@ -525,10 +525,11 @@ class PalletEstimator:
             registration = self.fit_check.start_registration(cands.boxes_xyxy[tested], depth_m, rgb)
         try:
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
-            if weak is not None:           # the fit check would refuse them: not worth the type choice and refinement
-                low = np.flatnonzero(weak & cands.alive & (cands.confidence < self.options.min_confidence))
-                cands.reject(low, "low_confidence",
-                             [f"confidence {c:.3f} < {self.options.min_confidence}" for c in cands.confidence[low]])
+            # the fit check refuses these whatever their type and refinement: not worth either (with a calibration
+            # every type of a candidate is levelled, the most costly work of the frame)
+            low = np.flatnonzero(cands.alive & (cands.confidence < self.options.min_confidence))
+            cands.reject(low, "low_confidence",
+                         [f"confidence {c:.3f} < {self.options.min_confidence}" for c in cands.confidence[low]])
             self.type_choice(cands, depth_m, K, timings, deadline, T_vehicle_cam)
             self.refiner(cands, depth_m, K, timings, deadline)
             up_cam = None
@@ -661,7 +662,7 @@ class PalletEstimator:
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
             pts = [self.refiner.box_points(cands.pixels[i], depth_m, K) for i in rows]   # the refiner's ICP points
             T_cp = level_in_camera(cands.T_cam_pallet[rows], T_vehicle_cam, geoms, self.options.level, pts,
-                                   self.refiner.refine_options.threads)
+                                   self.refiner.refine_options.threads, self.refiner.icp_grids(cands.type_index[rows]))
             moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
             cands.assign(rows, T_cam_pallet=T_cp)
             cands.assign(moved, fit=np.full((len(moved), 3), np.nan))

@@ -1,7 +1,7 @@
 /* The runtime's per-point loops, compiled: robust point-to-plane ICP of observed points onto a union of
    axis-aligned boxes (pallet6d_icp), the fit scores of posed models against the depth (pallet6d_fit), the
    registration test's pair counts (pallet6d_registration_counts), the viewing rays' hits and scores of posed
-   pallets (pallet6d_ray_hits, pallet6d_ray_scores) and the structure check's rays (pallet6d_cast_rays).
+   pallets (pallet6d_along_rays, pallet6d_ray_scores) and the structure check's rays (pallet6d_cast_rays).
 
    ICP is the same algorithm as `refine._icp` in numpy (its docstring and `refine_pose`'s are the specification):
    per step, every observed point near the model's bounding box is matched with the closest point on the
@@ -20,7 +20,7 @@
 
 /* The functions' signatures as kernels.py declares them: a library built from another version of this file (a
    stale in-place build) is refused there instead of being called with the wrong arguments. */
-#define PALLET6D_KERNELS_ABI 3
+#define PALLET6D_KERNELS_ABI 4
 int pallet6d_kernels_abi(void) { return PALLET6D_KERNELS_ABI; }
 
 /* max / min as comparisons: fmaxf / fminf are library calls unless NaN semantics are given up (the points and
@@ -303,6 +303,21 @@ static void icp_one(struct icp_job *job, int64_t i) {
     job->stopped_out[i] = stopped;
 }
 
+/* worker(job) on the calling thread and on up to n_threads - 1 more, one per chunk of `chunk` of the P poses at
+   most; the workers take chunks until none is left (a thread that cannot be started leaves its share to the
+   others). */
+static void run_shared(void *(*worker)(void *), void *job, int64_t P, int64_t chunk, int64_t n_threads) {
+    enum { MAX_THREADS = 16 };
+    int64_t extra = (n_threads < (P + chunk - 1) / chunk ? n_threads : (P + chunk - 1) / chunk) - 1;
+    extra = extra < 0 ? 0 : extra > MAX_THREADS - 1 ? MAX_THREADS - 1 : extra;
+    pthread_t threads[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 0; t < extra; t++) started[t] = pthread_create(&threads[t], NULL, worker, job) == 0;
+    worker(job);
+    for (int64_t t = 0; t < extra; t++)
+        if (started[t]) pthread_join(threads[t], NULL);
+}
+
 /* Poses taken one at a time until none is left (the threads share the job). */
 static void *icp_worker(void *arg) {
     struct icp_job *job = arg;
@@ -330,7 +345,6 @@ int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t
                  const int64_t *grid_dims, const int32_t *grid_offsets, const uint8_t *grid_lists,
                  int64_t n_threads, double *T_out, int64_t *iters_out,
                  int64_t *n_in_out, double *rms_out, uint8_t *converged_out, uint8_t *stopped_out) {
-    enum { MAX_THREADS = 16 };
     if (k < 1 || k > MAX_BOXES) return -1;
     struct icp_job *job = calloc(1, sizeof *job);
     if (job == NULL) return -2;
@@ -357,14 +371,7 @@ int pallet6d_icp(int64_t n_poses, int64_t n_max, const float *pts, const int64_t
     for (int c = 0; c < 8; c++)
         for (int a = 0; a < 3; a++) job->corners[c][a] = (c >> a) & 1 ? job->model_hi[a] : job->model_lo[a];
 
-    int64_t extra = (n_threads < n_poses ? n_threads : n_poses) - 1;
-    extra = extra < 0 ? 0 : extra > MAX_THREADS - 1 ? MAX_THREADS - 1 : extra;
-    pthread_t threads[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
-    for (int64_t t = 0; t < extra; t++) started[t] = pthread_create(&threads[t], NULL, icp_worker, job) == 0;
-    icp_worker(job);
-    for (int64_t t = 0; t < extra; t++)
-        if (started[t]) pthread_join(threads[t], NULL);
+    run_shared(icp_worker, job, n_poses, 1, n_threads);
     free(job);
     return 0;
 }
@@ -652,33 +659,103 @@ static double first_hit_along(const double o[3], const double d[3], const double
     return s;
 }
 
-/* `first_hit_along` for the ray o + s R_pc p: s = 1 at the camera-frame point p. */
-static double first_hit(const double R_pc[9], const double o[3], const double *p, const double blo[3],
-                        const double bhi[3], const double *boxes, int64_t k, const int64_t *order,
-                        const double *dist) {
-    double d[3], entry;
-    for (int r = 0; r < 3; r++) d[r] = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
-    return first_hit_along(o, d, blo, bhi, boxes, k, order, dist, &entry);
+/* `first_hit` for a caller that needs the point's residual (1 - s) * |p| only where it lies within window_m of the
+   surface, and otherwise only whether it lies beyond it (residual >= window_m; rng = |p|): the search ends at the
+   first hit found that puts the point beyond the window (any earlier hit would put it further beyond), and looks
+   for hits only up to s_max = 1 + window_m / |p| and a little (a first hit past that leaves the point in front of
+   the surface by more than the window, or no hit at all: INFINITY, which counts as neither). The callers classify
+   every point as they would with `first_hit`'s s. */
+static double first_hit_window(const double R_pc[9], const double o[3], const double *p, double rng, double window_m,
+                               const double blo[3], const double bhi[3], const double *boxes, int64_t k,
+                               const int64_t *order, const double *dist) {
+    double d[3], inv[3], e, entry, d2 = 0.0;
+    for (int r = 0; r < 3; r++) {
+        d[r] = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
+        inv[r] = fabs(d[r]) > 1e-12 ? 1.0 / d[r] : 1e12;
+        d2 += d[r] * d[r];
+    }
+    const double margin = window_m / rng * (1.0 + 1e-9);        /* 1e-9: well above the residual's rounding */
+    const double s_max = 1.0 + margin, s_beyond = 1.0 - margin;
+    if (!ray_box(o, inv, blo, bhi, &entry) || entry >= s_max) return INFINITY;
+    const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;
+    double s = s_max;
+    for (int64_t j = 0; j < k && dist[j] <= s * reach; j++) {
+        const int64_t b = order[j];
+        if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) {
+            s = e;
+            if (s <= s_beyond) return s;
+        }
+    }
+    return s < s_max ? s : INFINITY;
 }
 
-/* The first hit of each point's viewing ray with its pose's boxes: s_out[i * N + j] = first_hit of pose i's point j
-   for its first n_pts[i] points (the rest is left as it is). T: (P, 4, 4) pallet -> camera; pts: (P, N, 3) camera
-   frame; boxes: (k, 2, 3), pallet frame, k <= MAX_BOXES. Double arithmetic, as numpy's (structure.cast_rays_boxes).
-   Returns 0, or 1 (nothing written) for more than MAX_BOXES boxes. */
-int pallet6d_ray_hits(int64_t P, const double *T, int64_t N, const double *pts, const int64_t *n_pts, int64_t k,
-                      const double *boxes, double *s_out) {
+/* What level._along_rays needs of P poses' points (its numpy path is the specification): each point's viewing ray
+   meets the posed boxes first at s times the point's distance; its residual (1 - s) * |p| is its depth beyond the
+   model's surface. Per pose i, of its first n_pts[i] points (T: (P, 4, 4) pallet -> camera; pts: (P, N, 3) camera
+   frame; boxes: (k, 2, 3), pallet frame, k <= MAX_BOXES), those with |residual| < window_m: count_out[i], the median
+   of their residuals shift_out[i] (the mean of the two middle ones for an even count; 0 for none) and the sum of
+   their unit viewing directions ray_out[i] (3,). scratch: (P, N) doubles, row i pose i's work area. The poses are
+   shared among up to n_threads threads, 4 at a time (a thread that cannot be started leaves its share to the
+   others). Returns 0, or 1 (nothing written) for more than MAX_BOXES boxes. */
+struct along_rays_job {
+    const double *T, *pts, *boxes, *blo, *bhi;
+    const int64_t *n_pts;
+    int64_t P, N, k, chunk;
+    double window_m, *scratch, *shift_out, *ray_out;
+    int64_t *count_out;
+    atomic_long next;
+};
+
+static int cmp_double(const void *a, const void *b) {
+    const double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+static void *along_rays_worker(void *arg) {
+    struct along_rays_job *job = arg;
+    for (int64_t i0 = atomic_fetch_add(&job->next, job->chunk); i0 < job->P;
+         i0 = atomic_fetch_add(&job->next, job->chunk))
+        for (int64_t i = i0; i < i0 + job->chunk && i < job->P; i++) {
+            double R_pc[9], o[3], dist[MAX_BOXES], ray[3] = {0.0, 0.0, 0.0};
+            int64_t order[MAX_BOXES], c = 0;
+            double *res = job->scratch + i * job->N;
+            camera_in_pallet(job->T + 16 * i, R_pc, o);
+            order_boxes(o, job->boxes, job->k, order, dist);
+            const int64_t n = job->n_pts[i] < job->N ? job->n_pts[i] : job->N;
+            for (int64_t j = 0; j < n; j++) {
+                const double *p = job->pts + 3 * (i * job->N + j);
+                const double rng = sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+                const double s = first_hit_window(R_pc, o, p, rng, job->window_m, job->blo, job->bhi, job->boxes,
+                                                  job->k, order, dist);
+                if (!isfinite(s)) continue;
+                const double r = (1.0 - s) * rng;
+                if (!(fabs(r) < job->window_m)) continue;
+                res[c++] = r;
+                for (int a = 0; a < 3; a++) ray[a] += p[a] / rng;
+            }
+            double median = 0.0;
+            if (c > 0) {
+                qsort(res, (size_t)c, sizeof(double), cmp_double);
+                median = 0.5 * (res[(c - 1) / 2] + res[c / 2]);
+            }
+            job->count_out[i] = c;
+            job->shift_out[i] = median;
+            for (int a = 0; a < 3; a++) job->ray_out[3 * i + a] = ray[a];
+        }
+    return NULL;
+}
+
+int pallet6d_along_rays(int64_t P, const double *T, int64_t N, const double *pts, const int64_t *n_pts, int64_t k,
+                        const double *boxes, double window_m, int64_t n_threads, double *scratch, int64_t *count_out,
+                        double *shift_out, double *ray_out) {
     if (k > MAX_BOXES) return 1;
-    double blo[3], bhi[3], dist[MAX_BOXES];
-    int64_t order[MAX_BOXES];
+    double blo[3], bhi[3];
     boxes_bounds(boxes, k, blo, bhi);
-    for (int64_t i = 0; i < P; i++) {
-        double R_pc[9], o[3];
-        camera_in_pallet(T + 16 * i, R_pc, o);
-        order_boxes(o, boxes, k, order, dist);
-        const int64_t n = n_pts[i] < N ? n_pts[i] : N;
-        for (int64_t j = 0; j < n; j++)
-            s_out[i * N + j] = first_hit(R_pc, o, pts + 3 * (i * N + j), blo, bhi, boxes, k, order, dist);
-    }
+    struct along_rays_job job = {.T = T, .pts = pts, .boxes = boxes, .blo = blo, .bhi = bhi, .n_pts = n_pts, .P = P,
+                                 .N = N, .k = k, .chunk = 4, .window_m = window_m, .scratch = scratch,
+                                 .shift_out = shift_out, .ray_out = ray_out, .count_out = count_out};
+    atomic_init(&job.next, 0);
+    run_shared(along_rays_worker, &job, P, job.chunk, n_threads);
     return 0;
 }
 
@@ -739,9 +816,11 @@ static void *ray_score_worker(void *arg) {
             int64_t beyond = 0;
             for (int64_t j = 0; j < job->m; j++) {
                 const double *p = job->pts + 3 * j;
-                const double s = first_hit(R_pc, o, p, job->blo, job->bhi, job->boxes, job->k, order, dist);
+                const double rng = sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+                const double s = first_hit_window(R_pc, o, p, rng, job->window_m, job->blo, job->bhi, job->boxes,
+                                                  job->k, order, dist);
                 if (!isfinite(s)) continue;
-                const double res = (1.0 - s) * sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
+                const double res = (1.0 - s) * rng;
                 if (fabs(res) < job->window_m) {
                     const double q = res / job->window_m;
                     inl += job->soft ? 1.0 - q * q : 1.0;
@@ -755,20 +834,12 @@ static void *ray_score_worker(void *arg) {
 
 int pallet6d_ray_scores(int64_t P, const double *T, int64_t m, const double *pts, int64_t k, const double *boxes,
                         double window_m, int64_t soft, int64_t n_threads, double *out) {
-    enum { MAX_THREADS = 16 };
     if (k > MAX_BOXES) return 1;
     double blo[3], bhi[3];
     boxes_bounds(boxes, k, blo, bhi);
     struct ray_score_job job = {.T = T, .pts = pts, .boxes = boxes, .blo = blo, .bhi = bhi, .P = P, .m = m, .k = k,
                                 .chunk = 8, .soft = soft, .window_m = window_m, .out = out};
     atomic_init(&job.next, 0);
-    int64_t extra = (n_threads < (P + job.chunk - 1) / job.chunk ? n_threads : (P + job.chunk - 1) / job.chunk) - 1;
-    extra = extra < 0 ? 0 : extra > MAX_THREADS - 1 ? MAX_THREADS - 1 : extra;
-    pthread_t threads[MAX_THREADS];
-    int started[MAX_THREADS] = {0};
-    for (int64_t t = 0; t < extra; t++) started[t] = pthread_create(&threads[t], NULL, ray_score_worker, &job) == 0;
-    ray_score_worker(&job);
-    for (int64_t t = 0; t < extra; t++)
-        if (started[t]) pthread_join(threads[t], NULL);
+    run_shared(ray_score_worker, &job, P, job.chunk, n_threads);
     return 0;
 }

@@ -1,7 +1,7 @@
 """The runtime's compiled kernels (`kernels.c`): refinement's point-to-plane ICP (`icp`), the fit scores (`fit`),
-the levelled refinement's ray hits and scores (`ray_hits`, `ray_scores`), the structure check's rays (`cast_rays`)
-and the registration test's pair counts (`registration_counts`), the per-point loops that numpy runs as thousands
-of small calls a frame.
+the levelled refinement's moves along the viewing rays and its ray scores (`along_rays`, `ray_scores`), the
+structure check's rays (`cast_rays`) and the registration test's pair counts (`registration_counts`), the per-point
+loops that numpy runs as thousands of small calls a frame.
 
 The package builds them as an optional C extension (setup.py) and loads it here with ctypes: no Python C API,
 a library of a few tens of kB, loaded in well under a millisecond. Where no C compiler was at hand when the
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["available", "box_grid", "BoxGrid", "cast_rays", "fit", "icp", "library_path", "MAX_BOXES", "ray_hits",
+__all__ = ["along_rays", "available", "box_grid", "BoxGrid", "cast_rays", "fit", "icp", "library_path", "MAX_BOXES",
            "ray_scores", "registration_counts"]
 
 log = logging.getLogger(__name__)
@@ -32,7 +32,7 @@ _u8 = np.ctypeslib.ndpointer(np.uint8, flags="C_CONTIGUOUS")
 _ptr = ctypes.c_void_p
 _i = ctypes.c_int64
 _d = ctypes.c_double
-ABI = 3                              # kernels.c's PALLET6D_KERNELS_ABI: the signatures below
+ABI = 4                              # kernels.c's PALLET6D_KERNELS_ABI: the signatures below
 
 
 def library_path() -> str | None:
@@ -53,7 +53,7 @@ _ARGTYPES = {
     "pallet6d_registration_counts": [_f32, _i, _i, _i, _i, _i, _i, _u8, _i64, _i64, _i, _i, _i, _d, _d, _i, _i64,
                                      _i64],
     "pallet6d_ray_scores": [_i, _f64, _i, _f64, _i, _f64, _d, _i, _i, _f64],
-    "pallet6d_ray_hits": [_i, _f64, _i, _f64, _i64, _i, _f64, _f64],
+    "pallet6d_along_rays": [_i, _f64, _i, _f64, _i64, _i, _f64, _d, _i, _f64, _i64, _f64, _f64],
     "pallet6d_cast_rays": [_i, _i, _f64, _f64, _i64, _i64, _f64, _f64, _f64],
 }
 
@@ -249,21 +249,30 @@ def _check_boxes(boxes_m: np.ndarray) -> None:
         raise ValueError(f"the kernels take pallet models of at most {MAX_BOXES} boxes, got {len(boxes_m)}")
 
 
-def ray_hits(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray) -> np.ndarray:
-    """Where each pose's points' viewing rays first meet its boxes (`pallet6d_ray_hits` in kernels.c).
+def along_rays(T_cam_pallet: np.ndarray, pts_cam: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
+               window_m: float, threads: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pose's points whose depth lies within `window_m` of the posed boxes' first surface along their viewing
+    rays: how many, the median of those residuals and the sum of their unit viewing directions
+    (`pallet6d_along_rays` in kernels.c; `level._along_rays`' numpy path is the specification).
 
     :param T_cam_pallet: (P, 4, 4). :param pts_cam: (P, N, 3) camera frame, metres; pose i uses its first `n_pts[i]`
-        rows. :param boxes_m: (k, 2, 3). :return: (P, N) ray parameters (1 = at the point, inf = no hit; inf too for
-        the rows past `n_pts[i]`).
+        rows. :param boxes_m: (k, 2, 3). :param threads: the poses are shared among this many threads (the same
+        results).
+    :return: count (P,) int64, median residual (P,) metres (0 where the count is 0; > 0: beyond the surface), summed
+        unit directions (P, 3), camera frame.
     """
-    fn = _function("pallet6d_ray_hits")
+    fn = _function("pallet6d_along_rays")
     c64 = functools.partial(np.ascontiguousarray, dtype=np.float64)
     T, pts, boxes = c64(T_cam_pallet).reshape(-1, 4, 4), c64(pts_cam), c64(boxes_m).reshape(-1, 2, 3)
-    n = np.ascontiguousarray(np.minimum(n_pts, pts.shape[1]), dtype=np.int64)
+    if pts.ndim != 3 or pts.shape[0] != len(T) or pts.shape[2] != 3:
+        raise ValueError(f"pts_cam must be ({len(T)}, N, 3), got shape {pts.shape}")
+    n = np.ascontiguousarray(np.clip(n_pts, 0, pts.shape[1]), dtype=np.int64).reshape(len(T))
     _check_boxes(boxes)
-    out = np.full(pts.shape[:2], np.inf)
-    fn(len(T), T, pts.shape[1], pts, n, len(boxes), boxes, out)
-    return out
+    P = len(T)
+    count, shift, ray = np.zeros(P, dtype=np.int64), np.zeros(P), np.zeros((P, 3))
+    fn(P, T, pts.shape[1], pts, n, len(boxes), boxes, float(window_m), max(int(threads), 1),
+       np.empty(pts.shape[:2]), count, shift, ray)
+    return count, shift, ray
 
 
 def cast_rays(origin: np.ndarray, dirs: np.ndarray, boxes_m: np.ndarray, box_start: np.ndarray,

@@ -157,22 +157,23 @@ def _level(R: np.ndarray) -> np.ndarray:
 
 
 def level_in_camera(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, geometries: list, params: LevelParams,
-                    pts_cam: list, threads: int = 1) -> np.ndarray:
+                    pts_cam: list, threads: int = 1, grids: list | None = None) -> np.ndarray:
     """`level_poses` of n posed pallets, each refined on its own type's boards and depth points, as camera poses.
 
     :param geometries: n pallet types (`size_m` and `boxes_m` of each, e.g. `stage_geometry.PalletGeometry`).
     :param pts_cam: n arrays (m_i, 3), each pose's depth points, camera frame, metres.
+    :param grids: see `level_poses`.
     :return: (n, 4, 4) T_cam_pallet.
     """
     T_vp = level_poses(T_cam_pallet, T_vehicle_cam, np.array([g.size_m[2] for g in geometries]), params,
-                       [g.boxes_m for g in geometries], pts_cam=pts_cam, threads=threads)
+                       [g.boxes_m for g in geometries], pts_cam=pts_cam, threads=threads, grids=grids)
     return invert_T(T_vehicle_cam) @ T_vp
 
 
 def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: np.ndarray,
                 params: LevelParams = LevelParams(), boxes_m: list | None = None, depth_m: np.ndarray | None = None,
                 K: np.ndarray | None = None, boxes_xyxy: np.ndarray | None = None,
-                pts_cam: list | None = None, threads: int = 1) -> np.ndarray:
+                pts_cam: list | None = None, threads: int = 1, grids: list | None = None) -> np.ndarray:
     """`T_vehicle_pallet` of n posed pallets, levelled, set on the floor and refined (see the module docstring).
 
     :param T_cam_pallet: (n, 4, 4) the estimated poses. :param T_vehicle_cam: (4, 4) from the calibration.
@@ -184,6 +185,8 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
         already (the estimator's refiner): used instead of reading `depth_m` in `boxes_xyxy`.
     :param threads: the compiled ICP and the search's scores share their work among this many threads (the same
         poses).
+    :param grids: n `kernels.box_grid`s of `boxes_m` (or None each), for the compiled ICP: fewer boxes measured per
+        point, the same poses. None: none.
     :return: (n, 4, 4) vehicle frame.
     """
     T_vc = np.asarray(T_vehicle_cam, dtype=np.float64)
@@ -215,7 +218,7 @@ def level_poses(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, height_m: n
         else:
             return out
         out[refine] = _refine(out[refine], on_floor[refine], T_vc, [boxes_m[i] for i in refine], pts, params,
-                              threads)
+                              threads, None if grids is None else [grids[i] for i in refine])
         out[refine, :3, :3] = _level(out[refine, :3, :3])             # what the held tilt let through (< 0.1 deg)
         snap = refine[on_floor[refine]]
         out[snap, 2, 3] = half_h[snap]
@@ -230,7 +233,7 @@ def _even_subset(pts: np.ndarray, n: int) -> np.ndarray:
 
 
 def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: list, pts: list,
-            params: LevelParams, threads: int = 1) -> np.ndarray:
+            params: LevelParams, threads: int = 1, grids: list | None = None) -> np.ndarray:
     """ICP with the tilt held, one pass per pallet type; poses without depth points stay."""
     from .refine import _icp          # here: refine -> results -> forklift -> this module
 
@@ -254,11 +257,13 @@ def _refine(T_vp: np.ndarray, on_floor: np.ndarray, T_vc: np.ndarray, boxes_m: l
         trans = np.tile([_FREE_TRANS_M, _FREE_TRANS_M, _FREE_TRANS_M], (P * H, 1))
         trans[floor_h, 2] = _HELD                                    # pallet frame z: the vertical once levelled
         run = _icp(T_cv @ T0, padded_h, counts_h, boxes_m[idx[0]], int(params.refine_iterations), _CORR_START_M,
-                   _CORR_END_M, rot, trans, _MIN_INLIERS, 1e-4, None, 0.0, threads=threads)
+                   _CORR_END_M, rot, trans, _MIN_INLIERS, 1e-4, None, 0.0, threads=threads,
+                   grid=None if grids is None else grids[idx[0]])
         T_cp = run.T_cam_pallet
         if params.ray_window_m > 0:
             for _ in range(_RAY_ROUNDS):
-                T_cp = _along_rays(T_cp, padded_h, counts_h, boxes_m[idx[0]], params.ray_window_m, T_vc, floor_h)
+                T_cp = _along_rays(T_cp, padded_h, counts_h, boxes_m[idx[0]], params.ray_window_m, T_vc, floor_h,
+                                   threads=threads)
         if H > 1:
             # the best landing of each pose (ties: the pose's own), scored after the move along the rays: a 2-3 cm
             # pull towards the camera (noisy depth) would otherwise weigh in the 5 cm window
@@ -398,42 +403,27 @@ def _row_medians(values: np.ndarray, count: np.ndarray) -> np.ndarray:
 
 
 def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray, window_m: float,
-                T_vc: np.ndarray, on_floor: np.ndarray, compiled: bool = True) -> np.ndarray:
+                T_vc: np.ndarray, on_floor: np.ndarray, compiled: bool = True, threads: int = 1) -> np.ndarray:
     """Step 4 of the module docstring, once, for P poses of one pallet type.
 
     :param T_cam_pallet: (P, 4, 4). :param pts: (P, N, 3) camera frame, metres; pose i uses its first `n_pts[i]` rows.
     :param boxes_m: (k, 2, 3) the type's boards and blocks. :param on_floor: (P,) bool: move those horizontally only
-        (in the vehicle frame), keeping them on the floor. :param compiled: the rays' hits in the compiled kernel when
-        the package has it (`kernels.ray_hits`, the same hits), else in numpy.
+        (in the vehicle frame), keeping them on the floor. :param compiled: the rays in the compiled kernel (on
+        `threads` threads) when the package has it (`kernels.along_rays`, the same moves), else in numpy.
     :return: (P, 4, 4) the poses moved; a pose with fewer than `_MIN_INLIERS` points within the window stays.
     """
     P, N = pts.shape[:2]
     n_pts = np.minimum(np.asarray(n_pts, dtype=np.int64), N)
     if compiled and kernels.available() and len(boxes_m) <= kernels.MAX_BOXES:
-        s = kernels.ray_hits(T_cam_pallet, pts, n_pts, boxes_m)                    # 1 = at the point
+        count, shift_m, ray = kernels.along_rays(T_cam_pallet, pts, n_pts, boxes_m, window_m, threads)
     else:
-        R_pc = np.swapaxes(T_cam_pallet[:, :3, :3], 1, 2)                           # camera -> pallet
-        origin = -(R_pc @ T_cam_pallet[:, :3, 3, None])[..., 0]                     # the camera, pallet frame
-        s = np.full((P, N), np.inf)
-        for i in range(P):
-            # one pose at a time: the (boxes, points) arrays of a pose stay in cache (16 poses at once: 3x slower)
-            p = pts[i, :n_pts[i]]
-            s[i, :n_pts[i]] = cast_rays_boxes(origin[i:i + 1], (p @ R_pc[i].T)[None], boxes_m)[0][0]
-    rng_m = np.linalg.norm(pts, axis=2)
-    with np.errstate(invalid="ignore"):
-        res = (1.0 - s) * rng_m                                  # > 0: the point lies beyond the pallet's surface
-    ok = np.isfinite(res) & (np.abs(res) < window_m) & (np.arange(N)[None] < n_pts[:, None])
-    count = ok.sum(1)
+        count, shift_m, ray = _along_rays_numpy(T_cam_pallet, pts, n_pts, boxes_m, window_m)
     moved = np.flatnonzero(count >= _MIN_INLIERS)              # fewer points within the window: the pose stays
     out = T_cam_pallet.copy()
     if len(moved) == 0:
         return out
-    ok, res, count = ok[moved], res[moved], count[moved]
-    shift_m = _row_medians(np.where(ok, res, np.inf), count)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        unit = pts[moved] / rng_m[moved, :, None]
-    ray = np.where(ok[..., None], unit, 0.0).sum(1) / count[:, None]
-    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    shift_m, ray = shift_m[moved], ray[moved]
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)          # the points' mean viewing direction
     move = shift_m[:, None] * ray
     up = T_vc[2, :3]                                                                # vehicle up, camera frame
     floor = on_floor[moved]
@@ -447,3 +437,27 @@ def _along_rays(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, bo
     move[steep] = 0.0
     out[moved, :3, 3] += move
     return out
+
+
+def _along_rays_numpy(T_cam_pallet: np.ndarray, pts: np.ndarray, n_pts: np.ndarray, boxes_m: np.ndarray,
+                      window_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`kernels.along_rays` in numpy (its specification): of each pose's points, those whose depth lies within
+    `window_m` of the posed boxes' first surface along their rays: (P,) how many, (P,) the median of their residuals
+    (0 for none), (P, 3) the sum of their unit viewing directions."""
+    P, N = pts.shape[:2]
+    R_pc = np.swapaxes(T_cam_pallet[:, :3, :3], 1, 2)                               # camera -> pallet
+    origin = -(R_pc @ T_cam_pallet[:, :3, 3, None])[..., 0]                         # the camera, pallet frame
+    s = np.full((P, N), np.inf)
+    for i in range(P):
+        # one pose at a time: the (boxes, points) arrays of a pose stay in cache (16 poses at once: 3x slower)
+        p = pts[i, :n_pts[i]]
+        s[i, :n_pts[i]] = cast_rays_boxes(origin[i:i + 1], (p @ R_pc[i].T)[None], boxes_m)[0][0]   # 1: at the point
+    rng_m = np.linalg.norm(pts, axis=2)
+    with np.errstate(invalid="ignore"):
+        res = (1.0 - s) * rng_m                                  # > 0: the point lies beyond the pallet's surface
+    ok = np.isfinite(res) & (np.abs(res) < window_m) & (np.arange(N)[None] < n_pts[:, None])
+    count = ok.sum(1)
+    shift_m = np.where(count > 0, _row_medians(np.where(ok, res, np.inf), np.maximum(count, 1)), 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = pts / rng_m[..., None]
+    return count, shift_m, np.where(ok[..., None], unit, 0.0).sum(1)

@@ -173,7 +173,8 @@ class Rejection:
 
     :ivar reason: one of `REJECT_REASONS`.
     :ivar detail: a human-readable sentence (numbers included).
-    :ivar pose: the pose that was computed and then rejected (fit/confidence checks), else None.
+    :ivar pose: the pose that was computed, fit-scored and then rejected (the fit check), else None (a rejection before
+        the fit was scored: too few points, low confidence, the time budget, ...).
     """
 
     box_xyxy: np.ndarray

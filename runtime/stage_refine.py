@@ -72,6 +72,16 @@ class RefinerStage:
         """Per pallet type: whether its candidates are refined."""
         return tuple(g is not None for g in self._refine_geometry)
 
+    def icp_grids(self, type_index) -> list:
+        """Per pallet type index: the compiled ICP's `kernels.box_grid` of its boards (built at construction), or
+        None where the type is not refined or the kernels are not built."""
+        out = []
+        for j in type_index:
+            g = self._refine_geometry[int(j)]
+            usable = g is not None and kernels.available() and len(g.boxes_m) <= kernels.MAX_BOXES
+            out.append(g.icp_grid() if usable else None)
+        return out
+
     @property
     def enabled(self) -> bool:
         """Whether any pallet type is refined."""

@@ -193,7 +193,8 @@ class TypeChoiceStage:
                 if len(idx):
                     T[idx] = level_in_camera(T[idx], T_vehicle_cam, [self.geometries[j] for j in pair_type[idx]],
                                              params, [box_obs[int(i)] for i in src[idx]],
-                                             self.refiner.refine_options.threads)
+                                             self.refiner.refine_options.threads,
+                                             self.refiner.icp_grids(pair_type[idx]))
             fit = self.refiner.fit(T, cands.points_cam[src], pair_type, depth_m, K)
         agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
         other = pair_type != first

@@ -376,3 +376,29 @@ def test_the_confidence_floor_is_on_by_default(bundle_dir, frame, boxes, monkeyp
     r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:2], scores=[0.9, 0.8])
     assert [x.reason for x in r.rejected] == ["low_confidence"]
     assert [p.confidence for p in r.poses] == [pytest.approx(0.1)]
+
+
+def test_a_pose_under_the_confidence_floor_costs_no_type_choice_or_refinement(bundle_dir, frame, boxes, monkeypatch):
+    """The confidence is the network's: no later stage changes it, so it is judged first and the candidate
+    never reaches the type choice and refinement (with a calibration the most costly work of a frame)."""
+    from pallet6d.runtime.stage_pose import PoseNetworkStage
+    from pallet6d.runtime.stage_refine import RefinerStage
+
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, min_fit=0.0, structure=None)
+    post, refine = PoseNetworkStage.postprocess, RefinerStage.__call__
+    seen = []
+
+    def fixed_confidences(self, quat, trans, conf, batch):
+        T, confidence = post(self, quat, trans, conf, batch)
+        return T, np.resize([0.05, 0.1], len(confidence))
+
+    def watched(self, cands, *args, **kwargs):
+        seen.append(cands.alive.copy())
+        return refine(self, cands, *args, **kwargs)
+
+    monkeypatch.setattr(PoseNetworkStage, "postprocess", fixed_confidences)
+    monkeypatch.setattr(RefinerStage, "__call__", watched)
+    r = est.estimate_boxes(frame.rgb, frame.depth_m, frame.K, boxes_xyxy=boxes[:2], scores=[0.9, 0.8])
+    assert [s.tolist() for s in seen] == [[False, True]]
+    assert [(x.reason, x.pose) for x in r.rejected] == [("low_confidence", None)]
+    assert len(r.poses) == 1

@@ -411,6 +411,10 @@ def test_the_move_along_the_rays_is_the_same_for_every_pose_of_a_batch(compiled)
         got = _along_rays(T_moved, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor, compiled=compiled)
         want = _along_rays_one_by_one(T_moved, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor)
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+        if compiled:                                   # 12 poses: several chunks of 4 for the kernel's threads
+            many = _along_rays(np.concatenate([T_moved] * 3), np.concatenate([pts] * 3), np.tile(n_pts, 3),
+                               EPAL.boxes_m, 0.2, T_vc, np.tile(on_floor, 3), threads=3)
+            np.testing.assert_allclose(many, np.concatenate([want] * 3), rtol=0, atol=1e-12)
         assert np.allclose(got[2], T_moved[2])                         # 20 points: too few to move
         assert not np.allclose(got[0], T_moved[0])
         assert np.allclose(got[3], T_moved[3]) == on_floor[3]          # steeply from above: not moved on the floor

@@ -375,8 +375,8 @@ def test_ray_scores_in_the_kernel_equal_numpy():
 
 
 @needs_kernel
-def test_ray_hits_try_the_nearest_boxes_first_with_the_same_hits():
-    """The kernel stops at the first box that cannot be met before its nearest hit: random overlapping boxes, a
+def test_the_rays_try_the_nearest_boxes_first_with_the_same_hits():
+    """The kernels stop at the first box that cannot be met before their nearest hit: random overlapping boxes, a
     camera inside one of them, rays that miss, the same hits as trying every box (numpy)."""
     from pallet6d.runtime.structure import cast_rays_boxes
 
@@ -385,17 +385,17 @@ def test_ray_hits_try_the_nearest_boxes_first_with_the_same_hits():
     boxes = np.stack([lo, lo + rng.uniform(0.01, 0.6, (40, 3))], axis=1)
     inside = boxes[0].mean(0)
     for origin in (np.array([0.0, 0.0, -4.0]), inside):                     # the camera outside, then inside a box
-        T = make_T(np.eye(3), -origin)[None]                                 # pallet -> camera: the camera at origin
-        pts = rng.uniform(-2.0, 2.0, (1, 500, 3)) - origin
-        hits = kernels.ray_hits(T, pts, np.array([500]), boxes)
-        s, _ = cast_rays_boxes(origin[None], pts, boxes)
+        dirs = rng.uniform(-2.0, 2.0, (1, 500, 3)) - origin                  # s = 1 at these points
+        hits, _ = kernels.cast_rays(origin[None], dirs, boxes, np.array([0]), np.array([40]))
+        s, _ = cast_rays_boxes(origin[None], dirs, boxes)
         np.testing.assert_allclose(hits, s, rtol=1e-12, atol=0)
         if origin is inside:
             assert np.all(hits == 0.0)                                       # every ray starts in a box
         else:
             assert np.isinf(hits).any() and np.isfinite(hits).any() and (hits > 0).all()
     with pytest.raises(ValueError, match="at most"):
-        kernels.ray_hits(T, pts, np.array([500]), np.zeros((kernels.MAX_BOXES + 1, 2, 3)))
+        kernels.along_rays(make_T(np.eye(3), [0.0, 0.0, 4.0])[None], np.ones((1, 5, 3)), np.array([5]),
+                           np.zeros((kernels.MAX_BOXES + 1, 2, 3)), 0.1)
 
 
 def test_the_soft_ray_score_peaks_at_the_true_pose_where_the_plain_one_is_flat():
@@ -435,11 +435,11 @@ def test_a_kernel_built_from_another_version_is_refused(monkeypatch, caplog):
 
 
 @needs_kernel
-def test_ray_hits_and_the_move_along_the_rays_in_the_kernel_equal_numpy():
-    """The viewing rays' first hits (`kernels.ray_hits`) and the levelled refinement's move along the rays built
-    on them, compiled and in numpy: the same up to rounding, padding rows left unhit."""
-    from pallet6d.runtime.level import _along_rays
-    from pallet6d.runtime.structure import cast_rays_boxes
+def test_the_move_along_the_rays_in_the_kernel_equals_numpy():
+    """The points within the window along their viewing rays (`kernels.along_rays`: how many, their median residual,
+    their summed directions) and the levelled refinement's move built on them, compiled and in numpy: the same up
+    to rounding; the rows past each pose's count are left out."""
+    from pallet6d.runtime.level import _along_rays, _along_rays_numpy
 
     rng = np.random.default_rng(4)
     T_true = make_T(quat_to_rot([0.5, -0.5, 0.5, -0.5]), [0.1, 0.2, 3.0])
@@ -449,19 +449,23 @@ def test_ray_hits_and_the_move_along_the_rays_in_the_kernel_equal_numpy():
     n_pts = np.array([450, 400, 120])
     pts[0] = np.concatenate([surface, rng.uniform([-1, -1, 2], [1, 1, 4], (50, 3))])
     pts[1, :400] = surface + rng.normal(0.0, 0.02, surface.shape)
-    pts[2, :120] = surface[:120]
-    hits = kernels.ray_hits(T, pts, n_pts, EPAL.boxes_m)
-    for i in range(3):
-        R_pc = T[i, :3, :3].T
-        s, _ = cast_rays_boxes((-R_pc @ T[i, :3, 3])[None], (pts[i, :n_pts[i]] @ R_pc.T)[None], EPAL.boxes_m)
-        np.testing.assert_allclose(hits[i, :n_pts[i]], s[0], rtol=1e-12, atol=0)
-        assert np.all(np.isinf(hits[i, n_pts[i]:]))
+    pts[2, :400] = surface                                          # past its count of 120: must not count
+    count, shift_m, ray = kernels.along_rays(T, pts, n_pts, EPAL.boxes_m, 0.2, threads=2)
+    want = _along_rays_numpy(T, pts, n_pts, EPAL.boxes_m, 0.2)
+    np.testing.assert_array_equal(count, want[0])
+    np.testing.assert_allclose(shift_m, want[1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ray, want[2], rtol=1e-12, atol=1e-12)
+    assert count[0] < 450 and count[2] == 0           # the far points, and a pose 30 cm off, are outside the window
+    seen = kernels.along_rays(T_true[None], pts[2:3], n_pts[2:], EPAL.boxes_m, 0.2)[0]
+    assert 0 < seen[0] <= 120                                                     # the rows past the count are not
     T_vc = make_T(np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float), [0.0, 0.0, 0.5])
     for on_floor in (np.zeros(3, bool), np.array([True, False, True])):
         kernel = _along_rays(T, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor)
         numpy = _along_rays(T, pts, n_pts, EPAL.boxes_m, 0.2, T_vc, on_floor, compiled=False)
         np.testing.assert_allclose(kernel, numpy, rtol=0, atol=1e-12)
     assert not np.allclose(kernel[1], T[1])                                       # the noisy pose did move
+    none = kernels.along_rays(T, pts, np.zeros(3, np.int64), EPAL.boxes_m, 0.2)
+    assert none[0].tolist() == [0, 0, 0] and none[1].tolist() == [0.0] * 3 and not none[2].any()
 
 
 @needs_kernel
