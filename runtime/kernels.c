@@ -659,15 +659,50 @@ static double first_hit_along(const double o[3], const double d[3], const double
     return s;
 }
 
-/* `first_hit` for a caller that needs the point's residual (1 - s) * |p| only where it lies within window_m of the
-   surface, and otherwise only whether it lies beyond it (residual >= window_m; rng = |p|): the search ends at the
-   first hit found that puts the point beyond the window (any earlier hit would put it further beyond), and looks
-   for hits only up to s_max = 1 + window_m / |p| and a little (a first hit past that leaves the point in front of
-   the surface by more than the window, or no hit at all: INFINITY, which counts as neither). The callers classify
-   every point as they would with `first_hit`'s s. */
-static double first_hit_window(const double R_pc[9], const double o[3], const double *p, double rng, double window_m,
-                               const double blo[3], const double bhi[3], const double *boxes, int64_t k,
-                               const int64_t *order, const double *dist) {
+/* One pose's boxes as its rays meet them: the camera o (pallet frame) taken off every corner, the boxes in
+   `order_boxes`' order (nearest first, dist[j] each), and their bounding box's corners the same way. The slab tests
+   then read (corner - o) ready made: the same doubles as computing them per ray. */
+struct posed_boxes {
+    double rel[MAX_BOXES][6], dist[MAX_BOXES], blo[3], bhi[3];
+    int64_t k;
+};
+
+static void pose_boxes(const double o[3], const double *boxes, int64_t k, const double blo[3], const double bhi[3],
+                       struct posed_boxes *pb) {
+    int64_t order[MAX_BOXES];
+    order_boxes(o, boxes, k, order, pb->dist);
+    for (int64_t j = 0; j < k; j++)
+        for (int r = 0; r < 6; r++) pb->rel[j][r] = boxes[6 * order[j] + r] - o[r % 3];
+    for (int r = 0; r < 3; r++) {
+        pb->blo[r] = blo[r] - o[r];
+        pb->bhi[r] = bhi[r] - o[r];
+    }
+    pb->k = k;
+}
+
+/* `ray_box` on corners relative to the ray's origin. */
+static inline int ray_box_rel(const double inv[3], const double rlo[3], const double rhi[3], double *entry) {
+    double near = -INFINITY, far = INFINITY;
+    for (int r = 0; r < 3; r++) {
+        const double t1 = rlo[r] * inv[r], t2 = rhi[r] * inv[r];
+        const double a = t1 < t2 ? t1 : t2, z = t1 < t2 ? t2 : t1;
+        near = a > near ? a : near;
+        far = z < far ? z : far;
+    }
+    *entry = near > 0 ? near : 0.0;
+    return near <= far && far > 0;
+}
+
+/* The first s at which the ray from the camera through the camera-frame point p (s = 1 at p; R_pc: camera ->
+   pallet) meets the posed boxes, for a caller that needs the point's residual (1 - s) * |p| only where it lies
+   within window_m of the surface, and otherwise only whether it lies beyond it (residual >= window_m; rng = |p|):
+   the search ends at the first hit found that puts the point beyond the window (any earlier hit would put it further
+   beyond), and looks for hits only up to s_max = 1 + window_m / |p| and a little (a first hit past that leaves the
+   point in front of the surface by more than the window, or no hit at all: INFINITY, which counts as neither). The
+   boxes are tried nearest first until none can be met earlier. The callers classify every point as they would with
+   the first hit of all. */
+static double first_hit_window(const double R_pc[9], const double *p, double rng, double window_m,
+                               const struct posed_boxes *pb) {
     double d[3], inv[3], e, entry, d2 = 0.0;
     for (int r = 0; r < 3; r++) {
         d[r] = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
@@ -676,16 +711,14 @@ static double first_hit_window(const double R_pc[9], const double o[3], const do
     }
     const double margin = window_m / rng * (1.0 + 1e-9);        /* 1e-9: well above the residual's rounding */
     const double s_max = 1.0 + margin, s_beyond = 1.0 - margin;
-    if (!ray_box(o, inv, blo, bhi, &entry) || entry >= s_max) return INFINITY;
-    const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;
+    if (!ray_box_rel(inv, pb->blo, pb->bhi, &entry) || entry >= s_max) return INFINITY;
+    const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;   /* distance per unit of s, rounded up */
     double s = s_max;
-    for (int64_t j = 0; j < k && dist[j] <= s * reach; j++) {
-        const int64_t b = order[j];
-        if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) {
+    for (int64_t j = 0; j < pb->k && pb->dist[j] <= s * reach; j++)
+        if (ray_box_rel(inv, pb->rel[j], pb->rel[j] + 3, &e) && e < s) {
             s = e;
             if (s <= s_beyond) return s;
         }
-    }
     return s < s_max ? s : INFINITY;
 }
 
@@ -716,17 +749,17 @@ static void *along_rays_worker(void *arg) {
     for (int64_t i0 = atomic_fetch_add(&job->next, job->chunk); i0 < job->P;
          i0 = atomic_fetch_add(&job->next, job->chunk))
         for (int64_t i = i0; i < i0 + job->chunk && i < job->P; i++) {
-            double R_pc[9], o[3], dist[MAX_BOXES], ray[3] = {0.0, 0.0, 0.0};
-            int64_t order[MAX_BOXES], c = 0;
+            double R_pc[9], o[3], ray[3] = {0.0, 0.0, 0.0};
+            struct posed_boxes pb;
+            int64_t c = 0;
             double *res = job->scratch + i * job->N;
             camera_in_pallet(job->T + 16 * i, R_pc, o);
-            order_boxes(o, job->boxes, job->k, order, dist);
+            pose_boxes(o, job->boxes, job->k, job->blo, job->bhi, &pb);
             const int64_t n = job->n_pts[i] < job->N ? job->n_pts[i] : job->N;
             for (int64_t j = 0; j < n; j++) {
                 const double *p = job->pts + 3 * (i * job->N + j);
                 const double rng = sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
-                const double s = first_hit_window(R_pc, o, p, rng, job->window_m, job->blo, job->bhi, job->boxes,
-                                                  job->k, order, dist);
+                const double s = first_hit_window(R_pc, p, rng, job->window_m, &pb);
                 if (!isfinite(s)) continue;
                 const double r = (1.0 - s) * rng;
                 if (!(fabs(r) < job->window_m)) continue;
@@ -808,17 +841,16 @@ static void *ray_score_worker(void *arg) {
     for (int64_t i0 = atomic_fetch_add(&job->next, job->chunk); i0 < job->P;
          i0 = atomic_fetch_add(&job->next, job->chunk))
         for (int64_t i = i0; i < i0 + job->chunk && i < job->P; i++) {
-            double R_pc[9], o[3], dist[MAX_BOXES];
-            int64_t order[MAX_BOXES];
+            double R_pc[9], o[3];
+            struct posed_boxes pb;
             camera_in_pallet(job->T + 16 * i, R_pc, o);
-            order_boxes(o, job->boxes, job->k, order, dist);
+            pose_boxes(o, job->boxes, job->k, job->blo, job->bhi, &pb);
             double inl = 0.0;
             int64_t beyond = 0;
             for (int64_t j = 0; j < job->m; j++) {
                 const double *p = job->pts + 3 * j;
                 const double rng = sqrt(p[0] * p[0] + p[1] * p[1] + p[2] * p[2]);
-                const double s = first_hit_window(R_pc, o, p, rng, job->window_m, job->blo, job->bhi, job->boxes,
-                                                  job->k, order, dist);
+                const double s = first_hit_window(R_pc, p, rng, job->window_m, &pb);
                 if (!isfinite(s)) continue;
                 const double res = (1.0 - s) * rng;
                 if (fabs(res) < job->window_m) {
