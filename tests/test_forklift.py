@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 
 from forklift_fixtures import EPAL, K, camera, pallet_pose, render
+from pallet6d.runtime import kernels
 from pallet6d.runtime.forklift import ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info, vehicle_pose
 from pallet6d.runtime.geometry import invert_T
 from pallet6d.runtime.level import LevelParams
@@ -283,6 +284,11 @@ def test_level_poses_refines_a_frames_poses_together_as_one_by_one():
         one = level_poses(T_cp[i:i + 1], T_vc, [EPAL.size_m[2]], LevelParams(), [EPAL.boxes_m], depth, K,
                           boxes[i:i + 1])
         np.testing.assert_allclose(both[i], one[0], atol=1e-9)
+    if kernels.available():                    # the ICP on the boxes' grid: fewer boxes per point, the same poses
+        grid = kernels.box_grid(EPAL.boxes_m)
+        gridded = level_poses(T_cp, T_vc, [EPAL.size_m[2]] * 2, LevelParams(), [EPAL.boxes_m] * 2, depth, K, boxes,
+                              grids=[grid, grid])
+        np.testing.assert_array_equal(gridded, both)
     assert both[0, 2, 3] == pytest.approx(EPAL.size_m[2] / 2)                     # the floor one is set on it
     assert abs(both[1, 2, 3] - on_rack[2, 3]) < 0.02                              # the rack one keeps its height
     np.testing.assert_allclose(both[:, 2, 2], 1.0, atol=1e-12)
