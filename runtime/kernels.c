@@ -577,20 +577,6 @@ int pallet6d_registration_counts(const float *pad, int64_t pad_h, int64_t pad_w,
 
 /* ---- ray scores of posed pallets ---------------------------------------------------------------------------- */
 
-/* Slab test of the ray o + s d (inv = 1 / d per axis) against the box lo..hi: 1 when it meets it at some s > 0,
-   with *entry the first such s (0 when o is inside). */
-static int ray_box(const double o[3], const double inv[3], const double lo[3], const double hi[3], double *entry) {
-    double near = -INFINITY, far = INFINITY;
-    for (int r = 0; r < 3; r++) {
-        const double t1 = (lo[r] - o[r]) * inv[r], t2 = (hi[r] - o[r]) * inv[r];
-        const double a = t1 < t2 ? t1 : t2, z = t1 < t2 ? t2 : t1;
-        near = a > near ? a : near;
-        far = z < far ? z : far;
-    }
-    *entry = near > 0 ? near : 0.0;
-    return near <= far && far > 0;
-}
-
 /* The boxes' bounding box: blo, bhi (3,) from (k, 2, 3) min / max corners. */
 static void boxes_bounds(const double *boxes, int64_t k, double blo[3], double bhi[3]) {
     for (int r = 0; r < 3; r++) {
@@ -635,30 +621,6 @@ static void order_boxes(const double o[3], const double *boxes, int64_t k, int64
     }
 }
 
-/* The first s > 0 at which the ray o + s d meets one of the k boxes, INFINITY when none; *entry: where it enters
-   their bounding box blo..bhi (0 when o is inside), INFINITY when it misses it (then it misses every box). The boxes
-   are tried in `order_boxes`' order until none can be met earlier (a small margin keeps rounding from skipping a
-   box): the same s as trying all of them. */
-static double first_hit_along(const double o[3], const double d[3], const double blo[3], const double bhi[3],
-                              const double *boxes, int64_t k, const int64_t *order, const double *dist,
-                              double *entry) {
-    double inv[3], s = INFINITY, e, d2 = 0.0;
-    for (int r = 0; r < 3; r++) {
-        inv[r] = fabs(d[r]) > 1e-12 ? 1.0 / d[r] : 1e12;
-        d2 += d[r] * d[r];
-    }
-    if (!ray_box(o, inv, blo, bhi, entry)) {
-        *entry = INFINITY;
-        return INFINITY;
-    }
-    const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;   /* distance per unit of s, rounded up */
-    for (int64_t j = 0; j < k && dist[j] <= s * reach; j++) {
-        const int64_t b = order[j];
-        if (ray_box(o, inv, boxes + 6 * b, boxes + 6 * b + 3, &e) && e < s) s = e;
-    }
-    return s;
-}
-
 /* One pose's boxes as its rays meet them: the camera o (pallet frame) taken off every corner, the boxes in
    `order_boxes`' order (nearest first, dist[j] each), and their bounding box's corners the same way. The slab tests
    then read (corner - o) ready made: the same doubles as computing them per ray. */
@@ -680,8 +642,10 @@ static void pose_boxes(const double o[3], const double *boxes, int64_t k, const 
     pb->k = k;
 }
 
-/* `ray_box` on corners relative to the ray's origin. */
-static inline int ray_box_rel(const double inv[3], const double rlo[3], const double rhi[3], double *entry) {
+/* Slab test of the ray from the origin along d (inv = 1 / d per axis) against the box whose corners, taken relative
+   to the ray's origin, are rlo..rhi: 1 when it meets it at some s > 0, with *entry the first such s (0 when the
+   origin is inside). */
+static inline int ray_box(const double inv[3], const double rlo[3], const double rhi[3], double *entry) {
     double near = -INFINITY, far = INFINITY;
     for (int r = 0; r < 3; r++) {
         const double t1 = rlo[r] * inv[r], t2 = rhi[r] * inv[r];
@@ -693,33 +657,46 @@ static inline int ray_box_rel(const double inv[3], const double rlo[3], const do
     return near <= far && far > 0;
 }
 
-/* The first s at which the ray from the camera through the camera-frame point p (s = 1 at p; R_pc: camera ->
-   pallet) meets the posed boxes, for a caller that needs the point's residual (1 - s) * |p| only where it lies
-   within window_m of the surface, and otherwise only whether it lies beyond it (residual >= window_m; rng = |p|):
-   the search ends at the first hit found that puts the point beyond the window (any earlier hit would put it further
-   beyond), and looks for hits only up to s_max = 1 + window_m / |p| and a little (a first hit past that leaves the
-   point in front of the surface by more than the window, or no hit at all: INFINITY, which counts as neither). The
-   boxes are tried nearest first until none can be met earlier. The callers classify every point as they would with
-   the first hit of all. */
-static double first_hit_window(const double R_pc[9], const double *p, double rng, double window_m,
-                               const struct posed_boxes *pb) {
-    double d[3], inv[3], e, entry, d2 = 0.0;
+/* The first s > 0 at which the ray from the pose's camera along d meets one of its boxes, looking only below s_max
+   (INFINITY: everywhere) and ending at the first hit found at s <= s_beyond (-INFINITY: never); INFINITY when
+   there is none. *entry: where the ray enters the boxes' bounding box (0 when it starts inside), INFINITY when it
+   misses it (then it misses every box). The boxes are tried nearest first until none can be met earlier (a small
+   margin keeps rounding from skipping a box): the same s as trying all of them. */
+static double first_hit(const double d[3], const struct posed_boxes *pb, double s_max, double s_beyond,
+                        double *entry) {
+    double inv[3], e, d2 = 0.0;
     for (int r = 0; r < 3; r++) {
-        d[r] = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
         inv[r] = fabs(d[r]) > 1e-12 ? 1.0 / d[r] : 1e12;
         d2 += d[r] * d[r];
     }
-    const double margin = window_m / rng * (1.0 + 1e-9);        /* 1e-9: well above the residual's rounding */
-    const double s_max = 1.0 + margin, s_beyond = 1.0 - margin;
-    if (!ray_box_rel(inv, pb->blo, pb->bhi, &entry) || entry >= s_max) return INFINITY;
+    if (!ray_box(inv, pb->blo, pb->bhi, entry)) {
+        *entry = INFINITY;
+        return INFINITY;
+    }
+    if (*entry >= s_max) return INFINITY;
     const double reach = sqrt(d2) * (1.0 + 1e-9) + 1e-12;   /* distance per unit of s, rounded up */
     double s = s_max;
     for (int64_t j = 0; j < pb->k && pb->dist[j] <= s * reach; j++)
-        if (ray_box_rel(inv, pb->rel[j], pb->rel[j] + 3, &e) && e < s) {
+        if (ray_box(inv, pb->rel[j], pb->rel[j] + 3, &e) && e < s) {
             s = e;
             if (s <= s_beyond) return s;
         }
     return s < s_max ? s : INFINITY;
+}
+
+/* `first_hit` of the ray from the camera through the camera-frame point p (s = 1 at p; R_pc: camera -> pallet), for a
+   caller that needs the point's residual (1 - s) * |p| only where it lies within window_m of the surface, and
+   otherwise only whether it lies beyond it (residual >= window_m; rng = |p|): the search ends at the first hit found
+   that puts the point beyond the window (any earlier hit would put it further beyond), and looks for hits only up
+   to s_max = 1 + window_m / |p| and a little (a first hit past that leaves the point in front of the surface by more
+   than the window, or no hit at all: INFINITY, which counts as neither). The callers classify every point as they
+   would with the first hit of all. */
+static double first_hit_window(const double R_pc[9], const double *p, double rng, double window_m,
+                               const struct posed_boxes *pb) {
+    double d[3], entry;
+    for (int r = 0; r < 3; r++) d[r] = R_pc[3 * r] * p[0] + R_pc[3 * r + 1] * p[1] + R_pc[3 * r + 2] * p[2];
+    const double margin = window_m / rng * (1.0 + 1e-9);        /* 1e-9: well above the residual's rounding */
+    return first_hit(d, pb, 1.0 + margin, 1.0 - margin, &entry);
 }
 
 /* What level._along_rays needs of P poses' points (its numpy path is the specification): each point's viewing ray
@@ -802,17 +779,14 @@ int pallet6d_cast_rays(int64_t P, int64_t R, const double *origin, const double 
                        const int64_t *box_count, const double *boxes, double *t_box, double *t_bbox) {
     for (int64_t i = 0; i < P; i++)
         if (box_count[i] < 1 || box_count[i] > MAX_BOXES) return 1;
-    double dist[MAX_BOXES];
-    int64_t order[MAX_BOXES];
+    struct posed_boxes pb;
     for (int64_t i = 0; i < P; i++) {
-        const double *b = boxes + 6 * box_start[i], *o = origin + 3 * i;
-        const int64_t k = box_count[i];
+        const double *b = boxes + 6 * box_start[i];
         double blo[3], bhi[3];
-        boxes_bounds(b, k, blo, bhi);
-        order_boxes(o, b, k, order, dist);
+        boxes_bounds(b, box_count[i], blo, bhi);
+        pose_boxes(origin + 3 * i, b, box_count[i], blo, bhi, &pb);
         for (int64_t j = 0; j < R; j++)
-            t_box[i * R + j] = first_hit_along(o, dirs + 3 * (i * R + j), blo, bhi, b, k, order, dist,
-                                               &t_bbox[i * R + j]);
+            t_box[i * R + j] = first_hit(dirs + 3 * (i * R + j), &pb, INFINITY, -INFINITY, &t_bbox[i * R + j]);
     }
     return 0;
 }
