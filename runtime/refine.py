@@ -500,10 +500,12 @@ class RefineGeometry:
         """The boxes when they hold every model point (see `fit_scores`), else None."""
         return self.boxes_m if self.points_on_boxes else None
 
-    def icp_grid(self) -> kernels.BoxGrid:
-        """The compiled kernels's `kernels.box_grid` of the boxes, built on first use (tens of ms)."""
+    def icp_grid(self) -> kernels.BoxGrid | None:
+        """The compiled kernels's `kernels.box_grid` of the boxes, built on first use (tens of ms); None where the
+        kernel cannot take them (not built, or more than `kernels.MAX_BOXES` boxes)."""
         if "icp_grid" not in self._indexes:
-            self._indexes["icp_grid"] = kernels.box_grid(self.boxes_m)
+            usable = len(self.boxes_m) <= kernels.MAX_BOXES and kernels.available()
+            self._indexes["icp_grid"] = kernels.box_grid(self.boxes_m) if usable else None
         return self._indexes["icp_grid"]
 
     def point_index(self, tol_m: float) -> ModelPointIndex:
@@ -650,9 +652,7 @@ def _refine_group(T_net: np.ndarray, obs: np.ndarray, box_obs: list[np.ndarray],
     """`refine_batch` for detections of one geometry; writes rows `sel` of the output arrays."""
     g = len(T_net)
     pts, n_pts = _padded(box_obs)
-    # the kernel's box grid, only where the kernel runs (numpy never reads it)
-    use_grid = o.compiled and len(geom.boxes_m) <= kernels.MAX_BOXES and kernels.available()
-    grid = geom.icp_grid() if use_grid else None
+    grid = geom.icp_grid() if o.compiled else None          # the kernel's box grid (numpy never reads it)
     base = _icp(T_net, pts, n_pts, geom.boxes_m, o.iterations, *_ICP_DEFAULTS, None, 0.0, o.compiled, o.threads,
                 grid)
     T = T_net.copy()

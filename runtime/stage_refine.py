@@ -64,7 +64,7 @@ class RefinerStage:
                         "refinement runs in numpy, several times slower")
         elif on:
             for g in self._refine_geometry:         # the kernel's box grids now, not on the first frame
-                if g is not None and len(g.boxes_m) <= kernels.MAX_BOXES:
+                if g is not None:
                     g.icp_grid()
 
     @property
@@ -74,13 +74,9 @@ class RefinerStage:
 
     def icp_grids(self, type_index) -> list:
         """Per pallet type index: the compiled ICP's `kernels.box_grid` of its boards (built at construction), or
-        None where the type is not refined or the kernels are not built."""
-        out = []
-        for j in type_index:
-            g = self._refine_geometry[int(j)]
-            usable = g is not None and kernels.available() and len(g.boxes_m) <= kernels.MAX_BOXES
-            out.append(g.icp_grid() if usable else None)
-        return out
+        None where the type is not refined or the kernel cannot take its boxes."""
+        geoms = [self._refine_geometry[int(j)] for j in type_index]
+        return [None if g is None else g.icp_grid() for g in geoms]
 
     @property
     def enabled(self) -> bool:
