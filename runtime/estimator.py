@@ -527,9 +527,15 @@ class PalletEstimator:
             self.pose_network(rgb, depth_m, K, cands, timings, deadline)
             # the fit check refuses these whatever their type and refinement: not worth either (with a calibration
             # every type of a candidate is levelled, the most costly work of the frame)
-            low = np.flatnonzero(cands.alive & (cands.confidence < self.options.min_confidence))
-            cands.reject(low, "low_confidence",
-                         [f"confidence {c:.3f} < {self.options.min_confidence}" for c in cands.confidence[low]])
+            floor = np.full(len(cands), self.options.min_confidence)
+            if weak is not None and T_vehicle_cam is not None:
+                # the pose of a box the detector is sure of but the network is not is weak (a weak box's or a depth
+                # proposal's, unsure twice, is not posed)
+                floor[~weak] = min(self.options.min_confidence, self.options.weak_boxes.min_confidence)
+                weak |= cands.confidence < self.options.min_confidence
+            low = np.flatnonzero(cands.alive & (cands.confidence < floor))
+            cands.reject(low, "low_confidence", [f"confidence {c:.3f} < {f}" for c, f in
+                                                 zip(cands.confidence[low], floor[low])])
             self.type_choice(cands, depth_m, K, timings, deadline, T_vehicle_cam)
             self.refiner(cands, depth_m, K, timings, deadline)
             up_cam = None

@@ -104,7 +104,7 @@ class FitCheckStage:
         unjudged = np.array([i for i in rows if weak[i] and self.geometries[int(cands.type_index[i])].boxes_m is None],
                             dtype=np.int64)
         cands.reject(unjudged, "no_pallet_structure",
-                     [_weak_detail(cands.scores[i], "its type has no boards to judge") for i in unjudged])
+                     [self._weak_detail(cands, i, "its type has no boards to judge") for i in unjudged])
         scores_all = []
         for j, geom in enumerate(self.geometries):
             mine = rows[cands.type_index[rows] == j]
@@ -121,13 +121,21 @@ class FitCheckStage:
                                     self.weak)
             short = [(mine[k], w) for k, w in zip(judged, why) if w]
             cands.reject(np.array([i for i, _ in short], dtype=np.int64), "no_pallet_structure",
-                         [_weak_detail(cands.scores[i], w) for i, w in short])
+                         [self._weak_detail(cands, i, w) for i, w in short])
         rule = frame_size_rule(scores_all, p)
         if rule:
             n_size = sum(sc.reason == "size_mismatch" for sc in scores_all)
             cands.reject(rows[cands.alive[rows]], "size_mismatch",
                          f"size_mismatch: {n_size} of the frame's {len(rows)} candidates have no pallet's metric "
                          f"size at the depth ({rule}): depth scale or focal length off?")
+
+    def _weak_detail(self, cands: Candidates, i: int, why: str) -> str:
+        score, conf = cands.scores[i], cands.confidence[i]
+        if conf < self.min_confidence:
+            what = f"a pose of network confidence {conf:.2f}"
+        else:
+            what = "a depth proposal" if score == 0.0 else f"a weak detection (score {score:.2f})"   # depth_proposals.py
+        return f"no_pallet_structure: {what} is kept only with clear structure: {why}"
 
     def score(self, T_cam_pallet: np.ndarray, obs_cam: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray,
               K: np.ndarray) -> np.ndarray:
@@ -152,9 +160,12 @@ class FitCheckStage:
         cands.assign(todo, fit=self.score(cands.T_cam_pallet[todo], cands.points_cam[todo], cands.type_index[todo],
                                           depth_m, K))
         conf, fit = cands.confidence[rows], cands.fit[rows]
-        low = conf < self.min_confidence
+        floor = np.full(len(rows), self.min_confidence)
+        if weak is not None:
+            floor[weak[rows]] = min(self.min_confidence, self.weak.min_confidence)
+        low = conf < floor
         poor = ~low & (fit[:, 2] < self.min_fit)
-        cands.reject(rows[low], "low_confidence", [f"confidence {c:.3f} < {self.min_confidence}" for c in conf[low]])
+        cands.reject(rows[low], "low_confidence", [f"confidence {c:.3f} < {f}" for c, f in zip(conf[low], floor[low])])
         cands.reject(rows[poor], "poor_fit", [f"fit {s:.3f} < {self.min_fit} (inliers {i:.2f}, free-space violation "
                                               f"{v:.2f})" for i, v, s in fit[poor]])
         rest = rows[~low & ~poor]
@@ -163,7 +174,7 @@ class FitCheckStage:
         elif weak is not None:
             unjudged = rest[weak[rest]]
             cands.reject(unjudged, "no_pallet_structure",
-                         [_weak_detail(s, "the structure check is off") for s in cands.scores[unjudged]])
+                         [self._weak_detail(cands, i, "the structure check is off") for i in unjudged])
         timings["fit"] = elapsed_ms(t)
 
 
@@ -173,9 +184,6 @@ def _rejection_reason(structure_reason: str) -> str:
     return structure_reason if structure_reason in ("size_mismatch", "depth_image_mismatch") else "no_pallet_structure"
 
 
-def _weak_detail(score: float, why: str) -> str:
-    what = "a depth proposal" if score == 0.0 else f"a weak detection (score {score:.2f})"   # depth_proposals.py
-    return f"no_pallet_structure: {what} is kept only with clear structure: {why}"
 
 
 def _structure_detail(s) -> str:

@@ -162,8 +162,8 @@ def test_a_weak_box_inside_a_stronger_one_is_not_posed(forklift_frame):
 
 def test_weak_boxes_the_network_is_unsure_of_go_no_further(forklift_frame, monkeypatch):
     f, boxes = forklift_frame
-    est = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(min_agreement=0, min_open_fraction=0),
-                     min_confidence=1.0)
+    est = _estimator(boxes, np.full(len(boxes), 0.15),
+                     weak_boxes=WeakBoxes(min_agreement=0, min_open_fraction=0, min_confidence=1.0), min_confidence=1.0)
     refined = []
     real = est.refiner.__class__.__call__
 
@@ -182,3 +182,26 @@ def test_a_box_at_the_threshold_itself_is_weak_as_the_decoding_says(forklift_fra
     est = _estimator(boxes, np.full(len(boxes), 0.25))
     assert len(est.detect(f.rgb)) == 0                           # the decoding keeps scores above its threshold
     assert est.estimate(f.rgb, f.depth_m, f.K).rejected == []
+
+
+def test_poses_the_network_is_unsure_of_are_weak_with_a_calibration(forklift_frame):
+    f, boxes = forklift_frame
+    T_vc = f.T_vehicle_cam
+    ref = _estimator(boxes, np.full(len(boxes), 0.6)).estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    assert ref.poses
+    # every pose under `min_confidence` but above the weak floor: judged as before when weak poses need nothing more
+    lax = _estimator(boxes, np.full(len(boxes), 0.6), min_confidence=1.0,
+                     weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0, min_confidence=0.0))
+    assert _outcome(lax.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)) == _outcome(ref)
+    # ...and refused, saying why, where they must show more than any pose does
+    strict = _estimator(boxes, np.full(len(boxes), 0.6), min_confidence=1.0,
+                        weak_boxes=WeakBoxes(min_agreement=1.0, min_open_fraction=1.0, min_confidence=0.0))
+    res = strict.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    unsure = [r for r in res.rejected if "a pose of network confidence" in r.detail]
+    accepted = {tuple(p.box_xyxy.round(3)) for p in ref.poses}
+    assert {tuple(p.box_xyxy.round(3)) for p in res.poses} <= accepted      # a flawless pose passes even so
+    assert unsure and len(res.poses) + len(unsure) == len(accepted)
+    assert all(r.reason == "no_pallet_structure" and r.pose is not None for r in unsure)
+    # without a calibration the confidence floor is `min_confidence` itself
+    plain = strict.estimate(f.rgb, f.depth_m, f.K)
+    assert plain.poses == [] and {r.reason for r in plain.rejected} == {"low_confidence"}
