@@ -95,15 +95,16 @@ def _nested_options() -> dict:
     """The options given as a dict of a dataclass's fields in the JSON overrides: option name -> (that dataclass,
     what it is called in an error)."""
     from pallet6d.runtime.depth_proposals import DepthProposals
+    from pallet6d.runtime.level import LevelParams
     from pallet6d.runtime.structure import StructureParams
     from pallet6d.runtime.weak_boxes import WeakBoxes
     return {"structure": (StructureParams, "structure check"), "weak_boxes": (WeakBoxes, "weak box"),
-            "depth_proposals": (DepthProposals, "depth proposal")}
+            "depth_proposals": (DepthProposals, "depth proposal"), "level": (LevelParams, "levelling")}
 
 
 def estimator_options(overrides: dict) -> dict:
-    """`EstimatorOptions` keyword arguments from JSON overrides ("structure", "weak_boxes", "depth_proposals": a
-    dict of `StructureParams`, `WeakBoxes`, `DepthProposals` fields).
+    """`EstimatorOptions` keyword arguments from JSON overrides ("structure", "weak_boxes", "depth_proposals",
+    "level": a dict of `StructureParams`, `WeakBoxes`, `DepthProposals`, `LevelParams` fields).
     :raises ValueError: an unknown option or field, or a value the options refuse."""
     from dataclasses import fields
 

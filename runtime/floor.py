@@ -66,7 +66,8 @@ def _plane_from_points(pts: np.ndarray) -> tuple[np.ndarray, float]:
 def refine_floor(expected: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_tilt_deg: float = 2.0,
                  max_height_diff_m: float = 0.05, min_points: int = 300, max_points: int = 6000,
                  max_range_m: float = SEARCH_RANGE_M,
-                 tols_m: tuple = (0.06, 0.06, 0.06, 0.03, 0.015, 0.01)) -> FloorPlane | None:
+                 tols_m: tuple = (0.06, 0.06, 0.06, 0.03, 0.015, 0.01),
+                 min_spread_m: float = 0.5) -> FloorPlane | None:
     """The floor of this frame near the `expected` one (the calibration's), or None where the depth does not show it
     clearly: least-squares fits on the lower image's points (`floor_points` on a pixel grid of about `max_points`,
     up to `max_range_m`) within `tols_m` of the plane so far, starting from `expected`: three rounds at 6 cm walk a
@@ -75,7 +76,10 @@ def refine_floor(expected: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_t
     the fit. No search: a calibration holds the floor within a degree or two and a few centimetres, where no deck (a
     pallet's height above it) is confused with it. None when a round keeps fewer than `min_points` points, the
     result is tilted more than `max_tilt_deg` or its height differs by more than `max_height_diff_m` from `expected`,
-    or more than `MAX_BELOW` of the points lie `BELOW_M` below it.
+    or more than `MAX_BELOW` of the points lie `BELOW_M` below it, or where the fitted points spread less than
+    `min_spread_m` (standard deviation) along one of the plane's directions: a patch of floor seen between pallets and
+    forks, or a strip, leaves the tilt across it to the depth's noise (on stereo depth such fits were off by 0.3-0.8
+    degrees where the others were within 0.12).
 
     :param depth_m: (H, W) metres, 0 or NaN = no data. :param K: (3, 3).
     """
@@ -95,6 +99,9 @@ def refine_floor(expected: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_t
     if d <= 0 or plane_angle_deg(n, expected.normal) > max_tilt_deg or abs(d - expected.d) > max_height_diff_m:
         return None
     if np.mean(pts @ n + d < -BELOW_M) > MAX_BELOW:
+        return None
+    spread = np.sqrt(np.linalg.eigvalsh(np.cov(pts[near].T))[1])          # the narrower in-plane direction
+    if spread < min_spread_m:
         return None
     return FloorPlane(normal=n, d=d, inlier_ratio=float(near.mean()),
                       rms_m=float(np.sqrt(np.mean((pts[near] @ n + d) ** 2))))

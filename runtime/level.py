@@ -72,13 +72,13 @@ class LevelParams:
     :ivar search_window_m: a point within this of the posed surface along its ray supports a pose; one seen
         beyond it by as much contradicts it (`ray_scores`).
     :ivar floor_from_depth: the estimator levels on the frame's own floor where its depth shows it near the
-        calibrated one (`floor.refine_floor`: within 2 degrees and 5 cm), else on the calibration's. A calibration a
-        degree off puts a pallet 5 m ahead 9 cm off the floor it stands on: on the calibrated forklift-approach
-        validation frames, within 5 cm, a calibration pitched 1 degree 34.0 -> 37.0 %, rolled 1 degree 32.6 -> 37.0 %,
-        3 cm high 32.6 -> 38.1 %. With an exact calibration the fitted floor's own error (median 0.02 degrees, a
-        tenth of the frames 0.1-0.8) costs: 38.3 -> 38.1 %, EPAL pockets 86.7 / 85.0 -> 85.0 / 76.7 % (exact /
-        D435-like depth). Off by default: for a camera whose calibration drifts or a truck that pitches with its
-        load (docs/experiments/forklift.md).
+        calibrated one and spread over at least 0.5 m each way (`floor.refine_floor`: within 2 degrees and 5 cm),
+        else on the calibration's. A calibration a degree off puts a pallet 5 m ahead 9 cm off the floor it stands
+        on: on the calibrated forklift-approach validation frames, within 5 cm, a calibration pitched 1 degree,
+        rolled 1 degree or 3 cm high keeps 37.2 / 37.2 / 38.5 % with this (an older runtime kept 32.6-34.0 % on
+        the calibration's floor). With an exact calibration the fitted floor's own error costs: 39.4 -> 39.2 %,
+        EPAL pockets 86.7 / 85.0 -> 85.0 / 78.3 % (exact / D435-like depth). Off by default: for a camera whose
+        calibration drifts or a truck that pitches with its load (docs/experiments/forklift.md).
     :ivar climb_step_deg, climb_step_m: an accepted levelled pose climbs the soft ray score (`climb_poses`;
         `ray_scores(soft=True)` on all its points, window `climb_window_m`): it moves to the best of its 26
         neighbours (turned by +-step, slid by +-step along its x and y, and every combination) while that scores

@@ -126,6 +126,16 @@ def test_no_floor_in_the_depth_gives_no_frame_floor(view, depth_of):
     assert refine_floor(calibrated_floor(T), depth_of(depth), K) is None
 
 
+def test_a_narrow_patch_of_floor_gives_no_frame_floor(view):
+    # the floor seen only in a strip of columns: its tilt across the strip is the depth's noise, not the floor's
+    depth, K, T = view
+    cols = np.arange(depth.shape[1])
+    strip = np.where((cols > 0.45 * depth.shape[1]) & (cols < 0.55 * depth.shape[1]), depth, 0.0)
+    assert refine_floor(calibrated_floor(T), depth, K) is not None
+    assert refine_floor(calibrated_floor(T), strip, K, min_points=50) is None
+    assert refine_floor(calibrated_floor(T), strip, K, min_points=50, min_spread_m=0.0) is not None
+
+
 def test_the_calibration_on_the_frame_floor_keeps_its_heading_and_place(view):
     _, _, T = view
     floor = calibrated_floor(T, 0.02, 1.0, 0.5)

@@ -87,7 +87,10 @@ def test_a_variant_is_measured_with_its_options_under_its_own_name(scorecard, tm
     assert '- `+g24`: `{"structure": {"grid": 24}, "min_fit": 0.3}`' in md
 
 
-def test_a_variant_may_set_the_weak_boxes(scorecard, tmp_path, monkeypatch):
+@pytest.mark.parametrize("name, fields", [("weak_boxes", {"min_agreement": 0.9}),
+                                          ("level", {"floor_from_depth": True})])
+def test_a_variant_may_set_the_nested_options(scorecard, tmp_path, monkeypatch, name, fields):
+    from pallet6d.runtime.level import LevelParams
     from pallet6d.runtime.weak_boxes import WeakBoxes
 
     bundle = tmp_path / "cand"
@@ -97,9 +100,9 @@ def test_a_variant_may_set_the_weak_boxes(scorecard, tmp_path, monkeypatch):
     monkeypatch.setattr(scorecard, "run_measure", lambda name, bundle, precision, options, *a: seen.append(options)
                         or {"kept": 0})
     assert scorecard.main(["--bundle", str(bundle), "--measures", "mismatched", "--out", str(tmp_path / "out"),
-                           "--variant", 'weak={"weak_boxes": {"min_agreement": 0.9}}']) == 0
-    assert seen[1]["weak_boxes"] == WeakBoxes(min_agreement=0.9)
-    assert scorecard.options_json(seen[1]) == {"weak_boxes": {"min_agreement": 0.9}}
+                           "--variant", "v=" + json.dumps({name: fields})]) == 0
+    assert seen[1][name] == {"weak_boxes": WeakBoxes, "level": LevelParams}[name](**fields)
+    assert scorecard.options_json(seen[1]) == {name: fields}
 
 
 @pytest.mark.parametrize("args, words", [
