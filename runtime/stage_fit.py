@@ -184,8 +184,6 @@ def _rejection_reason(structure_reason: str) -> str:
     return structure_reason if structure_reason in ("size_mismatch", "depth_image_mismatch") else "no_pallet_structure"
 
 
-
-
 def _structure_detail(s) -> str:
     if s.reason == "size_mismatch":
         whole = "" if s.box_cut or np.isnan(s.whole_height_m) else \
