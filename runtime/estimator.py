@@ -542,7 +542,7 @@ class PalletEstimator:
             if T_vehicle_cam is not None and self.options.level is not None:
                 pts_of = self._level(cands, depth_m, K, T_vehicle_cam, timings)
                 up_cam = up_in_camera(T_vehicle_cam)
-            self.fit_check(cands, depth_m, K, timings, rgb, up_cam, registration, weak, from_depth)
+            self.fit_check(cands, depth_m, K, timings, rgb, up_cam, registration, weak, from_depth, floor)
             if from_depth is not None:
                 self._frame_proposals(cands, K, depth_m.shape, from_depth)
             if up_cam is not None:

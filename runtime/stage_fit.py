@@ -149,20 +149,20 @@ class FitCheckStage:
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
                  rgb: np.ndarray | None = None, up_cam: np.ndarray | None = None,
                  registration: StartedRegistration | None = None, weak: np.ndarray | None = None,
-                 from_depth: np.ndarray | None = None) -> None:
+                 from_depth: np.ndarray | None = None, confidence_floor: np.ndarray | None = None) -> None:
         """The stage on the alive rows of `cands`: the fit where no earlier stage computed it, then the gates.
         :param rgb: the frame's colour image, for the structure check's edge test (None skips that test).
         :param up_cam: the vehicle's up in the camera frame, for the structure check's tilt test (None skips it).
-        :param registration, weak, from_depth: see `check_structure`."""
+        :param registration, weak, from_depth: see `check_structure`.
+        :param confidence_floor: (n,) the network confidence each row needs (the estimator's, which lets a confident
+            detection's unsure pose go on as a weak one), or None: `min_confidence` for every row."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
         todo = rows[np.isnan(cands.fit[rows, 2])]
         cands.assign(todo, fit=self.score(cands.T_cam_pallet[todo], cands.points_cam[todo], cands.type_index[todo],
                                           depth_m, K))
         conf, fit = cands.confidence[rows], cands.fit[rows]
-        floor = np.full(len(rows), self.min_confidence)
-        if weak is not None:
-            floor[weak[rows]] = min(self.min_confidence, self.weak.min_confidence)
+        floor = np.full(len(rows), self.min_confidence) if confidence_floor is None else confidence_floor[rows]
         low = conf < floor
         poor = ~low & (fit[:, 2] < self.min_fit)
         cands.reject(rows[low], "low_confidence", [f"confidence {c:.3f} < {f}" for c, f in zip(conf[low], floor[low])])
