@@ -190,6 +190,9 @@ def _structure_detail(s) -> str:
             f", {s.whole_height_m:.3f} m tall at the pallet's depth (not cut by the image's edge)"
         return (f"size_mismatch: the detector's box spans {s.box_size_m[0]:.2f} x {s.box_size_m[1]:.2f} m at the depth "
                 f"inside it{whole}, not a pallet of this type (depth scale or focal length off?)")
+    if s.reason == "see_through_cut":
+        return (f"see_through_cut: the image's edge cuts the box, and {s.see_through} of the {s.solid + s.see_through} "
+                "rays that meet the posed pallet's boards see through them (focal length off?)")
     if s.reason == "depth_image_mismatch":
         return (f"depth_image_mismatch: depth edges agree with the image's at AUC {s.edge_auc:.2f} (0.5 = chance; "
                 "depth of another frame, or not registered to the colour image?)")

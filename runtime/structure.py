@@ -103,6 +103,13 @@ class StructureParams:
         the pose).
     :ivar min_seen_iou: IoU of the detector's box with the box around the rays that found the pallet's surface;
         below -> "box_mismatch" (the pose explains depth elsewhere than where the detector saw the pallet).
+    :ivar max_see_through_cut: a box that the image's edge cuts and whose size cannot show a focal length 2x too long
+        (cut at the top or bottom, or cut aside and less than twice `min_whole_box_height_of_type` tall) must not
+        see through the pose's boards: where more than this fraction of the rays that meet a board find the depth
+        behind it (see-through / (solid + see-through)) -> "see_through_cut". A focal length 2x too long halves the
+        scene across the image, and the network fits a pallet to the squeezed points of a cut pallet whose boards
+        then overhang them: such poses see through 0.13-0.40 of their boards, correct poses of cut pallets rarely
+        more than 0.2 (docs/structure-check.md); 1 turns it off.
     :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
     :ivar min_box_height_of_type: the detector's box height times the median depth inside it over fy (its metric
         height) below this fraction of the type's height (its smallest side) -> "size_mismatch" (depth scale too
@@ -114,7 +121,7 @@ class StructureParams:
         type's height -> "size_mismatch". Tighter than `min_box_height_of_type`, it catches a focal length 2x too
         long (the box then spans half the height). On the validation frames correct poses' whole boxes span at
         least 0.99 of the type's height; 0 turns it off.
-    :ivar border_px: a box edge within this many pixels of the image's top or bottom edge is cut by it.
+    :ivar border_px: a box edge within this many pixels of the image's edge is cut by it.
     :ivar max_box_size_of_diameter: the box's metric width or height above this multiple of the type's diameter
         -> "size_mismatch" (depth scale too large, focal length too short).
     :ivar min_edge_auc: with the colour image, the AUC of colour differences across depth jumps of the grid against
@@ -176,6 +183,7 @@ class StructureParams:
     min_box_cover: float = 0.6
     min_box_solid: float = 0.3
     min_seen_iou: float = 0.1
+    max_see_through_cut: float = 0.2
     max_tilt_deg: float = 25.0
     min_box_height_of_type: float = 0.4
     min_whole_box_height_of_type: float = 0.8
@@ -207,7 +215,8 @@ class StructureParams:
             raise ValueError(f"tol_m must be positive, got {self.tol_m}")
         for name in ("min_agreement", "min_agreement_levelled", "min_open_fraction", "min_pocket_open_fraction",
                      "min_box_cover", "min_box_solid",
-                     "min_seen_iou", "min_edge_auc", "min_box_height_of_type", "min_whole_box_height_of_type",
+                     "min_seen_iou", "max_see_through_cut", "min_edge_auc", "min_box_height_of_type",
+                     "min_whole_box_height_of_type",
                      "replace_min_agreement", "replace_min_open_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
@@ -263,7 +272,7 @@ class StructureScore:
     :ivar edge_auc: AUC of colour differences across depth jumps against those elsewhere (NaN without a colour image
         or too few pairs).
     :ivar reason: "" when accepted, else one of "size_mismatch", "depth_image_mismatch", "structure_unseen",
-        "structure_mismatch", "openings_closed", "pockets_closed", "box_mismatch", "tilted".
+        "structure_mismatch", "see_through_cut", "openings_closed", "pockets_closed", "box_mismatch", "tilted".
     :ivar mouth_open: rays that enter through an opening and meet a board or block deeper inside, whose depth lies
         behind the entry.
     :ivar mouth_closed: such rays with a surface at the entry.
@@ -648,7 +657,12 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     n_solid = solid.sum(1)
     z_solid = np.array([np.median(z_obs[i][solid[i]]) if n_solid[i] else np.nan for i in range(len(T))])
     whole_height_m = np.where(box_cut, np.nan, (det[:, 3] - det[:, 1]) * z_solid / K[1, 1])
+    # a box cut by the image's edge whose size cannot show a focal length 2x too long (cut at the top or bottom, or
+    # cut aside and less than twice the whole height's bound tall): its pose must not see through its own boards
+    cut_aside = (det[:, 0] < params.border_px) | (det[:, 2] > depth.shape[1] - 1 - params.border_px)
     with np.errstate(invalid="ignore"):
+        size_unsure = box_cut | (cut_aside & (whole_height_m < 2.0 * params.min_whole_box_height_of_type
+                                              * extent.min()))
         wrong_size = (size_m[:, 1] < params.min_box_height_of_type * extent.min()) \
             | (size_m.max(1) > params.max_box_size_of_diameter * np.linalg.norm(extent)) \
             | (whole_height_m < params.min_whole_box_height_of_type * extent.min())
@@ -712,6 +726,8 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
             reason = "structure_unseen"
         elif agreement < (params.min_agreement if up_cam is None else params.min_agreement_levelled):
             reason = "structure_mismatch"
+        elif size_unsure[i] and st > params.max_see_through_cut * (s + st):
+            reason = "see_through_cut"
         elif max(op + cl, mo + mc) >= params.min_opening_evidence and open_fraction < params.min_open_fraction:
             reason = "openings_closed"
         elif pocket_open[i] < params.min_pocket_open_fraction:     # NaN (no pocket judged) compares False

@@ -345,6 +345,35 @@ def test_box_cut_by_the_image_edge_keeps_the_looser_bound():
     assert s.box_size_m[1] < StructureParams().min_whole_box_height_of_type * EPAL.size_m.min()
 
 
+def test_a_cut_box_whose_pose_sees_through_its_boards_is_refused():
+    """A box the image's edge cuts cannot show a wrong scale by its size: its pose must not overhang the depth."""
+    T_cut = make_T(R_CAM_PALLET, np.array([1.6, 0.45, 3.0]))
+    depth, box = _render_type(EPAL.boxes_m, T_cut)
+    assert box[0, 2] == W                           # the box ends at the image's right edge
+    assert _check(T=T_cut, depth=depth, box=box).ok
+    T_aside = T_cut.copy()
+    T_aside[0, 3] += 0.05                           # its boards now overhang the wall behind
+    s = _check(T=T_aside, depth=depth, box=box)
+    assert s.reason == "see_through_cut" and s.see_through > 0.2 * (s.solid + s.see_through), s
+    assert _check(T=T_aside, depth=depth, box=box, params=StructureParams(max_see_through_cut=1.0)).ok
+    whole = T_TRUE.copy()
+    whole[0, 3] += 0.05                             # the same error on a whole box: its size is judged instead
+    assert _check(T=whole).reason != "see_through_cut"
+
+
+def test_a_tall_box_cut_aside_shows_its_size_and_may_see_through():
+    """Seen 30 degrees from above, a pallet cut by the image's side is over twice its height tall in the box: a focal
+    length 2x too long would leave it over the whole-height bound, so its size, not its see-through rays, judges."""
+    T = make_T(_rot_x(-30.0) @ np.array([[0.0, 1, 0], [0, 0, -1], [1, 0, 0]]), np.array([1.4, 0.6, 2.5]))
+    depth, box = _render_type(EPAL.boxes_m, T)
+    T_aside = T.copy()
+    T_aside[0, 3] += 0.05
+    s = _check(T=T_aside, depth=depth, box=box)
+    assert box[0, 2] == W and not s.box_cut
+    assert s.whole_height_m > 2 * StructureParams().min_whole_box_height_of_type * EPAL.size_m.min()
+    assert s.see_through > 0.2 * (s.solid + s.see_through) and s.ok, s
+
+
 def test_whole_box_height_is_measured_at_the_pallets_depth():
     """Posts 1.5 m from the camera hide 60 % of the pallet's columns: the median depth in the box is theirs, the
     pallet's height is measured where the rays found its surface."""
@@ -378,6 +407,24 @@ def test_fit_check_stage_names_the_whole_box_height_in_its_rejection():
     stage.check_structure(wrong, np.arange(1), depth, K_focal)
     assert right.reason[0] == "", right.detail[0]          # the eur6 at its true pose passes
     assert wrong.reason[0] == "size_mismatch" and "tall at the pallet's depth" in wrong.detail[0], wrong.detail[0]
+
+
+def test_fit_check_stage_names_the_see_through_of_a_cut_box():
+    from pallet6d.runtime.candidates import Candidates
+    from pallet6d.runtime.stage_fit import FitCheckStage
+    from pallet6d.runtime.stage_geometry import PalletGeometry
+
+    geom = PalletGeometry(name="epal", points_m=EPAL.boxes_m.reshape(-1, 3), boxes_m=EPAL.boxes_m,
+                          symmetries=EPAL.symmetries, size_m=EPAL.size_m, refine_starts=np.zeros((0, 3)))
+    T_cut = make_T(R_CAM_PALLET, np.array([1.6, 0.45, 3.0]))
+    depth, box = _render_type(EPAL.boxes_m, T_cut)
+    T_aside = T_cut.copy()
+    T_aside[0, 3] += 0.05
+    cands = Candidates.new(box, [0.9], [0], [0], num_points=8)
+    cands.assign(np.arange(1), T_cam_pallet=T_aside[None])
+    FitCheckStage((geom,), tol_m=0.04, min_fit=0.0, min_confidence=0.0).check_structure(cands, np.arange(1), depth, K)
+    assert cands.reason[0] == "no_pallet_structure", cands.detail[0]
+    assert cands.detail[0].startswith("see_through_cut: the image's edge cuts the box"), cands.detail[0]
 
 
 @pytest.mark.parametrize("compiled", [True, False])
