@@ -546,7 +546,7 @@ class PalletEstimator:
             if from_depth is not None:
                 self._frame_proposals(cands, K, depth_m.shape, from_depth)
             if up_cam is not None:
-                self._climb(cands, depth_m, K, up_cam, pts_of, timings)
+                self._climb(cands, depth_m, K, T_vehicle_cam, pts_of, timings)
             self._drop_duplicates(cands, timings)
         finally:
             if registration is not None:        # it reads the caller's arrays: done before they are handed back
@@ -635,19 +635,22 @@ class PalletEstimator:
             out.append(tuple(types))
         return out
 
-    def _climb(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, up_cam: np.ndarray,
+    def _climb(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
                pts_of: dict[int, np.ndarray], timings: dict[str, float]) -> None:
         """The accepted level poses climb the soft ray score (`level.climb_poses`), after the fit check has judged
         them, so the climb never turns a rejected pose into an accepted one; a moved pose's fit is computed again
         for its report. `pts_of`: each levelled row's depth points (`_level`). Its time counts as refine."""
         t = time.perf_counter()
         rows = np.flatnonzero(cands.alive)
-        rows = rows[np.abs(cands.T_cam_pallet[rows, :3, 2] @ up_cam - 1.0) < 1e-6]      # level poses only
+        rows = rows[np.abs(cands.T_cam_pallet[rows, :3, 2] @ up_in_camera(T_vehicle_cam) - 1.0) < 1e-6]  # level only
         if len(rows):
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
             pts = [pts_of[int(i)] for i in rows]
+            # a pallet the levelling did not set on the floor (rack, stack, truck bed) climbs in height too
+            z_vehicle_m = (T_vehicle_cam @ cands.T_cam_pallet[rows])[:, 2, 3]
+            on_floor = np.abs(z_vehicle_m - np.array([g.size_m[2] / 2 for g in geoms])) < 1e-6
             T_cp = climb_poses(cands.T_cam_pallet[rows], pts, [g.boxes_m for g in geoms], self.options.level,
-                               threads=self.refiner.refine_options.threads)
+                               threads=self.refiner.refine_options.threads, lift=~on_floor)
             moved = rows[np.abs(T_cp - cands.T_cam_pallet[rows]).max(axis=(1, 2)) > 1e-9]
             cands.assign(rows, T_cam_pallet=T_cp)
             if len(moved):

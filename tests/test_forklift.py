@@ -247,6 +247,25 @@ def test_the_climb_brings_a_pose_a_few_degrees_and_centimetres_off_onto_the_pall
                                invert_T(T_vc) @ est)                            # no points: nothing to climb
 
 
+@pytest.mark.parametrize("height_err_m", [0.022, -0.015])
+def test_a_pallet_off_the_floor_climbs_to_its_height(height_err_m):
+    # on a rack beam 0.5 m up nothing holds the pallet's height: lifted, the climb finds it; not lifted, it stays
+    from pallet6d.runtime.level import climb_poses
+    from pallet6d.runtime.refine import box_points
+
+    T_vc, T_vp = camera(), pallet_pose(2.0, 10.0)
+    T_vp[2, 3] += 0.5
+    depth, box = render(T_vc, T_vp, floor=False), _box_of(T_vc, T_vp)
+    est = T_vp.copy()
+    est[2, 3] += height_err_m
+    pts = box_points(depth, K, box, 600, (0.1, 20.0))
+    T_est = invert_T(T_vc) @ est
+    lifted = T_vc @ climb_poses(T_est[None], [pts], [EPAL.boxes_m], lift=np.array([True]))[0]
+    assert abs(lifted[2, 3] - T_vp[2, 3]) < 0.004 and np.linalg.norm(lifted[:2, 3] - T_vp[:2, 3]) < 0.006
+    held = T_vc @ climb_poses(T_est[None], [pts], [EPAL.boxes_m])[0]
+    assert held[2, 3] == pytest.approx(est[2, 3], abs=1e-9)
+
+
 @pytest.mark.parametrize("kwargs, match", [({"search_yaw_step_deg": -1}, "search_yaw_step_deg"),
                                            ({"search_yaw_step_deg": 200}, "search_yaw_step_deg"),
                                            ({"search_shifts_m": ()}, "search_shifts_m"),
