@@ -19,8 +19,8 @@ the camera's calibration (`T_vehicle_cam`; vehicle frame: z up, the floor at z =
    the ray residuals are symmetric about the true surface.
 
 `climb_poses` then lets a pose the fit check accepted climb a soft version of the ray score by small turns and slides
-(and lifts, off the floor; `LevelParams.climb_*`): ICP started a few centimetres or degrees off can stop on one of a pallet's repeated boards,
-which the forks' 2 cm / 1 degree cannot afford; the ray score ranks the true pose first.
+(and lifts, off the floor; `LevelParams.climb_*`): ICP started a few centimetres or degrees off can stop on one of a
+pallet's repeated boards, which the forks' 2 cm / 1 degree cannot afford; the ray score ranks the true pose first.
 
 A pose tilted further (on its side, upside down) is left as it is. A pose that is level already (levelled by the
 estimator with this calibration) is not refined again.
