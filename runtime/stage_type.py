@@ -27,9 +27,13 @@ the candidate keeps its first type, and the refiner stage refines it.
 With the camera's calibration (`EstimatorOptions.level`), `keep_levelled` types are kept, the candidate's first type
 always among them, and each is levelled on the floor and searched and refined in yaw and position (`level.level_poses`,
 as the estimator levels every pose) before it is judged: the first type from its refined pose, the others from the
-network's (the levelling's search does what the refinement's starts would). The winner keeps that pose, the one the
-fit check will see. On stereo depth the six-degree refinement is rarely trusted, so without this a look-alike type
-would be judged at the network's pose, often 10-30 cm off, and lose to the first type, which was then levelled alone.
+network's (the levelling's search does what the refinement's starts would). Where the refinement moved the first
+type's pose (depth exact enough to trust it), it can have moved it off the pallet, beyond the search's slides: the first
+type is then levelled from the network's pose too, and the better of the two competes (EPAL pocket targets on exact
+depth 88.3 -> 90.0 %; on stereo depth the refinement rarely moves a pose and nothing changes). The winner keeps that
+pose, the one the fit check will see. On stereo depth the six-degree refinement is rarely trusted, so without this a
+look-alike type would be judged at the network's pose, often 10-30 cm off, and lose to the first type, which was then
+levelled alone.
 Where every type of a candidate is kept (and refined), ranking them is skipped. The ranking at the network's pose is
 a poor guide: levelling a candidate's every type finds about a tenth more of the forklift's pallets within 5 cm than
 levelling its four best-ranked ones (docs/experiments/pallet-types.md). The other types are levelled on fewer points
@@ -188,8 +192,13 @@ class TypeChoiceStage:
             T[six], fit[six] = self.refiner.refine(cands.T_net[src[six]], cands.points_cam[src[six]],
                                                    [box_obs[int(i)] for i in src[six]], pair_type[six], depth_m, K)
         if levelled:
+            # where the refinement moved the first type's pose (depth exact enough to trust it), it may have moved it
+            # off the pallet beyond the levelling's search: the network's pose is levelled too, and the better competes
+            moved = six[np.abs(T[six] - cands.T_net[src[six]]).max(axis=(1, 2)) > 1e-9]
+            pair_row, pair_type, src, first = (np.concatenate([a, a[moved]]) for a in (pair_row, pair_type, src, first))
+            T = np.concatenate([T, cands.T_net[src[len(T):]]])
             alike = np.flatnonzero(pair_type != first)
-            for idx, params in ((six, self.level), (alike, self.level_other)):
+            for idx, params in ((np.flatnonzero(pair_type == first), self.level), (alike, self.level_other)):
                 if len(idx):
                     T[idx] = level_in_camera(T[idx], T_vehicle_cam, [self.geometries[j] for j in pair_type[idx]],
                                              params, [box_obs[int(i)] for i in src[idx]],

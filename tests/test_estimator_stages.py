@@ -461,6 +461,36 @@ def test_with_the_calibration_every_type_is_levelled_once_as_many_are_kept(bundl
     assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.05
 
 
+def test_with_the_calibration_a_refinement_gone_astray_leaves_the_network_pose_its_chance(bundle_dir, monkeypatch):
+    # exact depth lets the six-degree refinement move the first type's pose; where it moved it off the pallet, beyond
+    # the levelling's search, the network's pose levelled beside it finds the pallet
+    types = tuple(_catalogue_type(n, 0) for n in ("epal", "eur6"))
+    est = PalletEstimator(dataclasses.replace(load_bundle(bundle_dir), pallet_types=types), threads=1,
+                          options=EstimatorOptions(**{k: v for k, v in KW.items() if k != "threads"},
+                                                   type_candidates_levelled=2))
+    f = _scene_of("epal")
+    p = max(f.pallets, key=lambda p: p.visib_fract)
+    x, y, w, h = p.bbox_visib_xywh
+    rgb, depth_m, K = est.check_inputs(f.rgb, f.depth_m, f.K)
+    box = np.array([[x, y, x + w, y + h]], float)
+    c = Candidates.new(box, [0.9], [0], [0], est.spec.num_points,
+                       type_options=est._type_options(Detections(box, [0.9], [0])))
+    est.pose_network(rgb, depth_m, K, c, {})
+    c.assign([0], T_net=p.T_cam_pallet[None], T_cam_pallet=p.T_cam_pallet[None])
+    refine = est.type_choice.refiner.refine
+
+    def astray(T, *args):                           # the refinement lands 0.6 m to the side
+        T_out, fit = refine(T, *args)
+        T_out = T_out.copy()
+        T_out[:, 0, 3] += 0.6
+        return T_out, fit
+
+    monkeypatch.setattr(est.type_choice.refiner, "refine", astray)
+    est.type_choice(c, depth_m, K, {}, T_vehicle_cam=f.T_vehicle_cam)
+    assert est.pallet_types[int(c.type_index[0])].name == "epal"
+    assert np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.03
+
+
 def test_without_refinement_every_type_kept_is_still_ranked(bundle_dir, monkeypatch):
     # nothing is levelled without refinement: the ranking at the network's pose names the type
     est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
