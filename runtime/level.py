@@ -311,12 +311,14 @@ def _neighbours(step_rad: float, step_m: float, lift: bool = False) -> np.ndarra
                                                  [-step_m, 0.0, step_m], indexing="ij"))
     keep = (a != 0) | (sx != 0) | (sy != 0)
     a, sx, sy = a[keep], sx[keep], sy[keep]
-    g = np.tile(np.eye(4), (len(a) + 2 * lift, 1, 1))
-    g[:len(a), 0, 0], g[:len(a), 0, 1], g[:len(a), 1, 0], g[:len(a), 1, 1] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
-    g[:len(a), 0, 3], g[:len(a), 1, 3] = sx, sy
-    if lift:
-        g[len(a):, 2, 3] = (-step_m, step_m)
-    return g
+    g = np.tile(np.eye(4), (len(a), 1, 1))
+    g[:, 0, 0], g[:, 0, 1], g[:, 1, 0], g[:, 1, 1] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
+    g[:, 0, 3], g[:, 1, 3] = sx, sy
+    if not lift:
+        return g
+    up_down = np.tile(np.eye(4), (2, 1, 1))
+    up_down[:, 2, 3] = (-step_m, step_m)
+    return np.concatenate([g, up_down])
 
 
 def climb_poses(T_cam_pallet: np.ndarray, pts_cam: list, boxes_m: list, params: LevelParams = LevelParams(),
