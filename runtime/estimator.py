@@ -645,7 +645,9 @@ class PalletEstimator:
         rows = rows[np.abs(cands.T_cam_pallet[rows, :3, 2] @ up_in_camera(T_vehicle_cam) - 1.0) < 1e-6]  # level only
         if len(rows):
             geoms = [self.pallet_types[int(j)] for j in cands.type_index[rows]]
-            pts = [pts_of[int(i)] for i in rows]
+            n_pts = self.options.level.climb_points
+            pts = [pts_of[int(i)] if n_pts == 0 else self.refiner.box_points(cands.pixels[i], depth_m, K, n_pts)
+                   for i in rows]
             # a pallet the levelling did not set on the floor (rack, stack, truck bed) climbs in height too
             z_vehicle_m = (T_vehicle_cam @ cands.T_cam_pallet[rows])[:, 2, 3]
             on_floor = np.abs(z_vehicle_m - np.array([g.size_m[2] / 2 for g in geoms])) < 1e-6

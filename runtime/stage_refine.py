@@ -83,12 +83,14 @@ class RefinerStage:
         """Whether any pallet type is refined."""
         return any(self.refines_type)
 
-    def box_points(self, pixels: tuple[np.ndarray, np.ndarray], depth_m: np.ndarray, K: np.ndarray) -> np.ndarray:
+    def box_points(self, pixels: tuple[np.ndarray, np.ndarray], depth_m: np.ndarray, K: np.ndarray,
+                   max_points: int | None = None) -> np.ndarray:
         """A box's depth points for ICP: its candidate pixels (v, u), thinned by an even stride to at most
-        `refine_points`, back-projected. :return: (m, 3) float32 camera frame, metres."""
+        `max_points` (default `refine_points`), back-projected. :return: (m, 3) float32 camera frame, metres."""
         v, u = pixels
-        if len(v) > self.options.refine_points:
-            keep = np.linspace(0, len(v) - 1, self.options.refine_points).round().astype(np.int64)
+        n = self.options.refine_points if max_points is None else int(max_points)
+        if len(v) > n:
+            keep = np.linspace(0, len(v) - 1, n).round().astype(np.int64)
             v, u = v[keep], u[keep]
         return backproject_pixels(u, v, depth_m[v, u], K)
 

@@ -704,6 +704,29 @@ def test_the_climb_moves_accepted_poses_only_and_never_decides_acceptance():
     assert moved
 
 
+def test_the_climb_scores_on_its_own_number_of_the_boxs_points(monkeypatch):
+    from pallet6d.runtime import estimator as estimator_module
+    from pallet6d.sim.generate import generate_frame
+    from pallet6d.sim.presets import get_preset
+
+    f = generate_frame(dataclasses.replace(get_preset("forklift-approach"), pallet_models=("epal",)), seed=3)
+    boxes = [[x, y, x + w, y + h] for x, y, w, h in (p.bbox_visib_xywh for p in f.pallets if p.visib_fract > 0.3)]
+    seen = []
+    real = estimator_module.climb_poses
+    monkeypatch.setattr(estimator_module, "climb_poses",
+                        lambda T, pts, *a, **k: seen.append([len(p) for p in pts]) or real(T, pts, *a, **k))
+    counts = {}
+    for n in (0, 1000):
+        seen.clear()
+        level = LevelParams(climb_max_range_m=10.0, climb_points=n)
+        est = PalletEstimator.from_bundle(SHIPPED, threads=1, level=level)
+        est.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=f.T_vehicle_cam)
+        assert len(seen) == 1 and seen[0]
+        counts[n] = seen[0]
+    assert max(counts[0]) <= est.options.refine_points                           # 0: the levelling's own points
+    assert max(counts[1000]) <= 1000 and max(counts[1000]) > max(counts[0])
+
+
 @pytest.mark.parametrize("T, match", [(np.eye(3), "rigid"), (np.diag([2.0, 1, 1, 1]), "rigid"),
                                       (np.full((4, 4), np.nan), "rigid"), (np.diag([1.0, 1, -1, 1]), "rigid")])
 def test_a_bad_calibration_transform_is_refused(est, frame, T, match):

@@ -278,7 +278,8 @@ def test_a_pallet_off_the_floor_climbs_to_its_height(height_err_m):
                                            ({"climb_max_moves": -1}, "climb_max_moves"),
                                            ({"climb_max_turn_deg": -1.0}, "climb_max_turn_deg"),
                                            ({"climb_max_shift_m": -0.1}, "climb_max_shift_m"),
-                                           ({"climb_max_range_m": -1.0}, "climb_max_range_m")])
+                                           ({"climb_max_range_m": -1.0}, "climb_max_range_m"),
+                                           ({"climb_points": -1}, "climb_points")])
 def test_level_params_search_is_validated(kwargs, match):
     with pytest.raises(ValueError, match=match):
         LevelParams(**kwargs)
