@@ -148,8 +148,10 @@ def test_vehicle_pose_leaves_high_or_steeply_tilted_pallets_and_can_be_turned_of
     on_rack[2, 3] += 1.2
     out = vehicle_pose(invert_T(T_vc) @ on_rack, T_vc, EPAL.size_m)
     assert out[2, 3] == pytest.approx(on_rack[2, 3])                              # levelled, not moved down
-    steep = _tilted(pallet_pose(2.0), 30.0)
+    steep = _tilted(pallet_pose(2.0), 30.0)                   # beyond the structure check's 25 degrees: left as is
     np.testing.assert_allclose(vehicle_pose(invert_T(T_vc) @ steep, T_vc, EPAL.size_m), steep, atol=1e-12)
+    within = vehicle_pose(invert_T(T_vc) @ _tilted(pallet_pose(2.0), 20.0), T_vc, EPAL.size_m)
+    np.testing.assert_allclose(within[:3, 2], [0, 0, 1], atol=1e-12)           # a pose the check accepts is levelled
     slight = _tilted(pallet_pose(2.0), 2.0)
     off = ForkliftParams(level=LevelParams(max_tilt_deg=0, floor_snap_m=0))
     np.testing.assert_allclose(vehicle_pose(invert_T(T_vc) @ slight, T_vc, EPAL.size_m, off), slight, atol=1e-12)
