@@ -195,8 +195,8 @@ class TypeChoiceStage:
             # where the refinement moved the first type's pose (depth exact enough to trust it), it may have moved it
             # off the pallet beyond the levelling's search: the network's pose is levelled too, and the better competes
             moved = six[np.abs(T[six] - cands.T_net[src[six]]).max(axis=(1, 2)) > 1e-9]
+            T = np.concatenate([T, cands.T_net[src[moved]]])
             pair_row, pair_type, src, first = (np.concatenate([a, a[moved]]) for a in (pair_row, pair_type, src, first))
-            T = np.concatenate([T, cands.T_net[src[len(T):]]])
             alike = np.flatnonzero(pair_type != first)
             for idx, params in ((np.flatnonzero(pair_type == first), self.level), (alike, self.level_other)):
                 if len(idx):
