@@ -82,6 +82,11 @@ class Candidates:
                 raise ValueError(f"Candidates.{f.name}: expected an array of {n} rows, got "
                                  f"{getattr(arr, 'shape', type(arr).__name__)}")
 
+    @classmethod
+    def concat(cls, parts: list["Candidates"]) -> "Candidates":
+        """The rows of `parts`, in order, as one record."""
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
+
     def __len__(self) -> int:
         return len(self.boxes_xyxy)
 

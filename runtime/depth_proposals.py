@@ -43,8 +43,12 @@ class DepthProposals:
     :ivar stride: the depth is read every `stride` pixels in each direction.
     :ivar margin: each box grows by this fraction of its size on every side; it reaches down to the floor under
         the object's points already.
-    :ivar max_iou: a proposal overlapping a detection at this IoU or more adds nothing to it: the estimator drops
-        it.
+    :ivar max_iou: a proposal overlapping a detection at this IoU or more (or lying mostly inside its box,
+        `WeakBoxes.max_inside`) is held back: the estimator poses it only where no accepted pose of the frame covers
+        it, which recovers the pallet whose detection's box was poor and its pose refused.
+    :ivar max_boxes: at most this many proposals, the nearest first, are posed. They do not take the places of the
+        detector's boxes (`EstimatorOptions.max_pallets`): a frame full of far pallets on racks would leave none
+        for the pallet on the floor ahead.
     :ivar min_framing_iou: a proposal's pose is kept only where the posed pallet's projected bounding box (clipped
         to the image) overlaps the proposal at least this much (IoU): a proposal is the object's whole extent, and
         a pose that leaves most of it empty (or reaches far beyond it) is the pose of something else. On calibrated
@@ -62,6 +66,7 @@ class DepthProposals:
     stride: int = 2
     margin: float = 0.02
     max_iou: float = 0.5
+    max_boxes: int = 4
     min_framing_iou: float = 0.4
 
     def __post_init__(self) -> None:
@@ -75,7 +80,7 @@ class DepthProposals:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not float(v) > 0.0:
                 raise ValueError(f"DepthProposals.{name} must be a positive number, got {v!r}")
-        for name in ("stride", "min_points"):
+        for name in ("stride", "min_points", "max_boxes"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"DepthProposals.{name} must be an integer >= 1, got {v!r}")

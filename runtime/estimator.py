@@ -166,11 +166,11 @@ class EstimatorOptions:
         (docs/experiments/forklift.md, "Weak detections").
     :ivar depth_proposals: with the camera's calibration (and `weak_boxes`), boxes around what stands a pallet's
         height on the floor in the depth (`depth_proposals.py`) are posed too, as detections of score 0 after the
-        detector's, where no detection covers them; they are judged like weak boxes and their poses must frame
-        their boxes. They find pallets whose look the detector does not know (another colour or material): on the
-        calibrated forklift test frames with every pallet repainted in a random hue 34.7 / 20.4 -> 36.0 / 21.3 %
-        within 5 cm (as rendered 42.1 / 28.3 -> 42.1 / 29.0 %), no pose more on the pallet-free frames
-        (docs/experiments/forklift.md, "Proposals from the depth"). None: off.
+        detector's, where no detection covers them (and, in a second round, where no accepted pose covers them); they
+        are judged like weak boxes and their poses must frame their boxes. They find pallets whose look the detector
+        does not know (another colour or material): on the calibrated forklift test frames with every pallet repainted
+        in a random hue 34.7 / 20.4 -> 36.0 / 21.3 % within 5 cm (as rendered 42.1 / 28.3 -> 42.1 / 29.0 %), no pose
+        more on the pallet-free frames (docs/experiments/forklift.md, "Proposals from the depth"). None: off.
     """
 
     score_threshold: float = 0.25
@@ -491,19 +491,56 @@ class PalletEstimator:
              weak_below: float | None = None) -> Candidates:
         """The stages after the detector on `det`, highest score first, at most `max_pallets`; with `weak_below`
         (the detector's own boxes), those not above it are weak boxes (`weak_boxes.py`), posed with a calibration
-        only."""
+        only, and the depth's proposals with them (`depth_proposals.py`): first those no detection covers, then,
+        in a second round, those whose covering detections were all refused."""
         for s in STAGES:
             timings.setdefault(s, 0.0)
-        proposed = False
         if T_vehicle_cam is not None and self.options.level is not None and self.options.level.floor_from_depth:
             T_vehicle_cam = self._floor_of_frame(T_vehicle_cam, depth_m, K, timings)
+        held = None
         if weak_below is not None and T_vehicle_cam is None:
             det = self._strong(det)
         elif weak_below is not None and self.options.weak_boxes is not None \
                 and self.options.depth_proposals is not None:
-            det = self._with_depth_proposals(det, depth_m, K, T_vehicle_cam, timings)
-            proposed = True
-        det = det.take(np.argsort(-det.scores, kind="stable")[:self.options.max_pallets])
+            det, held = self._with_depth_proposals(det, depth_m, K, T_vehicle_cam, timings)
+        order = np.argsort(-det.scores, kind="stable")
+        if held is not None:    # the depth's proposals (score 0, `DepthProposals.max_boxes`) keep places of their own
+            own = det.scores[order] == 0.0
+            order = np.concatenate([order[~own][:self.options.max_pallets], order[own]])
+        else:
+            order = order[:self.options.max_pallets]
+        det = det.take(order)
+        cands = self._pose_candidates(rgb, depth_m, K, det, timings, deadline, T_vehicle_cam, weak_below,
+                                      proposed=held is not None)
+        if held is None or not len(held):
+            return cands
+        # the proposals a detection covers are posed where none of the frame's accepted poses took them
+        free = held[self._not_taken(held, cands.boxes_xyxy[cands.alive])]
+        if not len(free):
+            return cands
+        n = len(free)
+        retry = Detections(free, np.zeros(n), np.full(n, min(self._types_of_class)),
+                           None if det.class_scores is None else np.zeros((n, det.class_scores.shape[1])))
+        cands = Candidates.concat([cands, self._pose_candidates(rgb, depth_m, K, retry, timings, deadline,
+                                                                T_vehicle_cam, weak_below, proposed=True)])
+        self._drop_duplicates(cands, timings)
+        return cands
+
+    def _not_taken(self, boxes_xyxy: np.ndarray, taken_xyxy: np.ndarray) -> np.ndarray:
+        """(n,) bool: boxes (n, 4) that no box of `taken_xyxy` (m, 4) covers (`DepthProposals.max_iou`) or holds
+        (`WeakBoxes.max_inside`)."""
+        if len(boxes_xyxy) == 0 or len(taken_xyxy) == 0:
+            return np.ones(len(boxes_xyxy), dtype=bool)
+        covered = box_iou(boxes_xyxy, taken_xyxy).max(axis=1) >= self.options.depth_proposals.max_iou
+        if self.options.weak_boxes is not None:
+            covered |= inside_fraction(boxes_xyxy, taken_xyxy) >= self.options.weak_boxes.max_inside
+        return ~covered
+
+    def _pose_candidates(self, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray, det: Detections,
+                         timings: dict[str, float], deadline: Deadline, T_vehicle_cam: np.ndarray | None,
+                         weak_below: float | None, proposed: bool) -> Candidates:
+        """The stages after the detector on every row of `det` (`proposed`: its score-0 rows are the depth's
+        proposals)."""
         options = self._type_options(det)
         type_index = [o[0] for o in options]   # the type choice may change it
         cands = Candidates.new(det.boxes_xyxy, det.scores, det.class_ids, type_index, self.spec.num_points, options)
@@ -566,14 +603,15 @@ class PalletEstimator:
         return T_vehicle_cam if floor is None else on_floor(T_vehicle_cam, floor)
 
     def _with_depth_proposals(self, det: Detections, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
-                              timings: dict[str, float]) -> Detections:
-        """`det` and the depth's proposals (`depth_proposals.py`) that no detection covers, at score 0 (with class
-        scores 0 where the detector gives them, so the type choice weighs every class's types)."""
+                              timings: dict[str, float]) -> tuple[Detections, np.ndarray]:
+        """`det` and the depth's proposals (`depth_proposals.py`, the nearest `max_boxes`) that no detection covers,
+        at score 0 (with class scores 0 where the detector gives them, so the type choice weighs every class's
+        types); and the (m, 4) boxes of the proposals a detection covers, held back."""
         t = time.perf_counter()
         p = self.options.depth_proposals
-        boxes = propose_boxes(depth_m, K, T_vehicle_cam, p)
-        if len(boxes) and len(det):
-            boxes = boxes[box_iou(boxes, det.boxes_xyxy).max(axis=1) < p.max_iou]
+        boxes = propose_boxes(depth_m, K, T_vehicle_cam, p)[:p.max_boxes]
+        free = self._not_taken(boxes, det.boxes_xyxy)
+        boxes, held = boxes[free], boxes[~free]
         if len(boxes):
             n = len(boxes)
             cs = None if det.class_scores is None else \
@@ -581,7 +619,7 @@ class PalletEstimator:
             det = Detections(np.concatenate([det.boxes_xyxy, boxes]), np.concatenate([det.scores, np.zeros(n)]),
                              np.concatenate([det.class_ids, np.full(n, min(self._types_of_class))]), cs)
         timings["proposals"] = timings.get("proposals", 0.0) + elapsed_ms(t)
-        return det
+        return det, held
 
     def _frame_proposals(self, cands: Candidates, K: np.ndarray, image_hw: tuple[int, int],
                          from_depth: np.ndarray) -> None:

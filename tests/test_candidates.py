@@ -32,6 +32,17 @@ def test_mask_and_index_selection_give_copies_of_the_rows(index):
     assert c.confidence[1] == 0.5
 
 
+def test_concat_keeps_every_row_and_field_in_order():
+    a, b = _cands(2), _cands(3)
+    b.assign([0], confidence=[0.4], pixels=[(np.array([7]), np.array([8]))])
+    b.reject([2], "poor_fit", "fit 0.1 < 0.2")
+    c = Candidates.concat([a, b])
+    assert len(c) == 5 and c.alive.tolist() == [True, True, True, True, False]
+    np.testing.assert_array_equal(c.boxes_xyxy, np.concatenate([a.boxes_xyxy, b.boxes_xyxy]))
+    assert c.confidence[2] == 0.4 and c.pixels[2][0].tolist() == [7] and c.detail[4] == "fit 0.1 < 0.2"
+    assert len(Candidates.concat([a, b[b.alive & False]])) == 2
+
+
 def test_reject_sets_reasons_and_details_and_alive_follows():
     c = _cands()
     c.reject(np.array([0, 2]), "poor_fit", ["fit 0.1", "fit 0.0"])

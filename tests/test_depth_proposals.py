@@ -123,7 +123,7 @@ def test_inputs_of_the_wrong_shape_are_refused(depth, K_, T, match):
 @pytest.mark.parametrize("field, value", [
     ("band_m", (0.2, 0.1)), ("band_m", (-0.1, 0.2)), ("width_m", (1.0, 0.5)), ("max_range_m", 0.0),
     ("min_height_m", float("nan")), ("cell_m", True), ("stride", 0), ("stride", 1.5), ("min_points", 0),
-    ("margin", 1.5), ("max_iou", -0.1),
+    ("margin", 1.5), ("max_iou", -0.1), ("max_boxes", 0), ("max_boxes", 2.0),
 ])
 def test_proposal_params_are_checked(field, value):
     with pytest.raises(ValueError, match=f"DepthProposals.{field}"):
@@ -207,6 +207,52 @@ def test_proposals_a_detection_covers_are_not_posed_again(forklift_frame):
     res = _blind_estimator(det, depth_proposals=DepthProposals()).estimate(f.rgb, f.depth_m, f.K,
                                                                            T_vehicle_cam=f.T_vehicle_cam)
     assert all(p.detector_score == 0.9 for p in res.poses + res.rejected)
+
+
+def test_a_proposal_whose_detection_is_refused_is_posed_in_a_second_round(forklift_frame, monkeypatch):
+    """A detection covering a proposal holds it back; where that detection's pose is refused, the proposal is
+    posed after all, and its pose is kept where it shows a pallet."""
+    f = forklift_frame
+    proposed = propose_boxes(f.depth_m, f.K, f.T_vehicle_cam)
+    first = _blind_estimator(Detections.empty()).estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    kept = [p for p in first.poses if np.allclose(p.box_xyxy, proposed[0])]
+    assert kept                                    # the nearest proposal alone shows a pallet
+    grown = proposed[:1] + np.array([[-3.0, -3.0, 3.0, 3.0]])            # the detector's box around the same pallet
+    det = Detections(grown, np.array([0.9]), np.zeros(1, np.int64))
+    est = _blind_estimator(det)
+    real_check = est.fit_check
+
+    def refuse_the_detection(cands, *args, **kwargs):
+        real_check(cands, *args, **kwargs)
+        cands.reject(np.flatnonzero(cands.alive & (cands.scores == 0.9)), "poor_fit", "refused by the test")
+
+    monkeypatch.setattr(est, "fit_check", refuse_the_detection)
+    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert [r.reason for r in res.rejected if r.detector_score == 0.9] == ["poor_fit"]
+    again = [p for p in res.poses if np.allclose(p.box_xyxy, proposed[0])]
+    assert len(again) == 1 and again[0].detector_score == 0.0
+    np.testing.assert_allclose(again[0].T_cam_pallet, kept[0].T_cam_pallet, atol=1e-6)
+    # accepted, the detection's pose takes the proposal: it is not posed
+    res = _blind_estimator(det).estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert [p.detector_score for p in res.poses if np.allclose(p.box_xyxy, grown[0])] == [0.9]
+    assert not [p for p in res.poses + res.rejected if np.allclose(p.box_xyxy, proposed[0])]
+
+
+def test_proposals_keep_places_beside_a_full_list_of_detections(forklift_frame):
+    """The detector's `max_pallets` boxes do not crowd out the depth's proposals (at most `max_boxes`, nearest
+    first)."""
+    f = forklift_frame
+    proposed = propose_boxes(f.depth_m, f.K, f.T_vehicle_cam)
+    far = np.array([[10.0 + 30 * i, 5.0, 30.0 + 30 * i, 15.0] for i in range(3)])     # boxes above the horizon
+    det = Detections(far, np.full(3, 0.9), np.zeros(3, np.int64))
+    for max_boxes in (1, 4):
+        res = _blind_estimator(det, max_pallets=3, depth_proposals=DepthProposals(max_boxes=max_boxes)).estimate(
+            f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+        rows = res.poses + res.rejected
+        assert sum(r.detector_score == 0.9 for r in rows) == 3
+        from_depth = [r.box_xyxy for r in rows if r.detector_score == 0.0]
+        assert len(from_depth) == min(max_boxes, len(proposed))
+        np.testing.assert_allclose(from_depth[0], proposed[0])
 
 
 def test_proposals_are_judged_as_weak_detections(forklift_frame):
