@@ -118,7 +118,7 @@ class FitCheckStage:
                 cands.reject(mine[bad], reason, [_structure_detail(scores[k]) for k in bad])
             judged = [k for k, sc in enumerate(scores) if sc.ok and weak[mine[k]]]
             why = weak_box_failures([scores[k].agreement for k in judged], [scores[k].open_fraction for k in judged],
-                                    self.weak)
+                                    self.weak, [scores[k].box_cut for k in judged])
             short = [(mine[k], w) for k, w in zip(judged, why) if w]
             cands.reject(np.array([i for i, _ in short], dtype=np.int64), "no_pallet_structure",
                          [self._weak_detail(cands, i, w) for i, w in short])

@@ -41,7 +41,7 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     assert relaxed.min_agreement == 0.5 and relaxed.grid == 32
     assert load(tmp_path, "[estimator]\nweak_boxes = false\n" + CAMERA_FRAME).estimator.weak_boxes is None
     weak = load(tmp_path, "[estimator]\nweak_boxes = {score_threshold = 0.15}\n" + CAMERA_FRAME).estimator.weak_boxes
-    assert weak.score_threshold == 0.15 and weak.min_open_fraction == 0.85
+    assert weak.score_threshold == 0.15 and weak.min_open_fraction == 0.7 and weak.min_open_fraction_cut == 0.85
     assert load(tmp_path, "[estimator]\ndepth_proposals = false\n" + CAMERA_FRAME).estimator.depth_proposals is None
     near = load(tmp_path, "[estimator]\ndepth_proposals = {max_range_m = 4.0}\n" + CAMERA_FRAME).estimator
     assert near.depth_proposals.max_range_m == 4.0 and near.depth_proposals.band_m == (0.05, 0.19)

@@ -7,32 +7,39 @@ import pytest
 
 from pallet6d.runtime.detector import Detections
 from pallet6d.runtime.estimator import EstimatorOptions, PalletEstimator
-from pallet6d.runtime.weak_boxes import WeakBoxes, inside_fraction, weak_box_failures
+from pallet6d.runtime.weak_boxes import CUT_NOTE, WeakBoxes, inside_fraction, weak_box_failures
 
 SHIPPED = Path(__file__).resolve().parents[1] / "models" / "epal-default"
 
 
-@pytest.mark.parametrize("agreement, open_fraction, expected", [
-    ([0.9], [0.9], [""]),
-    ([0.85], [0.85], [""]),                                   # the thresholds themselves pass
-    ([0.8], [0.9], ["agreement 0.80 < 0.85"]),
-    ([0.9], [0.4], ["openings open 0.40 < 0.85"]),
-    ([0.5], [0.1], ["agreement 0.50 < 0.85, openings open 0.10 < 0.85"]),
-    ([np.nan], [0.9], ["agreement nan < 0.85"]),             # no evidence is no clear structure
-    ([0.9], [np.nan], ["openings open nan < 0.85"]),
-    ([], [], []),
+@pytest.mark.parametrize("agreement, open_fraction, box_cut, expected", [
+    ([0.9], [0.9], None, [""]),
+    ([0.85], [0.7], None, [""]),                              # the thresholds themselves pass
+    ([0.85], [0.85], [True], [""]),
+    ([0.8], [0.9], None, ["agreement 0.80 < 0.85"]),
+    ([0.9], [0.4], None, ["openings open 0.40 < 0.7"]),
+    ([0.9], [0.75], [False], [""]),
+    ([0.9], [0.75], [True], ["openings open 0.75 < 0.85" + CUT_NOTE]),   # a cut box shows more, or is refused
+    ([0.5], [0.1], [False], ["agreement 0.50 < 0.85, openings open 0.10 < 0.7"]),
+    ([np.nan], [0.9], None, ["agreement nan < 0.85"]),       # no evidence is no clear structure
+    ([0.9], [np.nan], [True], ["openings open nan < 0.85" + CUT_NOTE]),
+    ([0.9, 0.9], [0.8, 0.8], [False, True], ["", "openings open 0.80 < 0.85" + CUT_NOTE]),
+    ([], [], None, []),
 ])
-def test_weak_box_failures(agreement, open_fraction, expected):
-    assert weak_box_failures(agreement, open_fraction, WeakBoxes()) == expected
+def test_weak_box_failures(agreement, open_fraction, box_cut, expected):
+    assert weak_box_failures(agreement, open_fraction, WeakBoxes(), box_cut) == expected
 
 
-def test_weak_box_failures_needs_one_value_of_each_per_pose():
-    with pytest.raises(ValueError, match="2 agreements but 1 open"):
-        weak_box_failures([0.9, 0.9], [0.9], WeakBoxes())
+@pytest.mark.parametrize("agreement, open_fraction, box_cut, match", [
+    ([0.9, 0.9], [0.9], None, "2 agreements but 1 open"), ([0.9], [0.9], [True, False], "and 2 cut flags")])
+def test_weak_box_failures_needs_one_value_of_each_per_pose(agreement, open_fraction, box_cut, match):
+    with pytest.raises(ValueError, match=match):
+        weak_box_failures(agreement, open_fraction, WeakBoxes(), box_cut)
 
 
 @pytest.mark.parametrize("field, value", [("score_threshold", -0.1), ("min_agreement", 1.5),
-                                          ("min_open_fraction", "0.8"), ("score_threshold", True),
+                                          ("min_open_fraction", "0.8"), ("min_open_fraction_cut", 1.2),
+                                          ("score_threshold", True),
                                           ("min_agreement", float("nan"))])
 def test_weak_box_params_are_checked(field, value):
     with pytest.raises(ValueError, match=f"WeakBoxes.{field}"):
@@ -77,7 +84,8 @@ def _outcome(res):
 def test_weak_boxes_count_only_with_a_calibration_and_never_in_detect(forklift_frame):
     f, boxes = forklift_frame
     scores = np.full(len(boxes), 0.15)
-    est = _estimator(boxes, scores, weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0))
+    est = _estimator(boxes, scores, weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0,
+                                                         min_open_fraction_cut=0.0))
     assert est.detector.score_threshold == pytest.approx(0.1)     # the boxes are decoded down to the weak threshold
     assert len(est.detect(f.rgb)) == 0                           # `detect` keeps the detector's own threshold
     plain = est.estimate(f.rgb, f.depth_m, f.K)
@@ -96,14 +104,16 @@ def test_weak_boxes_are_judged_as_strong_ones_and_must_also_show_clear_structure
     ref = strong.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
     assert ref.poses
     # weak boxes without demands beyond the structure check: the same poses and rejections
-    lax = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0))
+    lax = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0,
+                                                                            min_open_fraction_cut=0.0))
     res = lax.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
     assert _outcome(res) == _outcome(ref)
     for a, b in zip(res.poses, ref.poses):
         np.testing.assert_allclose(a.T_cam_pallet, b.T_cam_pallet)
     # demands no pose meets: every pose the structure check accepted is refused, and says why
     strict = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(min_agreement=1.0,
-                                                                                 min_open_fraction=1.0))
+                                                                                 min_open_fraction=1.0,
+                                                                                 min_open_fraction_cut=1.0))
     res = strict.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
     accepted = {tuple(p.box_xyxy.round(3)) for p in ref.poses}
     refused_weak = [r for r in res.rejected if "weak detection (score 0.15)" in r.detail]
@@ -113,7 +123,8 @@ def test_weak_boxes_are_judged_as_strong_ones_and_must_also_show_clear_structure
     # a strong box beside weak ones is judged as before
     mixed_scores = np.full(len(boxes), 0.15)
     mixed_scores[0] = 0.6
-    res = _estimator(boxes, mixed_scores, weak_boxes=WeakBoxes(min_agreement=1.0, min_open_fraction=1.0)).estimate(
+    res = _estimator(boxes, mixed_scores, weak_boxes=WeakBoxes(min_agreement=1.0, min_open_fraction=1.0,
+                                                                           min_open_fraction_cut=1.0)).estimate(
         f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
     first = tuple(boxes[0].round(3))
     assert dict(_outcome(res))[first] == dict(_outcome(ref))[first]
@@ -163,7 +174,8 @@ def test_a_weak_box_inside_a_stronger_one_is_not_posed(forklift_frame):
 def test_weak_boxes_the_network_is_unsure_of_go_no_further(forklift_frame, monkeypatch):
     f, boxes = forklift_frame
     est = _estimator(boxes, np.full(len(boxes), 0.15),
-                     weak_boxes=WeakBoxes(min_agreement=0, min_open_fraction=0, min_confidence=1.0), min_confidence=1.0)
+                     weak_boxes=WeakBoxes(min_agreement=0, min_open_fraction=0, min_open_fraction_cut=0,
+                                          min_confidence=1.0), min_confidence=1.0)
     refined = []
     real = est.refiner.__class__.__call__
 
@@ -174,7 +186,7 @@ def test_weak_boxes_the_network_is_unsure_of_go_no_further(forklift_frame, monke
     monkeypatch.setattr(est.refiner.__class__, "__call__", spy)
     res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
     assert res.poses == [] and {r.reason for r in res.rejected} == {"low_confidence"}
-    assert refined == [0]                                        # none of them reached the refinement
+    assert refined and not any(refined)          # none of them reached the refinement (nor the depth's proposals)
 
 
 def test_a_box_at_the_threshold_itself_is_weak_as_the_decoding_says(forklift_frame):
@@ -191,11 +203,13 @@ def test_poses_the_network_is_unsure_of_are_weak_with_a_calibration(forklift_fra
     assert ref.poses
     # every pose under `min_confidence` but above the weak floor: judged as before when weak poses need nothing more
     lax = _estimator(boxes, np.full(len(boxes), 0.6), min_confidence=1.0,
-                     weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0, min_confidence=0.0))
+                     weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0, min_open_fraction_cut=0.0,
+                                          min_confidence=0.0))
     assert _outcome(lax.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)) == _outcome(ref)
     # ...and refused, saying why, where they must show more than any pose does
     strict = _estimator(boxes, np.full(len(boxes), 0.6), min_confidence=1.0,
-                        weak_boxes=WeakBoxes(min_agreement=1.0, min_open_fraction=1.0, min_confidence=0.0))
+                        weak_boxes=WeakBoxes(min_agreement=1.0, min_open_fraction=1.0, min_open_fraction_cut=1.0,
+                                             min_confidence=0.0))
     res = strict.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
     unsure = [r for r in res.rejected if "a pose of network confidence" in r.detail]
     accepted = {tuple(p.box_xyxy.round(3)) for p in ref.poses}
