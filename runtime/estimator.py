@@ -492,7 +492,7 @@ class PalletEstimator:
         """The stages after the detector on `det`, highest score first, at most `max_pallets`; with `weak_below`
         (the detector's own boxes), those not above it are weak boxes (`weak_boxes.py`), posed with a calibration
         only, and the depth's proposals with them (`depth_proposals.py`): first those no detection covers, then,
-        in a second round, those whose covering detections were all refused."""
+        in a second round, those no accepted pose covers."""
         for s in STAGES:
             timings.setdefault(s, 0.0)
         if T_vehicle_cam is not None and self.options.level is not None and self.options.level.floor_from_depth:

@@ -63,7 +63,8 @@ def weak_box_failures(agreement: np.ndarray, open_fraction: np.ndarray, params: 
     """Why each weak detection's posed pallet falls short ("" where it does not).
 
     :param agreement: (n,) structure agreement of the poses. :param open_fraction: (n,) their open fractions
-        (NaN counts as short). :param box_cut: (n,) bool: boxes the image's edge cuts (None: none).
+        (NaN counts as short). :param box_cut: (n,) bool: boxes the image's top or bottom edge cuts
+        (`StructureScore.box_cut`; None: none).
     :return: n sentences."""
     agreement = np.asarray(agreement, dtype=np.float64).reshape(-1)
     open_fraction = np.asarray(open_fraction, dtype=np.float64).reshape(-1)
