@@ -518,9 +518,7 @@ class PalletEstimator:
         free = held[self._not_taken(held, cands.boxes_xyxy[cands.alive])]
         if not len(free):
             return cands
-        n = len(free)
-        retry = Detections(free, np.zeros(n), np.full(n, min(self._types_of_class)),
-                           None if det.class_scores is None else np.zeros((n, det.class_scores.shape[1])))
+        retry = self._proposed(det.take(np.zeros(0, dtype=np.int64)), free)
         cands = Candidates.concat([cands, self._pose_candidates(rgb, depth_m, K, retry, timings, deadline,
                                                                 T_vehicle_cam, weak_below, proposed=True)])
         self._drop_duplicates(cands, timings)
@@ -604,22 +602,24 @@ class PalletEstimator:
 
     def _with_depth_proposals(self, det: Detections, depth_m: np.ndarray, K: np.ndarray, T_vehicle_cam: np.ndarray,
                               timings: dict[str, float]) -> tuple[Detections, np.ndarray]:
-        """`det` and the depth's proposals (`depth_proposals.py`, the nearest `max_boxes`) that no detection covers,
-        at score 0 (with class scores 0 where the detector gives them, so the type choice weighs every class's
-        types); and the (m, 4) boxes of the proposals a detection covers, held back."""
+        """`det` and the depth's proposals (`depth_proposals.py`, the nearest `max_boxes`) that no detection covers
+        (`_proposed`); and the (m, 4) boxes of the proposals a detection covers, held back."""
         t = time.perf_counter()
         p = self.options.depth_proposals
         boxes = propose_boxes(depth_m, K, T_vehicle_cam, p)[:p.max_boxes]
         free = self._not_taken(boxes, det.boxes_xyxy)
-        boxes, held = boxes[free], boxes[~free]
-        if len(boxes):
-            n = len(boxes)
-            cs = None if det.class_scores is None else \
-                np.concatenate([det.class_scores, np.zeros((n, det.class_scores.shape[1]))])
-            det = Detections(np.concatenate([det.boxes_xyxy, boxes]), np.concatenate([det.scores, np.zeros(n)]),
-                             np.concatenate([det.class_ids, np.full(n, min(self._types_of_class))]), cs)
+        det = self._proposed(det, boxes[free])
         timings["proposals"] = timings.get("proposals", 0.0) + elapsed_ms(t)
-        return det, held
+        return det, boxes[~free]
+
+    def _proposed(self, det: Detections, boxes_xyxy: np.ndarray) -> Detections:
+        """`det` with the depth's proposals (n, 4) after it: score 0, class scores 0 where the detector gives them
+        (so the type choice weighs every class's types)."""
+        n = len(boxes_xyxy)
+        cs = None if det.class_scores is None else \
+            np.concatenate([det.class_scores, np.zeros((n, det.class_scores.shape[1]))])
+        return Detections(np.concatenate([det.boxes_xyxy, boxes_xyxy]), np.concatenate([det.scores, np.zeros(n)]),
+                          np.concatenate([det.class_ids, np.full(n, min(self._types_of_class))]), cs)
 
     def _frame_proposals(self, cands: Candidates, K: np.ndarray, image_hw: tuple[int, int],
                          from_depth: np.ndarray) -> None:
