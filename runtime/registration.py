@@ -57,10 +57,23 @@ class RegistrationScore:
         """Enough pairs to judge the frame (else no evidence either way)."""
         return bool(np.isfinite(self.peak))
 
-    def mismatch(self, min_peak: float, registered_auc: float) -> bool:
-        """Is the depth not this image's? Judged, the peak below `min_peak` and AUC(0) below `registered_auc`;
+    def mismatch(self, min_peak: float, registered_auc: float, weak_auc: float = 0.0) -> bool:
+        """Is the depth not this image's? Judged, the peak below `min_peak` and AUC(0) below `registered_auc`, or
+        AUC(0) below `weak_auc` (the depth's edges barely follow the image's) and the peak below twice `min_peak`;
         `min_peak` 0 never refuses."""
-        return bool(min_peak > 0 and self.judged and self.peak < min_peak and self.auc_0 < registered_auc)
+        if not (min_peak > 0 and self.judged):
+            return False
+        return bool((self.peak < min_peak and self.auc_0 < registered_auc)
+                    or (self.auc_0 < weak_auc and self.peak < 2.0 * min_peak))
+
+    def flat(self, min_pairs: int, min_jump_fraction: float) -> bool:
+        """Does the depth show no surface ending where the image shows edges? At least `min_pairs` pairs with valid
+        depth and as many colour edges, and fewer than `min_jump_fraction` of those pairs jump: a flat wall's depth,
+        a frozen one. A pallet's outline and its openings are steps in its depth. `min_jump_fraction` 0 never
+        refuses."""
+        pairs = self.jump_pairs + self.other_pairs
+        return bool(min_jump_fraction > 0 and pairs >= min_pairs and self.colour_edge_pairs >= min_pairs
+                    and self.jump_pairs < min_jump_fraction * pairs)
 
     @classmethod
     def unjudged(cls, colour_edge_pairs: int = 0) -> "RegistrationScore":

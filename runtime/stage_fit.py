@@ -95,11 +95,7 @@ class FitCheckStage:
             else:
                 reg, refused = frame_registration(depth_m, rgb, boxes, p)
             if refused:
-                cands.reject(rows, "depth_image_mismatch",
-                             f"depth_image_mismatch: the frame's depth edges agree with the image's at AUC "
-                             f"{reg.auc_0:.2f}, and as well with the depth shifted {p.registration_shift_px} px "
-                             f"(AUC {reg.auc_shifted:.2f}, peak {reg.peak:.3f} < {p.min_registration_peak}): depth of "
-                             "another frame, or not registered to the colour image?")
+                cands.reject(rows, "depth_image_mismatch", _registration_detail(reg, p))
                 return
         unjudged = np.array([i for i in rows if weak[i] and self.geometries[int(cands.type_index[i])].boxes_m is None],
                             dtype=np.int64)
@@ -182,6 +178,20 @@ def _rejection_reason(structure_reason: str) -> str:
     """The candidates' rejection reason of a failed structure test: the tests that say the inputs do not belong
     together keep their own, the others are "no_pallet_structure"."""
     return structure_reason if structure_reason in ("size_mismatch", "depth_image_mismatch") else "no_pallet_structure"
+
+
+def _registration_detail(reg, p: StructureParams) -> str:
+    """Why the registration test refused the frame (`frame_registration`)."""
+    if reg.flat(int(p.registration_min_pairs), p.registration_min_jump_fraction):
+        pairs = reg.jump_pairs + reg.other_pairs
+        return (f"depth_image_mismatch: the frame's depth is flat around its candidates ({reg.jump_pairs} of {pairs} "
+                f"pixel pairs step, fewer than {100 * p.registration_min_jump_fraction:g} %) where the image shows "
+                f"{reg.colour_edge_pairs} edges: a wall's or a frozen depth, or not this image's?")
+    need = f"{p.min_registration_peak:g}" if reg.peak < p.min_registration_peak else \
+        f"{2.0 * p.min_registration_peak:g}, twice the threshold at an AUC below {p.registration_weak_edge_auc:g}"
+    return (f"depth_image_mismatch: the frame's depth edges agree with the image's at AUC {reg.auc_0:.2f}, and "
+            f"almost as well with the depth shifted {p.registration_shift_px} px (AUC {reg.auc_shifted:.2f}, peak "
+            f"{reg.peak:.3f} < {need}): depth of another frame, or not registered to the colour image?")
 
 
 def _structure_detail(s) -> str:

