@@ -69,8 +69,8 @@ class RegistrationScore:
     def flat(self, min_pairs: int, min_jump_fraction: float) -> bool:
         """Does the depth show no surface ending where the image shows edges? At least `min_pairs` pairs with valid
         depth and as many colour edges, and fewer than `min_jump_fraction` of those pairs jump: a flat wall's depth,
-        a frozen one. A pallet's outline and its openings are steps in its depth. `min_jump_fraction` 0 never
-        refuses."""
+        a depth stuck at one value. A pallet's outline and its openings are steps in its depth.
+        `min_jump_fraction` 0 never refuses."""
         pairs = self.jump_pairs + self.other_pairs
         return bool(min_jump_fraction > 0 and pairs >= min_pairs and self.colour_edge_pairs >= min_pairs
                     and self.jump_pairs < min_jump_fraction * pairs)

@@ -186,7 +186,7 @@ def _registration_detail(reg, p: StructureParams) -> str:
         pairs = reg.jump_pairs + reg.other_pairs
         return (f"depth_image_mismatch: the frame's depth is flat around its candidates ({reg.jump_pairs} of {pairs} "
                 f"pixel pairs step, fewer than {100 * p.registration_min_jump_fraction:g} %) where the image shows "
-                f"{reg.colour_edge_pairs} edges: a wall's or a frozen depth, or not this image's?")
+                f"{reg.colour_edge_pairs} edges: a wall's depth or one stuck at one value, or not this image's?")
     need = f"{p.min_registration_peak:g}" if reg.peak < p.min_registration_peak else \
         f"{2.0 * p.min_registration_peak:g}, twice the threshold at an AUC below {p.registration_weak_edge_auc:g}"
     return (f"depth_image_mismatch: the frame's depth edges agree with the image's at AUC {reg.auc_0:.2f}, and "

@@ -143,14 +143,14 @@ class StructureParams:
         depth's edges lie on the image's so clearly that a repeating scene, similar at the shift, cannot explain it).
     :ivar registration_weak_edge_auc: a frame whose AUC(0) is below this (its depth's edges barely follow the
         image's; 0.5 is chance) needs twice `min_registration_peak`. Another frame's depth from a scene much like
-        this one (a row of pallets on a rack beam at the same range) can peak just above the threshold; the frame's
-        own depth had AUC(0) of at least 0.646 on the validation and test frames' candidates, and then peaks of 0.1
-        or more (docs/structure-check.md); 0 turns it off.
+        this one (a row of pallets on a rack beam at the same range) can peak just above the threshold; a frame's
+        own depth had AUC(0) of at least 0.646 over the candidates of the validation and forklift test frames
+        (docs/structure-check.md); 0 turns it off.
     :ivar registration_min_jump_fraction: a frame whose pairs with valid depth around its candidates (at least
         `registration_min_pairs` of them, with as many colour edges) jump in fewer than this fraction -> every
-        candidate "depth_image_mismatch": the depth is flat where the image shows a scene (a wall's depth, a frozen
-        depth). The frame's own depth jumps in at least 0.0043 of its pairs on the validation and test frames; 0
-        turns it off.
+        candidate "depth_image_mismatch": the depth is flat where the image shows a scene (a wall's depth, a depth
+        stuck at one value). The frame's own depth jumps in at least 0.0043 of its pairs on the validation and test
+        frames; 0 turns it off.
     :ivar registration_shift_px: the depth's shift against the image for the registration peak, pixels (well beyond
         the few pixels by which stereo depth edges stray from the image's).
     :ivar registration_pair_px: pixels between the two pixels of a pair in the registration test.
