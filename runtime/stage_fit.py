@@ -84,7 +84,8 @@ class FitCheckStage:
             the boxes it tests. :param weak: (n,) bool over all rows of `cands`: weak detections (`weak_boxes.py`),
             or None. :param from_depth: (n,) bool: rows whose box the depth proposed (`depth_proposals.py`), or None;
             the registration test leaves them out (a box drawn from the depth says nothing of where the image's
-            edges lie), and its refusal refuses them too."""
+            edges lie), and its refusal refuses them too, except where it found the depth flat around the others'
+            boxes: a proposal stands where the depth is not."""
         p = self.structure
         weak = np.zeros(len(cands), bool) if weak is None else weak
         tested = rows if from_depth is None else rows[~from_depth[rows]]
@@ -95,8 +96,12 @@ class FitCheckStage:
             else:
                 reg, refused = frame_registration(depth_m, rgb, boxes, p)
             if refused:
-                cands.reject(rows, "depth_image_mismatch", _registration_detail(reg, p))
-                return
+                # only flat around the detections' boxes: those are refused, the depth's proposals judged on
+                every = reg.mismatch(p.min_registration_peak, p.registered_edge_auc, p.registration_weak_edge_auc)
+                cands.reject(rows if every else tested, "depth_image_mismatch", _registration_detail(reg, p))
+                rows = rows[:0] if every else np.setdiff1d(rows, tested)
+                if not len(rows):
+                    return
         unjudged = np.array([i for i in rows if weak[i] and self.geometries[int(cands.type_index[i])].boxes_m is None],
                             dtype=np.int64)
         cands.reject(unjudged, "no_pallet_structure",

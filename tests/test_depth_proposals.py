@@ -341,3 +341,18 @@ def test_the_registration_test_judges_the_detectors_boxes_only(forklift_frame, m
     seen.clear()
     _blind_estimator(Detections.empty()).estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
     assert seen == []
+
+
+def test_a_detection_on_flat_depth_is_refused_and_the_depths_proposals_still_posed(forklift_frame):
+    """Flat depth around the detector's boxes refuses those boxes (no pallet stands there, or the depth is a
+    wall's); a proposal stands where the depth is not flat, so it is posed and judged as without that box."""
+    f = forklift_frame
+    depth = f.depth_m.copy()
+    depth[:120, :320] = 4.0
+    alone = _blind_estimator(Detections.empty()).estimate(f.rgb, depth, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    assert alone.poses                                # the proposals alone show pallets
+    det = Detections(np.array([[20.0, 10.0, 180.0, 50.0]]), np.array([0.9]), np.zeros(1, np.int64))
+    res = _blind_estimator(det).estimate(f.rgb, depth, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    refused = [r for r in res.rejected if r.detector_score == 0.9]
+    assert [r.reason for r in refused] == ["depth_image_mismatch"] and "flat" in refused[0].detail
+    assert [p.box_xyxy.tolist() for p in res.poses] == [p.box_xyxy.tolist() for p in alone.poses]
