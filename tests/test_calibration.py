@@ -66,6 +66,19 @@ def test_floor_check_agrees_when_still_and_disagrees_when_knocked():
     assert check_floor(cal.floor, np.zeros((H, W), np.float32), K).agrees is None
 
 
+def test_floor_check_disagrees_with_a_focal_length_off():
+    """Depth read with the wrong intrinsics puts the floor elsewhere: a focal length 2x too long (which the
+    structure check cannot always see in a box cut by the image's edge) stops vehicle-frame output at start."""
+    T_vc = camera(0.8, 10.0)
+    depth = render(T_vc, pallet_pose(2.5))
+    long_K = np.array(K, dtype=float)
+    long_K[0, 0] *= 2.0
+    long_K[1, 1] *= 2.0
+    assert check_floor(_calibration(T_vc).floor, depth, long_K).agrees is False
+    mon = CalibrationMonitor(_calibration(T_vc))
+    assert mon.update(depth, long_K).agrees is False and not mon.ok
+
+
 def test_monitor_stops_vehicle_output_after_a_knock_and_resumes_when_the_floor_agrees_again():
     T_vc = camera(0.8, 10.0)
     mon = CalibrationMonitor(_calibration(T_vc), every_n=5, n_bad=2, n_good=2)
