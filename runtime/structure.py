@@ -36,7 +36,7 @@ Two tests ask whether the depth belongs to the image at all (they fail as "size_
 Before these per-pallet tests the fit-check stage runs the frame-level registration test (`registration.py`, with
 this check's `StructureParams`): the frame's depth edges, pooled over all candidates, must lie on the image's at
 zero shift and not as well with the depth shifted, and the depth must step somewhere around them (it is not flat);
-else every candidate is "depth_image_mismatch".
+else every candidate is "depth_image_mismatch" (a flat depth: the detector's candidates, not the depth's proposals).
 
 Mismatched inputs fail it: depth of a flat wall (openings closed), another frame's depth (nothing agrees, edges
 elsewhere), a depth scale or a focal length that is off (the box's metric size, or the posed model's boards
@@ -147,10 +147,10 @@ class StructureParams:
         own depth had AUC(0) of at least 0.646 over the candidates of the validation and forklift test frames
         (docs/structure-check.md); 0 turns it off.
     :ivar registration_min_jump_fraction: a frame whose pairs with valid depth around its candidates (at least
-        `registration_min_pairs` of them, with as many colour edges) jump in fewer than this fraction -> every
-        candidate "depth_image_mismatch": the depth is flat where the image shows a scene (a wall's depth, a depth
-        stuck at one value). The frame's own depth jumps in at least 0.0043 of its pairs on the validation and test
-        frames; 0 turns it off.
+        `registration_min_pairs` of them, with as many colour edges) jump in fewer than this fraction -> the
+        candidates tested "depth_image_mismatch": the depth is flat where the image shows a scene (a wall's depth, a
+        depth stuck at one value; the depth's proposals are not tested and stand where it is not flat). The frame's
+        own depth jumps in at least 0.0043 of its pairs on the validation and test frames; 0 turns it off.
     :ivar registration_shift_px: the depth's shift against the image for the registration peak, pixels (well beyond
         the few pixels by which stereo depth edges stray from the image's).
     :ivar registration_pair_px: pixels between the two pixels of a pair in the registration test.
