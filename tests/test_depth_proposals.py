@@ -355,4 +355,7 @@ def test_a_detection_on_flat_depth_is_refused_and_the_depths_proposals_still_pos
     res = _blind_estimator(det).estimate(f.rgb, depth, f.K, T_vehicle_cam=f.T_vehicle_cam)
     refused = [r for r in res.rejected if r.detector_score == 0.9]
     assert [r.reason for r in refused] == ["depth_image_mismatch"] and "flat" in refused[0].detail
-    assert [p.box_xyxy.tolist() for p in res.poses] == [p.box_xyxy.tolist() for p in alone.poses]
+    posed = sorted(r.box_xyxy.tolist() for r in res.poses + res.rejected if r.detector_score == 0.0)
+    assert posed == sorted(r.box_xyxy.tolist() for r in alone.poses + alone.rejected)
+    assert not [r for r in res.rejected if r.detector_score == 0.0 and r.reason == "depth_image_mismatch"]
+    assert res.poses and all(p.detector_score == 0.0 for p in res.poses)
