@@ -13,7 +13,7 @@ from .fit import fit_score
 from .registration import RegistrationScore
 from .stage_geometry import PalletGeometry
 from .stage_refine import fit_array
-from .structure import StructureParams, frame_registration, frame_size_rule, structure_check
+from .structure import StructureParams, frame_registration, frame_size_rule, registration_verdict, structure_check
 from .weak_boxes import WeakBoxes, weak_box_failures
 
 __all__ = ["FitCheckStage", "StartedRegistration"]
@@ -97,8 +97,9 @@ class FitCheckStage:
                 reg, refused = frame_registration(depth_m, rgb, boxes, p)
             if refused:
                 # only flat around the detections' boxes: those are refused, the depth's proposals judged on
-                every = reg.mismatch(p.min_registration_peak, p.registered_edge_auc, p.registration_weak_edge_auc)
-                cands.reject(rows if every else tested, "depth_image_mismatch", _registration_detail(reg, p))
+                verdict = registration_verdict(reg, p)
+                every = verdict == "mismatch"
+                cands.reject(rows if every else tested, "depth_image_mismatch", _registration_detail(reg, p, verdict))
                 rows = rows[:0] if every else np.setdiff1d(rows, tested)
                 if not len(rows):
                     return
@@ -185,9 +186,9 @@ def _rejection_reason(structure_reason: str) -> str:
     return structure_reason if structure_reason in ("size_mismatch", "depth_image_mismatch") else "no_pallet_structure"
 
 
-def _registration_detail(reg, p: StructureParams) -> str:
-    """Why the registration test refused the frame (`frame_registration`)."""
-    if reg.flat(int(p.registration_min_pairs), p.registration_min_jump_fraction):
+def _registration_detail(reg, p: StructureParams, verdict: str) -> str:
+    """Why the registration test refused the frame (`registration_verdict`'s `verdict`)."""
+    if verdict == "flat":
         pairs = reg.jump_pairs + reg.other_pairs
         return (f"depth_image_mismatch: the frame's depth is flat around its candidates ({reg.jump_pairs} of {pairs} "
                 f"pixel pairs step, fewer than {100 * p.registration_min_jump_fraction:g} %) where the image shows "

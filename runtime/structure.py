@@ -54,7 +54,8 @@ from .geometry import check_K
 from .registration import RegistrationScore, registration_score
 
 __all__ = ["BoxSets", "StructureParams", "StructureScore", "structure_check", "structure_agreement", "cast_rays_boxes",
-           "box_metric_size", "edge_agreement", "frame_registration", "frame_size_rule"]
+           "box_metric_size", "edge_agreement", "frame_registration", "frame_size_rule",
+           "registration_verdict"]
 
 _BIG = 1e12
 
@@ -776,7 +777,7 @@ def frame_registration(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
     :param depth_m: (H, W) metres, 0 = no data. :param rgb: (H, W, 3) uint8, the frame's colour image.
     :param boxes_xyxy: (n, 4) the boxes of all the frame's candidates, image pixels.
     :return: the frame's score and whether its depth is refused as not this image's (every candidate of the frame
-        -> "depth_image_mismatch": `RegistrationScore.mismatch`, or `RegistrationScore.flat`); never refused
+        -> "depth_image_mismatch"; a flat depth only the candidates tested: `registration_verdict`); never refused
         without enough evidence or with `min_registration_peak` 0.
     """
     score = registration_score(depth_m, rgb, boxes_xyxy, shift_px=int(params.registration_shift_px),
@@ -786,8 +787,16 @@ def frame_registration(depth_m: np.ndarray, rgb: np.ndarray, boxes_xyxy: np.ndar
                                tol_quad_per_m=params.tol_quad_per_m, min_pairs=int(params.registration_min_pairs),
                                colour_edge=int(params.registration_colour_edge),
                                blur_px=int(params.registration_blur_px))
-    refused = score.mismatch(params.min_registration_peak, params.registered_edge_auc,
-                             params.registration_weak_edge_auc) \
-        or (params.min_registration_peak > 0
-            and score.flat(int(params.registration_min_pairs), params.registration_min_jump_fraction))
-    return score, refused
+    return score, bool(registration_verdict(score, params))
+
+
+def registration_verdict(score: RegistrationScore, params: StructureParams = StructureParams()) -> str:
+    """Why a frame's registration score refuses its depth with the thresholds of `params`: "mismatch" (the depth's
+    edges do not lie on the image's: `RegistrationScore.mismatch`; every candidate is refused), "flat" (no step
+    around the candidates tested: `RegistrationScore.flat`; those candidates are refused), or "" (not refused)."""
+    if score.mismatch(params.min_registration_peak, params.registered_edge_auc, params.registration_weak_edge_auc):
+        return "mismatch"
+    if params.min_registration_peak > 0 \
+            and score.flat(int(params.registration_min_pairs), params.registration_min_jump_fraction):
+        return "flat"
+    return ""

@@ -8,7 +8,7 @@ import pytest
 from pallet6d.runtime.candidates import Candidates
 from pallet6d.runtime.detector import Detections
 from pallet6d.runtime.registration import RegistrationScore, pair_auc, registration_region, registration_score
-from pallet6d.runtime.structure import StructureParams, frame_registration
+from pallet6d.runtime.structure import StructureParams, frame_registration, registration_verdict
 
 H, W = 240, 320
 WALL_M = 6.0
@@ -44,7 +44,7 @@ def _score(depth=DEPTH, rgb=RGB, boxes=BOXES) -> RegistrationScore:
 
 def test_registered_frame_has_a_clear_peak_at_zero_shift():
     s, refused = frame_registration(DEPTH, RGB, BOXES, P)
-    assert s.judged and not refused, s
+    assert s.judged and not refused and registration_verdict(s, P) == "", s
     assert s.auc_0 > 0.85 and s.peak > 0.2, s
     assert s.jump_pairs >= P.registration_min_pairs and s.other_pairs >= P.registration_min_pairs
 
@@ -57,7 +57,7 @@ def test_registered_frame_has_a_clear_peak_at_zero_shift():
 ])
 def test_depth_that_is_not_this_images_is_refused(name, depth):
     s, refused = frame_registration(depth, RGB, BOXES, P)
-    assert s.judged and refused, (name, s)
+    assert s.judged and refused and registration_verdict(s, P) == "mismatch", (name, s)
     assert s.peak < P.min_registration_peak and s.auc_0 < P.registered_edge_auc, (name, s)
 
 
@@ -101,6 +101,8 @@ def test_flat_depth_under_an_image_with_edges_is_refused(name, depth):
     s, refused = frame_registration(depth.astype(np.float32), RGB, BOXES, P)
     assert refused and not s.judged and s.jump_pairs == 0, (name, s)
     assert s.flat(P.registration_min_pairs, P.registration_min_jump_fraction), (name, s)
+    assert registration_verdict(s, P) == "flat"
+    assert registration_verdict(s, dataclasses.replace(P, min_registration_peak=0.0)) == ""     # the test off
     assert not frame_registration(depth.astype(np.float32), RGB, BOXES,
                                   dataclasses.replace(P, registration_min_jump_fraction=0.0))[1], name
 
