@@ -14,8 +14,10 @@ catalogue), which tests the geometry and the pocket check. With it, the estimato
 box overlaps the pallet's most) with the geometry of the type the estimator reports (the bundle's `PalletType`,
 as the daemon does); a pallet whose type the bundle lacks (with `--gt-boxes` the ground truth's, else the
 reported one) is counted apart (`type_unknown`), and `type_ok` says whether the reported type is the ground
-truth's. `--gt-boxes` poses the ground truth's visible boxes
-with the detector class of the ground truth's type instead of the detector's boxes (the pose stage alone).
+truth's. A pose whose centre lies nearer another ground-truth pallet than the one its box overlaps (one up a
+stack) is that pallet's: counted apart (`other_pallet`), not scored as the pallet's own. `--gt-boxes` poses the
+ground truth's visible boxes with the detector class of the ground truth's type instead of the detector's boxes
+(the pose stage alone).
 Pallets are the targets (the pallet the forklift approaches); `--all` adds every other pallet with its face in
 view.
 """
@@ -106,6 +108,12 @@ def evaluate(frames, params: ForkliftParams, estimator=None, all_pallets=False, 
             for name, r in rows.items()}
 
 
+def nearest_pallet(faces: list[dict], T_cam_pallet: np.ndarray) -> dict:
+    """The ground-truth pallet (an entry of a frame's `faces`) whose centre lies nearest a posed pallet's centre."""
+    t = np.asarray(T_cam_pallet, dtype=np.float64)[:3, 3]
+    return min(faces, key=lambda fc: float(np.linalg.norm(np.asarray(fc["T_cam_pallet"])[:3, 3] - t)))
+
+
 def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams, estimator, all_pallets: bool,
                 gt_boxes: bool) -> list[dict]:
     faces = [fc for fc in fr["faces"] if (fc["target"] or all_pallets) and fc["face_centre_vehicle_mm"] is not None]
@@ -134,6 +142,11 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
             best = max(result.poses, key=lambda p: _iou(p.box_xyxy, (x, y, x + w, y + h)), default=None)
             if best is None or _iou(best.box_xyxy, (x, y, x + w, y + h)) < 0.3:
                 rows.append({**row, "detected": False})
+                continue
+            if nearest_pallet(fr["faces"], best.T_cam_pallet) is not fc:
+                # the pose is another pallet's (one up a stack, a neighbour whose box overlaps the target's): its
+                # pockets are that pallet's, so they say nothing of the target's
+                rows.append({**row, "detected": False, "other_pallet": True})
                 continue
             name = best.pallet_type or best.class_name
             geometry = types.get(name)
@@ -174,6 +187,7 @@ def summarize(rows: list[dict]) -> dict:
     return {"pallets": len(rows), "detected": len(typed), "posed": len(posed),
             "type_unknown": sum(1 for r in rows if r.get("type_unknown")),
             "no_pockets": sum(1 for r in rows if r.get("no_pockets")),
+            "other_pallet": sum(1 for r in rows if r.get("other_pallet")),
             "type_ok": sum(r["type_ok"] for r in typed) / len(typed) if typed else None,
             "within_2cm_1deg": len(ok) / max(len(rows), 1),
             "pocket_err_m_median": float(np.median(err)) if err.size else None,

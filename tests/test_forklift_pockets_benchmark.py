@@ -60,3 +60,43 @@ def test_each_pallet_is_scored_with_its_own_type(forklift_bop, tmp_path):
     assert sum(s["pallets"] for s in res["per_type"].values()) == res["pallets"]
     targets = [r for r in res["rows"] if r["target"]]
     assert targets and all(r["pocket_err_m"] < 1e-6 and r["yaw_err_deg"] < 1e-6 for r in targets)
+
+
+class _PoseOn:
+    """An estimator stub whose one pose has the given box and pose."""
+
+    def __init__(self, box_xyxy, T_cam_pallet):
+        from types import SimpleNamespace
+
+        self.result = SimpleNamespace(poses=[SimpleNamespace(box_xyxy=box_xyxy, T_cam_pallet=T_cam_pallet,
+                                                             pallet_type="epal", class_name="pallet")])
+
+    def estimate(self, rgb, depth, K, T_vehicle_cam=None):
+        return self.result
+
+
+def test_a_pose_on_the_pallet_one_up_a_stack_is_not_scored_as_the_target(forklift_bop):
+    import numpy as np
+
+    mod = _module()
+    fr = next(f for f in mod.bop_frames(forklift_bop) if any(fc["target"] for fc in f["faces"]))
+    target = next(fc for fc in fr["faces"] if fc["target"])
+    T_above = np.asarray(target["T_cam_pallet"], dtype=np.float64).copy()
+    T_above[:3, 3] += 0.144 * (np.linalg.inv(fr["T_vehicle_cam"])[:3, :3] @ np.array([0.0, 0.0, 1.0]))
+    above = {**target, "target": False, "T_cam_pallet": T_above.tolist()}
+    fr = {**fr, "faces": [target, above]}
+    x, y, w, h = target["box_xywh"]
+    box = np.array([x, y, x + w, y + h], dtype=np.float64)
+    depth = fr["depths"]["bop"]
+
+    rows = mod._frame_rows(fr, depth, {}, mod.ForkliftParams(), _PoseOn(box, T_above), False, False)
+    assert len(rows) == 1 and rows[0]["other_pallet"] and "pocket_err_m" not in rows[0]
+    summary = mod.summarize(rows)
+    assert summary["other_pallet"] == 1 and summary["posed"] == 0 and summary["detected"] == 0
+    assert sum(summary["pick_safe_table"].values()) == 0
+
+    # the same pose slid 1 cm stays the target's (it lies nearer the target than the pallet above)
+    T_near = np.asarray(target["T_cam_pallet"], dtype=np.float64).copy()
+    T_near[:3, 3] += 0.01
+    assert mod.nearest_pallet(fr["faces"], T_near) is target
+    assert mod.nearest_pallet(fr["faces"], T_above) is above
