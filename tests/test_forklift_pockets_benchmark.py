@@ -7,7 +7,9 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 SCRIPT = Path(__file__).parents[1] / "benchmarks" / "forklift_pockets.py"
@@ -66,8 +68,6 @@ class _PoseOn:
     """An estimator stub whose one pose has the given box and pose."""
 
     def __init__(self, box_xyxy, T_cam_pallet):
-        from types import SimpleNamespace
-
         self.result = SimpleNamespace(poses=[SimpleNamespace(box_xyxy=box_xyxy, T_cam_pallet=T_cam_pallet,
                                                              pallet_type="epal", class_name="pallet")])
 
@@ -76,8 +76,6 @@ class _PoseOn:
 
 
 def test_a_pose_on_the_pallet_one_up_a_stack_is_not_scored_as_the_target(forklift_bop):
-    import numpy as np
-
     mod = _module()
     fr = next(f for f in mod.bop_frames(forklift_bop) if any(fc["target"] for fc in f["faces"]))
     target = next(fc for fc in fr["faces"] if fc["target"])
