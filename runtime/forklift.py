@@ -16,7 +16,10 @@ Per pallet, from its type's geometry (`size_m`, `boxes_m`, `pockets_m`):
   where the pallet's own boards and blocks end the free space) are compared with the observed depth. A surface
   inside the pocket, or in the forks' path just in front of its mouth, is *blocked* evidence; depth at or
   behind where the pocket ends is *open*; a surface further in front (an occluder) or no depth is no evidence.
-  A pocket with too little evidence is *hidden*;
+  The forks' path is checked in volume too: points sampled inside the pocket, between `min_open_depth_m` and
+  `clear_depth_m` in, are *seen free* where the depth lies at or behind them. A pocket with too little evidence,
+  or whose deeper part the depth shows free too little of (seen so obliquely that its own blocks hide what lies
+  past its mouth), is *hidden*;
 - `pick_safe`: false with the reason when the face is seen too obliquely, or a pocket is blocked or hidden.
 
 `forklift_info` does one pallet; `attach_forklift` adds `T_vehicle_pallet` and the forklift outputs to every
@@ -36,8 +39,8 @@ from .level import LevelParams, level_poses
 from .structure import cast_rays_boxes
 
 __all__ = ["ForkliftParams", "Pocket", "ForkliftInfo", "FACE_NORMALS", "front_face", "face_frame_points",
-           "face_yaw_deg", "pocket_evidence", "vehicle_pose", "forklift_info", "attach_forklift",
-           "pallet_types_by_name", "vehicle_frame_result", "PICK_REASONS"]
+           "face_yaw_deg", "pocket_evidence", "pocket_free_fraction", "vehicle_pose", "forklift_info",
+           "attach_forklift", "pallet_types_by_name", "vehicle_frame_result", "PICK_REASONS"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +61,10 @@ class ForkliftParams:
         pocket sooner: into the pallet's own blocks, or through its floor or deck).
     :ivar min_open_depth_m: a ray is open evidence only where it sees this far into the pocket (along it): an
         oblique or steep view that sees only the pocket's first centimetres cannot tell that it is free.
+    :ivar min_free_fraction: of the pocket's volume from `min_open_depth_m` to `clear_depth_m` in (the forks' path
+        past the mouth), the share the depth must show free; less -> hidden. An object past the mouth seen
+        obliquely sits behind the pallet's own block and leaves few blocked rays, but leaves that volume unseen.
+    :ivar slice_m: spacing along the pocket of the volume's sample points (`grid` x `grid` per slice).
     :ivar mouth_m: a surface this close in front of the pocket's mouth is in the forks' path: blocked evidence.
     :ivar tol_m, tol_quad_per_m: depth tolerance `tol_m + tol_quad_per_m * z**2` (stereo noise grows with z**2).
     :ivar min_rays: fewer open + blocked rays -> the pocket is hidden.
@@ -72,6 +79,8 @@ class ForkliftParams:
     inset: float = 0.15
     clear_depth_m: float = 0.4
     min_open_depth_m: float = 0.2
+    min_free_fraction: float = 0.1
+    slice_m: float = 0.025
     mouth_m: float = 0.1
     tol_m: float = 0.03
     tol_quad_per_m: float = 0.006
@@ -88,8 +97,11 @@ class ForkliftParams:
         for name in ("clear_depth_m", "min_open_depth_m", "mouth_m", "tol_m", "tol_quad_per_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        if not 0.0 <= self.max_blocked_fraction <= 1.0:
-            raise ValueError(f"max_blocked_fraction must be in [0, 1], got {self.max_blocked_fraction}")
+        if not self.slice_m > 0:
+            raise ValueError(f"slice_m must be > 0, got {self.slice_m}")
+        for name in ("max_blocked_fraction", "min_free_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if not 0.0 < self.max_view_angle_deg <= 90.0:
             raise ValueError(f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}")
 
@@ -110,6 +122,7 @@ class Pocket:
     :ivar side: "left" or "right", seen from the forklift. :ivar centre_vehicle_m: (3,) centre of the opening in
     the face plane. :ivar width_m, height_m: the opening's size. :ivar state: "clear", "blocked" or "hidden".
     :ivar open_rays, blocked_rays: the depth evidence (rays through the opening).
+    :ivar free_fraction: share of the forks' path past the mouth that the depth shows free (`pocket_free_fraction`).
     """
 
     side: str
@@ -119,6 +132,7 @@ class Pocket:
     state: str
     open_rays: int = 0
     blocked_rays: int = 0
+    free_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         if self.side not in ("left", "right"):
@@ -131,11 +145,16 @@ class Pocket:
             if not v > 0:
                 raise ValueError(f"Pocket.{name} must be positive, got {v}")
             object.__setattr__(self, name, v)
+        f = float(self.free_fraction)
+        if not 0.0 <= f <= 1.0:
+            raise ValueError(f"Pocket.free_fraction must be in [0, 1], got {f}")
+        object.__setattr__(self, "free_fraction", f)
 
     def to_dict(self) -> dict:
         return {"side": self.side, "centre_m": [round(float(x), 4) for x in self.centre_vehicle_m],
                 "width_m": round(self.width_m, 4), "height_m": round(self.height_m, 4), "state": self.state,
-                "open_rays": int(self.open_rays), "blocked_rays": int(self.blocked_rays)}
+                "open_rays": int(self.open_rays), "blocked_rays": int(self.blocked_rays),
+                "free_fraction": round(self.free_fraction, 3)}
 
 
 @dataclass(frozen=True)
@@ -254,6 +273,15 @@ def _exit_param(origin: np.ndarray, dirs: np.ndarray, box: np.ndarray) -> np.nda
     return np.where(near <= far, far, np.inf)
 
 
+def _pocket_inputs(T_cam_pallet, K, depth_m, size_m) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pocket checks' inputs as float arrays; depth that is not (H, W) is an error."""
+    depth_m = np.asarray(depth_m)
+    if depth_m.ndim != 2:
+        raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
+    return (np.asarray(T_cam_pallet, dtype=np.float64), check_K(K), depth_m,
+            np.asarray(size_m, dtype=np.float64))
+
+
 def pocket_evidence(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face: np.ndarray, size_m, face: str,
                     depth_m: np.ndarray, K: np.ndarray, params: ForkliftParams = ForkliftParams()) -> np.ndarray:
     """Open and blocked rays through each pocket of a face.
@@ -263,13 +291,8 @@ def pocket_evidence(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face:
     :param depth_m: (H, W) observed depth, metres, 0 = none. :param K: (3, 3).
     :return: (2, 2) int: per pocket (open rays, blocked rays).
     """
-    K = check_K(K)
-    T = np.asarray(T_cam_pallet, dtype=np.float64)
-    depth_m = np.asarray(depth_m)
-    if depth_m.ndim != 2:
-        raise ValueError(f"depth_m must be (H, W), got shape {depth_m.shape}")
+    T, K, depth_m, size = _pocket_inputs(T_cam_pallet, K, depth_m, size_m)
     h, w = depth_m.shape
-    size = np.asarray(size_m, dtype=np.float64)
     n_cam = T[:3, :3] @ FACE_NORMALS[face]
     T_pallet_cam = invert_T(T)
     out = np.zeros((2, 2), dtype=np.int64)
@@ -305,11 +328,54 @@ def pocket_evidence(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face:
     return out
 
 
-def _pocket_state(open_rays: int, blocked_rays: int, params: ForkliftParams) -> str:
+def pocket_free_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face: np.ndarray, size_m,
+                         face: str, depth_m: np.ndarray, K: np.ndarray,
+                         params: ForkliftParams = ForkliftParams()) -> np.ndarray:
+    """Share of each pocket's volume from `min_open_depth_m` to `clear_depth_m` in (the forks' path past the
+    mouth) that the depth shows free: sample points (`grid` x `grid` over the inset opening, every `slice_m` along
+    the pocket) that no board or block of the pallet hides from the camera and whose pixel's depth lies at or
+    behind them.
+
+    :param T_cam_pallet: (4, 4). :param boxes_m: (k, 2, 3) the pallet's boards and blocks (pallet frame).
+    :param pockets_face: (2, 2, 3) the face's pockets, left then right. :param size_m: (3,).
+    :param depth_m: (H, W) observed depth, metres, 0 = none. :param K: (3, 3).
+    :return: (2,) float in [0, 1], left then right (1 where the parameters leave no volume to check).
+    """
+    T, K, depth_m, size = _pocket_inputs(T_cam_pallet, K, depth_m, size_m)
+    h, w = depth_m.shape
+    along = np.arange(params.min_open_depth_m + params.slice_m / 2, params.clear_depth_m, params.slice_m)
+    if not len(along):
+        return np.ones(2)
+    inward = -FACE_NORMALS[face]
+    mouths = np.stack([_pocket_grid(np.asarray(pockets_face[k], dtype=np.float64), size, face, params.grid,
+                                    params.inset) for k in range(2)])                           # (2, g*g, 3)
+    pts_p = mouths[:, None] + along[None, :, None, None] * inward                             # (2, s, g*g, 3)
+    pts = pts_p.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    z = pts[:, 2]
+    front = z > 0.05
+    zs = np.where(front, z, 1.0)
+    u = np.round(pts[:, 0] / zs * K[0, 0] + K[0, 2]).astype(np.int64)
+    v = np.round(pts[:, 1] / zs * K[1, 1] + K[1, 2]).astype(np.int64)
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(pts))
+    d[inside] = depth_m[v[inside], u[inside]]
+    d = np.where(np.isfinite(d), d, 0.0)
+    T_pallet_cam = invert_T(T)
+    dirs_p = (pts / zs[:, None]) @ T_pallet_cam[:3, :3].T                # parameter = camera depth
+    t_box, _ = cast_rays_boxes(T_pallet_cam[None, :3, 3], dirs_p[None], boxes_m)
+    unhidden = t_box[0] >= z - 1e-6                                     # no board or block before the point
+    tol = params.tol_m + params.tol_quad_per_m * z ** 2
+    free = inside & unhidden & (d > 0) & (d >= z - tol)
+    return free.reshape(2, -1).mean(1)
+
+
+def _pocket_state(open_rays: int, blocked_rays: int, free_fraction: float, params: ForkliftParams) -> str:
     seen = open_rays + blocked_rays
     if seen < params.min_rays:
         return "hidden"
-    return "blocked" if blocked_rays > params.max_blocked_fraction * seen else "clear"
+    if blocked_rays > params.max_blocked_fraction * seen:
+        return "blocked"
+    return "hidden" if free_fraction < params.min_free_fraction else "clear"
 
 
 def vehicle_pose(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m,
@@ -359,12 +425,14 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
     centre_c = T_cam_pallet[:3, :3] @ centre_p + T_cam_pallet[:3, 3]
     view = float(np.degrees(np.arccos(np.clip(-normal_c @ centre_c / max(np.linalg.norm(centre_c), 1e-9), -1, 1))))
     if boxes_m is None or depth_m is None or K is None:
-        evidence = np.zeros((2, 2), dtype=np.int64)
+        evidence, free = np.zeros((2, 2), dtype=np.int64), np.zeros(2)
     else:
         evidence = pocket_evidence(T_cam_pallet, boxes_m, pockets_m[face], size_m, face, depth_m, K, params)
+        free = pocket_free_fraction(T_cam_pallet, boxes_m, pockets_m[face], size_m, face, depth_m, K, params)
     pockets = tuple(Pocket(side, pockets_v[k], sizes[k, 0], sizes[k, 1],
-                           _pocket_state(int(evidence[k, 0]), int(evidence[k, 1]), params),
-                           int(evidence[k, 0]), int(evidence[k, 1])) for k, side in enumerate(("left", "right")))
+                           _pocket_state(int(evidence[k, 0]), int(evidence[k, 1]), float(free[k]), params),
+                           int(evidence[k, 0]), int(evidence[k, 1]), float(free[k]))
+                    for k, side in enumerate(("left", "right")))
     reason, detail = "", ""
     if view > params.max_view_angle_deg:
         reason = "face_oblique"
@@ -375,12 +443,19 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
                            "a surface in it)" for p in pockets if p.state == "blocked")
     elif any(p.state == "hidden" for p in pockets):
         reason = "pocket_hidden"
-        detail = "; ".join(f"{p.side} pocket hidden ({p.open_rays + p.blocked_rays} rays with depth, need "
-                           f"{params.min_rays})" for p in pockets if p.state == "hidden")
+        detail = "; ".join(_hidden_detail(p, params) for p in pockets if p.state == "hidden")
     return ForkliftInfo(face=face, face_centre_vehicle_m=centre_v, face_normal_vehicle=normal_v,
                         face_yaw_deg=face_yaw_deg(normal_v), lateral_offset_m=float(centre_v[1]),
                         distance_m=float(centre_v[0]), view_angle_deg=view, pockets=pockets,
                         pick_safe=reason == "", reason=reason, detail=detail)
+
+
+def _hidden_detail(pocket: Pocket, params: ForkliftParams) -> str:
+    seen = pocket.open_rays + pocket.blocked_rays
+    if seen < params.min_rays:
+        return f"{pocket.side} pocket hidden ({seen} rays with depth, need {params.min_rays})"
+    return (f"{pocket.side} pocket hidden (depth shows {pocket.free_fraction:.0%} of its path "
+            f"{params.min_open_depth_m:.2f}-{params.clear_depth_m:.2f} m in free, need {params.min_free_fraction:.0%})")
 
 
 def pallet_types_by_name(bundle) -> dict[str, object]:

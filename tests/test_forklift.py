@@ -3,7 +3,8 @@ import pytest
 
 from forklift_fixtures import EPAL, K, camera, pallet_pose, render
 from pallet6d.runtime import kernels
-from pallet6d.runtime.forklift import ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info, vehicle_pose
+from pallet6d.runtime.forklift import (ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info,
+                                       pocket_free_fraction, vehicle_pose)
 from pallet6d.runtime.geometry import invert_T
 from pallet6d.runtime.level import LevelParams
 from pallet6d.runtime.results import FitScore, FrameResult, PalletPose
@@ -73,6 +74,49 @@ def test_a_wall_in_front_of_the_face_hides_the_pockets():
     assert all(p.state == "hidden" for p in info.pockets) and info.reason == "pocket_hidden"
 
 
+def test_an_object_past_the_mouth_of_an_obliquely_seen_pocket_leaves_it_hidden_not_clear():
+    # seen 25 degrees off, the left pocket's own block hides its far half: a carton there meets one ray in twelve
+    T_vc, T_vp = camera(), pallet_pose(1.5, 25.0)
+    lo, hi = EPAL.pockets_m["-x"][0]
+    carton = np.array([[[-0.4, hi[1] - 0.12, lo[2]], [-0.15, hi[1], hi[2] - 0.02]]])    # 0.2-0.45 m in
+    left = _info(T_vc, T_vp, render(T_vc, T_vp, carton)).pockets[0]
+    assert left.blocked_rays <= ForkliftParams().max_blocked_fraction * (left.open_rays + left.blocked_rays)
+    assert left.open_rays >= ForkliftParams().min_rays                      # the rays alone would call it clear
+    assert left.state == "hidden" and left.free_fraction < ForkliftParams().min_free_fraction
+    info = _info(T_vc, T_vp, render(T_vc, T_vp, carton), ForkliftParams(min_free_fraction=0.0))
+    assert info.pockets[0].state == "clear"                                 # what the volume check prevents
+
+
+def test_the_share_of_the_forks_path_seen_free_grows_as_the_face_turns_square():
+    T_vc = camera()
+    free = [_info(T_vc, pallet_pose(3.0, yaw), render(T_vc, pallet_pose(3.0, yaw))).pockets[1].free_fraction
+            for yaw in (30.0, 20.0, 0.0)]
+    assert 0.0 < free[0] < free[1] < free[2] <= 1.0
+    info = _info(T_vc, pallet_pose(3.0), render(T_vc, pallet_pose(3.0)))
+    assert info.pick_safe and all(p.free_fraction >= ForkliftParams().min_free_fraction for p in info.pockets)
+
+
+@pytest.mark.parametrize("fill", [0.0, np.nan])
+def test_pocket_free_fraction_is_zero_without_depth_and_one_without_a_volume_to_check(fill):
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    T_cp = invert_T(T_vc) @ T_vp
+    depth = np.full((240, 424), fill, np.float32)
+    args = (T_cp, EPAL.boxes_m, EPAL.pockets_m["-x"], EPAL.size_m, "-x", depth, K)
+    np.testing.assert_array_equal(pocket_free_fraction(*args), [0.0, 0.0])
+    np.testing.assert_array_equal(pocket_free_fraction(*args, ForkliftParams(min_open_depth_m=0.4)), [1.0, 1.0])
+    with pytest.raises(ValueError, match="depth_m must be"):
+        pocket_free_fraction(*args[:5], depth[0], K)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(min_free_fraction=1.5), "min_free_fraction"), (dict(min_free_fraction=-0.1), "min_free_fraction"),
+    (dict(slice_m=0.0), "slice_m"), (dict(grid=1), "grid"), (dict(max_blocked_fraction=2.0), "max_blocked"),
+])
+def test_forklift_params_are_validated(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ForkliftParams(**kwargs)
+
+
 def test_a_face_seen_too_obliquely_is_not_safe():
     T_vc, T_vp = camera(), pallet_pose(2.0, 25.0)
     depth = render(T_vc, T_vp)
@@ -101,6 +145,8 @@ def test_forklift_info_validates(kwargs, match):
         ForkliftInfo(**{**base, **kwargs})
     with pytest.raises(ValueError, match="state"):
         Pocket("left", [0, 0, 0], 0.2, 0.1, "open")
+    with pytest.raises(ValueError, match="free_fraction"):
+        Pocket("left", [0, 0, 0], 0.2, 0.1, "clear", 10, 0, 1.5)
 
 
 def test_attach_forklift_adds_the_vehicle_pose_and_outputs_to_every_pose():

@@ -33,6 +33,7 @@ class Pocket(_Strict):
     state: Literal["clear", "blocked", "hidden"] = Field(description="what the depth shows inside the pocket")
     open_rays: int = Field(description="rays through the opening that see free space")
     blocked_rays: int = Field(description="rays that meet a surface in the pocket or just in front of it")
+    free_fraction: float = Field(description="share of the forks' path past the mouth that the depth shows free")
 
 
 class Forklift(_Strict):
