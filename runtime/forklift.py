@@ -34,7 +34,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .geometry import check_K, invert_T
+from .geometry import check_K, invert_T, project_points, transform_points
 from .level import LevelParams, level_poses
 from .structure import cast_rays_boxes
 
@@ -350,13 +350,12 @@ def pocket_free_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_
     mouths = np.stack([_pocket_grid(np.asarray(pockets_face[k], dtype=np.float64), size, face, params.grid,
                                     params.inset) for k in range(2)])                           # (2, g*g, 3)
     pts_p = mouths[:, None] + along[None, :, None, None] * inward                             # (2, s, g*g, 3)
-    pts = pts_p.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    pts = transform_points(T, pts_p.reshape(-1, 3))
     z = pts[:, 2]
     front = z > 0.05
-    zs = np.where(front, z, 1.0)
-    u = np.round(pts[:, 0] / zs * K[0, 0] + K[0, 2]).astype(np.int64)
-    v = np.round(pts[:, 1] / zs * K[1, 1] + K[1, 2]).astype(np.int64)
+    u, v = np.round(np.where(front[:, None], project_points(pts, K), -1.0)).astype(np.int64).T
     inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    zs = np.where(front, z, 1.0)
     d = np.zeros(len(pts))
     d[inside] = depth_m[v[inside], u[inside]]
     d = np.where(np.isfinite(d), d, 0.0)
