@@ -6,7 +6,7 @@ D435-like depth) or on a generated BOP dataset with `scene_forklift.json` (its o
         --out benchmarks/results/forklift/pockets.json
     python benchmarks/forklift_pockets.py --bop data/gen/test-forklift-approach --max-frames 20
     python benchmarks/forklift_pockets.py --frames data/forklift-frames-epal --estimator models/epal-default \
-        [--gt-boxes] --out benchmarks/results/forklift/pockets-e2e.json
+        [--int8] [--gt-boxes] --out benchmarks/results/forklift/pockets-e2e.json
 
 Each pallet is scored with its own type: without `--estimator` the ground-truth pose with the geometry and
 pockets of the ground truth's type (the BOP obj_id, or the cached name, in the `pallet6d.sim.pallets`
@@ -210,11 +210,16 @@ def main() -> None:
     ap.add_argument("--gt-boxes", action="store_true",
                     help="with --estimator: pose the ground truth's visible boxes (no detector)")
     ap.add_argument("--score-threshold", type=float, default=0.25, help="with --estimator: the detector's")
+    ap.add_argument("--int8", action="store_true", help="with --estimator: the bundle's int8 graphs")
+    ap.add_argument("--threads", type=int, default=2, help="with --estimator: onnxruntime threads")
     args = ap.parse_args()
+    if (args.int8 or args.gt_boxes) and not args.estimator:
+        ap.error("--int8 and --gt-boxes need --estimator")
     est = None
     if args.estimator:
         from pallet6d.runtime.estimator import PalletEstimator
-        est = PalletEstimator.from_bundle(args.estimator, score_threshold=args.score_threshold)
+        est = PalletEstimator.from_bundle(args.estimator, score_threshold=args.score_threshold, threads=args.threads,
+                                          precision="int8" if args.int8 else "fp32")
     frames = npz_frames(args.frames) if args.frames else bop_frames(args.bop, args.split, args.max_frames)
     out = evaluate(frames, ForkliftParams(), est, args.all, args.gt_boxes)
     for name, res in out.items():

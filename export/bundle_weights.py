@@ -274,7 +274,8 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
     :param bundle: the bundle already loaded from `bundle_dir`, if it is (else it is loaded here).
     :param calib: the calibration inputs for the parity checks and BatchNorm statistics, if the caller has them (else
         `calib_frames` frames of the bundle's config, seeded by `seed`).
-    :return: what to record of it: the bundle's path, name, config, graph sha256s and the parity checks.
+    :return: what to record of it: the bundle's path, name, config, graph sha256s, the parity checks and the
+        bundle's record of how each loaded stage was trained.
     :raises BundleWeightsError: not a bundle, a graph the networks cannot take (another config, an
         external detector), or weights that do not reproduce the graph.
     """
@@ -309,6 +310,8 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
                                    "batchnorms_restored": len(folded)}
         log.info("%s: weights from %s (%d BatchNorms given statistics again), parity ok", stage, graph, len(folded))
     record["sha256"] = sha256_file(bundle.root / MANIFEST)
+    trained = bundle.provenance.get("training") or {}
+    record["training"] = {stage: trained.get("pose" if stage == "fusion" else stage) for stage in nets}
     return record
 
 

@@ -105,7 +105,8 @@ def load_checkpoint(path: str | Path) -> dict:
 
 def load_init_weights(path: str | Path, nets: dict[str, torch.nn.Module]) -> dict:
     """Load each net's weights from a checkpoint, or from a model bundle's float graphs (a folder:
-    `bundle_weights`); return what to record of it (path, sha256, config, epoch or parity).
+    `bundle_weights`); return what to record of it (path, sha256, config, epoch or parity, and how those
+    weights were trained: a chain of fine-tuning runs stays reproducible from the last one's record).
 
     :raises ValueError: not a checkpoint or bundle, a net missing from it, or weights that do not fit the net.
     """
@@ -128,7 +129,7 @@ def load_init_weights(path: str | Path, nets: dict[str, torch.nn.Module]) -> dic
     digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
     log.info("starting from the weights of %s (%s)", path, ", ".join(nets))
     return {"checkpoint": str(path), "sha256": digest, "stage": ckpt.get("stage"), "config": ckpt.get("config"),
-            "epoch": ckpt.get("epoch")}
+            "epoch": ckpt.get("epoch"), "provenance": ckpt.get("provenance")}
 
 
 def _batches(n: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:

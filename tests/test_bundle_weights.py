@@ -108,6 +108,10 @@ def test_fine_tuning_starts_from_a_bundle_folder(bundle_dir, sim_bop_dataset, tm
                progress=False, init=bundle_dir)
     ckpt = load_checkpoint(tmp_path / "ft" / "last.pt")
     assert ckpt["provenance"]["init"]["graphs"]["pose"]["sha256"] == info["graphs"]["pose"]["sha256"]
+    # the bundle's record of how its pose stage was trained (none: this one is random-init) goes with it
+    report = json.loads((bundle_dir / "report.json").read_text())
+    trained = (report["provenance"].get("training") or {}).get("pose")
+    assert ckpt["provenance"]["init"]["training"] == {"fusion": trained, "pose": trained}
     assert all(torch.isfinite(v).all() for v in ckpt["pose"].values() if v.is_floating_point())
 
 

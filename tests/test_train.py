@@ -241,7 +241,11 @@ def test_init_starts_from_a_checkpoints_weights(pose_run, sim_bop_dataset, tmp_p
     # a fine-tuning run records where its weights came from
     train_pose(CFG, [sim_bop_dataset], tmp_path / "ft",
                LoopSettings(epochs=1, batch=4, lr=1e-4, seed=1), variants=1, progress=False, init=run / "best.pt")
-    assert load_checkpoint(tmp_path / "ft" / "last.pt")["provenance"]["init"]["sha256"] == info["sha256"]
+    ft = load_checkpoint(tmp_path / "ft" / "last.pt")["provenance"]
+    assert ft["init"]["sha256"] == info["sha256"]
+    # ... and how those weights were trained, so a chain of fine-tuning runs is reproducible from its last link
+    assert ft["init"]["provenance"]["command"] == best["provenance"]["command"]
+    assert ft["init"]["provenance"]["seed"] == best["provenance"]["seed"]
 
 
 def test_box_jitter_and_depth_augmentation_are_seeded_and_sane():
