@@ -1,5 +1,5 @@
 """Calibration accuracy on simulated views: the floor fit (pitch, roll, height; exact and D435-like depth of a
-floor with boxes on it) and board extrinsics (a ChArUco board rendered into a grey view, 1.2-2.2 m ahead).
+floor with boxes on it, one frame and `--floor-frames` frames of a still camera) and board extrinsics (a ChArUco board rendered into a grey view, 1.2-2.2 m ahead).
 
     python benchmarks/forklift_calib.py --floors 60 --boards 60 --frames data/forklift-frames \
         --out benchmarks/results/forklift/calib.json
@@ -45,9 +45,11 @@ def _camera(rng: np.random.Generator) -> np.ndarray:
     return make_T(Rz @ Ry @ Rx @ R0, [rng.uniform(-0.05, 0.10), rng.uniform(-0.12, 0.12), rng.uniform(0.3, 2.0)])
 
 
-def render_floor_view(rng: np.random.Generator, sensor: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_floor_view(rng: np.random.Generator, sensor: str,
+                      frames: int = 1) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """Depth of a calibration view: 3.5 m of free floor ahead of a forklift, then 1-4 boxes (a carton stack, a wall
-    piece) on it, exact or through the simulator's D435 model. :return: depth_m (H, W), K, T_vehicle_cam."""
+    piece) on it, exact or through the simulator's D435 model, `frames` times from the still camera (each with its
+    own sensor noise). :return: depth_m (H, W) per frame, K, T_vehicle_cam."""
     from pallet6d.runtime.structure import cast_rays_boxes
     from pallet6d.sim.depth_sensors import depth_model_for
     from pallet6d.sim.sensors import apply_depth_model
@@ -67,17 +69,18 @@ def render_floor_view(rng: np.random.Generator, sensor: str) -> tuple[np.ndarray
     t_box, _ = cast_rays_boxes(o[None], rays_v[None], np.asarray(boxes))
     t = np.minimum(t_floor, t_box[0])
     depth = np.where(np.isfinite(t) & (t < 10.0), t, 0.0).reshape(H, W).astype(np.float32)
-    return apply_depth_model(depth, K[0, 0], depth_model_for(sensor), rng), K, T_vc
+    return [apply_depth_model(depth, K[0, 0], depth_model_for(sensor), rng) for _ in range(frames)], K, T_vc
 
 
-def floor_errors(n: int, seed: int, sensor: str) -> dict:
-    """Pitch, roll and height of the camera from the floor fit (`calib floor` on one frame) vs the truth."""
+def floor_errors(n: int, seed: int, sensor: str, frames: int = 1) -> dict:
+    """Pitch, roll and height of the camera from the floor fit (`calib floor` on `frames` frames of each view) vs
+    the truth."""
     rng = np.random.default_rng(seed)
     dp, dr, dh, failed = [], [], [], 0
     for _ in range(n):
-        depth, K, T_true = render_floor_view(rng, sensor)
+        depths, K, T_true = render_floor_view(rng, sensor, frames)
         try:
-            plane = fit_floor_for_calibration([depth], K)
+            plane = fit_floor_for_calibration(depths, K)
         except ValueError:
             failed += 1
             continue
@@ -87,7 +90,8 @@ def floor_errors(n: int, seed: int, sensor: str) -> dict:
         dr.append(r - rt)
         dh.append(T[2, 3] - T_true[2, 3])
     ok = [abs(a) <= 0.3 and abs(b) <= 0.3 and abs(c) <= 0.01 for a, b, c in zip(dp, dr, dh)] + [False] * failed
-    return {"frames": len(dp) + failed, "failed": failed, "pitch_err_deg": _stats(dp), "roll_err_deg": _stats(dr),
+    return {"views": len(dp) + failed, "frames_per_view": frames, "failed": failed, "pitch_err_deg": _stats(dp),
+            "roll_err_deg": _stats(dr),
             "height_err_m": _stats(dh), "within_target": float(np.mean(ok)) if ok else 0.0}
 
 
@@ -165,12 +169,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--floors", type=int, default=60)
     ap.add_argument("--frames", type=Path, help="cached forklift-approach frames for the floor check")
+    ap.add_argument("--floor-frames", type=int, default=10,
+                    help="frames of each view the D435-like floor fit also runs on (`calib floor`'s default 10)")
     ap.add_argument("--boards", type=int, default=60)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     out = {"floor_clean": floor_errors(args.floors, args.seed, "ideal"),
            "floor_d435": floor_errors(args.floors, args.seed, "d435"),
+           "floor_d435_frames": floor_errors(args.floors, args.seed, "d435", args.floor_frames),
            "board": board_errors(args.boards, args.seed)}
     if args.frames:
         out["floor_check_clean"] = floor_check_rates(args.frames, "depth_ideal_m")

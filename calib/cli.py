@@ -7,10 +7,10 @@
     pallet6d calib show cam.toml
     pallet6d calib check --source realsense --calibration cam.toml
 
-`floor` fits the floor plane over a few frames (RANSAC, then least squares on the inliers) and takes the camera's
-pitch, roll and height from it; the yaw and the position over the floor come from the board (`--extrinsics`) or
-from the mount drawing (`--yaw-deg --x-m --y-m`). Intrinsics come from `--intrinsics` (a file from
-`calib intrinsics`) or else from the source itself (the camera's SDK, a recording's camera.json).
+`floor` fits the floor plane over a few frames (RANSAC, then least squares in inverse depth on the inliers, up to 8
+m ahead) and takes the camera's pitch, roll and height from it; the yaw and the position over the floor come from
+the board (`--extrinsics`) or from the mount drawing (`--yaw-deg --x-m --y-m`). Intrinsics come from `--intrinsics`
+(a file from `calib intrinsics`) or else from the source itself (the camera's SDK, a recording's camera.json).
 """
 from __future__ import annotations
 

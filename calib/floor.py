@@ -53,11 +53,13 @@ def pitch_roll_deg(R_vehicle_cam: np.ndarray) -> tuple[float, float]:
 UPRIGHT_UP_CAM = np.array([0.0, -1.0, 0.0])
 
 
-def fit_floor_for_calibration(depths_m: list[np.ndarray], K: np.ndarray, max_range_m: float = 4.0,
+def fit_floor_for_calibration(depths_m: list[np.ndarray], K: np.ndarray, max_range_m: float = 8.0,
                               max_tilt_deg: float = 45.0, seed: int = 0) -> FloorPlane:
     """The floor plane for `calib floor`: one fit over the lower image part of one or more depth images of a
-    still camera, within `max_range_m` (far stereo depth is noisy), tilted at most `max_tilt_deg` from an upright
-    camera's up (walls and box faces are never taken for the floor).
+    still camera, within `max_range_m`, tilted at most `max_tilt_deg` from an upright camera's up (walls and box
+    faces are never taken for the floor). The least squares run in inverse depth, where stereo noise is the same
+    near and far, so the far floor adds what it knows without tilting the plane: a camera high and pitched little
+    sees its floor only from 3-4 m on.
 
     :param depths_m: (H, W) metres each. :param K: (3, 3). :raises ValueError: no floor plane found.
     """
@@ -67,4 +69,4 @@ def fit_floor_for_calibration(depths_m: list[np.ndarray], K: np.ndarray, max_ran
         raise ValueError("no depth images to fit the floor on")
     pts = np.concatenate([floor_points(d, K, step=8, max_range_m=max_range_m) for d in depths_m])
     return fit_floor_plane(pts, np.random.default_rng(seed), up_hint=UPRIGHT_UP_CAM, max_tilt_deg=max_tilt_deg,
-                           inlier_tol_quad_per_m=0.0)
+                           inverse_depth=True)

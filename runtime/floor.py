@@ -63,6 +63,18 @@ def _plane_from_points(pts: np.ndarray) -> tuple[np.ndarray, float]:
     return n, float(-n @ centroid)
 
 
+def _plane_in_inverse_depth(pts: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares plane n . p + d = 0 through camera-frame points (z > 0), fitted as 1/z = a x/z + b y/z + c
+    (every plane not through the camera centre is one there: n = -(a, b, c) / |(a, b, c)|, d = 1 / |(a, b, c)|).
+    Stereo depth noise grows as z**2, so inverse depth carries the same noise near and far: this fit weighs each
+    point by what it knows, where a 3D fit lets the far, noisy points tilt the plane."""
+    z = pts[:, 2]
+    A = np.c_[pts[:, 0] / z, pts[:, 1] / z, np.ones(len(pts))]
+    abc, *_ = np.linalg.lstsq(A, 1.0 / z, rcond=None)
+    norm = float(np.linalg.norm(abc))
+    return -abc / norm, 1.0 / norm
+
+
 def refine_floor(expected: FloorPlane, depth_m: np.ndarray, K: np.ndarray, max_tilt_deg: float = 2.0,
                  max_height_diff_m: float = 0.05, min_points: int = 300, max_points: int = 6000,
                  max_range_m: float = SEARCH_RANGE_M,
@@ -127,7 +139,8 @@ def on_floor(T_vehicle_cam: np.ndarray, floor: FloorPlane) -> np.ndarray:
 
 def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol_m: float = 0.02,
                     iterations: int = 300, min_inlier_ratio: float = 0.2, up_hint: np.ndarray | None = None,
-                    max_tilt_deg: float = 90.0, inlier_tol_quad_per_m: float = 0.0, refits: int = 2) -> FloorPlane:
+                    max_tilt_deg: float = 90.0, inlier_tol_quad_per_m: float = 0.0, refits: int = 2,
+                    inverse_depth: bool = False) -> FloorPlane:
     """RANSAC plane fit, refined by least squares on the inliers.
 
     :param points_cam: (n, 3) camera-frame points, metres (e.g. the lower part of a back-projected depth image).
@@ -137,6 +150,8 @@ def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol
     :param inlier_tol_quad_per_m: the inlier tolerance grows as `inlier_tol_m + this * z**2` (stereo depth noise
         grows with z**2; a band narrower than the noise far away cuts it unevenly and tilts the fit).
     :param refits: least-squares refits, each on the inliers of the previous plane.
+    :param inverse_depth: fit the least squares in inverse depth (`_plane_in_inverse_depth`: stereo depth reaching
+        far), not as orthogonal distances in 3D.
     :raises ValueError: too few points, or no plane supported by `min_inlier_ratio` of them.
     """
     pts = np.asarray(points_cam, dtype=np.float64)
@@ -168,13 +183,14 @@ def fit_floor_plane(points_cam: np.ndarray, rng: np.random.Generator, inlier_tol
     if ratio < min_inlier_ratio:
         raise ValueError(f"no floor plane: best plane explains {ratio:.0%} of the points "
                          f"(need {min_inlier_ratio:.0%}); aim the camera so the floor is visible")
-    n, d = _plane_from_points(pts[inliers])
+    least_squares = _plane_in_inverse_depth if inverse_depth else _plane_from_points
+    n, d = least_squares(pts[inliers])
     for _ in range(int(refits)):
         again = np.abs(pts @ n + d) < tol
         if again.sum() < 3:
             break
         inliers = again
-        n, d = _plane_from_points(pts[inliers])
+        n, d = least_squares(pts[inliers])
     if d < 0:  # orient the normal towards the camera origin
         n, d = -n, -d
     rms = float(np.sqrt(np.mean((pts[inliers] @ n + d) ** 2)))
