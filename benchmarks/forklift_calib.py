@@ -1,5 +1,6 @@
 """Calibration accuracy on simulated views: the floor fit (pitch, roll, height; exact and D435-like depth of a
-floor with boxes on it, one frame and `--floor-frames` frames of a still camera) and board extrinsics (a ChArUco board rendered into a grey view, 1.2-2.2 m ahead).
+floor with boxes on it, one frame and `--floor-frames` frames of a still camera) and board extrinsics (a ChArUco
+board rendered into a grey view, 1.2-2.2 m ahead).
 
     python benchmarks/forklift_calib.py --floors 60 --boards 60 --frames data/forklift-frames \
         --out benchmarks/results/forklift/calib.json
@@ -91,8 +92,7 @@ def floor_errors(n: int, seed: int, sensor: str, frames: int = 1) -> dict:
         dh.append(T[2, 3] - T_true[2, 3])
     ok = [abs(a) <= 0.3 and abs(b) <= 0.3 and abs(c) <= 0.01 for a, b, c in zip(dp, dr, dh)] + [False] * failed
     return {"views": len(dp) + failed, "frames_per_view": frames, "failed": failed, "pitch_err_deg": _stats(dp),
-            "roll_err_deg": _stats(dr),
-            "height_err_m": _stats(dh), "within_target": float(np.mean(ok)) if ok else 0.0}
+            "roll_err_deg": _stats(dr), "height_err_m": _stats(dh), "within_target": float(np.mean(ok)) if ok else 0.0}
 
 
 def render_board_view(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
