@@ -311,7 +311,8 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
         log.info("%s: weights from %s (%d BatchNorms given statistics again), parity ok", stage, graph, len(folded))
     record["sha256"] = sha256_file(bundle.root / MANIFEST)
     trained = bundle.provenance.get("training") or {}
-    record["training"] = {stage: trained.get("pose" if stage == "fusion" else stage) for stage in nets}
+    # by the bundle's training stages: "pose" covers the fusion and pose networks (one record, not two copies)
+    record["training"] = {s: trained.get(s) for s in {"pose" if stage == "fusion" else stage for stage in nets}}
     return record
 
 

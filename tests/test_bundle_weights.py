@@ -111,7 +111,7 @@ def test_fine_tuning_starts_from_a_bundle_folder(bundle_dir, sim_bop_dataset, tm
     # the bundle's record of how its pose stage was trained (none: this one is random-init) goes with it
     report = json.loads((bundle_dir / "report.json").read_text())
     trained = (report["provenance"].get("training") or {}).get("pose")
-    assert ckpt["provenance"]["init"]["training"] == {"fusion": trained, "pose": trained}
+    assert ckpt["provenance"]["init"]["training"] == {"pose": trained}
     assert all(torch.isfinite(v).all() for v in ckpt["pose"].values() if v.is_floating_point())
 
 
