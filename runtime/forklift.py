@@ -39,8 +39,8 @@ from .level import LevelParams, level_poses
 from .structure import cast_rays_boxes
 
 __all__ = ["ForkliftParams", "Pocket", "ForkliftInfo", "FACE_NORMALS", "front_face", "face_frame_points",
-           "face_yaw_deg", "pocket_evidence", "pocket_free_fraction", "vehicle_pose", "forklift_info",
-           "attach_forklift", "pallet_types_by_name", "vehicle_frame_result", "PICK_REASONS"]
+           "face_yaw_deg", "pocket_evidence", "pocket_free_fraction", "pocket_occupied_fraction", "vehicle_pose",
+           "forklift_info", "attach_forklift", "pallet_types_by_name", "vehicle_frame_result", "PICK_REASONS"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,10 @@ class ForkliftParams:
     :ivar min_free_fraction: of the pocket's volume from `min_open_depth_m` to `clear_depth_m` in (the forks' path
         past the mouth), the share the depth must show free; less -> hidden. An object past the mouth seen
         obliquely sits behind the pallet's own block and leaves few blocked rays, but leaves that volume unseen.
+    :ivar max_occupied_fraction: of the pocket's volume from its mouth to `clear_depth_m` in, the share where the
+        depth shows a surface inside the pocket in front of the sample point (something in the forks' path that the
+        pallet's own boards do not explain); more -> blocked. An object seen past the pallet's own block through a
+        sliver of the opening leaves the rays through the inset opening open and most of the volume free.
     :ivar slice_m: spacing along the pocket of the volume's sample points (`grid` x `grid` per slice).
     :ivar mouth_m: a surface this close in front of the pocket's mouth is in the forks' path: blocked evidence.
     :ivar tol_m, tol_quad_per_m: depth tolerance `tol_m + tol_quad_per_m * z**2` (stereo noise grows with z**2).
@@ -80,6 +84,7 @@ class ForkliftParams:
     clear_depth_m: float = 0.4
     min_open_depth_m: float = 0.2
     min_free_fraction: float = 0.1
+    max_occupied_fraction: float = 0.025
     slice_m: float = 0.025
     mouth_m: float = 0.1
     tol_m: float = 0.03
@@ -99,7 +104,7 @@ class ForkliftParams:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not self.slice_m > 0:
             raise ValueError(f"slice_m must be > 0, got {self.slice_m}")
-        for name in ("max_blocked_fraction", "min_free_fraction"):
+        for name in ("max_blocked_fraction", "min_free_fraction", "max_occupied_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
         if not 0.0 < self.max_view_angle_deg <= 90.0:
@@ -123,6 +128,8 @@ class Pocket:
     the face plane. :ivar width_m, height_m: the opening's size. :ivar state: "clear", "blocked" or "hidden".
     :ivar open_rays, blocked_rays: the depth evidence (rays through the opening).
     :ivar free_fraction: share of the forks' path past the mouth that the depth shows free (`pocket_free_fraction`).
+    :ivar occupied_fraction: share of the forks' path from the mouth in where the depth shows a surface inside the
+        pocket (`pocket_occupied_fraction`).
     """
 
     side: str
@@ -133,6 +140,7 @@ class Pocket:
     open_rays: int = 0
     blocked_rays: int = 0
     free_fraction: float = 0.0
+    occupied_fraction: float = 0.0
 
     def __post_init__(self) -> None:
         if self.side not in ("left", "right"):
@@ -145,16 +153,17 @@ class Pocket:
             if not v > 0:
                 raise ValueError(f"Pocket.{name} must be positive, got {v}")
             object.__setattr__(self, name, v)
-        f = float(self.free_fraction)
-        if not 0.0 <= f <= 1.0:
-            raise ValueError(f"Pocket.free_fraction must be in [0, 1], got {f}")
-        object.__setattr__(self, "free_fraction", f)
+        for name in ("free_fraction", "occupied_fraction"):
+            f = float(getattr(self, name))
+            if not 0.0 <= f <= 1.0:
+                raise ValueError(f"Pocket.{name} must be in [0, 1], got {f}")
+            object.__setattr__(self, name, f)
 
     def to_dict(self) -> dict:
         return {"side": self.side, "centre_m": [round(float(x), 4) for x in self.centre_vehicle_m],
                 "width_m": round(self.width_m, 4), "height_m": round(self.height_m, 4), "state": self.state,
                 "open_rays": int(self.open_rays), "blocked_rays": int(self.blocked_rays),
-                "free_fraction": round(self.free_fraction, 3)}
+                "free_fraction": round(self.free_fraction, 3), "occupied_fraction": round(self.occupied_fraction, 3)}
 
 
 @dataclass(frozen=True)
@@ -328,6 +337,28 @@ def pocket_evidence(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face:
     return out
 
 
+def _volume_points(T: np.ndarray, pockets_face: np.ndarray, size: np.ndarray, face: str, depth_m: np.ndarray,
+                   K: np.ndarray, params: ForkliftParams, from_m: float) -> tuple:
+    """Sample points of both pockets' volume from `from_m` to `clear_depth_m` in (`grid` x `grid` over the inset
+    opening, every `slice_m`): (2, s, g*g, 3) pallet frame, (n, 3) camera frame, their pixels (n,) u and v, (n,) in
+    the image and in front of the camera, and (n,) the depth read there (0 where none). None: no volume."""
+    h, w = depth_m.shape
+    along = np.arange(from_m + params.slice_m / 2, params.clear_depth_m, params.slice_m)
+    if not len(along):
+        return None
+    inward = -FACE_NORMALS[face]
+    mouths = np.stack([_pocket_grid(np.asarray(pockets_face[k], dtype=np.float64), size, face, params.grid,
+                                    params.inset) for k in range(2)])                           # (2, g*g, 3)
+    pts_p = mouths[:, None] + along[None, :, None, None] * inward                             # (2, s, g*g, 3)
+    pts = transform_points(T, pts_p.reshape(-1, 3))
+    front = pts[:, 2] > 0.05
+    u, v = np.round(np.where(front[:, None], project_points(pts, K), -1.0)).astype(np.int64).T
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(pts))
+    d[inside] = depth_m[v[inside], u[inside]]
+    return pts_p, pts, u, v, inside, np.where(np.isfinite(d), d, 0.0)
+
+
 def pocket_free_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face: np.ndarray, size_m,
                          face: str, depth_m: np.ndarray, K: np.ndarray,
                          params: ForkliftParams = ForkliftParams()) -> np.ndarray:
@@ -342,23 +373,12 @@ def pocket_free_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_
     :return: (2,) float in [0, 1], left then right (1 where the parameters leave no volume to check).
     """
     T, K, depth_m, size = _pocket_inputs(T_cam_pallet, K, depth_m, size_m)
-    h, w = depth_m.shape
-    along = np.arange(params.min_open_depth_m + params.slice_m / 2, params.clear_depth_m, params.slice_m)
-    if not len(along):
+    vol = _volume_points(T, pockets_face, size, face, depth_m, K, params, params.min_open_depth_m)
+    if vol is None:
         return np.ones(2)
-    inward = -FACE_NORMALS[face]
-    mouths = np.stack([_pocket_grid(np.asarray(pockets_face[k], dtype=np.float64), size, face, params.grid,
-                                    params.inset) for k in range(2)])                           # (2, g*g, 3)
-    pts_p = mouths[:, None] + along[None, :, None, None] * inward                             # (2, s, g*g, 3)
-    pts = transform_points(T, pts_p.reshape(-1, 3))
+    _, pts, _, _, inside, d = vol
     z = pts[:, 2]
-    front = z > 0.05
-    u, v = np.round(np.where(front[:, None], project_points(pts, K), -1.0)).astype(np.int64).T
-    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    zs = np.where(front, z, 1.0)
-    d = np.zeros(len(pts))
-    d[inside] = depth_m[v[inside], u[inside]]
-    d = np.where(np.isfinite(d), d, 0.0)
+    zs = np.where(z > 0.05, z, 1.0)
     T_pallet_cam = invert_T(T)
     dirs_p = (pts / zs[:, None]) @ T_pallet_cam[:3, :3].T                # parameter = camera depth
     t_box, _ = cast_rays_boxes(T_pallet_cam[None, :3, 3], dirs_p[None], boxes_m)
@@ -368,7 +388,44 @@ def pocket_free_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_
     return free.reshape(2, -1).mean(1)
 
 
-def _pocket_state(open_rays: int, blocked_rays: int, free_fraction: float, params: ForkliftParams) -> str:
+def pocket_occupied_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face: np.ndarray, size_m,
+                             face: str, depth_m: np.ndarray, K: np.ndarray,
+                             params: ForkliftParams = ForkliftParams()) -> np.ndarray:
+    """Share of each pocket's volume from its mouth to `clear_depth_m` in where the depth shows a surface inside
+    the pocket in front of the sample point: the ray of the point's pixel meets no board or block of the pallet
+    before the point, and its depth lies more than the tolerance in front of the point but not in front of the
+    face plane (the forklift's own fork tips at the mouth are no obstacle). The pixel's own ray, not the point's,
+    decides what the pallet hides: at a block's edge the two differ, and the depth read is the pixel's.
+
+    :param T_cam_pallet: (4, 4). :param boxes_m: (k, 2, 3) the pallet's boards and blocks (pallet frame).
+    :param pockets_face: (2, 2, 3) the face's pockets, left then right. :param size_m: (3,).
+    :param depth_m: (H, W) observed depth, metres, 0 = none. :param K: (3, 3).
+    :return: (2,) float in [0, 1], left then right (0 where the parameters leave no volume to check).
+    """
+    T, K, depth_m, size = _pocket_inputs(T_cam_pallet, K, depth_m, size_m)
+    vol = _volume_points(T, pockets_face, size, face, depth_m, K, params, 0.0)
+    if vol is None:
+        return np.zeros(2)
+    pts_p, pts, u, v, inside, d = vol
+    z = pts[:, 2]
+    rays = np.column_stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(len(u))])   # depth = 1
+    T_pallet_cam = invert_T(T)
+    t_box, _ = cast_rays_boxes(T_pallet_cam[None, :3, 3], (rays @ T_pallet_cam[:3, :3].T)[None], boxes_m)
+    unhidden = t_box[0] >= z - 1e-6
+    n_cam = T[:3, :3] @ FACE_NORMALS[face]
+    on_face = transform_points(T, pts_p[0, 0, :1])[0]                    # a point of the face plane, camera frame
+    facing = rays @ n_cam
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_face = np.where(facing < -1e-9, (n_cam @ on_face) / facing, np.inf)   # where the ray crosses the face
+    tol = params.tol_m + params.tol_quad_per_m * z ** 2
+    occupied = inside & unhidden & (d > 0) & (d < z - tol) & (d >= z_face)
+    return occupied.reshape(2, -1).mean(1)
+
+
+def _pocket_state(open_rays: int, blocked_rays: int, free_fraction: float, occupied_fraction: float,
+                  params: ForkliftParams) -> str:
+    if occupied_fraction > params.max_occupied_fraction:
+        return "blocked"
     seen = open_rays + blocked_rays
     if seen < params.min_rays:
         return "hidden"
@@ -424,13 +481,14 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
     centre_c = T_cam_pallet[:3, :3] @ centre_p + T_cam_pallet[:3, 3]
     view = float(np.degrees(np.arccos(np.clip(-normal_c @ centre_c / max(np.linalg.norm(centre_c), 1e-9), -1, 1))))
     if boxes_m is None or depth_m is None or K is None:
-        evidence, free = np.zeros((2, 2), dtype=np.int64), np.zeros(2)
+        evidence, free, occupied = np.zeros((2, 2), dtype=np.int64), np.zeros(2), np.zeros(2)
     else:
-        evidence = pocket_evidence(T_cam_pallet, boxes_m, pockets_m[face], size_m, face, depth_m, K, params)
-        free = pocket_free_fraction(T_cam_pallet, boxes_m, pockets_m[face], size_m, face, depth_m, K, params)
+        args = (T_cam_pallet, boxes_m, pockets_m[face], size_m, face, depth_m, K, params)
+        evidence, free, occupied = pocket_evidence(*args), pocket_free_fraction(*args), pocket_occupied_fraction(*args)
     pockets = tuple(Pocket(side, pockets_v[k], sizes[k, 0], sizes[k, 1],
-                           _pocket_state(int(evidence[k, 0]), int(evidence[k, 1]), float(free[k]), params),
-                           int(evidence[k, 0]), int(evidence[k, 1]), float(free[k]))
+                           _pocket_state(int(evidence[k, 0]), int(evidence[k, 1]), float(free[k]),
+                                         float(occupied[k]), params),
+                           int(evidence[k, 0]), int(evidence[k, 1]), float(free[k]), float(occupied[k]))
                     for k, side in enumerate(("left", "right")))
     reason, detail = "", ""
     if view > params.max_view_angle_deg:
@@ -438,8 +496,7 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
         detail = f"face seen at {view:.0f} deg from square (max {params.max_view_angle_deg:.0f})"
     elif any(p.state == "blocked" for p in pockets):
         reason = "pocket_blocked"
-        detail = "; ".join(f"{p.side} pocket blocked ({p.blocked_rays} of {p.open_rays + p.blocked_rays} rays find "
-                           "a surface in it)" for p in pockets if p.state == "blocked")
+        detail = "; ".join(_blocked_detail(p, params) for p in pockets if p.state == "blocked")
     elif any(p.state == "hidden" for p in pockets):
         reason = "pocket_hidden"
         detail = "; ".join(_hidden_detail(p, params) for p in pockets if p.state == "hidden")
@@ -447,6 +504,14 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
                         face_yaw_deg=face_yaw_deg(normal_v), lateral_offset_m=float(centre_v[1]),
                         distance_m=float(centre_v[0]), view_angle_deg=view, pockets=pockets,
                         pick_safe=reason == "", reason=reason, detail=detail)
+
+
+def _blocked_detail(pocket: Pocket, params: ForkliftParams) -> str:
+    if pocket.occupied_fraction > params.max_occupied_fraction:
+        return (f"{pocket.side} pocket blocked (depth shows a surface in {pocket.occupied_fraction:.0%} of its path "
+                f"0-{params.clear_depth_m:.2f} m in, max {params.max_occupied_fraction:.1%})")
+    return (f"{pocket.side} pocket blocked ({pocket.blocked_rays} of {pocket.open_rays + pocket.blocked_rays} rays "
+            "find a surface in it)")
 
 
 def _hidden_detail(pocket: Pocket, params: ForkliftParams) -> str:

@@ -4,7 +4,7 @@ import pytest
 from forklift_fixtures import EPAL, K, camera, pallet_pose, render
 from pallet6d.runtime import kernels
 from pallet6d.runtime.forklift import (ForkliftInfo, ForkliftParams, Pocket, attach_forklift, forklift_info,
-                                       pocket_free_fraction, vehicle_pose)
+                                       pocket_free_fraction, pocket_occupied_fraction, vehicle_pose)
 from pallet6d.runtime.geometry import invert_T
 from pallet6d.runtime.level import LevelParams
 from pallet6d.runtime.results import FitScore, FrameResult, PalletPose
@@ -96,6 +96,39 @@ def test_the_share_of_the_forks_path_seen_free_grows_as_the_face_turns_square():
     assert info.pick_safe and all(p.free_fraction >= ForkliftParams().min_free_fraction for p in info.pockets)
 
 
+def test_an_object_seen_past_the_middle_block_through_a_sliver_of_the_opening_blocks_the_pocket():
+    # the pallet 0.7 m to the right: the right pocket's inner half, 0.2-0.35 m in, lies behind the middle block
+    T_vc, T_vp = camera(), pallet_pose(3.0, lateral_m=-0.7)
+    lo, hi = EPAL.pockets_m["-x"][1]
+    carton = np.array([[[-0.4, hi[1] - 0.5 * (hi[1] - lo[1]), lo[2]], [-0.25, hi[1], lo[2] + 0.07]]])
+    depth = render(T_vc, T_vp, carton)
+    rays_only = _info(T_vc, T_vp, depth, ForkliftParams(max_occupied_fraction=1.0)).pockets[1]
+    assert rays_only.state == "clear" and rays_only.free_fraction >= ForkliftParams().min_free_fraction
+    info = _info(T_vc, T_vp, depth)
+    right = info.pockets[1]
+    assert right.state == "blocked" and right.occupied_fraction > ForkliftParams().max_occupied_fraction
+    assert not info.pick_safe and "right pocket blocked (depth shows a surface in" in info.detail
+    assert info.pockets[0].state == "clear" and info.pockets[0].occupied_fraction == 0.0
+
+
+def test_surfaces_in_front_of_the_face_are_not_in_the_pocket():
+    # the forklift's own fork tips, 0.3-0.5 m short of the face, in front of both pockets
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    T_cp = invert_T(T_vc) @ T_vp
+    tips = np.array([[[-1.1, -0.35, -0.072], [-0.9, 0.35, -0.03]]])
+    args = (T_cp, EPAL.boxes_m, EPAL.pockets_m["-x"], EPAL.size_m, "-x", render(T_vc, T_vp, tips), K)
+    np.testing.assert_array_equal(pocket_occupied_fraction(*args), [0.0, 0.0])
+
+
+@pytest.mark.parametrize("fill", [0.0, np.nan])
+def test_pocket_occupied_fraction_is_zero_without_depth_or_a_volume_to_check(fill):
+    T_vc, T_vp = camera(), pallet_pose(2.0)
+    T_cp = invert_T(T_vc) @ T_vp
+    args = (T_cp, EPAL.boxes_m, EPAL.pockets_m["-x"], EPAL.size_m, "-x", np.full((240, 424), fill, np.float32), K)
+    np.testing.assert_array_equal(pocket_occupied_fraction(*args), [0.0, 0.0])
+    np.testing.assert_array_equal(pocket_occupied_fraction(*args, ForkliftParams(clear_depth_m=0.0)), [0.0, 0.0])
+
+
 @pytest.mark.parametrize("fill", [0.0, np.nan])
 def test_pocket_free_fraction_is_zero_without_depth_and_one_without_a_volume_to_check(fill):
     T_vc, T_vp = camera(), pallet_pose(2.0)
@@ -111,6 +144,7 @@ def test_pocket_free_fraction_is_zero_without_depth_and_one_without_a_volume_to_
 @pytest.mark.parametrize("kwargs,match", [
     (dict(min_free_fraction=1.5), "min_free_fraction"), (dict(min_free_fraction=-0.1), "min_free_fraction"),
     (dict(slice_m=0.0), "slice_m"), (dict(grid=1), "grid"), (dict(max_blocked_fraction=2.0), "max_blocked"),
+    (dict(max_occupied_fraction=-0.01), "max_occupied_fraction"),
 ])
 def test_forklift_params_are_validated(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -147,6 +181,8 @@ def test_forklift_info_validates(kwargs, match):
         Pocket("left", [0, 0, 0], 0.2, 0.1, "open")
     with pytest.raises(ValueError, match="free_fraction"):
         Pocket("left", [0, 0, 0], 0.2, 0.1, "clear", 10, 0, 1.5)
+    with pytest.raises(ValueError, match="occupied_fraction"):
+        Pocket("left", [0, 0, 0], 0.2, 0.1, "clear", 10, 0, 0.5, -0.1)
 
 
 def test_attach_forklift_adds_the_vehicle_pose_and_outputs_to_every_pose():

@@ -34,6 +34,8 @@ class Pocket(_Strict):
     open_rays: int = Field(description="rays through the opening that see free space")
     blocked_rays: int = Field(description="rays that meet a surface in the pocket or just in front of it")
     free_fraction: float = Field(description="share of the forks' path past the mouth that the depth shows free")
+    occupied_fraction: float = Field(description="share of the forks' path from the mouth in where the depth shows "
+                                                 "a surface inside the pocket")
 
 
 class Forklift(_Strict):
