@@ -100,7 +100,7 @@ def test_per_type_loss_uses_each_samples_own_symmetries():
     epal = get_pallet_model("epal")
     pm_epal = torch.from_numpy(epal.surface_points(200, seed=0)).double()
     pm_other = pm_epal[:150] * torch.tensor([1.0, 1.2, 1.0], dtype=torch.float64)   # another size, fewer points
-    sym_epal = torch.from_numpy(np.asarray(epal.symmetries)).double()            # identity, z 180
+    sym_epal = torch.tensor(np.array(epal.symmetries), dtype=torch.float64)    # identity, z 180
     sym_none = torch.eye(4, dtype=torch.float64)[None]                            # no symmetry
     T_gt = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
     T_gt[:, :3, :3] = quat_to_rot(torch.tensor([[0.9, 0.1, -0.2, 0.3], [0.5, -0.4, 0.1, 0.6]], dtype=torch.float64))
