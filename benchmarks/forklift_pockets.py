@@ -17,7 +17,8 @@ reported one) is counted apart (`type_unknown`), and `type_ok` says whether the 
 truth's. A pose whose centre lies nearer another ground-truth pallet than the one its box overlaps (one up a
 stack) is that pallet's: counted apart (`other_pallet`), not scored as the pallet's own. `--gt-boxes` poses the
 ground truth's visible boxes with the detector class of the ground truth's type instead of the detector's boxes
-(the pose stage alone).
+(the pose stage alone). `--pallet-types` poses only the types named, as a site that names its types does
+(`EstimatorOptions.pallet_types`).
 Pallets are the targets (the pallet the forklift approaches); `--all` adds every other pallet with its face in
 view.
 """
@@ -212,14 +213,16 @@ def main() -> None:
     ap.add_argument("--score-threshold", type=float, default=0.25, help="with --estimator: the detector's")
     ap.add_argument("--int8", action="store_true", help="with --estimator: the bundle's int8 graphs")
     ap.add_argument("--threads", type=int, default=2, help="with --estimator: onnxruntime threads")
+    ap.add_argument("--pallet-types", help="with --estimator: comma-separated, the only types posed (default: all)")
     args = ap.parse_args()
-    if (args.int8 or args.gt_boxes) and not args.estimator:
-        ap.error("--int8 and --gt-boxes need --estimator")
+    if (args.int8 or args.gt_boxes or args.pallet_types) and not args.estimator:
+        ap.error("--int8, --gt-boxes and --pallet-types need --estimator")
     est = None
     if args.estimator:
         from pallet6d.runtime.estimator import PalletEstimator
+        types = {} if not args.pallet_types else {"pallet_types": tuple(args.pallet_types.split(","))}
         est = PalletEstimator.from_bundle(args.estimator, score_threshold=args.score_threshold, threads=args.threads,
-                                          precision="int8" if args.int8 else "fp32")
+                                          precision="int8" if args.int8 else "fp32", **types)
     frames = npz_frames(args.frames) if args.frames else bop_frames(args.bop, args.split, args.max_frames)
     out = evaluate(frames, ForkliftParams(), est, args.all, args.gt_boxes)
     for name, res in out.items():

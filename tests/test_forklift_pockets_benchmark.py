@@ -64,9 +64,9 @@ def test_each_pallet_is_scored_with_its_own_type(forklift_bop, tmp_path):
     assert targets and all(r["pocket_err_m"] < 1e-6 and r["yaw_err_deg"] < 1e-6 for r in targets)
 
 
-@pytest.mark.parametrize("flag", ["--int8", "--gt-boxes"])
+@pytest.mark.parametrize("flag", [["--int8"], ["--gt-boxes"], ["--pallet-types", "gma"]])
 def test_estimator_options_without_an_estimator_are_refused(tmp_path, flag):
-    done = subprocess.run([sys.executable, str(SCRIPT), "--frames", str(tmp_path), flag],
+    done = subprocess.run([sys.executable, str(SCRIPT), "--frames", str(tmp_path), *flag],
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 2 and "need --estimator" in done.stderr
 
