@@ -337,28 +337,6 @@ def pocket_evidence(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face:
     return out
 
 
-def _volume_points(T: np.ndarray, pockets_face: np.ndarray, size: np.ndarray, face: str, depth_m: np.ndarray,
-                   K: np.ndarray, params: ForkliftParams, from_m: float) -> tuple:
-    """Sample points of both pockets' volume from `from_m` to `clear_depth_m` in (`grid` x `grid` over the inset
-    opening, every `slice_m`): (2, s, g*g, 3) pallet frame, (n, 3) camera frame, their pixels (n,) u and v, (n,) in
-    the image and in front of the camera, and (n,) the depth read there (0 where none). None: no volume."""
-    h, w = depth_m.shape
-    along = np.arange(from_m + params.slice_m / 2, params.clear_depth_m, params.slice_m)
-    if not len(along):
-        return None
-    inward = -FACE_NORMALS[face]
-    mouths = np.stack([_pocket_grid(np.asarray(pockets_face[k], dtype=np.float64), size, face, params.grid,
-                                    params.inset) for k in range(2)])                           # (2, g*g, 3)
-    pts_p = mouths[:, None] + along[None, :, None, None] * inward                             # (2, s, g*g, 3)
-    pts = transform_points(T, pts_p.reshape(-1, 3))
-    front = pts[:, 2] > 0.05
-    u, v = np.round(np.where(front[:, None], project_points(pts, K), -1.0)).astype(np.int64).T
-    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    d = np.zeros(len(pts))
-    d[inside] = depth_m[v[inside], u[inside]]
-    return pts_p, pts, u, v, inside, np.where(np.isfinite(d), d, 0.0)
-
-
 def pocket_free_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face: np.ndarray, size_m,
                          face: str, depth_m: np.ndarray, K: np.ndarray,
                          params: ForkliftParams = ForkliftParams()) -> np.ndarray:
@@ -372,20 +350,7 @@ def pocket_free_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_
     :param depth_m: (H, W) observed depth, metres, 0 = none. :param K: (3, 3).
     :return: (2,) float in [0, 1], left then right (1 where the parameters leave no volume to check).
     """
-    T, K, depth_m, size = _pocket_inputs(T_cam_pallet, K, depth_m, size_m)
-    vol = _volume_points(T, pockets_face, size, face, depth_m, K, params, params.min_open_depth_m)
-    if vol is None:
-        return np.ones(2)
-    _, pts, _, _, inside, d = vol
-    z = pts[:, 2]
-    zs = np.where(z > 0.05, z, 1.0)
-    T_pallet_cam = invert_T(T)
-    dirs_p = (pts / zs[:, None]) @ T_pallet_cam[:3, :3].T                # parameter = camera depth
-    t_box, _ = cast_rays_boxes(T_pallet_cam[None, :3, 3], dirs_p[None], boxes_m)
-    unhidden = t_box[0] >= z - 1e-6                                     # no board or block before the point
-    tol = params.tol_m + params.tol_quad_per_m * z ** 2
-    free = inside & unhidden & (d > 0) & (d >= z - tol)
-    return free.reshape(2, -1).mean(1)
+    return _pocket_volume(T_cam_pallet, boxes_m, pockets_face, size_m, face, depth_m, K, params)[0]
 
 
 def pocket_occupied_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pockets_face: np.ndarray, size_m,
@@ -394,32 +359,58 @@ def pocket_occupied_fraction(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, pock
     """Share of each pocket's volume from its mouth to `clear_depth_m` in where the depth shows a surface inside
     the pocket in front of the sample point: the ray of the point's pixel meets no board or block of the pallet
     before the point, and its depth lies more than the tolerance in front of the point but not in front of the
-    face plane (the forklift's own fork tips at the mouth are no obstacle). The pixel's own ray, not the point's,
-    decides what the pallet hides: at a block's edge the two differ, and the depth read is the pixel's.
+    first slice of points, half a `slice_m` in from the face (what stands at the mouth, the forklift's own fork tips
+    too, is left to the rays of `pocket_evidence`). The pixel's own ray, not the point's, decides what the pallet
+    hides: at a block's edge the two differ, and the depth read is the pixel's.
 
     :param T_cam_pallet: (4, 4). :param boxes_m: (k, 2, 3) the pallet's boards and blocks (pallet frame).
     :param pockets_face: (2, 2, 3) the face's pockets, left then right. :param size_m: (3,).
     :param depth_m: (H, W) observed depth, metres, 0 = none. :param K: (3, 3).
     :return: (2,) float in [0, 1], left then right (0 where the parameters leave no volume to check).
     """
+    return _pocket_volume(T_cam_pallet, boxes_m, pockets_face, size_m, face, depth_m, K, params)[1]
+
+
+def _pocket_volume(T_cam_pallet, boxes_m, pockets_face, size_m, face: str, depth_m, K,
+                   params: ForkliftParams) -> tuple[np.ndarray, np.ndarray]:
+    """`pocket_free_fraction` and `pocket_occupied_fraction` from one set of sample points: both pockets' volume
+    from the mouth to `clear_depth_m` in, the free share read on the slices from `min_open_depth_m` in."""
     T, K, depth_m, size = _pocket_inputs(T_cam_pallet, K, depth_m, size_m)
-    vol = _volume_points(T, pockets_face, size, face, depth_m, K, params, 0.0)
-    if vol is None:
-        return np.zeros(2)
-    pts_p, pts, u, v, inside, d = vol
+    h, w = depth_m.shape
+    along = np.arange(params.slice_m / 2, params.clear_depth_m, params.slice_m)
+    deep = along >= params.min_open_depth_m - 1e-9
+    if not len(along):
+        return np.ones(2), np.zeros(2)
+    inward = -FACE_NORMALS[face]
+    mouths = np.stack([_pocket_grid(np.asarray(pockets_face[k], dtype=np.float64), size, face, params.grid,
+                                    params.inset) for k in range(2)])                           # (2, g*g, 3)
+    pts_p = mouths[:, None] + along[None, :, None, None] * inward                             # (2, s, g*g, 3)
+    pts = transform_points(T, pts_p.reshape(-1, 3))
     z = pts[:, 2]
-    rays = np.column_stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(len(u))])   # depth = 1
+    front = z > 0.05
+    u, v = np.round(np.where(front[:, None], project_points(pts, K), -1.0)).astype(np.int64).T
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    d = np.zeros(len(pts))
+    d[inside] = depth_m[v[inside], u[inside]]
+    d = np.where(np.isfinite(d), d, 0.0)
+    tol = params.tol_m + params.tol_quad_per_m * z ** 2
     T_pallet_cam = invert_T(T)
-    t_box, _ = cast_rays_boxes(T_pallet_cam[None, :3, 3], (rays @ T_pallet_cam[:3, :3].T)[None], boxes_m)
-    unhidden = t_box[0] >= z - 1e-6
+    origin = T_pallet_cam[None, :3, 3]
+    # free: no board or block before the point along its own ray (parameter = camera depth)
+    zs = np.where(front, z, 1.0)
+    t_point, _ = cast_rays_boxes(origin, ((pts / zs[:, None]) @ T_pallet_cam[:3, :3].T)[None], boxes_m)
+    free = inside & (t_point[0] >= z - 1e-6) & (d > 0) & (d >= z - tol)
+    free = free.reshape(2, len(along), -1)[:, deep].reshape(2, -1).mean(1) if deep.any() else np.ones(2)
+    # occupied: judged on the ray of the pixel whose depth was read
+    rays = np.column_stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(len(u))])   # depth = 1
+    t_pixel, _ = cast_rays_boxes(origin, (rays @ T_pallet_cam[:3, :3].T)[None], boxes_m)
     n_cam = T[:3, :3] @ FACE_NORMALS[face]
-    on_face = transform_points(T, pts_p[0, 0, :1])[0]                    # a point of the face plane, camera frame
+    on_plane = transform_points(T, pts_p[0, 0, :1])[0]                   # on the first slice's plane, camera frame
     facing = rays @ n_cam
     with np.errstate(divide="ignore", invalid="ignore"):
-        z_face = np.where(facing < -1e-9, (n_cam @ on_face) / facing, np.inf)   # where the ray crosses the face
-    tol = params.tol_m + params.tol_quad_per_m * z ** 2
-    occupied = inside & unhidden & (d > 0) & (d < z - tol) & (d >= z_face)
-    return occupied.reshape(2, -1).mean(1)
+        z_first = np.where(facing < -1e-9, (n_cam @ on_plane) / facing, np.inf)   # where the ray crosses it
+    occupied = inside & (t_pixel[0] >= z - 1e-6) & (d > 0) & (d < z - tol) & (d >= z_first)
+    return free, occupied.reshape(2, -1).mean(1)
 
 
 def _pocket_state(open_rays: int, blocked_rays: int, free_fraction: float, occupied_fraction: float,
@@ -484,7 +475,7 @@ def forklift_info(T_cam_pallet: np.ndarray, T_vehicle_cam: np.ndarray, size_m, p
         evidence, free, occupied = np.zeros((2, 2), dtype=np.int64), np.zeros(2), np.zeros(2)
     else:
         args = (T_cam_pallet, boxes_m, pockets_m[face], size_m, face, depth_m, K, params)
-        evidence, free, occupied = pocket_evidence(*args), pocket_free_fraction(*args), pocket_occupied_fraction(*args)
+        evidence, (free, occupied) = pocket_evidence(*args), _pocket_volume(*args)
     pockets = tuple(Pocket(side, pockets_v[k], sizes[k, 0], sizes[k, 1],
                            _pocket_state(int(evidence[k, 0]), int(evidence[k, 1]), float(free[k]),
                                          float(occupied[k]), params),
