@@ -378,9 +378,9 @@ def _pocket_volume(T_cam_pallet, boxes_m, pockets_face, size_m, face: str, depth
     T, K, depth_m, size = _pocket_inputs(T_cam_pallet, K, depth_m, size_m)
     h, w = depth_m.shape
     along = np.arange(params.slice_m / 2, params.clear_depth_m, params.slice_m)
-    deep = along >= params.min_open_depth_m - 1e-9
     if not len(along):
         return np.ones(2), np.zeros(2)
+    deep = along >= params.min_open_depth_m - 1e-9                     # the slices the free share reads
     inward = -FACE_NORMALS[face]
     mouths = np.stack([_pocket_grid(np.asarray(pockets_face[k], dtype=np.float64), size, face, params.grid,
                                     params.inset) for k in range(2)])                           # (2, g*g, 3)
