@@ -135,8 +135,10 @@ class EstimatorOptions:
         and not as well with the depth shifted 24 px, and the depth must not be flat there (`min_registration_peak`,
         the registration test; else every candidate of the frame -> "depth_image_mismatch": another frame's depth,
         a wall's, depth not registered to the image; a flat depth refuses the detector's candidates only, not the
-        depth's proposals); opt-in, the same per candidate (`min_edge_auc`) and a frame-wide size veto
-        (`frame_size_veto`). None turns the check off. What it keeps and refuses: `docs/structure-check.md`.
+        depth's proposals); without a vehicle calibration, candidates failing the metric size refuse the whole frame
+        unless more whole boxes pass every test (`frame_size_vouched`); opt-in, the same per candidate
+        (`min_edge_auc`) and a frame-wide size veto (`frame_size_veto`). None turns the check off. What it keeps
+        and refuses: `docs/structure-check.md`.
     :ivar roi: where pallets are expected (an image box and/or a depth hint, `roi.py`); detections outside are
         rejected ("outside_roi") before the pose network. None: everywhere.
     :ivar time_budget_ms: the frame's time budget from the start of `estimate`, milliseconds (None: no limit).

@@ -35,9 +35,11 @@ class FitCheckStage:
         else "no_pallet_structure". Types without boxes are not structure-checked. Two tests judge the whole frame:
         the registration test (`min_registration_peak`: the frame's depth edges against the image's, at zero shift
         and shifted) rejects every candidate as "depth_image_mismatch"; candidates failing the metric size reject
-        every candidate as "size_mismatch" when they outnumber the whole boxes that pass it (`frame_size_majority`)
-        or reach `frame_size_veto`. The registration test needs only the depth, the image and the boxes, so
-        `start_registration` runs it on a worker thread while the networks run (`close` stops that thread).
+        every candidate as "size_mismatch" when they are at least as many as the whole boxes that pass every test
+        in a frame without a vehicle calibration (`frame_size_vouched`), outnumber the whole boxes that pass the
+        size test (`frame_size_majority`) or reach `frame_size_veto`. The registration test needs only the depth,
+        the image and the boxes, so `start_registration` runs it on a worker thread while the networks run
+        (`close` stops that thread).
     :param weak: what a weak detection's pose must show besides (`weak_boxes.py`); the rows the caller marks weak
         are rejected ("no_pallet_structure") where it is not shown, or where no structure check can judge them.
     """
@@ -124,7 +126,7 @@ class FitCheckStage:
             short = [(mine[k], w) for k, w in zip(judged, why) if w]
             cands.reject(np.array([i for i, _ in short], dtype=np.int64), "no_pallet_structure",
                          [self._weak_detail(cands, i, w) for i, w in short])
-        rule = frame_size_rule(scores_all, p)
+        rule = frame_size_rule(scores_all, p, calibrated=up_cam is not None)
         if rule:
             n_size = sum(sc.reason == "size_mismatch" for sc in scores_all)
             cands.reject(rows[cands.alive[rows]], "size_mismatch",

@@ -179,6 +179,17 @@ class StructureParams:
         frame's other pallets can. Off by default: a detector that often boxes what is no pallet (on real
         photographs about 4 boxes in 10) makes frames whose false boxes, failing the size test, outnumber the
         true pallets, which would then lose their poses too.
+    :ivar frame_size_vouched: when candidates of a frame fail the metric-size test and are at least as many as those
+        whose whole box passes the whole structure check (the pallets that vouch for the frame's depth scale and
+        focal length), every candidate of the frame -> "size_mismatch". Stricter than `frame_size_majority`: a box
+        that fails the structure check vouches for nothing, and a tie refuses. A focal length 2x too long leaves
+        pallets cut by the image's edge or seen from above, whose size cannot show it, beside others that fail
+        the size test; in a correct frame a box failing the size test (a thin false box, a pallet under a
+        low-hanging load) stands beside more pallets that pass. Frames with a vehicle calibration are left to the
+        floor check, which sees a wrong scale or focal length as a floor at the wrong height
+        (`calibration.CalibrationMonitor`): in the forklift's views rack beams in striped or chequered paint are
+        boxed in thin strips that fail the size test, as many as the pallets beside them (docs/structure-check.md).
+        False turns it off.
     """
 
     grid: int = 32
@@ -218,6 +229,7 @@ class StructureParams:
     replace_min_open_fraction: float = 0.6
     frame_size_veto: int = 0
     frame_size_majority: bool = False
+    frame_size_vouched: bool = True
 
     def __post_init__(self) -> None:
         if int(self.grid) < 4:
@@ -757,16 +769,21 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     return out
 
 
-def frame_size_rule(scores: list[StructureScore], params: StructureParams = StructureParams()) -> str | None:
+def frame_size_rule(scores: list[StructureScore], params: StructureParams = StructureParams(),
+                    calibrated: bool = False) -> str | None:
     """The frame-level size rule that refuses every candidate of a frame, given all its candidates' structure
     scores: "frame_size_veto" (at least `frame_size_veto` fail the metric-size test), "frame_size_majority" (those
-    failing outnumber the whole boxes that pass), or None."""
+    failing outnumber the whole boxes that pass it), "frame_size_vouched" (some fail it, and no fewer than the whole
+    boxes that pass the whole check; only in a frame without a vehicle calibration, `calibrated` False), or None."""
     n_size = sum(sc.reason == "size_mismatch" for sc in scores)
     n_whole_sized = sum(sc.reason != "size_mismatch" and not sc.box_cut for sc in scores)
+    n_whole_ok = sum(sc.ok and not sc.box_cut for sc in scores)
     if params.frame_size_veto > 0 and n_size >= params.frame_size_veto:
         return "frame_size_veto"
     if params.frame_size_majority and n_size > n_whole_sized:
         return "frame_size_majority"
+    if params.frame_size_vouched and not calibrated and n_size > 0 and n_size >= n_whole_ok:
+        return "frame_size_vouched"
     return None
 
 

@@ -245,7 +245,8 @@ def test_frame_size_veto_rejects_every_candidate_when_enough_fail_the_metric_siz
         c = Candidates.new(np.array(boxes + [thin], float), np.ones(n), np.zeros(n, np.int64), np.zeros(n, np.int64),
                            est.spec.num_points)
         c.assign(np.arange(n), T_cam_pallet=T)
-        stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0, StructureParams(frame_size_veto=veto))
+        stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0,
+                              StructureParams(frame_size_veto=veto, frame_size_vouched=False))
         stage.check_structure(c, np.arange(n), frame.depth_m, frame.K, frame.rgb)
         return c
 
@@ -278,11 +279,47 @@ def test_frame_size_majority_rejects_every_candidate_when_failures_outnumber_who
                        np.zeros(n, np.int64), est.spec.num_points)
     c.assign(np.arange(n), T_cam_pallet=np.stack([p.T_cam_pallet for p in pallets]
                                                  + [pallets[0].T_cam_pallet] * n_thin))
-    stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0, StructureParams(frame_size_majority=majority))
+    stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0,
+                          StructureParams(frame_size_majority=majority, frame_size_vouched=False))
     stage.check_structure(c, np.arange(n), frame.depth_m, frame.K, frame.rgb)
     assert list(c.reason[2:]) == ["size_mismatch"] * n_thin
     if vetoed:
         assert list(c.reason[:2]) == ["size_mismatch"] * 2 and "frame_size_majority" in c.detail[0]
+    else:
+        assert "size_mismatch" not in set(c.reason[:2]), c.reason
+
+
+@pytest.mark.parametrize("n_thin, n_misplaced, vouched, refused", [(1, 0, True, False), (2, 0, True, True),
+                                                                   (1, 1, True, True), (2, 0, False, False)])
+def test_frame_size_vouched_refuses_the_frame_unless_more_whole_pallets_pass_than_fail_the_size(
+        bundle_dir, n_thin, n_misplaced, vouched, refused):
+    """Two pallets with whole boxes, `n_misplaced` of them posed 0.5 m aside (they fail the structure check and vouch
+    for nothing), and n_thin boxes of no pallet's metric size: the frame is refused when the thin boxes are at least
+    as many as the whole boxes that pass the whole check."""
+    from estimator_fixtures import scene
+    from pallet6d.runtime.estimator import PalletEstimator
+    from pallet6d.runtime.stage_fit import FitCheckStage
+
+    frame = scene()
+    est = PalletEstimator.from_bundle(bundle_dir, threads=1, structure=None)
+    pallets = sorted(frame.pallets, key=lambda p: -p.visib_fract)[:2]
+    boxes = [[p.bbox_visib_xywh[0], p.bbox_visib_xywh[1], p.bbox_visib_xywh[0] + p.bbox_visib_xywh[2],
+              p.bbox_visib_xywh[1] + p.bbox_visib_xywh[3]] for p in pallets]
+    thin = [boxes[0][0], boxes[0][1], boxes[0][2], boxes[0][1] + 4]                # 4 px tall: no pallet's height
+    T = [p.T_cam_pallet.copy() for p in pallets]
+    for k in range(n_misplaced):
+        T[k][0, 3] += 0.5
+    n = 2 + n_thin
+    c = Candidates.new(np.array(boxes + [thin] * n_thin, float), np.ones(n), np.zeros(n, np.int64),
+                       np.zeros(n, np.int64), est.spec.num_points)
+    c.assign(np.arange(n), T_cam_pallet=np.stack(T + [pallets[0].T_cam_pallet] * n_thin))
+    stage = FitCheckStage(est.pallet_types, 0.04, 0.0, 0.0, StructureParams(frame_size_vouched=vouched))
+    stage.check_structure(c, np.arange(n), frame.depth_m, frame.K, frame.rgb)
+    assert list(c.reason[2:]) == ["size_mismatch"] * n_thin
+    assert list(c.reason[:n_misplaced]) == ["no_pallet_structure"] * n_misplaced, c.reason
+    if refused:
+        assert list(c.reason[n_misplaced:2]) == ["size_mismatch"] * (2 - n_misplaced), c.reason
+        assert all("frame_size_vouched" in d for d in c.detail[n_misplaced:2])
     else:
         assert "size_mismatch" not in set(c.reason[:2]), c.reason
 
