@@ -8,7 +8,8 @@ import pytest
 from pallet6d.runtime.candidates import Candidates
 from pallet6d.runtime.detector import Detections
 from pallet6d.runtime.registration import RegistrationScore, pair_auc, registration_region, registration_score
-from pallet6d.runtime.structure import StructureParams, frame_registration, registration_verdict
+from pallet6d.runtime.structure import (StructureParams, StructureScore, frame_registration, frame_size_rule,
+                                        registration_verdict)
 
 H, W = 240, 320
 WALL_M = 6.0
@@ -224,6 +225,35 @@ def test_estimator_rejects_every_pose_on_a_flat_walls_depth(bundle_dir):
     assert r.poses == [] and len(r.rejected) == len(boxes)
     assert {x.reason for x in r.rejected} == {"depth_image_mismatch"}
     assert all("flat around its candidates" in x.detail for x in r.rejected), r.rejected[0].detail
+
+
+def _score(reason: str, cut: bool = False) -> StructureScore:
+    return StructureScore(1, 0, 0, 0, 1.0, 1.0, 1.0, 1.0, 1.0, float("nan"), (1.0, 0.14), float("nan"), reason,
+                          box_cut=cut)
+
+
+SIZE, OK, BAD = "size_mismatch", "", "structure_mismatch"
+
+
+@pytest.mark.parametrize("reasons, cut, params, calibrated, rule", [
+    ([], [], {}, False, None),
+    ([SIZE], [False], {}, False, "frame_size_vouched"),            # nothing vouches for the frame
+    ([SIZE], [False], {}, True, None),                             # a calibration: left to the floor check
+    ([SIZE, OK], [False, False], {}, False, "frame_size_vouched"),  # a tie refuses
+    ([SIZE, OK, OK], [False, False, False], {}, False, None),
+    # a structure failure vouches for nothing, nor does a box cut at the image's top or bottom
+    ([SIZE, OK, BAD], [False, False, False], {}, False, "frame_size_vouched"),
+    ([SIZE, OK, OK], [False, True, True], {}, False, "frame_size_vouched"),
+    ([OK, BAD, BAD, BAD], [False] * 4, {}, False, None),           # no size failure: no frame rule
+    ([SIZE], [False], {"frame_size_vouched": False}, False, None),
+    ([SIZE, SIZE, OK], [False] * 3, {"frame_size_vouched": False, "frame_size_veto": 2}, False, "frame_size_veto"),
+    ([SIZE, SIZE, BAD], [False] * 3, {"frame_size_vouched": False, "frame_size_majority": True}, False,
+     "frame_size_majority"),
+    ([SIZE, OK, BAD], [False] * 3, {"frame_size_vouched": False, "frame_size_majority": True}, False, None),
+])
+def test_frame_size_rule_table(reasons, cut, params, calibrated, rule):
+    scores = [_score(r, c) for r, c in zip(reasons, cut)]
+    assert frame_size_rule(scores, StructureParams(**params), calibrated=calibrated) == rule
 
 
 def test_frame_size_veto_rejects_every_candidate_when_enough_fail_the_metric_size(bundle_dir):
