@@ -79,6 +79,20 @@ def test_floor_check_disagrees_with_a_focal_length_off():
     assert mon.update(depth, long_K).agrees is False and not mon.ok
 
 
+@pytest.mark.parametrize("scale", [0.1, 0.5, 2.0])
+def test_floor_check_disagrees_with_a_depth_scale_off(scale):
+    """Depth read with the wrong scale (uint16 millimetres taken for 0.1 mm, a stereo baseline off) puts the floor
+    at the wrong height: vehicle-frame output stops at start. The structure check's frame size rule leaves such
+    frames to this check when a calibration is given."""
+    T_vc = camera(0.8, 10.0)
+    depth = render(T_vc, pallet_pose(2.5))
+    cal = _calibration(T_vc)
+    c = check_floor(cal.floor, depth * scale, K)
+    assert c.agrees is False and c.height_diff_m == pytest.approx(0.8 * (scale - 1.0), abs=0.02)
+    mon = CalibrationMonitor(cal)
+    assert mon.update(depth * scale, K).agrees is False and not mon.ok
+
+
 def test_monitor_stops_vehicle_output_after_a_knock_and_resumes_when_the_floor_agrees_again():
     T_vc = camera(0.8, 10.0)
     mon = CalibrationMonitor(_calibration(T_vc), every_n=5, n_bad=2, n_good=2)
