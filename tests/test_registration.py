@@ -227,7 +227,7 @@ def test_estimator_rejects_every_pose_on_a_flat_walls_depth(bundle_dir):
     assert all("flat around its candidates" in x.detail for x in r.rejected), r.rejected[0].detail
 
 
-def _score(reason: str, cut: bool = False) -> StructureScore:
+def _structure_score(reason: str, cut: bool = False) -> StructureScore:
     return StructureScore(1, 0, 0, 0, 1.0, 1.0, 1.0, 1.0, 1.0, float("nan"), (1.0, 0.14), float("nan"), reason,
                           box_cut=cut)
 
@@ -252,7 +252,7 @@ SIZE, OK, BAD = "size_mismatch", "", "structure_mismatch"
     ([SIZE, OK, BAD], [False] * 3, {"frame_size_vouched": False, "frame_size_majority": True}, False, None),
 ])
 def test_frame_size_rule_table(reasons, cut, params, calibrated, rule):
-    scores = [_score(r, c) for r, c in zip(reasons, cut)]
+    scores = [_structure_score(r, c) for r, c in zip(reasons, cut)]
     assert frame_size_rule(scores, StructureParams(**params), calibrated=calibrated) == rule
 
 
