@@ -211,6 +211,10 @@ def _structure_detail(s) -> str:
     if s.reason == "see_through_cut":
         return (f"see_through_cut: the image's edge cuts the box, and {s.see_through} of the {s.solid + s.see_through} "
                 "rays that meet the posed pallet's boards see through them (no pallet there, or focal length off?)")
+    if s.reason == "see_through_beyond_box":
+        return (f"see_through_beyond_box: {s.see_through_beyond} of the {s.solid + s.see_through} rays that meet the "
+                "posed pallet's boards see through them outside the detector's box, which the image's edge does not "
+                "cut (the pose is larger than the pallet seen: focal length off?)")
     if s.reason == "depth_image_mismatch":
         return (f"depth_image_mismatch: depth edges agree with the image's at AUC {s.edge_auc:.2f} (0.5 = chance; "
                 "depth of another frame, or not registered to the colour image?)")

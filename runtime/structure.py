@@ -112,6 +112,16 @@ class StructureParams:
         scene across the image, and the network fits a pallet to the squeezed points of a cut pallet whose boards
         then overhang them: such poses see through 0.13-0.40 of their boards, correct poses of cut pallets rarely
         more than 0.2 (docs/structure-check.md); 1 turns it off.
+    :ivar max_see_through_beyond_box: a box that the image's edge does not cut holds the whole pallet the detector
+        saw, so the posed pallet must not stand where the depth is free beyond it: of the rays that meet the pose's
+        boards (solid + see-through), the fraction outside the detector's box widened by
+        `beyond_box_margin` on each side that see through them above this -> "see_through_beyond_box". A focal
+        length 2x too long draws the pose twice the size of the pallet in the image, past a box the pallet fills;
+        an occluded pallet's box is smaller than the pose too, but the rays beyond it meet the occluder in front,
+        not free space. Correct poses of whole boxes on the validation frames stay at or under 0.031 (presets) and
+        0.089 (calibrated forklift views, one pose over 0.05); 1 turns it off (docs/structure-check.md).
+    :ivar beyond_box_margin: the detector's box is widened by this fraction of its width and height on each side
+        for `max_see_through_beyond_box` (a box a few pixels tight is no evidence).
     :ivar max_tilt_deg: with an up vector, the pallet's z axis may lean at most this much from it -> "tilted".
     :ivar min_box_height_of_type: the detector's box height times the median depth inside it over fy (its metric
         height) below this fraction of the type's height (its smallest side) -> "size_mismatch" (depth scale too
@@ -207,6 +217,8 @@ class StructureParams:
     min_box_solid: float = 0.3
     min_seen_iou: float = 0.1
     max_see_through_cut: float = 0.2
+    max_see_through_beyond_box: float = 0.05
+    beyond_box_margin: float = 0.1
     max_tilt_deg: float = 25.0
     min_box_height_of_type: float = 0.4
     min_whole_box_height_of_type: float = 0.8
@@ -241,11 +253,14 @@ class StructureParams:
             raise ValueError(f"tol_m must be positive, got {self.tol_m}")
         for name in ("min_agreement", "min_agreement_levelled", "min_open_fraction", "min_pocket_open_fraction",
                      "min_box_cover", "min_box_solid",
-                     "min_seen_iou", "max_see_through_cut", "min_edge_auc", "min_box_height_of_type",
+                     "min_seen_iou", "max_see_through_cut", "max_see_through_beyond_box", "min_edge_auc",
+                     "min_box_height_of_type",
                      "min_whole_box_height_of_type",
                      "replace_min_agreement", "replace_min_open_fraction"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if not self.beyond_box_margin >= 0:
+            raise ValueError(f"beyond_box_margin must be >= 0, got {self.beyond_box_margin}")
         if int(self.min_evidence) < 1 or int(self.min_opening_evidence) < 1 or int(self.min_pocket_evidence) < 1:
             raise ValueError("min_evidence, min_opening_evidence and min_pocket_evidence must be >= 1")
         if not self.max_pocket_range_m >= 0:
@@ -299,12 +314,15 @@ class StructureScore:
     :ivar edge_auc: AUC of colour differences across depth jumps against those elsewhere (NaN without a colour image
         or too few pairs).
     :ivar reason: "" when accepted, else one of "size_mismatch", "depth_image_mismatch", "structure_unseen",
-        "structure_mismatch", "see_through_cut", "openings_closed", "pockets_closed", "box_mismatch", "tilted".
+        "structure_mismatch", "see_through_cut", "see_through_beyond_box", "openings_closed", "pockets_closed",
+        "box_mismatch", "tilted".
     :ivar mouth_open: rays that enter through an opening and meet a board or block deeper inside, whose depth lies
         behind the entry.
     :ivar mouth_closed: such rays with a surface at the entry.
     :ivar pocket_open: the open fraction of the most open pocket with enough evidence (`pocket_open_fractions`;
         NaN when no pocket has, or the pallet is farther than `StructureParams.max_pocket_range_m`).
+    :ivar see_through_beyond: see-through rays outside the detector's box widened by
+        `StructureParams.beyond_box_margin` (`max_see_through_beyond_box`).
     """
 
     solid: int
@@ -325,6 +343,7 @@ class StructureScore:
     mouth_open: int = 0
     mouth_closed: int = 0
     pocket_open: float = float("nan")
+    see_through_beyond: int = 0
 
     @property
     def ok(self) -> bool:
@@ -701,6 +720,14 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
         edge_auc = edge_agreement(z_obs.reshape(g2), np.asarray(rgb)[vi, ui].reshape(*g2, 3), tol_obs.reshape(g2),
                                   int(params.min_edge_pairs))
 
+    # a whole box (no side cut by the image's edge) holds the whole pallet seen: the pose must not stand in free
+    # space beyond it
+    mu = params.beyond_box_margin * (det[:, 2:3] - det[:, 0:1])
+    mv = params.beyond_box_margin * (det[:, 3:4] - det[:, 1:2])
+    beyond = (u < det[:, 0:1] - mu) | (u > det[:, 2:3] + mu) | (v < det[:, 1:2] - mv) | (v > det[:, 3:4] + mv)
+    st_beyond = (see_through & beyond).sum(1)
+    whole_box = ~box_cut & ~cut_aside
+
     in_box = (u >= det[:, 0:1]) & (u <= det[:, 2:3]) & (v >= det[:, 1:2]) & (v <= det[:, 3:4])
     box_hits = ((solid | see_through) & in_box).sum(1)       # an occluder in front is no evidence either way
     box_solid = np.where(box_hits > 0, (solid & in_box).sum(1) / np.maximum(box_hits, 1), np.nan)
@@ -755,6 +782,8 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
             reason = "structure_mismatch"
         elif size_unsure[i] and st > params.max_see_through_cut * (s + st):
             reason = "see_through_cut"
+        elif whole_box[i] and st_beyond[i] > params.max_see_through_beyond_box * (s + st):
+            reason = "see_through_beyond_box"
         elif max(op + cl, mo + mc) >= params.min_opening_evidence and open_fraction < params.min_open_fraction:
             reason = "openings_closed"
         elif pocket_open[i] < params.min_pocket_open_fraction:     # NaN (no pocket judged) compares False
@@ -765,7 +794,7 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
                                   float(box_solid[i]), float(seen_iou[i]),
                                   float(tilt[i]), (float(size_m[i, 0]), float(size_m[i, 1])),
                                   float(edge_auc[i]), reason, bool(box_cut[i]),
-                                  float(whole_height_m[i]), mo, mc, float(pocket_open[i])))
+                                  float(whole_height_m[i]), mo, mc, float(pocket_open[i]), int(st_beyond[i])))
     return out
 
 

@@ -1,4 +1,6 @@
 """The structure check on depth rendered from the pallet's own boxes: true poses pass, mismatches do not."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -166,6 +168,43 @@ def test_partly_hidden_pallet_passes():
     v, u = np.nonzero((depth < BACK_WALL_M) & (depth > 1.0))
     s = _check(depth=depth, box=np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float))
     assert s.ok, s
+
+
+LOOSE = StructureParams(min_agreement=0.0, min_box_cover=0.0, min_box_solid=0.0, min_seen_iou=0.0,
+                        min_open_fraction=0.0, min_pocket_open_fraction=0.0, min_box_height_of_type=0.0,
+                        min_whole_box_height_of_type=0.0)
+
+
+def test_a_pose_standing_in_free_space_beyond_a_whole_box_is_refused():
+    """A box the image's edge does not cut holds the whole pallet: a pose that reaches past it where the depth shows
+    the wall behind (a pose too large for the pallet seen, as with a focal length 2x too long) is refused, whatever
+    the other tests say; where an occluder in front hides the pallet beyond its box, the pose stands."""
+    assert _check(params=LOOSE).ok
+    T_past = T_TRUE.copy()
+    T_past[0, 3] += 0.25                            # a third of the pallet's width past the box's right side
+    s = _check(T=T_past, params=LOOSE)
+    assert s.reason == "see_through_beyond_box", s
+    assert s.see_through_beyond > LOOSE.max_see_through_beyond_box * (s.solid + s.see_through)
+    assert _check(T=T_past, params=replace(LOOSE, max_see_through_beyond_box=1.0)).ok
+    hidden = DEPTH.copy()                           # a post in front of the pallet's right third
+    hidden[:, int(BOX[0, 0] + 0.67 * (BOX[0, 2] - BOX[0, 0])):] = 1.0
+    v, u = np.nonzero((hidden < BACK_WALL_M) & (hidden > 1.0))
+    seen = np.array([[u.min(), v.min(), u.max() + 1, v.max() + 1]], float)
+    s = _check(depth=hidden, box=seen)
+    assert s.ok and s.see_through_beyond == 0, s
+
+
+def test_a_pose_past_a_box_cut_by_the_image_edge_is_judged_by_its_boards_instead():
+    """A cut box does not hold the whole pallet: the rule leaves it to `see_through_cut`."""
+    T_cut = make_T(R_CAM_PALLET, np.array([1.6, 0.45, 3.0]))
+    depth = _render(T_cut)
+    box = _box(T_cut)
+    assert box[0, 2] == W
+    T_past = T_cut.copy()
+    T_past[0, 3] -= 0.25                            # past the box's left side, into free space
+    s = _check(T=T_past, depth=depth, box=box, params=LOOSE)
+    assert s.see_through_beyond > LOOSE.max_see_through_beyond_box * (s.solid + s.see_through), s
+    assert s.reason != "see_through_beyond_box", s
 
 
 def test_box_far_from_the_pose_is_a_mismatch():
@@ -425,6 +464,23 @@ def test_fit_check_stage_names_the_see_through_of_a_cut_box():
     FitCheckStage((geom,), tol_m=0.04, min_fit=0.0, min_confidence=0.0).check_structure(cands, np.arange(1), depth, K)
     assert cands.reason[0] == "no_pallet_structure", cands.detail[0]
     assert cands.detail[0].startswith("see_through_cut: the image's edge cuts the box"), cands.detail[0]
+
+
+def test_fit_check_stage_names_the_see_through_beyond_a_whole_box():
+    from pallet6d.runtime.candidates import Candidates
+    from pallet6d.runtime.stage_fit import FitCheckStage
+    from pallet6d.runtime.stage_geometry import PalletGeometry
+
+    geom = PalletGeometry(name="epal", points_m=EPAL.boxes_m.reshape(-1, 3), boxes_m=EPAL.boxes_m,
+                          symmetries=EPAL.symmetries, size_m=EPAL.size_m, refine_starts=np.zeros((0, 3)))
+    T_past = T_TRUE.copy()
+    T_past[0, 3] += 0.25
+    cands = Candidates.new(BOX, [0.9], [0], [0], num_points=8)
+    cands.assign(np.arange(1), T_cam_pallet=T_past[None])
+    FitCheckStage((geom,), tol_m=0.04, min_fit=0.0, min_confidence=0.0, structure=LOOSE).check_structure(
+        cands, np.arange(1), DEPTH, K)
+    assert cands.reason[0] == "no_pallet_structure", cands.detail[0]
+    assert cands.detail[0].startswith("see_through_beyond_box: "), cands.detail[0]
 
 
 @pytest.mark.parametrize("compiled", [True, False])
