@@ -12,7 +12,12 @@
 #      DET_REPEAT (name prefixes of chunks the detector sees twice, e.g. "vo- in-"; none), POSE_CONFIG (edge2-dilated),
 #      POSE_ARGS (more `pallet6d train pose` flags, e.g. "--distill models/epal-default --calibrate-share 0.944"
 #      with POSE_CONFIG=edge2-pruned, which starts from the bundle's most important layer4 / PSP channels, trains
-#      the pose network with it and ends with the floor keeping the shipped networks' share of pallets; none)
+#      the pose network with it and ends with the floor keeping the shipped networks' share of pallets; none),
+#      POSE_WARM_MIN (minutes of a first pose phase, trained with POSE_WARM_ARGS instead of POSE_ARGS for
+#      POSE_WARM_EPOCHS epochs at POSE_WARM_LR (POSE_LR), e.g. "--distill models/epal-default --freeze-pose": its last.pt starts the second phase,
+#      which gets the rest of TRAIN_MIN; 0: one phase), CACHE_FROM (a folder of caches made beforehand, e.g. the
+#      --negatives crops, copied into the trainers' cache; none), POSE_SLACK_S (seconds the pose phases may run past
+#      the detector's hard stop, for their start-ups and the calibration; 0)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
 OUT_DIR=$1 REAL=$2
@@ -21,8 +26,11 @@ SIM_S=${SIM_S:-190} TRAIN_MIN=${TRAIN_MIN:-4.6} DEVICE=${DEVICE:-cuda} PROCS=${P
 DET_EPOCHS=${DET_EPOCHS:-7} POSE_EPOCHS=${POSE_EPOCHS:-12} BUNDLE=${BUNDLE:-models/epal-default}
 STAGES=${STAGES:-det pose} DET_INIT=${DET_INIT:-$BUNDLE} POSE_INIT=${POSE_INIT:-$BUNDLE}
 POSE_LR=${POSE_LR:-2e-4} DET_LR=${DET_LR:-3e-4} POSE_CONFIG=${POSE_CONFIG:-edge2-dilated} POSE_ARGS=${POSE_ARGS:-}
+POSE_WARM_MIN=${POSE_WARM_MIN:-0} POSE_WARM_ARGS=${POSE_WARM_ARGS:-} POSE_WARM_EPOCHS=${POSE_WARM_EPOCHS:-4}
+POSE_WARM_LR=${POSE_WARM_LR:-$POSE_LR}
 export RECIPES=$PWD/export/recipes W=${W:-/tmp/p6d}
 rm -rf "$W"; mkdir -p "$W/pp/pallet6d" "$W/sim" "$W/cache" "$W/log" "$OUT_DIR"
+[ -n "${CACHE_FROM:-}" ] && cp "$CACHE_FROM"/* "$W/cache/"
 for d in runtime export calib sim; do ln -sfn "$PWD/$d" "$W/pp/pallet6d/$d"; done   # the package, not installed
 export PYTHONPATH=$W/pp PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
 say() { echo "[$(date +%T)] $*" | tee -a "$OUT_DIR/run.log"; }
@@ -55,18 +63,36 @@ POSE_DIRS=$(for d in $DIRS; do case $(basename "$d") in neg-*) ;; *) echo "$d";;
 for p in ${DET_REPEAT:-}; do DET_DIRS="$DET_DIRS $(for d in $DIRS; do case $(basename "$d") in "$p"*) echo "$d";; esac; done)"; done
 [ -n "$DIRS" ] || { tail -n 20 "$W"/log/*.log | tee -a "$OUT_DIR/run.log"; exit 1; }
 
-HARD=$(python3 -c "print(int($TRAIN_MIN * 60 + 75))")
+HARD=$(python3 -c "print(int($TRAIN_MIN * 60 + 75))")   # a pose phase's start-up and calibration: POSE_SLACK_S more
+POSE_HARD=$((HARD + ${POSE_SLACK_S:-0}))
 export OMP_NUM_THREADS=3
 [[ " $STAGES " == *" det "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train detector --config edge2-dilated --init "$DET_INIT" \
   --data $DET_DIRS --real "$REAL" --real-repeat-large 3 --select near_f1 \
   --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr "$DET_LR" \
   --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
   --cache-dir "$W/cache" --out "$W/det" >"$OUT_DIR/det.log" 2>&1 &
-[[ " $STAGES " == *" pose "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train pose --config "$POSE_CONFIG" --init "$POSE_INIT" \
-  --data $POSE_DIRS --epochs "$POSE_EPOCHS" --batch 32 --lr "$POSE_LR" --variants 2 --seed "$SEED" --device "$DEVICE" --amp $POSE_ARGS \
-  --max-minutes "$TRAIN_MIN" --no-progress --cache-dir "$W/cache" --out "$W/pose" >>"$OUT_DIR/run.log" 2>&1 &
+# train_pose INIT EPOCHS LR MINUTES OUT ARGS...: one pose phase
+train_pose() {
+  local init=$1 epochs=$2 lr=$3 minutes=$4 out=$5; shift 5
+  python3 -m pallet6d.runtime.cli train pose --config "$POSE_CONFIG" --init "$init" --data $POSE_DIRS \
+    --epochs "$epochs" --batch 32 --lr "$lr" --variants 2 --seed "$SEED" --device "$DEVICE" --amp "$@" \
+    --max-minutes "$minutes" --no-progress --cache-dir "$W/cache" --out "$out" >>"$OUT_DIR/run.log" 2>&1
+}
+pose_phases() {
+  if [ "$POSE_WARM_MIN" = 0 ]; then train_pose "$POSE_INIT" "$POSE_EPOCHS" "$POSE_LR" "$TRAIN_MIN" "$W/pose" $POSE_ARGS; return; fi
+  train_pose "$POSE_INIT" "$POSE_WARM_EPOCHS" "$POSE_WARM_LR" "$POSE_WARM_MIN" "$W/pose-warm" $POSE_WARM_ARGS
+  say "pose warm phase: $(ls "$W/pose-warm" | tr '\n' ' ')"
+  [ -f "$W/pose-warm/last.pt" ] || return 1
+  train_pose "$W/pose-warm/last.pt" "$POSE_EPOCHS" "$POSE_LR" "$(python3 -c "print($TRAIN_MIN - $POSE_WARM_MIN)")" "$W/pose" \
+    $POSE_ARGS
+}
+export POSE_CONFIG POSE_DIRS POSE_LR DEVICE OUT_DIR POSE_INIT POSE_EPOCHS TRAIN_MIN POSE_ARGS POSE_WARM_MIN \
+  POSE_WARM_ARGS POSE_WARM_EPOCHS POSE_WARM_LR
+[[ " $STAGES " == *" pose "* ]] && { export -f train_pose pose_phases say; timeout "$POSE_HARD" bash -c pose_phases; } &
 wait
 say "trained"
+# a call returns at most 8 files: the warm phase's checkpoints only where the second phase left none
+[ ! -d "$W/pose" ] && [ -d "$W/pose-warm" ] && { say "pose: the warm phase's checkpoints"; mv "$W/pose-warm" "$W/pose"; }
 for run in det pose; do
   for c in best last; do
     [ -f "$W/$run/$c.pt" ] && python3 "$RECIPES/checkpoint_parts.py" split "$W/$run/$c.pt" "$OUT_DIR/$run-$c"
