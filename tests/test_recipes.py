@@ -79,3 +79,32 @@ def test_a_prepared_chunk_is_read_from_its_cache(sim_bop_dataset, tmp_path, monk
     dd = train_detector.load_detector_data(cfg, [root], 21, cache, progress=False)
     assert len(pd.samples) > 0 and len(dd.samples) == 3
     assert np.all(np.isfinite(pd.samples.points))
+
+
+def test_a_packed_negatives_cache_is_read_back_as_the_same_cache(tmp_path, monkeypatch):
+    from pallet6d.export import negative_crops
+
+    rng = np.random.default_rng(0)
+    crops = {"rgb_crops": rng.normal(size=(12, 3, 8, 8)).astype(np.float32),
+             "depth_crops": rng.uniform(-1, 1, (12, 1, 8, 8)).astype(np.float32),
+             "choose": rng.integers(0, 64, (12, 5)), "points": rng.normal(size=(12, 5, 3)).astype(np.float32)}
+    settings = {"format": 2, "seed": 3}
+    built = negative_crops._cached("negatives", settings, tmp_path / "made", lambda: negative_crops.NegativeCrops(
+        crops["rgb_crops"], crops["depth_crops"], crops["choose"], crops["points"]))
+    src = next((tmp_path / "made").glob("negatives_*.npz"))
+    r = _run(str(RECIPES / "travel_cache.py"), "pack", str(src), str(tmp_path / "packed" / src.name), "--keep", "8")
+    assert r.returncode == 0, r.stderr
+    with np.load(tmp_path / "packed" / src.name) as z:
+        assert z["rgb_crops"].dtype == np.float16 and z["choose"].dtype == np.int16 and len(z["choose"]) == 8
+    r = _run(str(RECIPES / "travel_cache.py"), "unpack", str(tmp_path / "packed"), str(tmp_path / "cache"))
+    assert r.returncode == 0, r.stderr
+
+    def never():
+        raise AssertionError("the crops were built again instead of read from the unpacked cache")
+
+    back = negative_crops._cached("negatives", settings, tmp_path / "cache", never)
+    assert len(back) == 8 and back.rgb_crops.dtype == np.float32 and back.choose.dtype == np.int64
+    rows = [int(np.flatnonzero((built.choose == c).all(1))[0]) for c in back.choose]
+    assert rows == sorted(set(rows))                          # a subset, in order
+    np.testing.assert_allclose(back.rgb_crops, built.rgb_crops[rows], atol=2e-3)
+    np.testing.assert_array_equal(back.choose, built.choose[rows])

@@ -16,7 +16,7 @@
 #      POSE_WARM_MIN (minutes of a first pose phase, trained with POSE_WARM_ARGS instead of POSE_ARGS for
 #      POSE_WARM_EPOCHS epochs at POSE_WARM_LR (POSE_LR), e.g. "--distill models/epal-default --freeze-pose": its last.pt starts the second phase,
 #      which gets the rest of TRAIN_MIN; 0: one phase), CACHE_FROM (a folder of caches made beforehand, e.g. the
-#      --negatives crops, copied into the trainers' cache; none), POSE_SLACK_S (seconds the pose phases may run past
+#      --negatives crops, packed by travel_cache.py and unpacked into the trainers' cache; none), POSE_SLACK_S (seconds the pose phases may run past
 #      the detector's hard stop, for their start-ups and the calibration; 0)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
@@ -30,7 +30,7 @@ POSE_WARM_MIN=${POSE_WARM_MIN:-0} POSE_WARM_ARGS=${POSE_WARM_ARGS:-} POSE_WARM_E
 POSE_WARM_LR=${POSE_WARM_LR:-$POSE_LR}
 export RECIPES=$PWD/export/recipes W=${W:-/tmp/p6d}
 rm -rf "$W"; mkdir -p "$W/pp/pallet6d" "$W/sim" "$W/cache" "$W/log" "$OUT_DIR"
-[ -n "${CACHE_FROM:-}" ] && cp "$CACHE_FROM"/* "$W/cache/"
+[ -n "${CACHE_FROM:-}" ] && python3 export/recipes/travel_cache.py unpack "$CACHE_FROM" "$W/cache" >/dev/null
 for d in runtime export calib sim; do ln -sfn "$PWD/$d" "$W/pp/pallet6d/$d"; done   # the package, not installed
 export PYTHONPATH=$W/pp PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
 say() { echo "[$(date +%T)] $*" | tee -a "$OUT_DIR/run.log"; }
