@@ -14,10 +14,11 @@
 #      with POSE_CONFIG=edge2-pruned, which starts from the bundle's most important layer4 / PSP channels, trains
 #      the pose network with it and ends with the floor keeping the shipped networks' share of pallets; none),
 #      POSE_WARM_MIN (minutes of a first pose phase, trained with POSE_WARM_ARGS instead of POSE_ARGS for
-#      POSE_WARM_EPOCHS epochs at POSE_WARM_LR (POSE_LR), e.g. "--distill models/epal-default --freeze-pose": its last.pt starts the second phase,
-#      which gets the rest of TRAIN_MIN; 0: one phase), CACHE_FROM (a folder of caches made beforehand, e.g. the
-#      --negatives crops, packed by travel_cache.py and unpacked into the trainers' cache; none), POSE_SLACK_S (seconds the pose phases may run past
-#      the detector's hard stop, for their start-ups and the calibration; 0)
+#      POSE_WARM_EPOCHS epochs at POSE_WARM_LR (POSE_LR), e.g. "--distill models/epal-default --freeze-pose": its
+#      last.pt starts the second phase, which gets the rest of TRAIN_MIN; 0: one phase), CACHE_FROM (a folder of
+#      caches made beforehand, e.g. the --negatives crops, packed by travel_cache.py and unpacked into the trainers'
+#      cache; none), POSE_SLACK_S (seconds the pose phases may run past the detector's hard stop, for their
+#      start-ups and the calibration; 0)
 # REAL_DIR: imported real photographs (python -m pallet6d.export.real_data import); only its train split is used.
 set -u
 OUT_DIR=$1 REAL=$2
@@ -79,20 +80,25 @@ train_pose() {
     --max-minutes "$minutes" --no-progress --cache-dir "$W/cache" --out "$out" >>"$OUT_DIR/run.log" 2>&1
 }
 pose_phases() {
-  if [ "$POSE_WARM_MIN" = 0 ]; then train_pose "$POSE_INIT" "$POSE_EPOCHS" "$POSE_LR" "$TRAIN_MIN" "$W/pose" $POSE_ARGS; return; fi
+  if [ "$POSE_WARM_MIN" = 0 ]; then
+    train_pose "$POSE_INIT" "$POSE_EPOCHS" "$POSE_LR" "$TRAIN_MIN" "$W/pose" $POSE_ARGS; return
+  fi
   train_pose "$POSE_INIT" "$POSE_WARM_EPOCHS" "$POSE_WARM_LR" "$POSE_WARM_MIN" "$W/pose-warm" $POSE_WARM_ARGS
   say "pose warm phase: $(ls "$W/pose-warm" | tr '\n' ' ')"
   [ -f "$W/pose-warm/last.pt" ] || return 1
-  train_pose "$W/pose-warm/last.pt" "$POSE_EPOCHS" "$POSE_LR" "$(python3 -c "print($TRAIN_MIN - $POSE_WARM_MIN)")" "$W/pose" \
-    $POSE_ARGS
+  local rest; rest=$(python3 -c "print($TRAIN_MIN - $POSE_WARM_MIN)")
+  train_pose "$W/pose-warm/last.pt" "$POSE_EPOCHS" "$POSE_LR" "$rest" "$W/pose" $POSE_ARGS
 }
 export POSE_CONFIG POSE_DIRS POSE_LR DEVICE OUT_DIR POSE_INIT POSE_EPOCHS TRAIN_MIN POSE_ARGS POSE_WARM_MIN \
   POSE_WARM_ARGS POSE_WARM_EPOCHS POSE_WARM_LR
-[[ " $STAGES " == *" pose "* ]] && { export -f train_pose pose_phases say; timeout "$POSE_HARD" bash -c pose_phases; } &
+export -f train_pose pose_phases say
+[[ " $STAGES " == *" pose "* ]] && timeout "$POSE_HARD" bash -c pose_phases &
 wait
 say "trained"
 # a call returns at most 8 files: the warm phase's checkpoints only where the second phase left none
-[ ! -d "$W/pose" ] && [ -d "$W/pose-warm" ] && { say "pose: the warm phase's checkpoints"; mv "$W/pose-warm" "$W/pose"; }
+if [ ! -d "$W/pose" ] && [ -d "$W/pose-warm" ]; then
+  say "pose: the warm phase's checkpoints"; mv "$W/pose-warm" "$W/pose"
+fi
 for run in det pose; do
   for c in best last; do
     [ -f "$W/$run/$c.pt" ] && python3 "$RECIPES/checkpoint_parts.py" split "$W/$run/$c.pt" "$OUT_DIR/$run-$c"
