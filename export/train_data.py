@@ -35,7 +35,7 @@ from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
            "augment_rgb", "augment_depth", "flip_horizontal", "place_in_window", "build_pose_samples",
-           "build_detector_samples",
+           "build_detector_samples", "repeated_roots", "repeat_train",
            "load_or_build", "model_points_for", "pallet_type_name", "MIN_VISIB_FRACT", "CACHE_VERSION"]
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,28 @@ def dataset_fingerprint(root: str | Path) -> dict:
             log.warning("%s: unreadable sim config, not recorded", f)
     return {"path": str(root.resolve()), "split": ds.split, "frames": len(ds), "sim": sims,
             "annotations_sha256": h.hexdigest()}
+
+
+def repeated_roots(data: Sequence[str | Path]) -> tuple[list[str | Path], np.ndarray]:
+    """Each dataset of `data` once, in the order first named, and how many times it is named: a dataset named k
+    times is loaded and validated once and trained k times (`repeat_train`), so that none of its frames is both
+    trained on and held out."""
+    roots: list[str | Path] = []
+    counts: dict[Path, int] = {}
+    for root in data:
+        key = Path(root).resolve()
+        if key not in counts:
+            roots.append(root)
+            counts[key] = 0
+        counts[key] += 1
+    return roots, np.array([counts[Path(r).resolve()] for r in roots], np.int64)
+
+
+def repeat_train(train_idx: np.ndarray, sample_root: np.ndarray, repeats: np.ndarray) -> np.ndarray:
+    """`train_idx` with each sample as many times as its dataset is named (`repeated_roots`).
+    :param sample_root: (n_samples,) each sample's index into the unique roots."""
+    train_idx = np.asarray(train_idx, np.int64)
+    return np.repeat(train_idx, repeats[sample_root[train_idx]])
 
 
 def _key(*parts) -> str:

@@ -48,7 +48,7 @@ from .config import ModelConfig
 from .detector import build_detector
 from .losses import DetectorLoss
 from .train_data import AugmentConfig, DetectorSamples, augment_depth, augment_rgb, build_detector_samples, \
-    flip_horizontal, load_or_build, place_rgbd_in_window
+    flip_horizontal, load_or_build, place_rgbd_in_window, repeat_train, repeated_roots
 from .train_loop import LoopSettings, autocast, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
@@ -87,14 +87,16 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
                        real_max_images: int | None = None, real_repeat_large: int = 1) -> DetectorData:
     """Letterboxed frames of every dataset (cached), split into train/val frames; with `real`, the imported
     real photographs' train split joins them (its own sequence-wise validation cut), those with a large box
-    `real_repeat_large` times. An RGB-D detector's frames keep their depth."""
+    `real_repeat_large` times. An RGB-D detector's frames keep their depth. A dataset named k times in `data` is loaded
+    and held out from once and trained k times (`train_data.repeated_roots`)."""
     if real_repeat_large < 1:
         raise ValueError(f"real_repeat_large must be >= 1, got {real_repeat_large}")
     from tqdm import tqdm
 
     parts, fps = [], []
     with_depth = cfg.detector.depth_max_m is not None
-    for root in data:
+    data, repeats = repeated_roots(data)
+    for root, k in zip(data, repeats):
         n = len(BopDataset(root))
         settings = {"max_side": MAX_SIDE, "max_frames": max_frames, **({"depth": True} if with_depth else {})}
         with tqdm(total=n if max_frames is None else min(n, max_frames), desc=f"frames {Path(root).name}",
@@ -102,7 +104,7 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
             s, fp = load_or_build("detector", root, settings, cache_dir,
                                   lambda: build_detector_samples(root, MAX_SIDE, max_frames, bar.update, with_depth))
         parts.append(s)
-        fps.append(fp)
+        fps.append(fp | ({"repeat": int(k)} if k > 1 else {}))
     samples = DetectorSamples.concat(parts)
     n = len(samples)
     rng = np.random.default_rng(seed)
@@ -111,6 +113,8 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     val_idx, train_idx = np.sort(perm[:n_val]), np.sort(perm[n_val:])
     if n_val == 0:   # tiny datasets: validate on the training frames
         val_idx = train_idx
+    sample_root = np.repeat(np.arange(len(parts)), [len(s) for s in parts])
+    train_idx = repeat_train(train_idx, sample_root, repeats)
     is_real = np.zeros(n, bool)
     if real is not None:
         from .real_samples import load_real_samples

@@ -55,7 +55,7 @@ from .negative_crops import NegativeCrops, load_mismatched_crops, load_negative_
 from .losses import pad_symmetries, pose_loss, stack_model_points
 from .pose import build_pose
 from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for,
-                         pallet_type_name)
+                         pallet_type_name, repeat_train, repeated_roots)
 from .train_loop import (BEST, LAST, LoopSettings, autocast, load_checkpoint, load_init_weights, save_checkpoint,
                          train_epochs)
 from .warm_start import init_config, warm_start
@@ -94,14 +94,16 @@ def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, 
                    progress: bool = True) -> PoseData:
     """Prepare (or read from cache) the pose samples of every dataset and split them by frame.
 
-    Validation uses only variant 0 (the un-jittered view) of its frames; no frame is in both splits.
+    Validation uses only variant 0 (the un-jittered view) of its frames; no frame is in both splits. A dataset named
+    k times in `data` is prepared and held out from once and trained k times (`train_data.repeated_roots`).
     """
     from tqdm import tqdm
 
     spec = pose_input_spec(cfg)
     parts, fps, model_points, syms, names = [], [], {}, {}, {}
     frame_offset = 0
-    for root in data:
+    data, repeats = repeated_roots(data)
+    for root, k in zip(data, repeats):
         settings = {"spec": repr(spec), "variants": variants, "seed": seed, "aug": aug.to_dict(),
                     "max_frames": max_frames}
         n = len(BopDataset(root))
@@ -114,7 +116,7 @@ def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, 
         parts.append(PoseSamples(*(getattr(s, f) if f != "frame" else s.frame + frame_offset
                                    for f in PoseSamples.__dataclass_fields__)))
         frame_offset += fp["frames"]
-        fps.append(fp)
+        fps.append(fp | ({"repeat": int(k)} if k > 1 else {}))
         ds = BopDataset(root)
         for obj in np.unique(s.obj_id):
             name = pallet_type_name(ds, int(obj), cfg.pallet)
@@ -133,6 +135,8 @@ def load_pose_data(cfg: ModelConfig, data: Sequence[str | Path], variants: int, 
     val_idx = np.flatnonzero(is_val & (samples.variant == 0))
     if len(val_idx) == 0:   # tiny datasets: validate on the clean views of the training frames
         val_idx = np.flatnonzero(samples.variant == 0)
+    sample_root = np.repeat(np.arange(len(parts)), [len(p.frame) for p in parts])
+    train_idx = repeat_train(train_idx, sample_root, repeats)
     log.info("pose samples: %d train, %d val (%d frames held out)", len(train_idx), len(val_idx), n_val)
     return PoseData(samples, train_idx, val_idx, model_points, syms, fps, names)
 

@@ -680,3 +680,33 @@ def test_mismatched_inputs_and_their_crops(sim_bop_dataset):
     assert len(crops) >= len(MISMATCHES) - 1 and crops.points.shape[1:] == (spec.num_points, 3)
     np.testing.assert_array_equal(crops.points, again.points)                  # seeded
     np.testing.assert_allclose(crops.points.mean(1), 0.0, atol=1e-4)           # centred, as the runtime's points
+
+
+def test_a_dataset_named_twice_is_trained_twice_and_held_out_once(sim_bop_dataset, tmp_path):
+    import shutil
+
+    other = tmp_path / "other"
+    shutil.copytree(sim_bop_dataset, other)
+    cache = tmp_path / "cache"
+    once = load_detector_data(CFG, [sim_bop_dataset, other], seed=0, cache_dir=cache, val_fraction=0.34,
+                              progress=False)
+    twice = load_detector_data(CFG, [sim_bop_dataset, other, sim_bop_dataset], seed=0, cache_dir=cache,
+                               val_fraction=0.34, progress=False)
+    assert len(twice.samples) == len(once.samples) == 6                 # loaded once
+    assert np.array_equal(twice.val_idx, once.val_idx) and len(once.val_idx) == 2
+    first = once.train_idx[once.train_idx < 3]                          # the first dataset's frames
+    assert sorted(twice.train_idx.tolist()) == sorted(once.train_idx.tolist() + first.tolist())
+    assert not set(twice.train_idx.tolist()) & set(twice.val_idx.tolist())
+    assert twice.fingerprints[0]["repeat"] == 2 and "repeat" not in twice.fingerprints[1]
+
+    p_once = load_pose_data(CFG, [sim_bop_dataset, other], variants=1, seed=0, aug=NO_AUGMENT, cache_dir=cache,
+                            val_fraction=0.34, progress=False)
+    p_twice = load_pose_data(CFG, [other, sim_bop_dataset, other], variants=1, seed=0, aug=NO_AUGMENT,
+                             cache_dir=cache, val_fraction=0.34, progress=False)
+    assert len(p_twice.samples) == len(p_once.samples)
+    held = set(p_twice.samples.frame[p_twice.val_idx].tolist())
+    assert held and not held & set(p_twice.samples.frame[p_twice.train_idx].tolist())
+    frame = p_twice.samples.frame
+    times = np.bincount(frame[p_twice.train_idx], minlength=6)       # training samples per frame
+    for f in np.unique(frame[p_twice.train_idx]):                    # frames 0-2: `other`, named twice
+        assert times[f] == (2 if f < 3 else 1) * np.sum(frame == f)

@@ -9,7 +9,8 @@
 #      STAGES ("det pose": which networks to train), DET_INIT / POSE_INIT (a checkpoint or bundle to start from:
 #      BUNDLE), POSE_LR (2e-4), DET_LR (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
 #      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55),
-#      DET_REPEAT (name prefixes of chunks the detector sees twice, e.g. "vo- in-"; none), POSE_CONFIG (edge2-dilated),
+#      DET_REPEAT / POSE_REPEAT (name prefixes of chunks the detector / the pose stage sees twice, e.g. "vo- in-",
+#      "faepal-"; none), POSE_CONFIG (edge2-dilated),
 #      POSE_ARGS (more `pallet6d train pose` flags, e.g. "--distill models/epal-default --calibrate-share 0.944"
 #      with POSE_CONFIG=edge2-pruned, which starts from the bundle's most important layer4 / PSP channels, trains
 #      the pose network with it and ends with the floor keeping the shipped networks' share of pallets; none),
@@ -61,7 +62,10 @@ DIRS=$(for d in "$W"/sim/*/; do [ -f "$d/DONE" ] && echo "${d%/}"; done)
 say "simulated: $(echo $DIRS | wc -w) of $(chunks | wc -l) chunks of $FRAMES frames"
 DET_DIRS=$DIRS
 POSE_DIRS=$(for d in $DIRS; do case $(basename "$d") in neg-*) ;; *) echo "$d";; esac; done)
-for p in ${DET_REPEAT:-}; do DET_DIRS="$DET_DIRS $(for d in $DIRS; do case $(basename "$d") in "$p"*) echo "$d";; esac; done)"; done
+# a name prefix in DET_REPEAT / POSE_REPEAT: those chunks are named twice, trained twice (held out from once)
+named() { for d in $DIRS; do case $(basename "$d") in "$1"*) echo "$d";; esac; done; }
+for p in ${DET_REPEAT:-}; do DET_DIRS="$DET_DIRS $(named "$p")"; done
+for p in ${POSE_REPEAT:-}; do POSE_DIRS="$POSE_DIRS $(named "$p")"; done
 [ -n "$DIRS" ] || { tail -n 20 "$W"/log/*.log | tee -a "$OUT_DIR/run.log"; exit 1; }
 
 HARD=$(python3 -c "print(int($TRAIN_MIN * 60 + 75))")   # a pose phase's start-up and calibration: POSE_SLACK_S more
