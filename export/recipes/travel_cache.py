@@ -54,7 +54,10 @@ def main() -> None:
     u.add_argument("src", type=Path)
     u.add_argument("dst", type=Path)
     a = ap.parse_args()
-    pack(a.src, a.dst, a.keep, a.seed) if a.cmd == "pack" else unpack(a.src, a.dst)
+    if a.cmd == "pack":
+        pack(a.src, a.dst, a.keep, a.seed)
+    else:
+        unpack(a.src, a.dst)
 
 
 if __name__ == "__main__":
