@@ -15,7 +15,8 @@ box overlaps the pallet's most) with the geometry of the type the estimator repo
 as the daemon does); a pallet whose type the bundle lacks (with `--gt-boxes` the ground truth's, else the
 reported one) is counted apart (`type_unknown`), and `type_ok` says whether the reported type is the ground
 truth's. A pose whose centre lies nearer another ground-truth pallet than the one its box overlaps (one up a
-stack) is that pallet's: counted apart (`other_pallet`), not scored as the pallet's own. `--gt-boxes` poses the
+stack) is that pallet's: counted apart (`other_pallet`), not scored as the pallet's own. A pallet without a pose
+counts under `missed` by why: the reason of the rejected detection over it, or `no_box`. `--gt-boxes` poses the
 ground truth's visible boxes with the detector class of the ground truth's type instead of the detector's boxes
 (the pose stage alone). `--pallet-types` poses only the types named, as a site that names its types does
 (`EstimatorOptions.pallet_types`).
@@ -142,7 +143,7 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
             x, y, w, h = fc["box_xywh"]
             best = max(result.poses, key=lambda p: _iou(p.box_xyxy, (x, y, x + w, y + h)), default=None)
             if best is None or _iou(best.box_xyxy, (x, y, x + w, y + h)) < 0.3:
-                rows.append({**row, "detected": False})
+                rows.append({**row, "detected": False, "missed": miss_reason(result, (x, y, x + w, y + h))})
                 continue
             if nearest_pallet(fr["faces"], best.T_cam_pallet) is not fc:
                 # the pose is another pallet's (one up a stack, a neighbour whose box overlaps the target's): its
@@ -172,6 +173,14 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
     return rows
 
 
+def miss_reason(result, box_xyxy) -> str:
+    """Why a target has no pose: the reason of the rejected detection whose box overlaps its box most (IoU at least
+    0.3, as for poses), else "no_box" (the detector, and the depth's proposals, found nothing there)."""
+    rejected = getattr(result, "rejected", [])
+    nearest = max(rejected, key=lambda r: _iou(r.box_xyxy, box_xyxy), default=None)
+    return nearest.reason if nearest is not None and _iou(nearest.box_xyxy, box_xyxy) >= 0.3 else "no_box"
+
+
 def summarize(rows: list[dict]) -> dict:
     posed = [r for r in rows if "pocket_err_m" in r]
     ok = [r for r in posed if r["pocket_err_m"] <= 0.02 and r["yaw_err_deg"] <= 1.0]
@@ -185,10 +194,15 @@ def summarize(rows: list[dict]) -> dict:
     err = np.array([r["pocket_err_m"] for r in posed]) if posed else np.zeros(0)
     yaw = np.array([r["yaw_err_deg"] for r in posed]) if posed else np.zeros(0)
     typed = [r for r in rows if "type_ok" in r]
+    missed: dict[str, int] = {}
+    for r in rows:
+        if "missed" in r:
+            missed[r["missed"]] = missed.get(r["missed"], 0) + 1
     return {"pallets": len(rows), "detected": len(typed), "posed": len(posed),
             "type_unknown": sum(1 for r in rows if r.get("type_unknown")),
             "no_pockets": sum(1 for r in rows if r.get("no_pockets")),
             "other_pallet": sum(1 for r in rows if r.get("other_pallet")),
+            "missed": dict(sorted(missed.items())),
             "type_ok": sum(r["type_ok"] for r in typed) / len(typed) if typed else None,
             "within_2cm_1deg": len(ok) / max(len(rows), 1),
             "pocket_err_m_median": float(np.median(err)) if err.size else None,

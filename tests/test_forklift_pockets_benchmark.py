@@ -105,3 +105,31 @@ def test_a_pose_on_the_pallet_one_up_a_stack_is_not_scored_as_the_target(forklif
     T_near[:3, 3] += 0.01
     assert mod.nearest_pallet(fr["faces"], T_near) is target
     assert mod.nearest_pallet(fr["faces"], T_above) is above
+
+
+class _Rejecting:
+    """An estimator stub without poses, whose rejections have the given boxes and reasons."""
+
+    def __init__(self, rejected):
+        self.result = SimpleNamespace(poses=[], rejected=[SimpleNamespace(box_xyxy=np.asarray(b, dtype=np.float64),
+                                                                          reason=r) for b, r in rejected])
+
+    def estimate(self, rgb, depth, K, T_vehicle_cam=None):
+        return self.result
+
+
+@pytest.mark.parametrize("shift, expected", [(0, "no_pallet_structure"), (0.8, "no_box")])
+def test_a_target_without_a_pose_counts_by_the_reason_over_it(forklift_bop, shift, expected):
+    mod = _module()
+    fr = next(f for f in mod.bop_frames(forklift_bop) if any(fc["target"] for fc in f["faces"]))
+    target = next(fc for fc in fr["faces"] if fc["target"])
+    x, y, w, h = target["box_xywh"]
+    box = [x + shift * w, y, x + w + shift * w, y + h]          # shifted by 0.8 of its width: IoU under 0.3
+    far = [x + 2 * w, y, x + 3 * w, y + h]
+    est = _Rejecting([(far, "poor_fit"), (box, "no_pallet_structure")])
+
+    rows = mod._frame_rows({**fr, "faces": [target]}, fr["depths"]["bop"], {}, mod.ForkliftParams(), est, False,
+                           False)
+    assert len(rows) == 1 and rows[0]["missed"] == expected and not rows[0]["detected"]
+    summary = mod.summarize(rows)
+    assert summary["missed"] == {expected: 1} and summary["posed"] == 0
