@@ -176,8 +176,7 @@ def _frame_rows(fr: dict, depth: np.ndarray, types: dict, params: ForkliftParams
 def miss_reason(result, box_xyxy) -> str:
     """Why a target has no pose: the reason of the rejected detection whose box overlaps its box most (IoU at least
     0.3, as for poses), else "no_box" (the detector, and the depth's proposals, found nothing there)."""
-    rejected = getattr(result, "rejected", [])
-    nearest = max(rejected, key=lambda r: _iou(r.box_xyxy, box_xyxy), default=None)
+    nearest = max(result.rejected, key=lambda r: _iou(r.box_xyxy, box_xyxy), default=None)
     return nearest.reason if nearest is not None and _iou(nearest.box_xyxy, box_xyxy) >= 0.3 else "no_box"
 
 

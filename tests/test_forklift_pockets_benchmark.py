@@ -76,7 +76,7 @@ class _PoseOn:
 
     def __init__(self, box_xyxy, T_cam_pallet):
         self.result = SimpleNamespace(poses=[SimpleNamespace(box_xyxy=box_xyxy, T_cam_pallet=T_cam_pallet,
-                                                             pallet_type="epal", class_name="pallet")])
+                                                             pallet_type="epal", class_name="pallet")], rejected=[])
 
     def estimate(self, rgb, depth, K, T_vehicle_cam=None):
         return self.result
