@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 from pathlib import Path
 from typing import Iterator
 
@@ -193,15 +194,11 @@ def summarize(rows: list[dict]) -> dict:
     err = np.array([r["pocket_err_m"] for r in posed]) if posed else np.zeros(0)
     yaw = np.array([r["yaw_err_deg"] for r in posed]) if posed else np.zeros(0)
     typed = [r for r in rows if "type_ok" in r]
-    missed: dict[str, int] = {}
-    for r in rows:
-        if "missed" in r:
-            missed[r["missed"]] = missed.get(r["missed"], 0) + 1
     return {"pallets": len(rows), "detected": len(typed), "posed": len(posed),
             "type_unknown": sum(1 for r in rows if r.get("type_unknown")),
             "no_pockets": sum(1 for r in rows if r.get("no_pockets")),
             "other_pallet": sum(1 for r in rows if r.get("other_pallet")),
-            "missed": dict(sorted(missed.items())),
+            "missed": dict(sorted(Counter(r["missed"] for r in rows if "missed" in r).items())),
             "type_ok": sum(r["type_ok"] for r in typed) / len(typed) if typed else None,
             "within_2cm_1deg": len(ok) / max(len(rows), 1),
             "pocket_err_m_median": float(np.median(err)) if err.size else None,

@@ -124,7 +124,7 @@ def test_a_target_without_a_pose_counts_by_the_reason_over_it(forklift_bop, shif
     fr = next(f for f in mod.bop_frames(forklift_bop) if any(fc["target"] for fc in f["faces"]))
     target = next(fc for fc in fr["faces"] if fc["target"])
     x, y, w, h = target["box_xywh"]
-    box = [x + shift * w, y, x + w + shift * w, y + h]          # shifted by 0.8 of its width: IoU under 0.3
+    box = [x + shift * w, y, x + w + shift * w, y + h]          # shifted by 0.8 of its width: IoU 0.11 < 0.3
     far = [x + 2 * w, y, x + 3 * w, y + h]
     est = _Rejecting([(far, "poor_fit"), (box, "no_pallet_structure")])
 
