@@ -1,8 +1,8 @@
 """A bundle's scorecard: every measure the open targets are set on, for one or more bundles, in one table.
 
     python benchmarks/scorecard.py --bundle CANDIDATE --bundle models/epal-default [--precision int8] \\
-        [--measures presets,forklift,mismatched,negatives,negatives-heldout,pockets,real] [--quick] \\
-        --out benchmarks/results/scorecard
+        [--measures presets,forklift,mismatched,negatives,negatives-heldout,pockets,pockets-all,real] [--quick] \\
+        [--split val] --out benchmarks/results/scorecard
 
 The ship decision compares a candidate with the shipped bundle on all of these at once, measured the same way on
 the same data (a candidate that gains on one set and loses on another must show both):
@@ -22,7 +22,8 @@ the same data (a candidate that gains on one set and loses on another must show 
   calibrated views 80, hanging 200), which nothing was tuned on.
 - `pockets`: the 60 EPAL forklift targets 1-4 m ahead (`benchmarks/forklift_pockets.py` on
   `data/forklift-frames-epal`, made here when missing): both pockets within 2 cm and the face yaw within 1 degree,
-  exact and D435-like depth; blocked pockets called safe.
+  exact and D435-like depth; blocked pockets called safe. `pockets-all`: the same on 100 targets of every pallet
+  type (`data/forklift-frames`).
 - `real`: detector recall and precision at IoU 0.5 on the held-out real photographs (`data/real`, imported as in
   docs/data.md; not measured, with a note, where it is missing).
 
@@ -33,10 +34,15 @@ overrides), so a change of the runtime's options is judged like a new bundle:
     python benchmarks/scorecard.py --bundle models/epal-default --variant 'peak05={"structure":
         {"min_registration_peak": 0.05}}' --out runs/scorecard
 
-Results are kept per bundle, variant and measure (`OUT/<bundle name>[+<label>]/<measure>-<precision>.json`): a second
-call measures only what is missing (delete a file to measure it again). `--quick` uses a fraction of the frames, for
-trying the command, never for a decision. Writes `OUT/scorecard.md`. Latency is not here: it needs an otherwise idle
-machine (`benchmarks/latency.py`).
+`--split val` runs `presets`, `forklift`, `pockets` and `pockets-all` on validation frames instead (seeds 8011-8013,
+8015 / 8016, 8031 (200 EPAL targets) and 819, under `--data`, made when missing): a change or a training round is
+chosen there and judged once on the test frames. `mismatched` (validation frames), the negatives (the seeds their
+thresholds were chosen on, and a held-out one) and `real` (the held-out photographs) keep their frames either way.
+
+Results are kept per bundle, variant and measure (`OUT/<bundle name>[+<label>]/<measure>[-val]-<precision>.json`):
+a second call measures only what is missing (delete a file to measure it again). `--quick` uses a fraction of the
+frames, for trying the command, never for a decision. Writes `OUT/scorecard.md`. Latency is not here: it needs an
+otherwise idle machine (`benchmarks/latency.py`).
 """
 from __future__ import annotations
 
@@ -50,10 +56,17 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 
-MEASURES = ("presets", "forklift", "mismatched", "negatives", "negatives-heldout", "pockets", "real")
+MEASURES = ("presets", "forklift", "mismatched", "negatives", "negatives-heldout", "pockets", "pockets-all", "real")
+SPLITS = ("test", "val")
 PAPER_PRESETS = ("virtual-clean", "virtual-occluded", "indoor-noisy")
-FORKLIFT_SEEDS = {"forklift-approach": 9004, "mixed": 9005}
 VAL_SEEDS = {"virtual-clean": 8011, "virtual-occluded": 8012, "indoor-noisy": 8013}
+FORKLIFT_SEEDS = {"test": {"forklift-approach": 9004, "mixed": 9005}, "val": {"forklift-approach": 8015, "mixed": 8016}}
+# forklift targets (`benchmarks/forklift_frames.py`) per measure and split: folder under --data, seed, frames (quick:
+# a quarter), pallet types (None: every type)
+TARGET_SETS = {("pockets", "test"): ("forklift-frames-epal", 8, 60, "epal"),
+               ("pockets", "val"): ("forklift-frames-epal-val", 8031, 200, "epal"),
+               ("pockets-all", "test"): ("forklift-frames", 7, 100, None),
+               ("pockets-all", "val"): ("forklift-frames-val", 819, 100, None)}
 NEGATIVE_PRESETS = ("virtual-clean", "virtual-occluded", "indoor-noisy", "forklift-approach", "mixed")
 # the pallet-free seeds the structure check's thresholds were chosen on, and one they never saw
 TUNED_NEGATIVE_SEEDS = (9100, 9200)
@@ -81,6 +94,9 @@ ROWS = (
     ("pockets.exact", "EPAL pockets within 2 cm and 1 degree, exact depth (%)", ">= 95"),
     ("pockets.d435", "EPAL pockets within 2 cm and 1 degree, D435-like depth (%)", "report"),
     ("pockets.blocked_safe", "blocked pockets called safe", "0"),
+    ("pockets-all.exact", "every type's pockets within 2 cm and 1 degree, exact depth (%)", ">= 95"),
+    ("pockets-all.d435", "every type's pockets within 2 cm and 1 degree, D435-like depth (%)", "report"),
+    ("pockets-all.blocked_safe", "every type: blocked pockets called safe", "0"),
     ("real.recall", "real photographs: recall (%)", ">= 90"),
     ("real.precision", "real photographs: precision (%)", ">= 90"),
     ("real.negative_fp", "real pallet-free photographs: false boxes per photo", ""),
@@ -130,27 +146,30 @@ def _estimator(bundle: Path, precision: str, options: dict, **fixed):
     return PalletEstimator.from_bundle(bundle, threads=2, precision=precision, **{**options, **fixed})
 
 
-def measure_presets(bundle: Path, precision: str, options: dict, frames: int, data_root: Path) -> dict:
+def measure_presets(bundle: Path, precision: str, options: dict, frames: int, data_root: Path,
+                    split: str = "test") -> dict:
     from pallet6d.export.accuracy_report import TEST_SEEDS, ensure_test_set
     from pallet6d.runtime.eval_cli import evaluate_dataset
 
+    seeds = TEST_SEEDS if split == "test" else VAL_SEEDS
     est = _estimator(bundle, precision, options)
     out = {}
     for preset in PAPER_PRESETS:
-        s = evaluate_dataset(est, ensure_test_set(preset, frames, data_root), "test")["summary"]
+        s = evaluate_dataset(est, ensure_test_set(preset, frames, data_root, seeds[preset]), "test")["summary"]
         out[preset] = _pct(s["add_sym_acc"]["0.05"])
         out[f"{preset}-pallets"] = s["n_gt"]
-    out["seeds"] = {p: TEST_SEEDS[p] for p in PAPER_PRESETS}
+    out["seeds"] = {p: seeds[p] for p in PAPER_PRESETS}
     return out
 
 
-def measure_forklift(bundle: Path, precision: str, options: dict, frames: int, data_root: Path) -> dict:
+def measure_forklift(bundle: Path, precision: str, options: dict, frames: int, data_root: Path,
+                     split: str = "test") -> dict:
     from pallet6d.export.accuracy_report import ensure_test_set
     from pallet6d.runtime.eval_cli import evaluate_dataset
 
     est = _estimator(bundle, precision, options)
     out = {}
-    for preset, seed in FORKLIFT_SEEDS.items():
+    for preset, seed in FORKLIFT_SEEDS[split].items():
         root = ensure_test_set(preset, frames, data_root, seed)
         s = evaluate_dataset(est, root, "test", calibrated=True)["summary"]
         out[preset] = _pct(s["add_sym_acc"]["0.05"])
@@ -213,24 +232,26 @@ def measure_negatives(bundle: Path, precision: str, options: dict, frames: int, 
     return out
 
 
-def _forklift_frames(root: Path, frames: int) -> Path:
-    """The EPAL forklift targets' frames (`benchmarks/forklift_frames.py --frames 60 --seed 8 --models epal`)."""
+def _forklift_frames(root: Path, frames: int, seed: int, models: str | None) -> Path:
+    """Forklift targets' frames (`benchmarks/forklift_frames.py --frames N --seed S [--models M]`), rendered when
+    fewer are there."""
     import subprocess
 
     if len(list(root.glob("*.npz"))) < frames:
         print(f"scorecard: rendering {root}", file=sys.stderr, flush=True)
         subprocess.run([sys.executable, str(Path(__file__).with_name("forklift_frames.py")), "--out", str(root),
-                        "--frames", str(frames), "--seed", "8", "--models", "epal"], check=True,
-                       stdout=subprocess.DEVNULL)
+                        "--frames", str(frames), "--seed", str(seed), *(["--models", models] if models else [])],
+                       check=True, stdout=subprocess.DEVNULL)
     return root
 
 
-def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, frames_dir: Path) -> dict:
+def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, frames_dir: Path, seed: int = 8,
+                    models: str | None = "epal") -> dict:
     from forklift_pockets import evaluate, npz_frames
 
     from pallet6d.runtime.forklift import ForkliftParams
 
-    root = _forklift_frames(frames_dir, frames)
+    root = _forklift_frames(frames_dir, frames, seed, models)
     est = _estimator(bundle, precision, options)
     first = {p.stem for p in sorted(root.glob("*.npz"))[:frames]}
     res = evaluate((fr for fr in npz_frames(root) if fr["frame"] in first), ForkliftParams(), est)
@@ -241,6 +262,7 @@ def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, fr
         out[f"{key}-targets"] = s["pallets"]
         out[f"{key}-detected"] = s["detected"]
     out["blocked_safe"] = sum(res[d]["pick_safe_table"]["blocked->safe"] for d in ("clean", "d435"))
+    out["seed"] = seed
     return out
 
 
@@ -260,16 +282,19 @@ def measure_real(bundle: Path, precision: str, options: dict, frames: int, real_
 
 
 def run_measure(name: str, bundle: Path, precision: str, options: dict, quick: bool, data_root: Path,
-                data: Path) -> dict:
-    """One measure of one bundle with `options` (`estimator_options`): its figures, plus the frames it used and its
-    seconds."""
+                data: Path, split: str = "test") -> dict:
+    """One measure of one bundle with `options` (`estimator_options`) on `split`'s frames (`SPLITS`; the test sets
+    under `data_root`, the validation sets under `data`): its figures, plus the frames it used and its seconds."""
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; known: {', '.join(SPLITS)}")
     t0 = time.perf_counter()
+    root = data_root if split == "test" else data
     if name == "presets":
         frames = 30 if quick else 100
-        res = measure_presets(bundle, precision, options, frames, data_root)
+        res = measure_presets(bundle, precision, options, frames, root, split)
     elif name == "forklift":
         frames = 20 if quick else 100
-        res = measure_forklift(bundle, precision, options, frames, data_root)
+        res = measure_forklift(bundle, precision, options, frames, root, split)
     elif name == "mismatched":
         frames = 10 if quick else 30
         res = measure_mismatched(bundle, precision, options, frames, data)
@@ -279,16 +304,17 @@ def run_measure(name: str, bundle: Path, precision: str, options: dict, quick: b
     elif name == "negatives-heldout":
         frames = 8 if quick else 40
         res = measure_negatives(bundle, precision, options, frames, data / "pallet-free", HELDOUT_NEGATIVE_SEEDS)
-    elif name == "pockets":
-        frames = 15 if quick else 60
-        res = measure_pockets(bundle, precision, options, frames, data / "forklift-frames-epal")
+    elif name in ("pockets", "pockets-all"):
+        folder, seed, frames, models = TARGET_SETS[name, split]
+        frames = frames // 4 if quick else frames
+        res = measure_pockets(bundle, precision, options, frames, data / folder, seed, models)
     elif name == "real":
         frames = 100 if quick else 0
         res = measure_real(bundle, precision, options, frames, data / "real")
     else:
         raise ValueError(f"unknown measure {name!r}; known: {', '.join(MEASURES)}")
-    return {**res, "frames": frames, "quick": quick, "graphs": precision, "options": options_json(options),
-            "seconds": round(time.perf_counter() - t0, 1)}
+    return {**res, "frames": frames, "quick": quick, "split": split, "graphs": precision,
+            "options": options_json(options), "seconds": round(time.perf_counter() - t0, 1)}
 
 
 def options_json(options: dict) -> dict:
@@ -331,6 +357,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--precision", choices=("int8", "fp32"), default="int8")
     ap.add_argument("--measures", default=",".join(MEASURES), help=f"comma-separated, of {', '.join(MEASURES)}")
     ap.add_argument("--quick", action="store_true", help="a fraction of the frames: to try the command only")
+    ap.add_argument("--split", choices=SPLITS, default="test",
+                    help="val: the presets, forklift and pockets measures on validation frames (to choose on)")
     ap.add_argument("--data-root", type=Path, default=Path("benchmarks/data"),
                     help="the held-out test sets (as benchmarks/accuracy.py)")
     ap.add_argument("--data", type=Path, default=Path("data"),
@@ -370,11 +398,12 @@ def main(argv: list[str] | None = None) -> int:
             folder.mkdir(parents=True, exist_ok=True)
             res = {}
             for m in measures:
-                path = folder / f"{m}{'-quick' if args.quick else ''}-{args.precision}.json"
+                val = "-val" if args.split == "val" and m in ("presets", "forklift", "pockets", "pockets-all") else ""
+                path = folder / f"{m}{'-quick' if args.quick else ''}{val}-{args.precision}.json"
                 if not path.is_file():
                     print(f"scorecard: {column}: {m}", file=sys.stderr, flush=True)
                     path.write_text(json.dumps(run_measure(m, bundle, args.precision, options, args.quick,
-                                                           args.data_root, args.data), indent=1) + "\n")
+                                                           args.data_root, args.data, args.split), indent=1) + "\n")
                 res[m] = json.loads(path.read_text())
             columns.append(column)
             results.append(res)
@@ -383,6 +412,7 @@ def main(argv: list[str] | None = None) -> int:
     created = datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
     command = shlex.join(["python", "benchmarks/scorecard.py", *(argv if argv is not None else sys.argv[1:])])
     text = (f"# Scorecard\n\n`{command}` on {created}, {os.cpu_count()} CPUs ({cpu_model()}); {args.precision}"
+            f"{', validation frames' if args.split == 'val' else ''}"
             f"{', quick (a fraction of the frames: not for a decision)' if args.quick else ''}.\n\n"
             + ("Variants (estimator options):\n\n" + "\n".join(shown) + "\n\n" if shown else "")
             + table(columns, results))

@@ -87,6 +87,48 @@ def test_a_variant_is_measured_with_its_options_under_its_own_name(scorecard, tm
     assert '- `+g24`: `{"structure": {"grid": 24}, "min_fit": 0.3}`' in md
 
 
+@pytest.mark.parametrize("name, split, frames, seed, models, folder", [
+    ("pockets", "test", 60, 8, "epal", "forklift-frames-epal"),
+    ("pockets", "val", 200, 8031, "epal", "forklift-frames-epal-val"),
+    ("pockets-all", "test", 100, 7, None, "forklift-frames"),
+    ("pockets-all", "val", 100, 819, None, "forklift-frames-val"),
+])
+def test_each_split_poses_its_own_forklift_targets(scorecard, monkeypatch, tmp_path, name, split, frames, seed, models,
+                                                   folder):
+    seen = []
+    monkeypatch.setattr(scorecard, "measure_pockets", lambda *a: seen.append(a[3:]) or {"exact": 90.0})
+    res = scorecard.run_measure(name, tmp_path, "int8", {}, False, tmp_path / "test-sets", tmp_path / "data", split)
+    assert seen == [(frames, tmp_path / "data" / folder, seed, models)]
+    assert res["split"] == split and res["frames"] == frames
+
+
+@pytest.mark.parametrize("name", ["presets", "forklift"])
+def test_the_validation_split_measures_the_presets_on_validation_seeds_under_data(scorecard, monkeypatch, tmp_path,
+                                                                                   name):
+    seen = {}
+    for split in scorecard.SPLITS:
+        monkeypatch.setattr(scorecard, f"measure_{name}", lambda *a: seen.setdefault(a[-1], a[-2]) and {})
+        scorecard.run_measure(name, tmp_path, "int8", {}, False, tmp_path / "test-sets", tmp_path / "data", split)
+    assert seen == {"test": tmp_path / "test-sets", "val": tmp_path / "data"}
+    with pytest.raises(ValueError, match="unknown split"):
+        scorecard.run_measure(name, tmp_path, "int8", {}, False, tmp_path, tmp_path, "train")
+
+
+def test_validation_results_are_kept_apart_from_the_test_results(scorecard, tmp_path, monkeypatch, capsys):
+    bundle = tmp_path / "cand"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text("{}")
+    monkeypatch.setattr(scorecard, "run_measure", lambda name, *a: {"exact": 80.0 if a[-1] == "val" else 70.0})
+    for split in ("val", "test"):
+        assert scorecard.main(["--bundle", str(bundle), "--measures", "pockets-all,mismatched", "--split", split,
+                               "--out", str(tmp_path / "out")]) == 0
+    kept = tmp_path / "out" / "cand"
+    assert json.loads((kept / "pockets-all-val-int8.json").read_text())["exact"] == 80.0
+    assert json.loads((kept / "pockets-all-int8.json").read_text())["exact"] == 70.0
+    assert sorted(p.name for p in kept.glob("mismatched*")) == ["mismatched-int8.json"]    # its frames either way
+    assert "| every type's pockets within 2 cm and 1 degree, exact depth (%) | 70 | >= 95 |" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("name, fields", [("weak_boxes", {"min_agreement": 0.9}),
                                           ("level", {"floor_from_depth": True})])
 def test_a_variant_may_set_the_nested_options(scorecard, tmp_path, monkeypatch, name, fields):
