@@ -139,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--split", default="heldout", help="split to measure (default: the held-out one)")
     ap.add_argument("--int8", action="store_true")
     ap.add_argument("--score-threshold", type=float, default=0.25)
+    ap.add_argument("--detector-mirror", action="store_true",
+                    help="the detector also run on the mirrored image, the two averaged (EstimatorOptions)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-images", type=int, default=0, help="0: all")
     ap.add_argument("--source", help="only these sources of the data (comma-separated), e.g. a site's own photographs "
@@ -178,7 +180,8 @@ def main(argv: list[str] | None = None) -> int:
               + (f" from source(s) {args.source}" if args.source else ""), file=sys.stderr)
         return 2
     est = PalletEstimator.from_bundle(args.bundle, threads=args.threads, precision="int8" if args.int8 else "fp32",
-                                      score_threshold=args.score_threshold, max_pallets=300)
+                                      score_threshold=args.score_threshold, max_pallets=300,
+                                      detector_mirror=args.detector_mirror)
     detections = [] if args.examples else None
     report = evaluate(est, records, args.data, progress=True, detections=detections).to_dict()
     if args.examples:
@@ -187,11 +190,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.sim_negatives:
         threshold = {} if args.sim_score_threshold is None else {"score_threshold": args.sim_score_threshold}
         full = PalletEstimator.from_bundle(args.bundle, threads=args.threads,
-                                           precision="int8" if args.int8 else "fp32", **threshold)
+                                           precision="int8" if args.int8 else "fp32",
+                                           detector_mirror=args.detector_mirror, **threshold)
         report["sim_negatives"] = sim_negatives(full, args.sim_presets.split(","), args.sim_negatives,
                                                 args.sim_seed, args.sim_calibrated, args.sim_loads == "set-down")
     settings = {"bundle": str(args.bundle), "precision": "int8" if args.int8 else "fp32", "split": args.split,
-                "score_threshold": args.score_threshold, "iou": 0.5, "data": str(args.data), "source": args.source,
+                "score_threshold": args.score_threshold, "detector_mirror": args.detector_mirror, "iou": 0.5,
+                "data": str(args.data), "source": args.source,
                 "augmented_copies": args.include_augmented, "sim_calibrated": args.sim_calibrated,
                 "sim_loads": args.sim_loads, "sim_score_threshold": args.sim_score_threshold}
     text = markdown(f"Real photographs: {args.bundle.name}{' (int8)' if args.int8 else ''}", report, settings)

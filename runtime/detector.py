@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 __all__ = ["Letterbox", "choose_input_hw", "letterbox", "letterbox_depth", "depth_channel", "to_nchw", "decode_yolov8",
-           "nms", "undo_letterbox", "Detections"]
+           "unmirror_yolov8", "nms", "undo_letterbox", "Detections"]
 
 
 @dataclass(frozen=True)
@@ -236,6 +236,36 @@ def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: flo
     offset = 0.0 if agnostic else best[:, None] * (np.abs(boxes).max() + 1.0)
     idx = nms(boxes + offset, score, iou_threshold)[:max_detections]
     return Detections(boxes[idx], score[idx], best[idx], cls_scores[:, keep][:, idx].T)
+
+
+YOLOV8_STRIDES = (8, 16, 32)
+
+
+def unmirror_yolov8(output: np.ndarray, input_hw: tuple[int, int], strides: tuple[int, ...] = YOLOV8_STRIDES
+                    ) -> np.ndarray:
+    """A YOLOv8 output for the left-right mirrored input, put back in the unmirrored input's frame: each anchor's
+    row moved to the anchor it mirrors (columns reversed within each stride's grid, in YOLOv8's order: strides
+    ascending, rows then columns) and cx mirrored (W - cx). Averaged with the output for the input itself, it gives
+    the mirror-averaged prediction of every anchor.
+
+    :param output: (1, 4 + nc, A) or (4 + nc, A). :param input_hw: the detector input (H, W) the output is for.
+    :return: a new array of the same shape.
+    :raises ValueError: A is not the anchor count of `strides` at `input_hw`.
+    """
+    out = np.array(output, dtype=np.float32, copy=True)
+    flat = out.reshape(-1, *out.shape[-2:])
+    H, W = (int(v) for v in input_hw)
+    grids = [(H // s, W // s) for s in strides]
+    if sum(h * w for h, w in grids) != flat.shape[-1]:
+        raise ValueError(f"a mirrored detection needs the YOLOv8 anchor layout (strides {list(strides)} at "
+                         f"{H}x{W}: {sum(h * w for h, w in grids)} anchors), the detector gave {flat.shape[-1]}")
+    k = 0
+    for h, w in grids:
+        level = flat[:, :, k:k + h * w].reshape(flat.shape[0], flat.shape[1], h, w)
+        flat[:, :, k:k + h * w] = level[..., ::-1].reshape(flat.shape[0], flat.shape[1], h * w).copy()
+        k += h * w
+    flat[:, 0] = W - flat[:, 0]
+    return out
 
 
 def undo_letterbox(boxes_xyxy: np.ndarray, lb: Letterbox, clip: bool = True) -> np.ndarray:

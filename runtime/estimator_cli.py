@@ -29,6 +29,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--int8", action="store_true", help="use the bundle's int8 graphs")
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
+    parser.add_argument("--detector-mirror", action="store_true",
+                        help="the detector also sees each frame mirrored and averages the two (a second detector "
+                             "run; fewer false boxes on real photographs)")
     parser.add_argument("--max-pallets", type=int, default=None,
                         help="pose at most this many detections per frame, the highest-scoring ones (default: "
                              "EstimatorOptions.max_pallets)")
@@ -87,6 +90,8 @@ def load_estimator(args: argparse.Namespace, command: str):
                                    ("pallet_types", args.pallet_types or None),
                                    ("time_budget_ms", args.time_budget_ms),
                                    ("pallet_lanes", args.pallet_lanes)) if v is not None}
+        if args.detector_mirror:
+            extra["detector_mirror"] = True
         if args.no_structure_check:
             extra["structure"] = None
         if args.no_weak_boxes:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from .detector import (Detections, Letterbox, choose_input_hw, decode_yolov8, depth_channel, letterbox, letterbox_depth,
-                       to_nchw, undo_letterbox)
+                       to_nchw, undo_letterbox, unmirror_yolov8)
 from .sessions import OnnxModel
 
 __all__ = ["DetectorStage"]
@@ -21,16 +21,19 @@ class DetectorStage:
     :param bundle: a loaded `Bundle`. :param precision: "fp32" or "int8". :param threads: onnxruntime threads.
     :param class_ids: the detector classes that are pallets (the others are dropped in `postprocess`).
     :param score_threshold, iou_threshold, max_detections: decoding and NMS (`decode_yolov8`).
+    :param mirror: also run the graph on the left-right mirrored input and average the two predictions of every
+        anchor before decoding (`unmirror_yolov8`; `EstimatorOptions.detector_mirror`).
     """
 
     def __init__(self, bundle, precision: str, threads: int, class_ids: tuple[int, ...], score_threshold: float,
-                 iou_threshold: float, max_detections: int) -> None:
+                 iou_threshold: float, max_detections: int, mirror: bool = False) -> None:
         self.spec = bundle.detector
         self.model = OnnxModel(bundle.graph("detector", precision), threads, (self.spec.input_name,),
                                (self.spec.output_name,))
         self.class_ids = tuple(int(c) for c in class_ids)
         self.score_threshold, self.iou_threshold = float(score_threshold), float(iou_threshold)
         self.max_detections = int(max_detections)
+        self.mirror = bool(mirror)
         # reused across frames, per input size: the letterboxed image and the graph's input tensor
         self._buffers: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
 
@@ -59,9 +62,13 @@ class DetectorStage:
         return x, lb
 
     def infer(self, x: np.ndarray) -> np.ndarray:
-        """The graph's raw YOLOv8 output (1, 4 + nc, A)."""
+        """The graph's raw YOLOv8 output (1, 4 + nc, A); with `mirror`, the mean of it and the mirrored input's."""
         d = self.spec
-        return self.model.run({d.input_name: x}, [d.output_name])[d.output_name]
+        raw = self.model.run({d.input_name: x}, [d.output_name])[d.output_name]
+        if not self.mirror:
+            return raw
+        mirrored = self.model.run({d.input_name: np.ascontiguousarray(x[..., ::-1])}, [d.output_name])[d.output_name]
+        return (raw + unmirror_yolov8(mirrored, x.shape[-2:])) / 2
 
     def postprocess(self, raw: np.ndarray, lb: Letterbox) -> Detections:
         """Pallet detections in image pixels after NMS across the pallet classes (a detector that reports the

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from pallet6d.runtime.detector import Detections, choose_input_hw, decode_yolov8, letterbox, nms, to_nchw, undo_letterbox
+from pallet6d.runtime.detector import (Detections, choose_input_hw, decode_yolov8, letterbox, nms, to_nchw,
+                                      undo_letterbox, unmirror_yolov8)
 
 
 def _yolo_output(boxes_cxcywh, class_scores, n_anchors=50, nc=2):
@@ -116,6 +117,38 @@ def test_decode_ignores_non_finite_boxes():
 def test_decode_rejects_bad_layouts(shape):
     with pytest.raises(ValueError, match="YOLOv8 output|one image"):
         decode_yolov8(np.zeros(shape, np.float32), 0.5, 0.5)
+
+
+def _anchor_centres(input_hw, nc=2):
+    """(1, 4 + nc, A) with every anchor's cx, cy at its own cell's centre, in YOLOv8's anchor order."""
+    H, W = input_hw
+    cells = [np.stack([(x + 0.5) * s, (y + 0.5) * s], 0).reshape(2, -1)
+             for s in (8, 16, 32) for y, x in [np.mgrid[0:H // s, 0:W // s]]]
+    out = np.zeros((1, 4 + nc, sum(c.shape[1] for c in cells)), np.float32)
+    out[0, :2] = np.concatenate(cells, 1)
+    out[0, 2:4] = 16.0
+    return out
+
+
+def test_unmirror_moves_each_anchor_to_the_one_it_mirrors():
+    hw = (64, 96)
+    centres = _anchor_centres(hw)
+    np.testing.assert_array_equal(unmirror_yolov8(centres, hw), centres)    # a cell's centre mirrors onto its twin's
+    scored = centres.copy()
+    first16 = (64 // 8) * (96 // 8)                      # stride 16's first anchor: row 0, column 0 of a 4 x 6 grid
+    scored[0, 4, first16] = 0.9
+    scored[0, 0, first16] = 10.0                          # its box left of the cell's centre
+    back = unmirror_yolov8(scored, hw)
+    twin = first16 + 96 // 16 - 1                         # row 0, last column
+    assert back[0, 4, twin] == pytest.approx(0.9) and back[0, 0, twin] == pytest.approx(96 - 10.0)
+    assert np.count_nonzero(back[0, 4]) == 1
+    np.testing.assert_array_equal(unmirror_yolov8(back, hw), scored)        # twice: as it was
+    assert back.shape == scored.shape and scored[0, 4, first16] == pytest.approx(0.9)    # a new array
+
+
+def test_unmirror_refuses_another_anchor_layout():
+    with pytest.raises(ValueError, match="anchor layout"):
+        unmirror_yolov8(np.zeros((1, 6, 100), np.float32), (64, 96))
 
 
 def test_detections_validate_lengths():

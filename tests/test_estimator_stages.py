@@ -81,6 +81,20 @@ def test_detector_stage_steps_make_detect(est, frame):
     assert len(est.detector.postprocess(np.zeros_like(raw), lb)) == 0
 
 
+def test_the_mirrored_detector_sees_a_mirrored_frame_as_the_mirror_image_of_the_frame(bundle_dir, frame):
+    from pallet6d.runtime.detector import unmirror_yolov8
+
+    x, _ = PalletEstimator.from_bundle(bundle_dir, **KW).detector.preprocess(frame.rgb)
+    x_mirrored = np.ascontiguousarray(x[..., ::-1])
+    hw = x.shape[-2:]
+    for mirror, symmetric in ((False, False), (True, True)):
+        det = PalletEstimator.from_bundle(bundle_dir, **KW, detector_mirror=mirror).detector
+        raw, raw_mirrored = det.infer(x), det.infer(x_mirrored)
+        assert np.allclose(unmirror_yolov8(raw_mirrored, hw), raw, atol=1e-4) == symmetric
+    with pytest.raises(TypeError):
+        EstimatorOptions(detector_mirror="yes")
+
+
 def test_stages_on_no_candidates(est, frame):
     rgb, depth_m, K = _inputs(est, frame)
     c, timings = _cands(est, np.zeros((0, 4))), {}
