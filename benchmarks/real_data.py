@@ -140,7 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--int8", action="store_true")
     ap.add_argument("--score-threshold", type=float, default=0.25)
     ap.add_argument("--detector-mirror", action="store_true",
-                    help="the detector also run on the mirrored image, the two averaged (EstimatorOptions)")
+                    help="the detector also run on the mirrored image, the two views' scores averaged "
+                         "(EstimatorOptions.detector_mirror)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-images", type=int, default=0, help="0: all")
     ap.add_argument("--source", help="only these sources of the data (comma-separated), e.g. a site's own photographs "

@@ -63,13 +63,13 @@ class EstimatorOptions:
 
     :ivar score_threshold: detector class score a box must exceed.
     :ivar iou_threshold: NMS IoU above which the weaker box of the same class goes.
-    :ivar detector_mirror: the detector also sees the frame mirrored left to right, and each anchor's two
-        predictions are averaged before the threshold (a second detector run: about 8 ms int8 on 2 cores). A box
-        only one view believes in falls under the threshold. Real photographs (held out): false boxes per
-        pallet-free photo 0.73 -> 0.47, precision 54.1 -> 57.8 % at recall 30.2 -> 29.5 %, wooden close-ups 75.9 /
-        74.2 -> 80.5 / 83.3 %; on the simulated validation frames it loses 4 of 100 indoor-noisy pallets and
-        accepts more wrong forklift-approach poses (precision 0.964 -> 0.937): off by default, for a site to try
-        on its own photographs (docs/experiments/real-data.md).
+    :ivar detector_mirror: the detector also sees the frame mirrored left to right, and each anchor's class scores
+        are averaged with those of the anchor it mirrors before the threshold; the boxes stay the frame's own (a
+        second detector run: about 8 ms int8 on 2 cores). A box only one view believes in falls under the
+        threshold. Real photographs (held out): false boxes per pallet-free photo 0.73 -> 0.47, precision 54.1 ->
+        56.3 % at recall 30.2 -> 29.4 %, large boxes 57.6 / 76.5 -> 60.5 / 78.7 %; simulated validation frames:
+        1-5 pallets more within 5 cm on most sets, 2 of 100 fewer on indoor-noisy (docs/experiments/real-data.md).
+        Off by default: a second detector run on every frame.
     :ivar max_pallets: at most this many detections (highest scores) go to the pose stage. Each costs tens of
         ms on 2 cores (`benchmarks/latency.py`); 16 covers the fullest racks of the validation sets (18 pallets
         at least 10 % visible; 35 of 200 occluded frames have more than 8).

@@ -30,8 +30,8 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=2, help="onnxruntime threads per graph (default 2)")
     parser.add_argument("--score-threshold", type=float, default=0.25, help="detector score threshold")
     parser.add_argument("--detector-mirror", action="store_true",
-                        help="the detector also sees each frame mirrored and averages the two (a second detector "
-                             "run; fewer false boxes on real photographs)")
+                        help="the detector also sees each frame mirrored and averages the two views' scores (a "
+                             "second detector run; fewer false boxes on real photographs)")
     parser.add_argument("--max-pallets", type=int, default=None,
                         help="pose at most this many detections per frame, the highest-scoring ones (default: "
                              "EstimatorOptions.max_pallets)")

@@ -21,8 +21,9 @@ class DetectorStage:
     :param bundle: a loaded `Bundle`. :param precision: "fp32" or "int8". :param threads: onnxruntime threads.
     :param class_ids: the detector classes that are pallets (the others are dropped in `postprocess`).
     :param score_threshold, iou_threshold, max_detections: decoding and NMS (`decode_yolov8`).
-    :param mirror: also run the graph on the left-right mirrored input and average the two predictions of every
-        anchor before decoding (`unmirror_yolov8`; `EstimatorOptions.detector_mirror`).
+    :param mirror: also run the graph on the left-right mirrored input and average each anchor's class scores with
+        those of the anchor it mirrors before decoding; the boxes stay the unmirrored run's (`unmirror_yolov8`;
+        `EstimatorOptions.detector_mirror`).
     """
 
     def __init__(self, bundle, precision: str, threads: int, class_ids: tuple[int, ...], score_threshold: float,
@@ -62,13 +63,16 @@ class DetectorStage:
         return x, lb
 
     def infer(self, x: np.ndarray) -> np.ndarray:
-        """The graph's raw YOLOv8 output (1, 4 + nc, A); with `mirror`, the mean of it and the mirrored input's."""
+        """The graph's raw YOLOv8 output (1, 4 + nc, A); with `mirror`, its class scores the mean of its own and the
+        mirrored input's (its boxes its own)."""
         d = self.spec
         raw = self.model.run({d.input_name: x}, [d.output_name])[d.output_name]
         if not self.mirror:
             return raw
         mirrored = self.model.run({d.input_name: np.ascontiguousarray(x[..., ::-1])}, [d.output_name])[d.output_name]
-        return (raw + unmirror_yolov8(mirrored, x.shape[-2:])) / 2
+        out = raw.copy()
+        out[:, 4:] = (raw[:, 4:] + unmirror_yolov8(mirrored, x.shape[-2:])[:, 4:]) / 2
+        return out
 
     def postprocess(self, raw: np.ndarray, lb: Letterbox) -> Detections:
         """Pallet detections in image pixels after NMS across the pallet classes (a detector that reports the

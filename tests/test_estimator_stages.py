@@ -81,16 +81,18 @@ def test_detector_stage_steps_make_detect(est, frame):
     assert len(est.detector.postprocess(np.zeros_like(raw), lb)) == 0
 
 
-def test_the_mirrored_detector_sees_a_mirrored_frame_as_the_mirror_image_of_the_frame(bundle_dir, frame):
+def test_the_mirrored_detector_scores_a_mirrored_frame_as_the_frame_and_keeps_its_own_boxes(bundle_dir, frame):
     from pallet6d.runtime.detector import unmirror_yolov8
 
     x, _ = PalletEstimator.from_bundle(bundle_dir, **KW).detector.preprocess(frame.rgb)
     x_mirrored = np.ascontiguousarray(x[..., ::-1])
     hw = x.shape[-2:]
-    for mirror, symmetric in ((False, False), (True, True)):
-        det = PalletEstimator.from_bundle(bundle_dir, **KW, detector_mirror=mirror).detector
+    plain = PalletEstimator.from_bundle(bundle_dir, **KW).detector
+    mirrored = PalletEstimator.from_bundle(bundle_dir, **KW, detector_mirror=True).detector
+    for det, symmetric in ((plain, False), (mirrored, True)):
         raw, raw_mirrored = det.infer(x), det.infer(x_mirrored)
-        assert np.allclose(unmirror_yolov8(raw_mirrored, hw), raw, atol=1e-4) == symmetric
+        assert np.allclose(unmirror_yolov8(raw_mirrored, hw)[:, 4:], raw[:, 4:], atol=1e-5) == symmetric
+    np.testing.assert_array_equal(mirrored.infer(x)[:, :4], plain.infer(x)[:, :4])
     with pytest.raises(TypeError):
         EstimatorOptions(detector_mirror="yes")
 
