@@ -58,6 +58,7 @@ from pathlib import Path
 
 MEASURES = ("presets", "forklift", "mismatched", "negatives", "negatives-heldout", "pockets", "pockets-all", "real")
 SPLITS = ("test", "val")
+SPLIT_MEASURES = ("presets", "forklift", "pockets", "pockets-all")    # the measures whose frames `--split` chooses
 PAPER_PRESETS = ("virtual-clean", "virtual-occluded", "indoor-noisy")
 VAL_SEEDS = {"virtual-clean": 8011, "virtual-occluded": 8012, "indoor-noisy": 8013}
 FORKLIFT_SEEDS = {"test": {"forklift-approach": 9004, "mixed": 9005}, "val": {"forklift-approach": 8015, "mixed": 8016}}
@@ -398,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
             folder.mkdir(parents=True, exist_ok=True)
             res = {}
             for m in measures:
-                val = "-val" if args.split == "val" and m in ("presets", "forklift", "pockets", "pockets-all") else ""
+                val = "-val" if args.split == "val" and m in SPLIT_MEASURES else ""
                 path = folder / f"{m}{'-quick' if args.quick else ''}{val}-{args.precision}.json"
                 if not path.is_file():
                     print(f"scorecard: {column}: {m}", file=sys.stderr, flush=True)

@@ -238,7 +238,7 @@ def decode_yolov8(output: np.ndarray, score_threshold: float, iou_threshold: flo
     return Detections(boxes[idx], score[idx], best[idx], cls_scores[:, keep][:, idx].T)
 
 
-YOLOV8_STRIDES = (8, 16, 32)
+YOLOV8_STRIDES = (8, 16, 32)      # the anchor levels of YOLOv8's output (`export.detector.STRIDES`; no torch here)
 
 
 def unmirror_yolov8(output: np.ndarray, input_hw: tuple[int, int], strides: tuple[int, ...] = YOLOV8_STRIDES

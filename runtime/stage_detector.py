@@ -70,9 +70,8 @@ class DetectorStage:
         if not self.mirror:
             return raw
         mirrored = self.model.run({d.input_name: np.ascontiguousarray(x[..., ::-1])}, [d.output_name])[d.output_name]
-        out = raw.copy()
-        out[:, 4:] = (raw[:, 4:] + unmirror_yolov8(mirrored, x.shape[-2:])[:, 4:]) / 2
-        return out
+        raw[:, 4:] = (raw[:, 4:] + unmirror_yolov8(mirrored, x.shape[-2:])[:, 4:]) / 2      # onnxruntime's own array
+        return raw
 
     def postprocess(self, raw: np.ndarray, lb: Letterbox) -> Detections:
         """Pallet detections in image pixels after NMS across the pallet classes (a detector that reports the
