@@ -1,9 +1,9 @@
 """Latency of the runtime per stage and end to end, on this machine's cores (never run by the tests).
 
-For each bundle x precision (fp32, int8) x threads (1, 2) x pallets (1, 4) [x extra ICP starts,
-`--refine-starts 0 6 10`, default the estimator's] [x refinement's ICP and fit scores, `--kernel compiled numpy`: the
-compiled kernel or numpy, default the kernel]: `--frames` frames of a
-1224x370 synthetic warehouse scene with at least P pallets (`_scene`); the detector runs on the whole frame, and
+For each bundle x precision (fp32, int8) x threads (1, 2) x pallets (1, 4) [x pallet types, `--pallet-types all
+epal`: the bundle's every type (the default) or a site's named types] [x extra ICP starts, `--refine-starts 0 6 10`,
+default the estimator's] [x refinement's ICP and fit scores, `--kernel compiled numpy`: the compiled kernel or numpy,
+default the kernel]: `--frames` frames of a 1224x370 synthetic warehouse scene with at least P pallets (`_scene`); the detector runs on the whole frame, and
 the pose stage gets exactly P pallets (the scene's P most visible ground-truth boxes, so the count does not
 depend on a random-init detector). Reports p50/p95/p99 in milliseconds per stage and end to end, the same
 networks in torch eager (built from `pallet6d.export` with the bundle's config) for the ratio, and
@@ -86,7 +86,9 @@ def _spinning_off(runtime_options):
 
 
 def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frames: int, frame, boxes,
-                  refine_starts: int, pallet_lanes: int = 1, kernel: str = "compiled", spinning: str = "run") -> dict:
+                  refine_starts: int, pallet_lanes: int = 1, kernel: str = "compiled", spinning: str = "run",
+                  pallet_types: tuple[str, ...] | None = None) -> dict:
+    """:param pallet_types: `EstimatorOptions.pallet_types` (None: the bundle's every type, the default)."""
     from dataclasses import replace
     from unittest import mock
 
@@ -97,7 +99,8 @@ def bench_runtime(bundle: str, precision: str, threads: int, pallets: int, frame
     with (mock.patch.object(sessions, "session_options", _spinning_off(sessions.session_options))
           if spinning == "off" else nullcontext()):
         est = PalletEstimator.from_bundle(bundle, threads=threads, precision=precision, min_fit=0.0,
-                                          refine_starts=refine_starts, pallet_lanes=pallet_lanes)
+                                          refine_starts=refine_starts, pallet_lanes=pallet_lanes,
+                                          pallet_types=pallet_types)
     # "numpy": refinement (ICP and fit scores) without the compiled kernel (the same poses), to compare in one run
     est.refiner.refine_options = replace(est.refiner.refine_options, compiled=kernel == "compiled")
     scores = np.linspace(0.9, 0.5, pallets)
@@ -225,16 +228,17 @@ def _markdown(results: list[dict], footprints: dict, info: dict) -> str:
              f"onnxruntime {info['onnxruntime']}, numpy {info['numpy']}, compiled kernels "
              f"{'built' if info.get('kernels') else 'not built'}. Weights: {weights} "
              "(latency does not depend on the weights' values).", "",
-             "| bundle | precision | threads | lanes | pallets | kernel | spinning | ICP starts | "
+             "| bundle | precision | threads | lanes | pallets | types | kernel | spinning | ICP starts | "
              + " | ".join(f"{s} p50" for s in STAGES[:-1])
              + " | total p50 | total p95 | total p99 | torch eager nets p50 | onnx nets p50 | torch/onnx |",
-             "|" + "---|" * (8 + len(STAGES) - 1 + 6)]
+             "|" + "---|" * (9 + len(STAGES) - 1 + 6)]
     for r in results:
         s = r["stages"]
         nets = s["detector"]["p50"] + s["fusion"]["p50"] + s["pose"]["p50"]
         t = r.get("torch_eager_nets")
         lines.append(f"| {r['bundle']} | {r['precision']} | {r['threads']} | {r.get('pallet_lanes', 1)} | "
-                     f"{r['pallets']} | {r.get('kernel', 'numpy')} | {r.get('spinning', 'off')} | "
+                     f"{r['pallets']} | {r.get('pallet_types', 'all')} | {r.get('kernel', 'numpy')} | "
+                     f"{r.get('spinning', 'off')} | "
                      f"{r['refine_starts']} | "
                      + " | ".join(f"{s[k]['p50']:.1f}" for k in STAGES[:-1])
                      + f" | {s['total']['p50']:.1f} | {s['total']['p95']:.1f} | {s['total']['p99']:.1f} | "
@@ -265,6 +269,9 @@ def main() -> int:
     ap.add_argument("--spinning", nargs="+", choices=["run", "off"], default=["run"],
                     help="onnxruntime's pools spin while a graph runs (run, the runtime's) or never (off); both: "
                          "measured one after the other (default run)")
+    ap.add_argument("--pallet-types", nargs="+", default=["all"],
+                    help="each measured: 'all' (the bundle's every type, the estimator's default) or comma-separated "
+                         "type names (`EstimatorOptions.pallet_types`, e.g. epal)")
     ap.add_argument("--no-torch", action="store_true", help="skip the torch eager comparison")
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = ap.parse_args()
@@ -283,13 +290,14 @@ def main() -> int:
                 continue
             footprints[f"{b.config}|{precision}"] = footprint(bundle, precision, max(args.pallets))
             for threads in args.threads:
-                for pallets, starts, lanes, kernel, spinning in itertools.product(
-                        args.pallets, starts_list, args.pallet_lanes, args.kernel, args.spinning):
+                for pallets, types, starts, lanes, kernel, spinning in itertools.product(
+                        args.pallets, args.pallet_types, starts_list, args.pallet_lanes, args.kernel, args.spinning):
                     frame, boxes = _scene(pallets)
                     stages = bench_runtime(bundle, precision, threads, pallets, args.frames, frame, boxes, starts,
-                                           lanes, kernel, spinning)
+                                           lanes, kernel, spinning, None if types == "all" else tuple(types.split(",")))
                     r = {"bundle": b.config, "precision": precision, "threads": threads, "pallet_lanes": lanes,
-                         "pallets": pallets, "kernel": kernel if kernels.available() else "numpy",
+                         "pallets": pallets, "pallet_types": types,
+                         "kernel": kernel if kernels.available() else "numpy",
                          "spinning": spinning, "refine_starts": starts, "frames": args.frames, "stages": stages}
                     if not args.no_torch and precision == "fp32":
                         r["torch_eager_nets"] = bench_torch(b.config, threads, pallets, max(20, args.frames // 4))

@@ -27,7 +27,7 @@ def test_table_puts_each_bundles_figures_beside_the_target(scorecard):
     rows = {line.split(" | ")[0].lstrip("| "): line for line in text.splitlines()}
     assert rows["ADD-sym within 5 cm, virtual-clean (%)"].endswith("| 97.5 | 98 | >= 98.1 |")
     assert rows["ADD-sym within 5 cm, indoor-noisy (%)"].endswith("| 91 | - | >= 93.7 |")
-    assert rows["mismatched inputs: poses kept"].endswith("| 14 | 9 | 0 |")
+    assert rows["mismatched inputs: poses kept"].endswith("| 14 | 9 |  |")
     assert not any("virtual-occluded" in r for r in rows)          # no bundle has it: no row
     assert "- `candidate`: data/real/labels.json not found" in text
 
@@ -61,7 +61,7 @@ def test_kept_results_are_read_back_not_measured_again(scorecard, tmp_path, monk
     assert calls == ["pockets"]
     assert json.loads((kept / "pockets-int8.json").read_text())["exact"] == 90.0
     md = (tmp_path / "out" / "scorecard.md").read_text()
-    assert "| mismatched inputs: poses kept | 3 | 0 |" in md and "| blocked pockets called safe | 0 | 0 |" in md
+    assert "| mismatched inputs: poses kept | 3 |  |" in md and "| blocked pockets called safe | 0 | 0 |" in md
     assert md == "\n".join(capsys.readouterr().out.splitlines()[:len(md.splitlines())]) + "\n"
 
 
@@ -83,7 +83,7 @@ def test_a_variant_is_measured_with_its_options_under_its_own_name(scorecard, tm
     assert seen[0] == {} and seen[1]["min_fit"] == 0.3 and seen[1]["structure"] == StructureParams(grid=24)
     assert (tmp_path / "out" / "cand+g24" / "mismatched-int8.json").is_file()
     md = capsys.readouterr().out
-    assert "| `cand` | `cand+g24` | target |" in md and "| mismatched inputs: poses kept | 0 | 2 | 0 |" in md
+    assert "| `cand` | `cand+g24` | target |" in md and "| mismatched inputs: poses kept | 0 | 2 |  |" in md
     assert '- `+g24`: `{"structure": {"grid": 24}, "min_fit": 0.3}`' in md
 
 
@@ -175,3 +175,15 @@ def test_bad_arguments_are_refused(scorecard, tmp_path, capsys, args, words):
     with pytest.raises(SystemExit):
         scorecard.main(argv + args)
     assert words in capsys.readouterr().err
+
+
+def test_mismatched_inputs_are_measured_on_validation_seeds_and_held_out_on_test_seeds(scorecard, monkeypatch,
+                                                                                        tmp_path):
+    seen = {}
+    monkeypatch.setattr(scorecard, "measure_mismatched", lambda *a: seen.setdefault(len(seen), a[3:]) and {})
+    scorecard.run_measure("mismatched", tmp_path, "int8", {}, False, tmp_path / "test-sets", tmp_path / "data")
+    scorecard.run_measure("mismatched-heldout", tmp_path, "int8", {}, False, tmp_path / "test-sets",
+                          tmp_path / "data")
+    assert seen[0] == (30, tmp_path / "data")                                       # VAL_SEEDS by default
+    assert seen[1] == (30, tmp_path / "test-sets", {"virtual-clean": 9001, "virtual-occluded": 9002,
+                                                    "indoor-noisy": 9003})
