@@ -73,7 +73,8 @@ def evaluate_dataset(estimator, data: str | Path, split: str | None = None, max_
             result = estimator.estimate_boxes(f.rgb, f.depth_m, f.K, boxes_xyxy=boxes, T_vehicle_cam=T_vc)
         else:
             result = estimator.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
-        tally.add(evaluate_poses(i, result.poses, gts, estimator.model_points_m, estimator.symmetries, models=models))
+        tally.add(evaluate_poses(i, result.poses, gts, estimator.model_points_m, estimator.symmetries, models=models,
+                                 rejected=result.rejected))
     if n_no_box:
         log.warning("%s: %d annotations without a visible box (no scene_gt_info.json entry) were not scored",
                     data, n_no_box)
@@ -127,9 +128,11 @@ def rescore(results: dict, data: str | Path, split: str | None = None, tol_m: fl
             continue
         g = gts[j]
         errors = {k: math.inf if r[k] is None else float(r[k]) for k in RESCORED_ERROR_KEYS}
+        refused = r.get("refused_add_sym_m")
         records.append(PalletRecord(frame=frame, distance_m=float(r["distance_m"]), visib_fract=float(g.visib_fract),
                                     detected=bool(r["detected"]), truncated=bool(g.truncated), obj_id=g.obj_id,
-                                    **errors))
+                                    missed_reason=r.get("missed_reason"),
+                                    refused_add_sym_m=math.inf if refused is None else float(refused), **errors))
     return summarize(records, results["true_positives"] - dropped_detected, results["false_positives"])
 
 
@@ -157,6 +160,11 @@ def format_table(summary: dict) -> str:
     lines += [outcome("cut by the image border" if b["truncated"] else "wholly in view", b)
               for b in summary.get("by_truncation", [])]
     lines += [outcome(b.get("name") or f"object {b['obj_id']}", b) for b in summary.get("by_object", [])]
+    missed = summary.get("missed_by_reason") or {}
+    if missed:
+        lines.append("  missed, why: " + ", ".join(
+            f"{k} {v['n_gt']}" + (f" ({v['refused_within_5cm']} posed within 5 cm)" if v["refused_within_5cm"] else "")
+            for k, v in missed.items()))
     return "\n".join(lines)
 
 

@@ -9,6 +9,9 @@ Protocol (used by `pallet6d eval`, `pallet6d run` on a BOP source and `benchmark
 - Precision = matched estimates / all estimates that are not ignored; recall = matched / counted pallets.
 - Pose accuracy at a threshold = fraction of counted pallets whose error is below it; a missed pallet is a
   failure (its error is infinite).
+- A missed pallet is told why: the reason of the refused detection whose box matches its visible box best (IoU >=
+  `iou_threshold`), or `NO_DETECTION` where none does; where the refused detection had a pose (the fit check
+  refused it), that pose's error tells whether the refusal cost a right pose.
 """
 from __future__ import annotations
 
@@ -21,10 +24,10 @@ from . import metrics
 
 Models = Mapping[int, tuple[np.ndarray, np.ndarray]]   # obj_id -> model points (n, 3) metres, symmetries (S, 4, 4)
 
-__all__ = ["GroundTruth", "Estimate", "PalletRecord", "FrameScore", "ScoreTally", "counted_pallets", "box_iou",
-           "match_greedy", "ground_truths_from_bop", "evaluate_frame", "evaluate_poses", "dataset_models", "summarize",
+__all__ = ["GroundTruth", "Estimate", "Refused", "PalletRecord", "FrameScore", "ScoreTally", "counted_pallets",
+           "box_iou", "match_greedy", "ground_truths_from_bop", "evaluate_frame", "evaluate_poses", "dataset_models", "summarize",
            "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M", "DEFAULT_VISIBILITY_BINS",
-           "MIN_VISIB_FRACT"]
+           "MIN_VISIB_FRACT", "NO_DETECTION"]
 
 # The BOP convention (bop_toolkit's `visib_gt_min`): a pallet less visible is too hidden to be found or posed, so
 # it is neither scored nor trained on.
@@ -32,6 +35,7 @@ MIN_VISIB_FRACT = 0.1
 DEFAULT_THRESHOLDS_M = (0.02, 0.05, 0.1)
 DEFAULT_DISTANCE_BINS_M = (0.0, 2.0, 3.0, 4.0, 5.0, 8.0, np.inf)
 DEFAULT_VISIBILITY_BINS = (0.1, 0.3, 0.6, 1.0)
+NO_DETECTION = "no_detection"     # a missed pallet that no refused detection matches either
 
 
 @dataclass(frozen=True)
@@ -64,6 +68,16 @@ class Estimate:
 
 
 @dataclass(frozen=True)
+class Refused:
+    """A detection the estimator did not report. :param box_xyxy: (4,) pixels; :param reason: its rejection
+    reason; :param T_cam_model: (4, 4) metres, the pose it was refused with, or None (refused before a pose)."""
+
+    box_xyxy: np.ndarray
+    reason: str
+    T_cam_model: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
 class PalletRecord:
     """One counted ground-truth pallet and how it was estimated (errors are inf when missed)."""
 
@@ -78,6 +92,8 @@ class PalletRecord:
     trans_err_m: float
     truncated: bool = False
     obj_id: int | None = None     # the ground truth's model (pallet type) in the dataset
+    missed_reason: str | None = None    # missed: the matching refused detection's reason, or NO_DETECTION
+    refused_add_sym_m: float = np.inf   # missed: the symmetric ADD of that detection's pose (inf: it had none)
 
 
 class FrameScore(NamedTuple):
@@ -189,13 +205,16 @@ def match_greedy(pred_xyxy: np.ndarray, scores: np.ndarray, gt_xyxy: np.ndarray,
 
 def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[GroundTruth], model_pts: np.ndarray,
                    symmetries: np.ndarray, iou_threshold: float = 0.5,
-                   min_visib_fract: float = MIN_VISIB_FRACT, models: Models | None = None) -> FrameScore:
+                   min_visib_fract: float = MIN_VISIB_FRACT, models: Models | None = None,
+                   refused: Sequence[Refused] = ()) -> FrameScore:
     """Match one frame's estimates to its ground truth and measure the pose errors.
 
     :param model_pts: (n, 3) model points, metres; :param symmetries: (S, 4, 4): the model of every ground
         truth that `models` does not name.
     :param models: {obj_id: (model points (n, 3) metres, symmetries (S, 4, 4))}, each ground truth's own model
         (`dataset_models`); None: `model_pts` for all.
+    :param refused: the frame's refused detections: each missed pallet's `missed_reason` and `refused_add_sym_m`
+        (without them every missed pallet is `NO_DETECTION`).
     :return: records for counted pallets, true positives, false positives.
     """
     counted = counted_pallets(gts, min_visib_fract)
@@ -205,16 +224,27 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
     matched_est = {int(j): i for i, j in enumerate(match) if j >= 0}  # gt index -> estimate index
     fp = int(np.sum(match < 0))
     tp = sum(1 for j in matched_est if counted[j])
+    refused_iou = box_iou(np.array([r.box_xyxy for r in refused]).reshape(-1, 4),
+                          np.array([g.box_visib_xyxy for g in gts]).reshape(-1, 4))
     records = []
     for j, g in enumerate(gts):
         if not counted[j]:
             continue
         R_gt, t_gt = g.T_cam_model[:3, :3], g.T_cam_model[:3, 3]
         errs = dict(add_m=np.inf, add_sym_m=np.inf, adds_m=np.inf, rot_err_sym_deg=np.inf, trans_err_m=np.inf)
-        if j in matched_est:
+        pts, sym = (models or {}).get(g.obj_id, (model_pts, symmetries))
+        missed_reason, refused_err = None, np.inf
+        if j not in matched_est:
+            k = int(np.argmax(refused_iou[:, j])) if len(refused) else -1
+            if k >= 0 and refused_iou[k, j] >= iou_threshold:
+                missed_reason, T = refused[k].reason, refused[k].T_cam_model
+                if T is not None:
+                    refused_err = metrics.add_sym(T[:3, :3], T[:3, 3], R_gt, t_gt, pts, sym)
+            else:
+                missed_reason = NO_DETECTION
+        else:
             T = estimates[matched_est[j]].T_cam_model
             R, t = T[:3, :3], T[:3, 3]
-            pts, sym = (models or {}).get(g.obj_id, (model_pts, symmetries))
             errs = dict(add_m=metrics.add(R, t, R_gt, t_gt, pts),
                         add_sym_m=metrics.add_sym(R, t, R_gt, t_gt, pts, sym),
                         adds_m=metrics.adds(R, t, R_gt, t_gt, pts),
@@ -222,21 +252,24 @@ def evaluate_frame(frame: int, estimates: Sequence[Estimate], gts: Sequence[Grou
                         trans_err_m=metrics.translation_error_m(t, t_gt))
         records.append(PalletRecord(frame=frame, distance_m=float(np.linalg.norm(t_gt)),
                                     visib_fract=float(g.visib_fract), detected=j in matched_est,
-                                    truncated=bool(g.truncated), obj_id=g.obj_id, **errs))
+                                    truncated=bool(g.truncated), obj_id=g.obj_id, missed_reason=missed_reason,
+                                    refused_add_sym_m=float(refused_err), **errs))
     return FrameScore(records, tp, fp)
 
 
 def evaluate_poses(frame: int, poses: Sequence, gts: Sequence[GroundTruth], model_pts: np.ndarray,
-                   symmetries: np.ndarray, models: Models | None = None) -> FrameScore:
+                   symmetries: np.ndarray, models: Models | None = None, rejected: Sequence = ()) -> FrameScore:
     """The per-frame evaluation of the estimator's output (`pallet6d eval`, `pallet6d run` on a BOP source).
 
     :param poses: the frame's `PalletPose`s (their `T_cam_pallet`, `box_xyxy`, `detector_score`); empty when
         the estimation failed (its counted pallets are then missed).
     :param gts: its ground truth (`ground_truths_from_bop`); :param model_pts: (n, 3) metres;
     :param symmetries: (S, 4, 4). :param models: each ground truth's own model (`evaluate_frame`).
+    :param rejected: the frame's `Rejection`s (why the missed pallets were missed).
     """
     estimates = [Estimate(p.T_cam_pallet, p.box_xyxy, p.detector_score) for p in poses]
-    return evaluate_frame(frame, estimates, gts, model_pts, symmetries, models=models)
+    refused = [Refused(r.box_xyxy, r.reason, None if r.pose is None else r.pose.T_cam_pallet) for r in rejected]
+    return evaluate_frame(frame, estimates, gts, model_pts, symmetries, models=models, refused=refused)
 
 
 def dataset_models(ds, geometries: Sequence = ()) -> Models:
@@ -285,8 +318,9 @@ def summarize(records: Iterable[PalletRecord], true_positives: int, false_positi
     (keys are the thresholds in metres as strings, e.g. "0.05"), AUC to 10 cm, accuracy by distance, and by
     visible fraction where the failures are: missed (no pose reported), symmetric ADD >= 10 cm, 5-10 cm, < 5 cm
     (fractions of that bin's pallets; the last bin includes its upper edge), and the same split for pallets
-    wholly in view and pallets cut by the image border (`by_truncation`), and per dataset model (`by_object`, when the
-    pallets are of more than one: several pallet types)."""
+    wholly in view and pallets cut by the image border (`by_truncation`), per dataset model (`by_object`, when the
+    pallets are of more than one: several pallet types), and the missed pallets by why they were missed
+    (`missed_by_reason`: reason -> pallets, and how many of them the refused detection had posed within 5 cm)."""
     records = list(records)
     n_gt = len(records)
     n_pred = true_positives + false_positives
@@ -334,6 +368,14 @@ def summarize(records: Iterable[PalletRecord], true_positives: int, false_positi
     truncated = np.array([r.truncated for r in records], dtype=bool)
     out["by_truncation"] = [{"truncated": bool(t), **outcome(truncated == t)} for t in (False, True)
                             if (truncated == t).any()]
+    # why the missed pallets were missed, most often first; refused_within_5cm: refusals that cost a right pose
+    reasons: dict[str, dict] = {}
+    for r in records:
+        if not r.detected and r.missed_reason is not None:
+            c = reasons.setdefault(r.missed_reason, {"n_gt": 0, "refused_within_5cm": 0})
+            c["n_gt"] += 1
+            c["refused_within_5cm"] += int(r.refused_add_sym_m < 0.05)
+    out["missed_by_reason"] = dict(sorted(reasons.items(), key=lambda kv: (-kv[1]["n_gt"], kv[0])))
     obj = np.array([-1 if r.obj_id is None else r.obj_id for r in records], int)
     if len(set(obj.tolist())) > 1:
         out["by_object"] = [{"obj_id": int(k), **outcome(obj == k)} for k in sorted(set(obj.tolist()))]

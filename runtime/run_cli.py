@@ -284,7 +284,7 @@ def _evaluate(est, frame_number: int, result, gts: list, tally: _Tally) -> list[
 
     poses = result.poses if result is not None else []   # None: the frame's estimation failed
     score = tally.scores.add(evaluate_poses(frame_number, poses, gts, est.model_points_m, est.symmetries,
-                                            models=tally.models))
+                                            models=tally.models, rejected=() if result is None else result.rejected))
 
     def m(v: float):
         return None if not np.isfinite(v) else round(float(v), 4)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from pallet6d.runtime.evaluation import (Estimate, GroundTruth, box_iou, evaluate_frame, records_to_dicts,
-                                         summarize)
+from pallet6d.runtime.evaluation import (NO_DETECTION, Estimate, GroundTruth, Refused, box_iou, evaluate_frame,
+                                         records_to_dicts, summarize)
 from pallet6d.runtime.geometry import make_T
 
 PTS = np.random.default_rng(0).uniform([-0.6, -0.4, -0.07], [0.6, 0.4, 0.07], size=(300, 3))
@@ -34,6 +34,26 @@ def test_perfect_and_missed_and_false_positive():
     assert s["n_gt"] == 2 and s["precision"] == 0.5 and s["recall"] == 0.5
     assert s["add_acc"] == {"0.02": 0.0, "0.05": 0.5, "0.1": 0.5}
     assert records_to_dicts(records)[1]["add_m"] is None
+
+
+def test_missed_pallets_are_told_why_from_the_refused_detections_over_them():
+    gts = [gt(0.0, [0, 0, 100, 50]), gt(1.5, [200, 0, 300, 50]), gt(3.0, [400, 0, 500, 50]),
+           gt(4.5, [600, 0, 700, 50]), gt(6.0, [800, 0, 900, 50])]
+    refused = [Refused(np.array([200, 0, 300, 50.0]), "poor_fit", make_T(np.eye(3), [1.52, 0, 3.0])),   # 2 cm off
+               Refused(np.array([400, 0, 500, 48.0]), "no_pallet_structure", make_T(np.eye(3), [3.3, 0, 3.0])),
+               Refused(np.array([600, 0, 700, 50.0]), "low_confidence"),          # refused before a pose
+               Refused(np.array([860, 0, 960, 50.0]), "poor_fit")]                 # IoU 0.25 with the last: no match
+    records, tp, fp = evaluate_frame(0, [est(0.0, [0, 0, 100, 50])], gts, PTS, SYMS, refused=refused)
+    assert [r.missed_reason for r in records] == [None, "poor_fit", "no_pallet_structure", "low_confidence",
+                                                  NO_DETECTION]
+    assert records[1].refused_add_sym_m == pytest.approx(0.02) and records[2].refused_add_sym_m == pytest.approx(0.3)
+    assert np.isinf(records[3].refused_add_sym_m) and np.isinf(records[0].refused_add_sym_m)
+    assert summarize(records, tp, fp)["missed_by_reason"] == {
+        "low_confidence": {"n_gt": 1, "refused_within_5cm": 0}, NO_DETECTION: {"n_gt": 1, "refused_within_5cm": 0},
+        "no_pallet_structure": {"n_gt": 1, "refused_within_5cm": 0}, "poor_fit": {"n_gt": 1, "refused_within_5cm": 1}}
+    assert records_to_dicts(records)[3]["refused_add_sym_m"] is None
+    no_refusals = evaluate_frame(0, [], gts[:1], PTS, SYMS).records
+    assert no_refusals[0].missed_reason == NO_DETECTION
 
 
 def test_symmetric_flip_counts_for_add_sym_only():
