@@ -3,11 +3,11 @@
 For each bundle x precision (fp32, int8) x threads (1, 2) x pallets (1, 4) [x pallet types, `--pallet-types all
 epal`: the bundle's every type (the default) or a site's named types] [x extra ICP starts, `--refine-starts 0 6 10`,
 default the estimator's] [x refinement's ICP and fit scores, `--kernel compiled numpy`: the compiled kernel or numpy,
-default the kernel]: `--frames` frames of a 1224x370 synthetic warehouse scene with at least P pallets (`_scene`); the detector runs on the whole frame, and
-the pose stage gets exactly P pallets (the scene's P most visible ground-truth boxes, so the count does not
-depend on a random-init detector). Reports p50/p95/p99 in milliseconds per stage and end to end, the same
-networks in torch eager (built from `pallet6d.export` with the bundle's config) for the ratio, and
-peak RSS and import time of the runtime in a fresh subprocess.
+default the kernel]: `--frames` frames of a 1224x370 synthetic warehouse scene with at least P pallets (`_scene`);
+the detector runs on the whole frame, and the pose stage gets exactly P pallets (the scene's P most visible
+ground-truth boxes, so the count does not depend on a random-init detector). Reports p50/p95/p99 in milliseconds per
+stage and end to end, the same networks in torch eager (built from `pallet6d.export` with the bundle's config) for
+the ratio, and peak RSS and import time of the runtime in a fresh subprocess.
 
     .venv/bin/python benchmarks/latency.py --bundle /tmp/bundles/edge --bundle /tmp/bundles/paper --frames 200
 
