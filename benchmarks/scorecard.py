@@ -8,7 +8,8 @@ The ship decision compares a candidate with the shipped bundle on all of these a
 the same data (a candidate that gains on one set and loses on another must show both):
 
 - `presets`: ADD-sym within 5 cm on the paper's three presets (the held-out test sets of `benchmarks/accuracy.py`,
-  seeds 9001-9003, 100 frames each).
+  seeds 9001-9003, 100 frames each); the results file keeps why the missed pallets were missed (`pallet6d eval`'s
+  `missed_by_reason`), as `forklift`'s does.
 - `forklift`: the calibrated forklift-approach and mixed test frames (seeds 9004, 9005, 100 frames each; each frame's
   camera calibration goes to the estimator): within 5 cm, and the precision of the accepted poses.
 - `mismatched`: poses the estimator accepts from inputs that do not belong together (another frame's depth, a flat
@@ -168,6 +169,7 @@ def measure_presets(bundle: Path, precision: str, options: dict, frames: int, da
         s = evaluate_dataset(est, ensure_test_set(preset, frames, data_root, seeds[preset]), "test")["summary"]
         out[preset] = _pct(s["add_sym_acc"]["0.05"])
         out[f"{preset}-pallets"] = s["n_gt"]
+        out[f"{preset}-missed"] = s["missed_by_reason"]
     out["seeds"] = {p: seeds[p] for p in PAPER_PRESETS}
     return out
 
@@ -185,6 +187,7 @@ def measure_forklift(bundle: Path, precision: str, options: dict, frames: int, d
         out[preset] = _pct(s["add_sym_acc"]["0.05"])
         out[f"{preset}-precision"] = round(float(s["precision"]), 3)
         out[f"{preset}-pallets"] = s["n_gt"]
+        out[f"{preset}-missed"] = s["missed_by_reason"]
     return out
 
 
