@@ -140,6 +140,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "that. Not with --verifier-only, which calibrates the verifier to the confidence head")
     parser.add_argument("--freeze-pose", action="store_true",
                         help="pose: train the fusion network alone, the pose network fixed as --init gives it")
+    parser.add_argument("--pose-only", action="store_true",
+                        help="pose: train the pose network alone, the fusion network fixed as --init gives it; its "
+                             "features are computed once per sample, so a step costs the pose network's passes only "
+                             "(many epochs on a CPU)")
     parser.add_argument("--seed", type=int, default=0, help="seed of augmentation, sampling, shuffling, init")
     parser.add_argument("--resume", action="store_true", help="continue RUN_DIR/last.pt")
     parser.add_argument("--init", type=Path,
@@ -325,11 +329,12 @@ def main(args: argparse.Namespace) -> int:
         if args.num_points is not None and args.stage != "pose":
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
-        if (args.distill is not None or args.freeze_pose or args.negatives or args.mismatched_frames
+        if (args.distill is not None or args.freeze_pose or args.pose_only or args.negatives or args.mismatched_frames
                 or args.conf_head_only or args.keep_pallet_conf or args.verifier_only
                 or args.calibrate_share is not None) and args.stage != "pose":
-            print("pallet6d train: --distill, --freeze-pose, --negatives, --mismatched-frames, --conf-head-only, "
-                  "--keep-pallet-conf, --verifier-only and --calibrate-share are for the pose stage", file=sys.stderr)
+            print("pallet6d train: --distill, --freeze-pose, --pose-only, --negatives, --mismatched-frames, "
+                  "--conf-head-only, --keep-pallet-conf, --verifier-only and --calibrate-share are for the pose stage",
+                  file=sys.stderr)
             return 2
         if args.verifier_target != "confidence" and not args.verifier_only:
             print("pallet6d train: --verifier-target is for --verifier-only", file=sys.stderr)
@@ -355,7 +360,7 @@ def main(args: argparse.Namespace) -> int:
                                conf_head_only=args.conf_head_only, mismatched_frames=args.mismatched_frames,
                                keep_pallet_conf=args.keep_pallet_conf, negative_conf_top=args.negative_conf_top,
                                verifier_only=args.verifier_only, verifier_target=args.verifier_target,
-                               calibrate_share=args.calibrate_share, **common)
+                               calibrate_share=args.calibrate_share, pose_only=args.pose_only, **common)
         else:
             from .train_detector import train_detector
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,

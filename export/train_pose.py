@@ -29,6 +29,9 @@ low (or, with `verifier_target="pallet"`, at the pallets' chosen points it learn
 pose's error); the confidence head keeps choosing, so every pose stays as it was. After training, its output is
 shifted by one constant in logit space (`calibrate_verifier`) so that the runtime's floor keeps as many validation
 pallets as the confidence head kept: the floor then refuses only what the verifier ranks below those pallets.
+`trainable="pose"` trains the pose network alone on the fixed fusion network's features: a sample's crops and
+points are fixed when it is prepared, so its features are computed once (`PoseTrainer.cached_features`) and a step
+costs the pose network's forward and backward passes only, a small fraction of the fusion network's on a CPU.
 Training that moves the confidence head's level (the eq. 4 loss lowers it as the poses get better) can end the same
 way for the confidence head (`calibrate_floor` to a chosen share of validation pallets), since the floor was chosen
 for a network whose confidences sit where the shipped one's do.
@@ -66,8 +69,9 @@ __all__ = ["PoseData", "load_pose_data", "PoseTrainer", "calibrate_floor", "cali
 log = logging.getLogger(__name__)
 
 MODEL_POINTS = 500   # DenseFusion's num_pt_mesh_small: points of the model in the loss
-TRAINABLE = ("all", "fusion", "conf", "verifier")
-FIXED_FUSION = ("conf", "verifier")   # trainables under which the fusion network runs fixed, in inference mode
+TRAINABLE = ("all", "fusion", "pose", "conf", "verifier")
+FIXED_FUSION = ("pose", "conf", "verifier")   # trainables under which the fusion network runs fixed, in inference mode
+CACHE_BATCH = 64    # samples per fusion pass when the fixed fusion network's features are computed once
 VERIFIER_TARGETS = ("confidence", "pallet")
 CONF_FLOOR = EstimatorOptions().min_confidence   # validation reports the share of best confidences above it
 
@@ -184,7 +188,8 @@ class PoseTrainer:
             is under its `min_confidence`). :param negative_conf_top: that mean over this fraction of each negative
             crop's points, its most confident ones (1: every point).
         :param trainable: what the training changes (the rest stays as built or loaded; `train_pose` gives the
-            optimizer only those parameters): "all", "fusion" (the pose network fixed), or "conf" (the pose network's
+            optimizer only those parameters): "all", "fusion" (the pose network fixed), "pose" (the fusion network
+            fixed, its features on the samples computed once: `cached_features`), or "conf" (the pose network's
             confidence head alone: every point's rotation and translation stay; the fusion network runs without
             gradients in inference mode), or "verifier" (the verifier head alone, the same way; module docstring).
         :param conf_teacher: with trainable "conf", a pose network (frozen) whose confidence on the pallets is the
@@ -202,6 +207,9 @@ class PoseTrainer:
         if conf_teacher is not None and trainable != "conf":
             raise ValueError("a confidence teacher needs trainable='conf' (--conf-head-only): its targets hold only "
                              "for the points and features the trained network also has")
+        if teacher is not None and trainable in FIXED_FUSION:
+            raise ValueError(f"a teacher's features are a target for a trained fusion network; trainable "
+                             f"{trainable!r} keeps the fusion network fixed")
         if negatives is not None and teacher is None and not negative_conf_weight > 0:
             raise ValueError("negative crops need a use: a teacher to distil on them (--distill) or a confidence "
                              "weight (--negative-conf-weight)")
@@ -238,6 +246,7 @@ class PoseTrainer:
             held = every % 8 == 7 if len(negatives) >= 16 else np.zeros(len(negatives), bool)
             self.negatives_train, self.negatives_val = every[~held], every[held]
         self.conf_teacher = None if conf_teacher is None else conf_teacher.to(self.device).eval().requires_grad_(False)
+        self._feature_cache: torch.Tensor | None = None
 
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
@@ -253,8 +262,11 @@ class PoseTrainer:
         if self.num_points < pts.shape[1]:
             pts, choose, T_gt = subsample_points(pts, choose, T_gt, self.num_points)
         with autocast(self.device.type, amp):
-            with self._fusion_grad():
-                point_feats = self._features(self.fusion, rgb, depth, choose)
+            if self.trainable == "pose":
+                point_feats = self.cached_features()[torch.from_numpy(np.asarray(idx))].to(self.device).float()
+            else:
+                with self._fusion_grad():
+                    point_feats = self._features(self.fusion, rgb, depth, choose)
             out = self.pose(pts, point_feats)
         quat, trans, conf = (o.float() for o in out)
         rows = torch.from_numpy(np.searchsorted(self.obj_ids, obj)).to(self.device)
@@ -309,6 +321,28 @@ class PoseTrainer:
             out["conf_neg"] = -torch.log1p(-top.clamp(max=1 - 1e-6)).mean()
         out["conf_max"] = conf.detach().amax(1)
         return out
+
+    def cached_features(self) -> torch.Tensor:
+        """The fixed fusion network's features at every sample's points (the `num_points` the trainer uses), computed
+        on first use (after `--init` has loaded its weights) in inference mode: (n_samples, num_points, C) float16
+        on the CPU. Only for trainable "pose", whose fusion network never changes."""
+        if self.trainable != "pose":
+            raise RuntimeError("cached_features is for trainable 'pose' (the fusion network fixed)")
+        if self._feature_cache is None:
+            s, n = self.data.samples, self.num_points
+            t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
+            self.fusion.eval()
+            parts = []
+            with torch.no_grad(), autocast(self.device.type, self.amp):
+                for i in range(0, len(s.frame), CACHE_BATCH):
+                    rows = slice(i, i + CACHE_BATCH)
+                    feats = self._features(self.fusion, t(s.rgb_crops[rows]), t(s.depth_crops[rows]),
+                                           t(s.choose[rows][:, :n]))
+                    parts.append(feats.float().cpu().half())
+            self._feature_cache = torch.cat(parts)
+            log.info("fusion features of %d samples computed once: %.0f MB", len(self._feature_cache),
+                     self._feature_cache.numel() * 2 / 1e6)
+        return self._feature_cache
 
     def _fusion_grad(self):
         """No gradients through a fusion network that is not trained."""
@@ -458,7 +492,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                freeze_pose: bool = False, negatives: dict | None = None, negative_conf_weight: float = 0.0,
                conf_head_only: bool = False, mismatched_frames: int = 0, keep_pallet_conf: bool = False,
                negative_conf_top: float = 1.0, verifier_only: bool = False,
-               verifier_target: str = "confidence", calibrate_share: float | None = None) -> dict:
+               verifier_target: str = "confidence", calibrate_share: float | None = None,
+               pose_only: bool = False) -> dict:
     """Train the pose stage on BOP datasets; checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param num_points: points per pallet the network is trained on (default: the config's); samples are prepared
@@ -483,6 +518,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         everything else fixed: every pose stays. Started from a network without one (`init`), it starts as a copy
         of the confidence head. The checkpoints are then calibrated (`calibrate_verifier`).
     :param verifier_target: the verifier's target on the pallets (`PoseTrainer`).
+    :param pose_only: train the pose network alone on the fixed fusion network's features, computed once per
+        sample (`PoseTrainer.cached_features`): each step is the pose network's alone.
     :param calibrate_share: after training, shift the graph confidence's output logit in each checkpoint so that the
         runtime's floor keeps this share of the validation pallets (`calibrate_floor`); with `resume` on a finished
         run, only that. Not with `verifier_only`, which calibrates to the confidence head.
@@ -490,8 +527,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
     if calibrate_share is not None and (verifier_only or not 0.0 < calibrate_share <= 1.0):
         raise ValueError(f"--calibrate-share {calibrate_share}: a share in (0, 1], and not with --verifier-only (which "
                          "calibrates the verifier to the confidence head)")
-    if sum((freeze_pose, conf_head_only, verifier_only)) > 1:
-        raise ValueError("--freeze-pose, --conf-head-only and --verifier-only exclude each other")
+    if sum((freeze_pose, conf_head_only, verifier_only, pose_only)) > 1:
+        raise ValueError("--freeze-pose, --pose-only, --conf-head-only and --verifier-only exclude each other")
     if keep_pallet_conf and not (conf_head_only and init is not None and not resume):
         raise ValueError("--keep-pallet-conf needs --conf-head-only and --init (the network whose confidences it keeps), "
                          "without --resume")
@@ -516,7 +553,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         *(np.concatenate([getattr(c, f) for c in neg_parts]) for f in ("rgb_crops", "depth_crops", "choose", "points")))
     if neg_crops is not None:
         log.info("negative crops: %s", {k: v["crops"] for k, v in neg_record.items()})
-    trainable = "conf" if conf_head_only else "verifier" if verifier_only else "fusion" if freeze_pose else "all"
+    trainable = ("conf" if conf_head_only else "verifier" if verifier_only else "fusion" if freeze_pose
+                 else "pose" if pose_only else "all")
     conf_teacher = None
     if keep_pallet_conf:
         conf_teacher = build_pose(cfg.pose, cfg.fusion.feature_dim)
@@ -525,10 +563,11 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
                           distill_weight=distill_weight, negatives=neg_crops,
                           negative_conf_weight=negative_conf_weight, trainable=trainable, conf_teacher=conf_teacher,
                           negative_conf_top=negative_conf_top, verifier_target=verifier_target)
-    if trainable != "all":
+    if trainable in ("fusion", "conf", "verifier"):
         trainer.pose.requires_grad_(False)
     if trainable in FIXED_FUSION:
         trainer.fusion.requires_grad_(False)
+    if trainable in ("conf", "verifier"):
         (trainer.pose.head_c if trainable == "conf" else trainer.pose.head_v).requires_grad_(True)
     params = [p for net in trainer.nets.values() for p in net.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(params, lr=settings.lr)
@@ -551,6 +590,8 @@ def train_pose(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | Path
         provenance["pallet_conf_target"] = "init"
     if freeze_pose:
         provenance["freeze_pose"] = True
+    if pose_only:
+        provenance["trainable"] = "pose_network"
     if init is not None and not resume and init_config(init) != cfg.name:
         # another config's weights (e.g. edge2 from the edge bundle): copy what fits
         provenance["init"] = warm_start(init, trainer.nets)

@@ -441,6 +441,43 @@ def test_distillation_run_records_its_teacher_and_refuses_one_that_takes_other_c
                    LoopSettings(epochs=1, batch=4, lr=1e-3), variants=1, progress=False, distill=bundle_dir)
 
 
+def test_pose_only_trains_the_pose_network_on_the_fixed_fusions_features_computed_once(sim_bop_dataset, bundle_dir,
+                                                                                      tmp_path, pose_data):
+    from pallet6d.export.fusion import build_fusion
+    from pallet6d.export.pose import build_pose
+
+    trainer = PoseTrainer(CFG, pose_data, trainable="pose", num_points=20)
+    load_init_weights(bundle_dir, trainer.nets)
+    trainer.fusion.train()                       # the cache is computed in inference mode whatever the mode
+    cache = trainer.cached_features()
+    assert cache.shape == (len(pose_data.samples.frame), 20, CFG.fusion.feature_dim)
+    assert trainer.cached_features() is cache    # computed once
+    s, idx = pose_data.samples, pose_data.train_idx[:3]
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a))  # noqa: E731
+    trainer.fusion.eval()
+    with torch.no_grad():
+        own = trainer._features(trainer.fusion, t(s.rgb_crops[idx]), t(s.depth_crops[idx]), t(s.choose[idx][:, :20]))
+    torch.testing.assert_close(cache[torch.from_numpy(idx)].float(), own, atol=2e-3, rtol=2e-3)   # float16 copies
+    with pytest.raises(RuntimeError, match="trainable 'pose'"):
+        PoseTrainer(CFG, pose_data).cached_features()
+    with pytest.raises(ValueError, match="keeps the fusion network fixed"):
+        PoseTrainer(CFG, pose_data, trainable="pose", teacher=build_fusion(CFG.fusion))
+
+    entry = train_pose(CFG, [sim_bop_dataset], tmp_path / "p", LoopSettings(epochs=2, batch=4, lr=1e-3, seed=1),
+                       variants=1, progress=False, init=bundle_dir, pose_only=True)
+    assert np.isfinite(entry["val_metric"])
+    ckpt = load_checkpoint(tmp_path / "p" / "last.pt")
+    assert ckpt["provenance"]["trainable"] == "pose_network"
+    fusion, pose = build_fusion(CFG.fusion), build_pose(CFG.pose, CFG.fusion.feature_dim)
+    load_init_weights(bundle_dir, {"fusion": fusion, "pose": pose})
+    for k, v in fusion.state_dict().items():     # the fusion network stayed as --init gave it, BatchNorm included
+        assert torch.equal(ckpt["fusion"][k], v), k
+    assert any(not torch.equal(ckpt["pose"][k], v) for k, v in pose.state_dict().items())
+    with pytest.raises(ValueError, match="exclude each other"):
+        train_pose(CFG, [sim_bop_dataset], tmp_path / "q", LoopSettings(epochs=1, batch=4, lr=1e-3), variants=1,
+                   progress=False, pose_only=True, freeze_pose=True)
+
+
 def test_negative_crops_are_the_runtimes_inputs_on_the_detectors_boxes(bundle_dir, tmp_path):
     from pallet6d.export.negative_crops import build_negative_crops, load_negative_crops
     from pallet6d.runtime.estimator import PalletEstimator
