@@ -246,7 +246,7 @@ class PoseTrainer:
             held = every % 8 == 7 if len(negatives) >= 16 else np.zeros(len(negatives), bool)
             self.negatives_train, self.negatives_val = every[~held], every[held]
         self.conf_teacher = None if conf_teacher is None else conf_teacher.to(self.device).eval().requires_grad_(False)
-        self._feature_cache: torch.Tensor | None = None
+        self._feature_cache: np.ndarray | None = None
 
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
@@ -263,7 +263,7 @@ class PoseTrainer:
             pts, choose, T_gt = subsample_points(pts, choose, T_gt, self.num_points)
         with autocast(self.device.type, amp):
             if self.trainable == "pose":
-                point_feats = self.cached_features()[torch.from_numpy(np.asarray(idx))].to(self.device).float()
+                point_feats = torch.from_numpy(self.cached_features()[idx].astype(np.float32)).to(self.device)
             else:
                 with self._fusion_grad():
                     point_feats = self._features(self.fusion, rgb, depth, choose)
@@ -322,10 +322,10 @@ class PoseTrainer:
         out["conf_max"] = conf.detach().amax(1)
         return out
 
-    def cached_features(self) -> torch.Tensor:
+    def cached_features(self) -> np.ndarray:
         """The fixed fusion network's features at every sample's points (the `num_points` the trainer uses), computed
         on first use (after `--init` has loaded its weights) in inference mode: (n_samples, num_points, C) float16
-        on the CPU. Only for trainable "pose", whose fusion network never changes."""
+        (numpy: autocast never sees it). Only for trainable "pose", whose fusion network never changes."""
         if self.trainable != "pose":
             raise RuntimeError("cached_features is for trainable 'pose' (the fusion network fixed)")
         if self._feature_cache is None:
@@ -338,10 +338,10 @@ class PoseTrainer:
                     rows = slice(i, i + CACHE_BATCH)
                     feats = self._features(self.fusion, t(s.rgb_crops[rows]), t(s.depth_crops[rows]),
                                            t(s.choose[rows][:, :n]))
-                    parts.append(feats.float().cpu().half())
-            self._feature_cache = torch.cat(parts)
+                    parts.append(feats.float().cpu().numpy().astype(np.float16))
+            self._feature_cache = np.concatenate(parts)
             log.info("fusion features of %d samples computed once: %.0f MB", len(self._feature_cache),
-                     self._feature_cache.numel() * 2 / 1e6)
+                     self._feature_cache.nbytes / 1e6)
         return self._feature_cache
 
     def _fusion_grad(self):

@@ -457,14 +457,15 @@ def test_pose_only_trains_the_pose_network_on_the_fixed_fusions_features_compute
     trainer.fusion.eval()
     with torch.no_grad():
         own = trainer._features(trainer.fusion, t(s.rgb_crops[idx]), t(s.depth_crops[idx]), t(s.choose[idx][:, :20]))
-    torch.testing.assert_close(cache[torch.from_numpy(idx)].float(), own, atol=2e-3, rtol=2e-3)   # float16 copies
+    torch.testing.assert_close(torch.from_numpy(cache[idx]).float(), own, atol=2e-3, rtol=2e-3)   # float16 copies
     with pytest.raises(RuntimeError, match="trainable 'pose'"):
         PoseTrainer(CFG, pose_data).cached_features()
     with pytest.raises(ValueError, match="keeps the fusion network fixed"):
         PoseTrainer(CFG, pose_data, trainable="pose", teacher=build_fusion(CFG.fusion))
 
-    entry = train_pose(CFG, [sim_bop_dataset], tmp_path / "p", LoopSettings(epochs=2, batch=4, lr=1e-3, seed=1),
-                       variants=1, progress=False, init=bundle_dir, pose_only=True)
+    entry = train_pose(CFG, [sim_bop_dataset], tmp_path / "p",            # bfloat16 autocast, as a CPU run trains
+                       LoopSettings(epochs=2, batch=4, lr=1e-3, seed=1, amp=True), variants=1, progress=False,
+                       init=bundle_dir, pose_only=True)
     assert np.isfinite(entry["val_metric"])
     ckpt = load_checkpoint(tmp_path / "p" / "last.pt")
     assert ckpt["provenance"]["trainable"] == "pose_network"
