@@ -7,7 +7,9 @@ bundle; a detector with a class per type can still be unsure between look-alike 
 in the same frame (the centre of its bounding box, x along the length, z up), so per candidate that may be of
 several types (`Candidates.type_options`):
 
-1. every such type is scored at the network's pose: its fit to the candidate's sampled points (`fit.fit_scores`:
+1. every such type is scored at the network's pose (a type smaller than the first also laid flush with the first
+   type's faces, `face_starts`, its best placement counting and refined in step 2): its fit to the candidate's
+   sampled points (`fit.fit_scores`:
    inlier fraction times one minus the free-space violation) times the structure check's agreement with its
    boards and openings (`structure.structure_check`: rays that find a board where the type has one or see into
    an opening where it has one). The fit alone cannot tell types apart: a solid-deck or wider model explains an
@@ -61,7 +63,28 @@ from .stage_geometry import PalletGeometry
 from .stage_refine import RefinerStage
 from .structure import BoxSets, StructureParams, structure_agreement
 
-__all__ = ["TypeChoiceStage", "RANK_BY_FIT", "OTHER_SEARCH_POINTS"]
+__all__ = ["TypeChoiceStage", "RANK_BY_FIT", "OTHER_SEARCH_POINTS", "face_starts"]
+
+
+def face_starts(first_size_m, size_m, min_m: float = 0.02) -> np.ndarray:
+    """Pallet-frame slides that lay a type smaller than the first type flush with one of the first type's faces:
+    half the difference of the lengths along x, of the widths along y, each way. The network poses every pallet about
+    the first type's size, so a smaller pallet's pose is that much off along its length or width wherever the face it
+    shows is not the one the network centred it behind (a EUR 6 posed as an EPAL: 0.2 m along x, 0.1 m along y).
+
+    :param first_size_m, size_m: (3,) length, width, height, metres. :param min_m: smaller differences are none.
+    :return: (k, 4, 4) pallet-frame offsets, k = 0, 2 or 4.
+    """
+    out = []
+    for axis in (0, 1):
+        d = 0.5 * (float(first_size_m[axis]) - float(size_m[axis]))
+        if d >= min_m:
+            for sign in (1.0, -1.0):
+                T = np.eye(4)
+                T[axis, 3] = sign * d
+                out.append(T)
+    return np.array(out).reshape(-1, 4, 4)
+
 
 RANK_BY_FIT = 3   # types besides a candidate's first whose structure is looked at when ranking (the best by fit)
 OTHER_SEARCH_POINTS = 40    # levelled, a candidate's other types: the search's points (`LevelParams.search_points`)
@@ -110,21 +133,41 @@ class TypeChoiceStage:
         """Whether any detector class reports more than one type."""
         return any(len(t) > 1 for t in self.types_of_class.values())
 
-    def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
-             others: int = RANK_BY_FIT, margin: float | None = None) -> np.ndarray:
-        """Fit score times structure agreement of each type at the network's pose of each row (-inf for the types
-        not among its options). The agreement is computed for the row's first type and its `others` best others
-        by fit alone; the rest keep -inf. Most of a bundle's types are ruled out by their size, which the fit sees;
-        the rays tell the look-alikes apart. :param margin: taken off the other types' scores (default `margin`).
-        :return: (len(rows), number of types)."""
+    def placed_fit(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Each type's fit score where it is best placed: at the network's pose of each row, and for a type smaller
+        than the row's first also laid flush with the first type's faces (`face_starts`), the best counting (-inf for
+        the types not among the row's options).
+        :return: fit (len(rows), number of types), and the pose of each (len(rows), types, 4, 4)."""
         n_types = len(self.geometries)
         fit = np.full((len(rows), n_types), -np.inf)
+        first = np.array([o[0] for o in cands.type_options[rows]], int)
+        start = np.repeat(cands.T_net[rows][:, None], n_types, axis=1)
         for j, g in enumerate(self.geometries):
             mine = np.flatnonzero([j in o for o in cands.type_options[rows]])
-            if len(mine):
-                r = rows[mine]
-                fit[mine, j] = fit_scores(cands.T_net[r], cands.points_cam[r], None, g.points_m, depth_m, K,
-                                          self.tol_m, model_boxes_m=g.boxes_m)[2]
+            if not len(mine):
+                continue
+            fit[mine, j] = fit_scores(cands.T_net[rows[mine]], cands.points_cam[rows[mine]], None, g.points_m,
+                                      depth_m, K, self.tol_m, model_boxes_m=g.boxes_m)[2]
+            for f_type in np.unique(first[mine]):
+                at = mine[first[mine] == f_type]
+                for offset in face_starts(self.geometries[f_type].size_m, g.size_m):
+                    T_face = cands.T_net[rows[at]] @ offset
+                    f = fit_scores(T_face, cands.points_cam[rows[at]], None, g.points_m, depth_m, K, self.tol_m,
+                                   model_boxes_m=g.boxes_m)[2]
+                    better = f > fit[at, j]
+                    fit[at[better], j], start[at[better], j] = f[better], T_face[better]
+        return fit, start
+
+    def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+             others: int = RANK_BY_FIT, margin: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Fit score times structure agreement of each type where it is best placed (`placed_fit`: the network's
+        pose, or a smaller type laid flush with the first type's faces). The agreement is computed for the row's
+        first type and its `others` best others by fit alone; the rest keep -inf. Most of a bundle's types are ruled
+        out by their size, which the fit sees; the rays tell the look-alikes apart. :param margin: taken off the
+        other types' scores (default `margin`).
+        :return: scores (len(rows), number of types), and the pose each was scored at (len(rows), types, 4, 4)."""
+        fit, start = self.placed_fit(cands, rows, depth_m, K)
         first = np.array([o[0] for o in cands.type_options[rows]], int)
         rest = fit.copy()
         rest[np.arange(len(rows)), first] = -np.inf
@@ -135,9 +178,9 @@ class TypeChoiceStage:
         scored &= np.isfinite(fit)
         k, j = np.nonzero(scored)
         score = np.full_like(fit, -np.inf)
-        score[k, j] = fit[k, j] * self.evidence(cands.T_net[rows[k]], j, depth_m, K)[0] \
+        score[k, j] = fit[k, j] * self.evidence(start[k, j], j, depth_m, K)[0] \
             - (self.margin if margin is None else margin) * (j != first[k])
-        return score
+        return score, start
 
     def evidence(self, T: np.ndarray, type_index: np.ndarray, depth_m: np.ndarray, K: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -165,8 +208,9 @@ class TypeChoiceStage:
             order = [[j for j in cands.type_options[i] if refines[j]] for i in rows]
             best = np.array([cands.type_options[i][0] for i in rows], np.int64)
             score = np.zeros((len(rows), len(self.geometries)))
+            start = np.repeat(cands.T_net[rows][:, None], len(self.geometries), axis=1)
         else:
-            score = self.rank(cands, rows, depth_m, K, max(RANK_BY_FIT, keep - 1), margin)
+            score, start = self.rank(cands, rows, depth_m, K, max(RANK_BY_FIT, keep - 1), margin)
             order = np.argsort(-score, axis=1, kind="stable")[:, :keep]
             best = order[:, 0]
         pair_row, pair_type = [], []
@@ -187,9 +231,10 @@ class TypeChoiceStage:
         # levelled, the other types start from the network's pose: the levelling's own search of yaw and position
         # takes the place of the six-degree refinement, which stereo depth rarely lets count anyway
         six = np.flatnonzero(pair_type == first) if levelled else np.arange(len(src))
-        T, fit = cands.T_net[src].copy(), np.full((len(src), 3), np.nan)
+        T_start = start[pair_row, pair_type]      # the network's pose, or a smaller type's laid flush with a face
+        T, fit = T_start.copy(), np.full((len(src), 3), np.nan)
         if len(six):
-            T[six], fit[six] = self.refiner.refine(cands.T_net[src[six]], cands.points_cam[src[six]],
+            T[six], fit[six] = self.refiner.refine(T_start[six], cands.points_cam[src[six]],
                                                    [box_obs[int(i)] for i in src[six]], pair_type[six], depth_m, K)
         if levelled:
             # where the refinement moved the first type's pose (depth exact enough to trust it), it may have moved it

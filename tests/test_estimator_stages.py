@@ -397,6 +397,36 @@ def test_another_type_replaces_the_first_only_with_clear_structure(bundle_dir, s
         assert np.isfinite(c.fit[0, 2]) and est.pallet_types[int(c.type_index[0])].name == "epal"
 
 
+def test_face_starts_lay_a_smaller_type_flush_with_the_first_types_faces():
+    from pallet6d.runtime.stage_type import face_starts
+
+    epal, eur6, block = (get_pallet_model(n).size_m for n in ("epal", "eur6", "block_1210"))
+    slides = face_starts(epal, eur6)
+    assert slides.shape == (4, 4, 4)
+    np.testing.assert_allclose(sorted(map(tuple, slides[:, :2, 3].round(6))),
+                               [(-0.2, 0.0), (0.0, -0.1), (0.0, 0.1), (0.2, 0.0)])
+    assert np.allclose(slides[:, :3, :3], np.eye(3))
+    assert face_starts(epal, epal).shape == (0, 4, 4) and face_starts(epal, block).shape == (0, 4, 4)   # not smaller
+
+
+@pytest.mark.parametrize("faces", [True, False])
+@pytest.mark.parametrize("slide_m", [(0.2, 0.0), (0.0, 0.1)])
+def test_a_smaller_pallet_posed_as_the_first_type_is_found_flush_with_its_face(bundle_dir, monkeypatch, faces,
+                                                                              slide_m):
+    from pallet6d.runtime import stage_type
+
+    if not faces:
+        monkeypatch.setattr(stage_type, "face_starts", lambda a, b: np.zeros((0, 4, 4)))
+    off = np.eye(4)
+    off[:2, 3] = slide_m                    # the network centred an EPAL's length or width behind the EUR 6's face
+    alike = ("plastic_9leg", "plastic_3runner", "plastic_closed", "gma")     # EPAL-sized: they outrank it there
+    est, c, depth_m, K, _, p = _epal_first_candidate(bundle_dir, "eur6", True, off, alike, type_candidates=2)
+    est.type_choice(c, depth_m, K, {})
+    found = est.pallet_types[int(c.type_index[0])].name == "eur6" and \
+        np.linalg.norm(c.T_cam_pallet[0, :3, 3] - p.T_cam_pallet[:3, 3]) < 0.02
+    assert found == faces
+
+
 def _block_seen_by_a_calibrated_camera(bundle_dir, more: tuple = (), **options):
     """`_epal_first_candidate` of a 1200 x 1000 block pallet (alike an EPAL from the front) on the preset's stereo
     depth (too noisy to trust the six-degree ICP), the network's pose 15 degrees and 10 cm off and tilted 2 degrees
