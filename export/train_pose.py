@@ -31,7 +31,7 @@ shifted by one constant in logit space (`calibrate_verifier`) so that the runtim
 pallets as the confidence head kept: the floor then refuses only what the verifier ranks below those pallets.
 `trainable="pose"` trains the pose network alone on the fixed fusion network's features: a sample's crops and
 points are fixed when it is prepared, so its features are computed once (`PoseTrainer.cached_features`) and a step
-costs the pose network's forward and backward passes only, a small fraction of the fusion network's on a CPU.
+costs the pose network's forward and backward passes only (on two CPU cores a third of a step of both or less).
 Training that moves the confidence head's level (the eq. 4 loss lowers it as the poses get better) can end the same
 way for the confidence head (`calibrate_floor` to a chosen share of validation pallets), since the floor was chosen
 for a network whose confidences sit where the shipped one's do.
