@@ -25,8 +25,8 @@ from . import metrics
 Models = Mapping[int, tuple[np.ndarray, np.ndarray]]   # obj_id -> model points (n, 3) metres, symmetries (S, 4, 4)
 
 __all__ = ["GroundTruth", "Estimate", "Refused", "PalletRecord", "FrameScore", "ScoreTally", "counted_pallets",
-           "box_iou", "match_greedy", "ground_truths_from_bop", "evaluate_frame", "evaluate_poses", "dataset_models", "summarize",
-           "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M", "DEFAULT_VISIBILITY_BINS",
+           "box_iou", "match_greedy", "ground_truths_from_bop", "evaluate_frame", "evaluate_poses", "dataset_models",
+           "summarize", "records_to_dicts", "DEFAULT_THRESHOLDS_M", "DEFAULT_DISTANCE_BINS_M", "DEFAULT_VISIBILITY_BINS",
            "MIN_VISIB_FRACT", "NO_DETECTION"]
 
 # The BOP convention (bop_toolkit's `visib_gt_min`): a pallet less visible is too hidden to be found or posed, so

@@ -127,6 +127,8 @@ class TypeChoiceStage:
         self._box_sets = BoxSets([self.geometries[j].boxes_m for j in boxed]) if boxed else None
         self._box_set = np.full(len(self.geometries), -1, np.int64)
         self._box_set[boxed] = np.arange(len(boxed))
+        # [first type][type]: the type's slides flush with the first type's faces (`face_starts`), once per bundle
+        self._face_offsets = [[face_starts(f.size_m, g.size_m) for g in self.geometries] for f in self.geometries]
 
     @property
     def needed(self) -> bool:
@@ -151,7 +153,7 @@ class TypeChoiceStage:
                                       depth_m, K, self.tol_m, model_boxes_m=g.boxes_m)[2]
             for f_type in np.unique(first[mine]):
                 at = mine[first[mine] == f_type]
-                for offset in face_starts(self.geometries[f_type].size_m, g.size_m):
+                for offset in self._face_offsets[f_type][j]:
                     T_face = cands.T_net[rows[at]] @ offset
                     f = fit_scores(T_face, cands.points_cam[rows[at]], None, g.points_m, depth_m, K, self.tol_m,
                                    model_boxes_m=g.boxes_m)[2]
