@@ -16,8 +16,8 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-structure-check", action="store_true",
                         help="accept poses without checking the pallet's boards and openings in the depth")
     parser.add_argument("--no-weak-boxes", action="store_true",
-                        help="with a calibration, do not pose detections scoring under --score-threshold (by "
-                             "default those scoring at least 0.1 are posed and kept only with clear pallet structure)")
+                        help="do not pose detections scoring under --score-threshold (by default those scoring at "
+                             "least 0.1 are posed and kept only with clear pallet structure)")
     parser.add_argument("--no-depth-proposals", action="store_true",
                         help="with a calibration, do not pose what stands a pallet's height on the floor in the depth "
                              "where the detector found nothing (by default it is posed and kept only with clear "

@@ -1,13 +1,13 @@
-"""Weak detections in a calibrated view: boxes the detector scores under its threshold are posed too, and kept only
-where the depth shows a pallet's structure clearly. Pure numpy.
+"""Weak detections: boxes the detector scores under its threshold are posed too, and kept only where the depth shows
+a pallet's structure clearly. Pure numpy.
 
 The detector is least sure of what a forklift most needs: pallets seen near and obliquely, and types it saw
 little of (on calibrated forklift views nearly one in five of the pallets under 4 m has a box on it that scores
-under the detector's 0.25). Lowering the threshold for every box accepts poses on carton stacks and loads, whose
-structure evidence is weak; a box the detector is unsure of is therefore asked for the evidence those lack: with a
-calibration the pose is levelled on the floor and its structure judged there (`level.py`, `structure.py`), and a
-weak box is kept only where nearly every ray agrees with the posed pallet and its openings are open
-(docs/experiments/forklift.md, "Weak detections").
+under the detector's 0.25), and of pallets mostly hidden behind others. Lowering the threshold for every box accepts
+poses on carton stacks and loads, whose structure evidence is weak; a box the detector is unsure of is therefore
+asked for the evidence those lack: its pose's structure is judged (`structure.py`; with a calibration levelled on the
+floor first, `level.py`), and a weak box is kept only where nearly every ray agrees with the posed pallet and its
+openings are open (docs/experiments/forklift.md, "Weak detections", "Weak detections without a calibration").
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ class WeakBoxes:
     """Which weak detections are posed and what they must show.
 
     :ivar score_threshold: detections scoring above this (and not above `EstimatorOptions.score_threshold`) are
-        posed when the frame comes with the camera's calibration.
+        posed.
     :ivar min_agreement: their structure agreement (`StructureScore.agreement`) must reach this...
     :ivar min_open_fraction: ...and their open fraction (`StructureScore.open_fraction`) this. On calibrated
         forklift views the carton stacks and loads posed from weak boxes show open fractions up to 0.43; some

@@ -86,7 +86,7 @@ def test_rgbd_frame_input_equals_arrays(est, frame):
 
 
 def test_no_detections_gives_empty_list(bundle_dir, frame):
-    strict = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=1.0)
+    strict = PalletEstimator.from_bundle(bundle_dir, threads=1, score_threshold=1.0, weak_boxes=None)
     assert strict.predict(frame.rgb, frame.depth_m, frame.K) == []
     r = strict.estimate(frame.rgb, frame.depth_m, frame.K)
     assert r.poses == [] and r.rejected == []

@@ -1,4 +1,4 @@
-"""Weak detections: posed only with a calibration, kept only with clear structure, never seen by `detect`."""
+"""Weak detections: posed with or without a calibration, kept only with clear structure, never seen by `detect`."""
 import dataclasses
 from pathlib import Path
 
@@ -47,7 +47,7 @@ def test_weak_box_params_are_checked(field, value):
 
 
 def test_the_option_takes_weak_box_params_only():
-    assert EstimatorOptions().weak_boxes == WeakBoxes()          # on by default (it acts with a calibration only)
+    assert EstimatorOptions().weak_boxes == WeakBoxes()          # on by default
     with pytest.raises(TypeError, match="weak_boxes must be a WeakBoxes"):
         EstimatorOptions(weak_boxes={"score_threshold": 0.1})
 
@@ -81,25 +81,26 @@ def _outcome(res):
                   [(tuple(r.box_xyxy.round(3)), r.reason) for r in res.rejected])
 
 
-def test_weak_boxes_count_only_with_a_calibration_and_never_in_detect(forklift_frame):
+@pytest.mark.parametrize("calibrated", [True, False])
+def test_weak_boxes_count_with_or_without_a_calibration_and_never_in_detect(forklift_frame, calibrated):
     f, boxes = forklift_frame
+    T_vc = f.T_vehicle_cam if calibrated else None
     scores = np.full(len(boxes), 0.15)
     est = _estimator(boxes, scores, weak_boxes=WeakBoxes(min_agreement=0.0, min_open_fraction=0.0,
                                                          min_open_fraction_cut=0.0))
     assert est.detector.score_threshold == pytest.approx(0.1)     # the boxes are decoded down to the weak threshold
     assert len(est.detect(f.rgb)) == 0                           # `detect` keeps the detector's own threshold
-    plain = est.estimate(f.rgb, f.depth_m, f.K)
-    assert plain.poses == [] and plain.rejected == []            # without a calibration they are not detections
-    calibrated = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
-    assert len(calibrated.poses) + len(calibrated.rejected) == len(boxes)
-    assert calibrated.poses                                      # what the structure check accepts is kept
+    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
+    assert len(res.poses) + len(res.rejected) == len(boxes)
+    assert res.poses                                             # what the structure check accepts is kept
     off = _estimator(boxes, scores, weak_boxes=None)             # the option off: under the threshold is nothing
-    assert off.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam).poses == []
+    assert off.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc).poses == []
 
 
-def test_weak_boxes_are_judged_as_strong_ones_and_must_also_show_clear_structure(forklift_frame):
+@pytest.mark.parametrize("calibrated", [True, False])
+def test_weak_boxes_are_judged_as_strong_ones_and_must_also_show_clear_structure(forklift_frame, calibrated):
     f, boxes = forklift_frame
-    T_vc = f.T_vehicle_cam
+    T_vc = f.T_vehicle_cam if calibrated else None
     strong = _estimator(boxes, np.full(len(boxes), 0.6), weak_boxes=WeakBoxes())
     ref = strong.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=T_vc)
     assert ref.poses
@@ -130,10 +131,11 @@ def test_weak_boxes_are_judged_as_strong_ones_and_must_also_show_clear_structure
     assert dict(_outcome(res))[first] == dict(_outcome(ref))[first]
 
 
-def test_weak_boxes_without_a_structure_check_are_refused(forklift_frame):
+@pytest.mark.parametrize("calibrated", [True, False])
+def test_weak_boxes_without_a_structure_check_are_refused(forklift_frame, calibrated):
     f, boxes = forklift_frame
     est = _estimator(boxes, np.full(len(boxes), 0.15), weak_boxes=WeakBoxes(), structure=None)
-    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam)
+    res = est.estimate(f.rgb, f.depth_m, f.K, T_vehicle_cam=f.T_vehicle_cam if calibrated else None)
     assert res.poses == []
     assert any("the structure check is off" in r.detail for r in res.rejected)
 
@@ -191,9 +193,11 @@ def test_weak_boxes_the_network_is_unsure_of_go_no_further(forklift_frame, monke
 
 def test_a_box_at_the_threshold_itself_is_weak_as_the_decoding_says(forklift_frame):
     f, boxes = forklift_frame
-    est = _estimator(boxes, np.full(len(boxes), 0.25))
+    est = _estimator(boxes, np.full(len(boxes), 0.25), weak_boxes=WeakBoxes(min_agreement=1.0, min_open_fraction=1.0,
+                                                                           min_open_fraction_cut=1.0))
     assert len(est.detect(f.rgb)) == 0                           # the decoding keeps scores above its threshold
-    assert est.estimate(f.rgb, f.depth_m, f.K).rejected == []
+    res = est.estimate(f.rgb, f.depth_m, f.K)
+    assert any("weak detection (score 0.25)" in r.detail for r in res.rejected)
 
 
 def test_poses_the_network_is_unsure_of_are_weak_with_a_calibration(forklift_frame):
