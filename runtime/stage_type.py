@@ -152,13 +152,19 @@ class TypeChoiceStage:
             fit[mine, j] = fit_scores(cands.T_net[rows[mine]], cands.points_cam[rows[mine]], None, g.points_m,
                                       depth_m, K, self.tol_m, model_boxes_m=g.boxes_m)[2]
             for f_type in np.unique(first[mine]):
+                offsets = self._face_offsets[f_type][j]
+                if not len(offsets):
+                    continue
                 at = mine[first[mine] == f_type]
-                for offset in self._face_offsets[f_type][j]:
-                    T_face = cands.T_net[rows[at]] @ offset
-                    f = fit_scores(T_face, cands.points_cam[rows[at]], None, g.points_m, depth_m, K, self.tol_m,
-                                   model_boxes_m=g.boxes_m)[2]
-                    better = f > fit[at, j]
-                    fit[at[better], j], start[at[better], j] = f[better], T_face[better]
+                # every row's every placement in one call: (len(at), k) poses, the first best of a row's k counting
+                T_face = cands.T_net[rows[at]][:, None] @ offsets[None]
+                f = fit_scores(T_face.reshape(-1, 4, 4), np.repeat(cands.points_cam[rows[at]], len(offsets), axis=0),
+                               None, g.points_m, depth_m, K, self.tol_m,
+                               model_boxes_m=g.boxes_m)[2].reshape(len(at), len(offsets))
+                pick = f.argmax(axis=1)
+                f_best, T_best = f[np.arange(len(at)), pick], T_face[np.arange(len(at)), pick]
+                better = f_best > fit[at, j]
+                fit[at[better], j], start[at[better], j] = f_best[better], T_best[better]
         return fit, start
 
     def rank(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
