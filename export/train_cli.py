@@ -178,6 +178,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "detector reports the type), or names of pallet types; default one class, 'pallet'")
     parser.add_argument("--class-lr-mult", type=float, default=1.0, metavar="X",
                         help="detector: learning rate of the class outputs, times --lr (default 1)")
+    parser.add_argument("--mosaic", type=float, default=0.0, metavar="P",
+                        help="detector: share of the training inputs that hold four frames, a quarter each "
+                             "(YOLOv8's mosaic; default 0)")
     parser.add_argument("--real-repeat-large", type=int, default=1, metavar="K",
                         help="detector: train real photographs holding a box >= 20%% of the image tall K times (1)")
     parser.add_argument("--loader-threads", type=int, default=1,
@@ -366,7 +369,8 @@ def main(args: argparse.Namespace) -> int:
             entry = train_detector(cfg, args.data, args.out, settings, aug=AugmentConfig(), real=args.real,
                                    real_max_images=args.real_max_images, input_sizes=sizes,
                                    real_repeat_large=args.real_repeat_large, select=args.select,
-                                   loader_threads=args.loader_threads, class_lr_mult=args.class_lr_mult, **common)
+                                   loader_threads=args.loader_threads, class_lr_mult=args.class_lr_mult,
+                                   mosaic=args.mosaic, **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

@@ -13,7 +13,7 @@ centred frame: ``T_gt_centred = T_cam_pallet`` with ``centre`` subtracted from i
 
 Detector samples are the source frames (cached as uint8, longest side capped, boxes in frame pixels); each
 training batch draws one of the detector's input sizes and places every frame in it with a random zoom and
-position (`place_in_window`), then flips, HSV jitter, blur and noise.
+position (`place_in_window`; or four frames to an input, `place_mosaic`), then flips, HSV jitter, blur and noise.
 """
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ from pallet6d.runtime.evaluation import MIN_VISIB_FRACT, counted_pallets
 from pallet6d.runtime.pose_inputs import PoseInputSpec, prepare_pose_inputs
 
 __all__ = ["AugmentConfig", "PoseSamples", "DetectorSamples", "dataset_fingerprint", "jitter_box",
-           "augment_rgb", "augment_depth", "flip_horizontal", "place_in_window", "build_pose_samples",
+           "augment_rgb", "augment_depth", "flip_horizontal", "place_in_window", "place_mosaic", "build_pose_samples",
            "build_detector_samples", "repeated_roots", "repeat_train",
            "load_or_build", "model_points_for", "pallet_type_name", "MIN_VISIB_FRACT", "CACHE_VERSION"]
 
@@ -283,6 +283,57 @@ def place_rgbd_in_window(image: np.ndarray, depth_m: np.ndarray | None, boxes_xy
                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
     boxes = _moved_boxes(_box_rows(boxes_xyxy), s, tx, ty, (H, W), min_area_kept, min_side_px)
     return np.ascontiguousarray(out), depth_out, boxes
+
+
+def place_mosaic(frames: Sequence[tuple[np.ndarray, np.ndarray | None, np.ndarray]], window_hw: tuple[int, int],
+                 rng: np.random.Generator, zoom_range: float, zoom_in_max: float, shift_fraction: float,
+                 fill: int = 114, min_area_kept: float = 0.2, min_side_px: float = 2.0
+                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """YOLOv8's mosaic: four frames share one detector input, split into quarters at a random point (the middle
+    half of each side). Each frame is drawn as `place_rgbd_in_window` draws a frame alone (the same zoom and
+    position, so its pallets keep the sizes they would have) and the part of it that falls in its quarter is shown.
+    One input then holds four scenes' backgrounds and lights, and pallets cut at the quarters' borders.
+
+    Boxes are clipped to their quarter and kept as `place_in_window` keeps them (at least `min_area_kept` of the
+    box as drawn inside, both sides `min_side_px` or longer).
+
+    :param frames: four (image (h, w, 3) uint8, depth (h, w) float metres or None, boxes (n, 4 + k) frame pixels);
+        the depth of all four or of none.
+    :return: the (H, W, 3) uint8 input, its (H, W) float32 depth (None without), (m, 4 + k) float32 boxes.
+    """
+    if len(frames) != 4:
+        raise ValueError(f"a mosaic takes 4 frames, got {len(frames)}")
+    with_depth = [d is not None for _, d, _ in frames]
+    if any(with_depth) and not all(with_depth):
+        raise ValueError("a mosaic takes the depth of all four frames or of none")
+    H, W = int(window_hw[0]), int(window_hw[1])
+    cx, cy = int(round(rng.uniform(0.25, 0.75) * W)), int(round(rng.uniform(0.25, 0.75) * H))
+    quarters = [(0, 0, cx, cy), (cx, 0, W, cy), (0, cy, cx, H), (cx, cy, W, H)]    # x1, y1, x2, y2
+    out = np.full((H, W, 3), fill, np.uint8)
+    depth_out = np.zeros((H, W), np.float32) if all(with_depth) else None
+    kept = []
+    for (image, depth_m, boxes), (x1, y1, x2, y2) in zip(frames, quarters):
+        s, tx, ty = _window_affine(image.shape[:2], (H, W), rng, zoom_range, zoom_in_max, shift_fraction)
+        boxes = _box_rows(boxes)
+        if x2 <= x1 or y2 <= y1:
+            continue
+        # the frame's affine into the whole window, shifted so that only its quarter is drawn
+        A = np.array([[s, 0.0, tx - x1], [0.0, s, ty - y1]], dtype=np.float64)
+        out[y1:y2, x1:x2] = cv2.warpAffine(image, A, (x2 - x1, y2 - y1), flags=cv2.INTER_LINEAR,
+                                           borderMode=cv2.BORDER_CONSTANT, borderValue=(fill, fill, fill))
+        if depth_out is not None:
+            if depth_m.shape != image.shape[:2]:
+                raise ValueError(f"depth is {depth_m.shape}, the image {image.shape[:2]}")
+            depth_out[y1:y2, x1:x2] = cv2.warpAffine(depth_m.astype(np.float32, copy=False), A, (x2 - x1, y2 - y1),
+                                                     flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                                                     borderValue=0.0)
+        b = _moved_boxes(boxes, s, tx - x1, ty - y1, (y2 - y1, x2 - x1), min_area_kept, min_side_px)
+        b[:, [0, 2]] += x1
+        b[:, [1, 3]] += y1
+        kept.append(b)
+    cols = _box_rows(frames[0][2]).shape[1]
+    boxes_out = np.concatenate(kept) if kept else np.zeros((0, cols), np.float32)
+    return out, depth_out, boxes_out.astype(np.float32)
 
 
 # ------------------------------------------------------------------------------------------- models

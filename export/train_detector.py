@@ -5,7 +5,9 @@ that draws a camera's frame largest (`runtime.detector.choose_input_hw`): wide f
 squarer for 4:3 and 16:9 cameras. Frames are kept at their own size (longest side capped, cached); each
 training batch takes one input size (mostly the one its first frame would run at, sometimes another) and draws
 every frame into it with a random zoom and position (`place_in_window`), HSV gains, blur, noise and horizontal
-flips, from an epoch-seeded generator. Validation letterboxes each frame exactly as the runtime does. Targets
+flips, from an epoch-seeded generator. With `mosaic`, that share of the inputs holds four frames, a quarter each
+(`place_mosaic`, YOLOv8's mosaic): simulated and real scenes side by side, more backgrounds per batch, pallets cut at
+the quarters' borders. Validation letterboxes each frame exactly as the runtime does. Targets
 are the visible boxes of pallets at least 10 % visible, the boxes the evaluation matches against. Validation:
 loss, and precision/recall at IoU 0.5 of the runtime's decoding (`runtime.detector.decode_yolov8`, score 0.25).
 
@@ -48,7 +50,7 @@ from .config import ModelConfig
 from .detector import build_detector
 from .losses import DetectorLoss
 from .train_data import AugmentConfig, DetectorSamples, augment_depth, augment_rgb, build_detector_samples, \
-    flip_horizontal, load_or_build, place_rgbd_in_window, repeat_train, repeated_roots
+    flip_horizontal, load_or_build, place_mosaic, place_rgbd_in_window, repeat_train, repeated_roots
 from .train_loop import LoopSettings, autocast, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
@@ -142,16 +144,20 @@ def has_large_box(boxes_xyxy: np.ndarray, image_h_px: int) -> bool:
 class DetectorTrainer:
     """:param input_sizes: the detector's input sizes (H, W), multiples of 32; default: the config's one size.
     :param select: the validation metric that picks `best.pt`: "loss" or "near_f1" (1 - F1 of real near-box
-        recall and real precision; needs real validation frames)."""
+        recall and real precision; needs real validation frames).
+    :param mosaic: share of the training inputs that hold four frames (`place_mosaic`): the frame of the step and
+        three drawn from the training frames at random. 0: one frame an input."""
 
     def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu",
                  amp: bool = False, input_sizes: Sequence[tuple[int, int]] | None = None,
-                 select: str = "loss", loader_threads: int = 1) -> None:
+                 select: str = "loss", loader_threads: int = 1, mosaic: float = 0.0) -> None:
         if select not in SELECTIONS:
             raise ValueError(f"select must be one of {SELECTIONS}, got {select!r}")
         if select == "near_f1" and not data.real[data.val_idx].any():
             raise ValueError("select='near_f1' needs real validation photographs (--real)")
-        self.select = select
+        if not 0.0 <= mosaic <= 1.0:
+            raise ValueError(f"mosaic must be in [0, 1], got {mosaic}")
+        self.select, self.mosaic = select, float(mosaic)
         self.cfg, self.data, self.aug, self.device, self.amp = cfg, data, aug, torch.device(device), amp
         self.class_of_type = detector_class_of_type(cfg.detector.classes, data)
         self.input_sizes = [tuple(int(v) for v in hw) for hw in (input_sizes or [cfg.detector.input_hw])]
@@ -199,18 +205,17 @@ class DetectorTrainer:
         runtime does (seed None). :return: (H, W, 3) uint8 image, the RGB-D detector's (H, W) float32 depth channel
         (None for an RGB detector), (n, 5) float32 targets class, x1, y1, x2, y2."""
         i, hw, seed = job
-        s = self.data.samples
-        rgbd = self.depth_max_m is not None
-        depth = s.depth_m(i) if rgbd else None
-        # class -1: a pallet of unknown type (a real photograph's box); the class rides along as a 5th column
-        cls = np.full(len(s.types[i]), -1.0) if self.data.real[i] else \
-            self.class_of_type[np.asarray(s.types[i], np.int64)].astype(np.float64)
-        img = s.images[i]
-        boxes = np.column_stack([np.asarray(s.boxes[i], np.float32).reshape(-1, 4), cls]).astype(np.float32)
+        img, depth, boxes = self._frame(i)
         if seed is not None:
             a, rng = self.aug, np.random.default_rng(int(seed))
-            img, depth, boxes = place_rgbd_in_window(img, depth, boxes, hw, rng, a.zoom_range, a.zoom_in_max,
-                                                     a.shift_fraction)
+            if self.mosaic and rng.random() < self.mosaic:
+                frames = [(img, depth, boxes)] + [self._frame(int(j)) for j in rng.choice(self.data.train_idx, 3)]
+                if any(d is None for _, d, _ in frames):    # a real photograph among them: the input has no depth
+                    frames = [(im, None, b) for im, _, b in frames]
+                img, depth, boxes = place_mosaic(frames, hw, rng, a.zoom_range, a.zoom_in_max, a.shift_fraction)
+            else:
+                img, depth, boxes = place_rgbd_in_window(img, depth, boxes, hw, rng, a.zoom_range, a.zoom_in_max,
+                                                         a.shift_fraction)
             img = augment_rgb(img, rng, a)
             if depth is not None and rng.random() < DEPTH_MISMATCH_PROB:   # kept: without depth it has pallets
                 depth, boxes = augment_depth(self._mismatched_depth(depth, i, rng), rng, a), boxes[:0]
@@ -226,9 +231,19 @@ class DetectorTrainer:
             boxes[:, [0, 2]] = boxes[:, [0, 2]] * lb.scale_x + lb.pad_x
             boxes[:, [1, 3]] = boxes[:, [1, 3]] * lb.scale_y + lb.pad_y
         channel = None
-        if rgbd:
+        if self.depth_max_m is not None:
             channel = np.zeros(img.shape[:2], np.float32) if depth is None else depth_channel(depth, self.depth_max_m)
         return img, channel, np.ascontiguousarray(boxes[:, [4, 0, 1, 2, 3]], np.float32)
+
+    def _frame(self, i: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+        """Frame `i` as stored: (h, w, 3) uint8 image, (h, w) depth in metres (an RGB-D detector's; else None),
+        (n, 5) float32 boxes x1, y1, x2, y2, class (-1: a pallet of unknown type, a real photograph's box)."""
+        s = self.data.samples
+        depth = s.depth_m(i) if self.depth_max_m is not None else None
+        cls = np.full(len(s.types[i]), -1.0) if self.data.real[i] else \
+            self.class_of_type[np.asarray(s.types[i], np.int64)].astype(np.float64)
+        boxes = np.column_stack([np.asarray(s.boxes[i], np.float32).reshape(-1, 4), cls]).astype(np.float32)
+        return s.images[i], depth, boxes
 
     def _mismatched_depth(self, depth_m: np.ndarray, i: int, rng: np.random.Generator) -> np.ndarray:
         """A depth image of the window's size that does not belong to frame `i`'s image: a plane (a wall or a
@@ -381,13 +396,14 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                    progress: bool = True, init: str | Path | None = None, real: str | Path | None = None,
                    real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None,
                    real_repeat_large: int = 1, select: str = "loss", loader_threads: int = 1,
-                   class_lr_mult: float = 1.0) -> dict:
+                   class_lr_mult: float = 1.0, mosaic: float = 0.0) -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param class_lr_mult: the learning rate of the class outputs (`class_output_names`) relative to the rest (a
         detector given a class per type from a one-class one starts every class alike). 20x alone did not part the
-        types in two CPU epochs (docs/experiments/pallet-types.md): the features below must learn them too."""
+        types in two CPU epochs (docs/experiments/pallet-types.md): the features below must learn them too.
+    :param mosaic: share of the training inputs that hold four frames (`DetectorTrainer`)."""
     if not class_lr_mult > 0:
         raise ValueError(f"class_lr_mult must be positive, got {class_lr_mult}")
     run_dir = Path(run_dir)
@@ -396,7 +412,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
                             val_fraction, max_frames, progress, real, real_max_images, real_repeat_large)
     trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes,
-                              select=select, loader_threads=loader_threads)
+                              select=select, loader_threads=loader_threads, mosaic=mosaic)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases; the class outputs at their own rate
     params = dict(trainer.detector.named_parameters())
     class_out = [n for n in params if n in class_output_names(trainer.detector)] if class_lr_mult != 1.0 else []
@@ -415,6 +431,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,
                   "real_repeat_large": real_repeat_large, "select": select, "class_lr_mult": class_lr_mult,
+                  "mosaic": mosaic,
                   "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx)),
                               "real": int(dd.real.sum())},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}
