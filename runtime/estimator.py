@@ -132,6 +132,12 @@ class EstimatorOptions:
         EPAL sits 10 cm off). Calibrated forklift-approach validation frames within 5 cm, the precision of the
         accepted poses: 45.3 %, 0.962 at 0.08, 48.5 %, 0.960 at 0.04, 48.7 %, 0.954 at 0; the EPAL pocket targets
         lose a few D435-like ones below 0.08 (docs/experiments/pallet-types.md).
+    :ivar type_first_enough: without a calibration, a candidate whose first type scores at least this (fit times
+        structure agreement, 0-1) at its refined pose keeps that type, and the other types are neither ranked nor
+        refined: they are tried where the first type fits poorly. On the validation frames no other type won where
+        the first scored 0.6 or more (the mixed preset's winners replaced first types scoring up to 0.596), while
+        about half of the paper presets' EPALs score that much: the type choice's second refinement and ranking are
+        skipped for them. None: every candidate's types are compared.
     :ivar nonfinite_depth: "raise" on NaN/inf depth, or "as_missing".
     :ivar seed: seed of the per-detection point sampling.
     :ivar structure: thresholds of the structure check (`structure.py`): the depth must show the posed pallet's
@@ -208,6 +214,7 @@ class EstimatorOptions:
     type_score_ratio: float = 0.5
     type_margin: float = 0.1
     type_margin_levelled: float = 0.04
+    type_first_enough: float | None = 0.6
     nonfinite_depth: str = "raise"
     seed: int = 0
     structure: StructureParams | None = StructureParams()
@@ -257,6 +264,8 @@ class EstimatorOptions:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 < self.type_score_ratio <= 1.0:
             raise ValueError(f"type_score_ratio must be in (0, 1], got {self.type_score_ratio}")
+        if self.type_first_enough is not None and not 0.0 < self.type_first_enough <= 1.0:
+            raise ValueError(f"type_first_enough must be in (0, 1] or None, got {self.type_first_enough}")
         for name in ("type_margin", "type_margin_levelled"):
             if not 0.0 <= getattr(self, name) < 1.0:
                 raise ValueError(f"{name} must be in [0, 1), got {getattr(self, name)}")
@@ -316,7 +325,8 @@ class PalletEstimator:
         self.refiner = RefinerStage(self.pallet_types, o, self.threads)
         self.type_choice = TypeChoiceStage(self.pallet_types, self._types_of_class, self.refiner, o.fit_tol_m,
                                            o.type_candidates, o.structure or StructureParams(), o.type_margin,
-                                           o.level, o.type_candidates_levelled, o.type_margin_levelled)
+                                           o.level, o.type_candidates_levelled, o.type_margin_levelled,
+                                           o.type_first_enough)
         self.fit_check = FitCheckStage(self.pallet_types, o.fit_tol_m, o.min_fit, o.min_confidence, o.structure,
                                        o.weak_boxes or WeakBoxes())
 

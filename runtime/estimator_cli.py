@@ -52,6 +52,10 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--type-margin", type=float, default=None,
                         help="where the depth chooses among several types, how much better (fit score 0-1) another "
                              "type must be to replace a detection's first type (default: EstimatorOptions.type_margin)")
+    parser.add_argument("--type-first-enough", type=float, default=None,
+                        help="without a calibration, a pallet whose first type scores at least this (0-1) at its "
+                             "refined pose keeps it untried against the others; 1: compared unless it fits "
+                             "perfectly (default: EstimatorOptions.type_first_enough, 0.6)")
     parser.add_argument("--type-margin-levelled", type=float, default=None,
                         help="the same where the types are judged levelled, with the camera's calibration "
                              "(default: EstimatorOptions.type_margin_levelled)")
@@ -87,6 +91,7 @@ def load_estimator(args: argparse.Namespace, command: str):
                                    ("type_candidates_levelled", args.type_candidates_levelled),
                                    ("type_margin", args.type_margin),
                                    ("type_margin_levelled", args.type_margin_levelled),
+                                   ("type_first_enough", args.type_first_enough),
                                    ("pallet_types", args.pallet_types or None),
                                    ("time_budget_ms", args.time_budget_ms),
                                    ("pallet_lanes", args.pallet_lanes)) if v is not None}

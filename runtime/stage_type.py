@@ -26,6 +26,10 @@ structure at its refined pose (`StructureParams.replace_min_agreement`, `replace
 that no type explains is otherwise given the look-alike that explains it least badly. Where no kept type qualifies,
 the candidate keeps its first type, and the refiner stage refines it.
 
+Without a calibration and with `first_enough`, step 2's refinement of each candidate's first type comes first: where
+that type scores `first_enough` or more at its refined pose it wins, and the candidate's other types are neither ranked
+nor refined (they are tried where the first type fits poorly; its refinement is not repeated for them).
+
 With the camera's calibration (`EstimatorOptions.level`), `keep_levelled` types are kept, the candidate's first type
 always among them, and each is levelled on the floor and searched and refined in yaw and position (`level.level_poses`,
 as the estimator levels every pose) before it is judged: the first type from its refined pose, the others from the
@@ -103,12 +107,15 @@ class TypeChoiceStage:
         calibration the kept types are judged at their levelled poses. None: never levelled.
     :param keep_levelled: how many types are kept where they are levelled (>= 1; default `keep`).
     :param margin_levelled: `margin` where they are levelled (default `margin`).
+    :param first_enough: not levelled, a candidate whose first type scores at least this at its refined pose (fit
+        times structure agreement) keeps it, and no other type is ranked or refined. None: every candidate's types
+        are compared.
     """
 
     def __init__(self, geometries: tuple[PalletGeometry, ...], types_of_class: dict[int, tuple[int, ...]],
                  refiner: RefinerStage, tol_m: float, keep: int, structure: StructureParams = StructureParams(),
                  margin: float = 0.0, level: LevelParams | None = None, keep_levelled: int | None = None,
-                 margin_levelled: float | None = None) -> None:
+                 margin_levelled: float | None = None, first_enough: float | None = None) -> None:
         keep_levelled = keep if keep_levelled is None else keep_levelled
         if int(keep) < 1 or int(keep_levelled) < 1:
             raise ValueError(f"keep and keep_levelled must be >= 1, got {keep}, {keep_levelled}")
@@ -119,6 +126,9 @@ class TypeChoiceStage:
         self.structure = structure
         self.margin = float(margin)
         self.margin_levelled = self.margin if margin_levelled is None else float(margin_levelled)
+        if first_enough is not None and not 0.0 < first_enough <= 1.0:
+            raise ValueError(f"first_enough must be in (0, 1], got {first_enough}")
+        self.first_enough = first_enough
         self.level = level
         self.level_other = None if level is None else replace(
             level, search_points=min(level.search_points, OTHER_SEARCH_POINTS))
@@ -210,6 +220,11 @@ class TypeChoiceStage:
         levelled = T_vehicle_cam is not None and self.level is not None
         keep, margin = (self.keep_levelled, self.margin_levelled) if levelled else (self.keep, self.margin)
         refines = np.asarray(self.refiner.refines_type, bool)
+        settled, box_obs = {}, {}   # row -> its first type's refined pose, fit, agreement; row -> its ICP points
+        if not levelled and self.first_enough is not None:
+            rows, settled, box_obs = self._settle_first(cands, rows, depth_m, K, refines)
+            if not len(rows):
+                return
         if keep >= max(len(cands.type_options[i]) for i in rows) \
                 and all(refines[j] for i in rows for j in cands.type_options[i]):
             # every type is kept and refined: nothing to rank (the first type is the row's type until one is chosen)
@@ -234,13 +249,19 @@ class TypeChoiceStage:
             return
         pair_row, pair_type = np.asarray(pair_row), np.asarray(pair_type)
         src = rows[pair_row]
-        box_obs = {int(i): self.refiner.box_points(cands.pixels[i], depth_m, K) for i in np.unique(src)}
+        for i in np.unique(src):
+            if int(i) not in box_obs:
+                box_obs[int(i)] = self.refiner.box_points(cands.pixels[i], depth_m, K)
         first = np.array([cands.type_options[i][0] for i in src])
         # levelled, the other types start from the network's pose: the levelling's own search of yaw and position
         # takes the place of the six-degree refinement, which stereo depth rarely lets count anyway
         six = np.flatnonzero(pair_type == first) if levelled else np.arange(len(src))
         T_start = start[pair_row, pair_type]      # the network's pose, or a smaller type's laid flush with a face
         T, fit = T_start.copy(), np.full((len(src), 3), np.nan)
+        known = np.array([int(i) in settled and t == f for i, t, f in zip(src, pair_type, first)], bool)
+        for k in np.flatnonzero(known):           # the first type refined already (from the network's pose too)
+            T[k], fit[k] = settled[int(src[k])][:2]
+        six = six[~known[six]]
         if len(six):
             T[six], fit[six] = self.refiner.refine(T_start[six], cands.points_cam[src[six]],
                                                    [box_obs[int(i)] for i in src[six]], pair_type[six], depth_m, K)
@@ -249,7 +270,8 @@ class TypeChoiceStage:
             # off the pallet beyond the levelling's search: the network's pose is levelled too, and the better competes
             moved = six[np.abs(T[six] - cands.T_net[src[six]]).max(axis=(1, 2)) > 1e-9]
             T = np.concatenate([T, cands.T_net[src[moved]]])
-            pair_row, pair_type, src, first = (np.concatenate([a, a[moved]]) for a in (pair_row, pair_type, src, first))
+            pair_row, pair_type, src, first, known = (np.concatenate([a, a[moved]])
+                                                      for a in (pair_row, pair_type, src, first, known))
             alike = np.flatnonzero(pair_type != first)
             for idx, params in ((np.flatnonzero(pair_type == first), self.level), (alike, self.level_other)):
                 if len(idx):
@@ -258,7 +280,10 @@ class TypeChoiceStage:
                                              self.refiner.refine_options.threads,
                                              self.refiner.icp_grids(pair_type[idx]))
             fit = self.refiner.fit(T, cands.points_cam[src], pair_type, depth_m, K)
-        agreement, open_fraction = self.evidence(T, pair_type, depth_m, K)
+        agreement, open_fraction = np.ones(len(T)), np.ones(len(T))
+        agreement[~known], open_fraction[~known] = self.evidence(T[~known], pair_type[~known], depth_m, K)
+        for k in np.flatnonzero(known):
+            agreement[k], open_fraction[k] = settled[int(src[k])][2:]
         other = pair_type != first
         select = fit[:, 2] * agreement - margin * other
         s = self.structure
@@ -271,6 +296,27 @@ class TypeChoiceStage:
                 cands.assign([rows[k]], type_index=[pair_type[win]], T_cam_pallet=T[win][None], fit=fit[win][None])
             else:       # no other type qualifies, and the first was not refined: the refiner stage refines it
                 cands.assign([rows[k]], type_index=[first[win]])
+
+    def _settle_first(self, cands: Candidates, rows: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                      refines: np.ndarray) -> tuple[np.ndarray, dict, dict]:
+        """Refine each row's first type from the network's pose; a row whose score there (fit times agreement) is at
+        least `first_enough` is given that type, pose and fit. :return: the rows left to compare, and for those of
+        them whose first type was refined: row -> (T_cam_pallet (4, 4), fit (3,), agreement, open fraction), and
+        row -> its depth points for ICP."""
+        first = np.array([cands.type_options[i][0] for i in rows], np.int64)
+        mine = np.flatnonzero(refines[first])
+        if not len(mine):
+            return rows, {}, {}
+        src = rows[mine]
+        box_obs = {int(i): self.refiner.box_points(cands.pixels[i], depth_m, K) for i in src}
+        T, fit = self.refiner.refine(cands.T_net[src], cands.points_cam[src], [box_obs[int(i)] for i in src],
+                                     first[mine], depth_m, K)
+        agreement, open_fraction = self.evidence(T, first[mine], depth_m, K)
+        done = fit[:, 2] * agreement >= self.first_enough
+        cands.assign(src[done], type_index=first[mine][done], T_cam_pallet=T[done], fit=fit[done])
+        left = np.flatnonzero(~done)
+        settled = {int(src[k]): (T[k], fit[k], agreement[k], open_fraction[k]) for k in left}
+        return rows[~np.isin(rows, src[done])], settled, box_obs
 
     def __call__(self, cands: Candidates, depth_m: np.ndarray, K: np.ndarray, timings: dict[str, float],
                  deadline: Deadline | None = None, T_vehicle_cam: np.ndarray | None = None) -> None:

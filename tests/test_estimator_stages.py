@@ -397,6 +397,32 @@ def test_another_type_replaces_the_first_only_with_clear_structure(bundle_dir, s
         assert np.isfinite(c.fit[0, 2]) and est.pallet_types[int(c.type_index[0])].name == "epal"
 
 
+@pytest.mark.parametrize("truth", ["eur6", "epal"])
+def test_a_first_type_that_fits_well_enough_is_kept_without_trying_the_others(bundle_dir, monkeypatch, truth):
+    """`type_first_enough`: the first type (the EPAL) refined first; at or above the score it is kept and no other
+    type is ranked; below, the types are compared as without the option, to the same pose and fit."""
+    def choice(first_enough, spy=None):
+        est, c, depth_m, K, _, _ = _epal_first_candidate(bundle_dir, truth, True, np.eye(4), type_candidates=2,
+                                                         type_margin=0.0, type_first_enough=first_enough)
+        if spy is not None:
+            monkeypatch.setattr(est.type_choice, "rank", spy)
+        est.type_choice(c, depth_m, K, {})
+        return est.pallet_types[int(c.type_index[0])].name, c.T_cam_pallet[0].copy(), c.fit[0].copy()
+
+    compared = choice(None)
+    assert compared[0] == truth                       # compared, the depth picks the pallet's own type
+    np.testing.assert_array_equal(choice(1.0)[1], compared[1])   # a score never reached: compared as before
+    np.testing.assert_array_equal(choice(1.0)[2], compared[2])
+    ranked = []
+    settled = choice(1e-6, spy=lambda *a, **k: ranked.append(1))  # any refined EPAL is enough: kept, nothing ranked
+    assert settled[0] == "epal" and np.isfinite(settled[2][2]) and not ranked
+    if truth == "epal":                               # the EPAL's own refined pose, as when the types are compared
+        np.testing.assert_array_equal(settled[1], compared[1])
+    for bad in (0.0, -0.5, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="type_first_enough"):
+            EstimatorOptions(type_first_enough=bad)
+
+
 def test_face_starts_lay_a_smaller_type_flush_with_the_first_types_faces():
     from pallet6d.runtime.stage_type import face_starts
 
@@ -444,9 +470,12 @@ def _block_seen_by_a_calibrated_camera(bundle_dir, more: tuple = (), **options):
     (StructureParams(), "block_1210"),                              # its own type, found at its levelled pose
     (StructureParams(replace_min_agreement=1.0), "epal"),          # no replacement: the first type, levelled
 ])
-def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundle_dir, structure, expected):
+@pytest.mark.parametrize("first_enough", [None, 1e-6])    # levelled, every kept type is judged: never settled early
+def test_with_the_calibration_the_types_are_judged_at_their_levelled_poses(bundle_dir, structure, expected,
+                                                                           first_enough):
     est, c, p, depth_m, K, T_vc = _block_seen_by_a_calibrated_camera(
-        bundle_dir, type_candidates=1, type_candidates_levelled=2, type_margin_levelled=0.0, structure=structure)
+        bundle_dir, type_candidates=1, type_candidates_levelled=2, type_margin_levelled=0.0, structure=structure,
+        type_first_enough=first_enough)
     est.type_choice(c, depth_m, K, {}, T_vehicle_cam=T_vc)
     assert est.pallet_types[int(c.type_index[0])].name == expected
     T_vp = T_vc @ c.T_cam_pallet[0]

@@ -80,6 +80,8 @@ def test_eval_bad_inputs(tiny_bundle, sim_bop_dataset, tmp_path, capsys):
     assert "refine_starts must be in [0, 14]" in capsys.readouterr().err
     assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--max-pallets", "0"]) == 2
     assert "max_pallets must be >= 1" in capsys.readouterr().err
+    assert main(["eval", "--bundle", str(tiny_bundle), "--data", str(sim_bop_dataset), "--type-first-enough", "0"]) == 2
+    assert "type_first_enough must be in (0, 1]" in capsys.readouterr().err
 
 
 def test_eval_cli_does_not_import_torch():
