@@ -269,20 +269,27 @@ def place_rgbd_in_window(image: np.ndarray, depth_m: np.ndarray | None, boxes_xy
     :param depth_m: (h, w) float metres, or None. :return: the (H, W, 3) uint8 input, the (H, W) float32 depth (None
         without one) and (m, 4 + k) float32 boxes.
     """
-    h, w = image.shape[:2]
     H, W = int(window_hw[0]), int(window_hw[1])
-    s, tx, ty = _window_affine((h, w), (H, W), rng, zoom_range, zoom_in_max, shift_fraction)
-    A = np.array([[s, 0.0, tx], [0.0, s, ty]], dtype=np.float64)
-    out = cv2.warpAffine(image, A, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                         borderValue=(fill, fill, fill))
-    depth_out = None
-    if depth_m is not None:
-        if depth_m.shape != (h, w):
-            raise ValueError(f"depth is {depth_m.shape}, the image {(h, w)}")
-        depth_out = cv2.warpAffine(depth_m.astype(np.float32, copy=False), A, (W, H), flags=cv2.INTER_NEAREST,
-                                   borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    s, tx, ty = _window_affine(image.shape[:2], (H, W), rng, zoom_range, zoom_in_max, shift_fraction)
+    out, depth_out = _draw(image, depth_m, s, tx, ty, (H, W), fill)
     boxes = _moved_boxes(_box_rows(boxes_xyxy), s, tx, ty, (H, W), min_area_kept, min_side_px)
     return np.ascontiguousarray(out), depth_out, boxes
+
+
+def _draw(image: np.ndarray, depth_m: np.ndarray | None, s: float, tx: float, ty: float, out_hw: tuple[int, int],
+          fill: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The frame scaled by `s` and moved by (tx, ty) into an (H, W) output: colour bilinear with `fill` beyond the
+    frame, depth nearest neighbour (no depth invented at edges) with 0 (no data) beyond it."""
+    if depth_m is not None and depth_m.shape != image.shape[:2]:
+        raise ValueError(f"depth is {depth_m.shape}, the image {image.shape[:2]}")
+    A = np.array([[s, 0.0, tx], [0.0, s, ty]], dtype=np.float64)
+    size = (int(out_hw[1]), int(out_hw[0]))
+    out = cv2.warpAffine(image, A, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                         borderValue=(fill, fill, fill))
+    if depth_m is None:
+        return out, None
+    return out, cv2.warpAffine(depth_m.astype(np.float32, copy=False), A, size, flags=cv2.INTER_NEAREST,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
 
 def place_mosaic(frames: Sequence[tuple[np.ndarray, np.ndarray | None, np.ndarray]], window_hw: tuple[int, int],
@@ -314,20 +321,14 @@ def place_mosaic(frames: Sequence[tuple[np.ndarray, np.ndarray | None, np.ndarra
     kept = []
     for (image, depth_m, boxes), (x1, y1, x2, y2) in zip(frames, quarters):
         s, tx, ty = _window_affine(image.shape[:2], (H, W), rng, zoom_range, zoom_in_max, shift_fraction)
-        boxes = _box_rows(boxes)
         if x2 <= x1 or y2 <= y1:
             continue
-        # the frame's affine into the whole window, shifted so that only its quarter is drawn
-        A = np.array([[s, 0.0, tx - x1], [0.0, s, ty - y1]], dtype=np.float64)
-        out[y1:y2, x1:x2] = cv2.warpAffine(image, A, (x2 - x1, y2 - y1), flags=cv2.INTER_LINEAR,
-                                           borderMode=cv2.BORDER_CONSTANT, borderValue=(fill, fill, fill))
+        # the frame as drawn into the whole window, shifted so that only its quarter is drawn
+        tile, tile_depth = _draw(image, depth_m, s, tx - x1, ty - y1, (y2 - y1, x2 - x1), fill)
+        out[y1:y2, x1:x2] = tile
         if depth_out is not None:
-            if depth_m.shape != image.shape[:2]:
-                raise ValueError(f"depth is {depth_m.shape}, the image {image.shape[:2]}")
-            depth_out[y1:y2, x1:x2] = cv2.warpAffine(depth_m.astype(np.float32, copy=False), A, (x2 - x1, y2 - y1),
-                                                     flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                                                     borderValue=0.0)
-        b = _moved_boxes(boxes, s, tx - x1, ty - y1, (y2 - y1, x2 - x1), min_area_kept, min_side_px)
+            depth_out[y1:y2, x1:x2] = tile_depth
+        b = _moved_boxes(_box_rows(boxes), s, tx - x1, ty - y1, (y2 - y1, x2 - x1), min_area_kept, min_side_px)
         b[:, [0, 2]] += x1
         b[:, [1, 3]] += y1
         kept.append(b)
