@@ -42,7 +42,7 @@ from .onnx_io import check_parity, ort_session, run_session
 from .pose import MostConfidentPose, SplitInputConv1d, build_pose
 from .train_loop import CKPT_FORMAT
 
-__all__ = ["BundleWeightsError", "bundle_checkpoint", "load_bundle_weights", "pose_inputs"]
+__all__ = ["BundleWeightsError", "bundle_checkpoint", "graph_activation", "load_bundle_weights", "pose_inputs"]
 
 log = logging.getLogger(__name__)
 
@@ -260,6 +260,11 @@ def pose_inputs(calib: CalibrationSet, bundle: Bundle, count: int | None = None)
     return calib.points[:count].astype(np.float32), feats.astype(np.float32)
 
 
+def graph_activation(graph_path: Path) -> str:
+    """The activation of one of our detector graphs: "relu" where it has Relu nodes, else YOLOv8's "silu"."""
+    return "relu" if any(n.op_type == "Relu" for n in onnx.load(str(graph_path)).graph.node) else "silu"
+
+
 def _read_bundle(bundle_dir: str | Path) -> Bundle:
     try:
         return load_bundle(bundle_dir)
@@ -294,13 +299,21 @@ def load_bundle_weights(bundle_dir: str | Path, nets: dict[str, torch.nn.Module]
         example, batches, in_names, out_names = _stage_inputs(stage, calib, bundle)
         device = next(net.parameters()).device
         net.cpu()                                        # in place: an optimizer's references stay valid
+        # a detector of another activation than the graph's (a ReLU detector started from a SiLU one) reads the
+        # weights through a twin of the graph's, which must reproduce the graph; then takes them (same layers)
+        reader = net
+        if stage == "detector" and (act := graph_activation(graph)) != net.cfg.activation:
+            reader = build_detector(dataclasses.replace(net.cfg, activation=act))
+            record["activation"] = {"graph": act, "network": net.cfg.activation}
         try:
-            state, folded = _state_from_graph(net, graph, example)
-            net.load_state_dict(state)
-            _restore_batchnorm_statistics(net, folded, batches)
-            graph_net = MostConfidentPose(net) if stage == "pose" and bundle.pose.hypotheses == "most_confident" \
-                else net
+            state, folded = _state_from_graph(reader, graph, example)
+            reader.load_state_dict(state)
+            _restore_batchnorm_statistics(reader, folded, batches)
+            graph_net = MostConfidentPose(reader) if stage == "pose" and bundle.pose.hypotheses == "most_confident" \
+                else reader
             record["parity"][stage] = check_parity(graph_net, example, graph, in_names, out_names)
+            if reader is not net:
+                net.load_state_dict(reader.state_dict())
         except RuntimeError as exc:
             raise BundleWeightsError(f"--init {root}: the weights read back from {graph.name} do not reproduce it: "
                                      f"{exc}") from None
@@ -326,9 +339,10 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
     bundle = _read_bundle(bundle_dir)
     cfg = get_config(bundle.config)
     if stage == "detector":
-        nets = {"detector": build_detector(dataclasses.replace(cfg.detector, input_hw=tuple(bundle.detector.input_hw),
-                                                               classes=tuple(bundle.detector.classes),
-                                                               depth_max_m=bundle.detector.depth_max_m))}
+        det = bundle.detector
+        nets = {"detector": build_detector(dataclasses.replace(
+            cfg.detector, input_hw=tuple(det.input_hw), classes=tuple(det.classes), depth_max_m=det.depth_max_m,
+            activation=graph_activation(bundle.graph("detector", "fp32"))))}
     elif stage == "pose":
         nets = {"fusion": build_fusion(cfg.fusion), "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
     else:
@@ -342,6 +356,7 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
         provenance["input_sizes"] = [list(hw) for hw in bundle.detector.input_sizes]
         provenance["classes"] = list(bundle.detector.classes)
         provenance["depth_max_m"] = bundle.detector.depth_max_m
+        provenance["activation"] = nets["detector"].cfg.activation
     return {"format": CKPT_FORMAT, "format_version": 1, "stage": stage, "config": bundle.config,
             "epoch": before.get("epoch"), "val": before.get("val"), "provenance": provenance,
             **{k: net.state_dict() for k, net in nets.items()}}

@@ -24,7 +24,7 @@ def _make_divisible(x: float, divisor: int = 8) -> int:
 
 
 class ConvBnAct(nn.Module):
-    """Conv2d (no bias) + BatchNorm + SiLU."""
+    """Conv2d (no bias) + BatchNorm + SiLU (ReLU in a detector whose config asks for it)."""
 
     def __init__(self, c_in: int, c_out: int, k: int = 1, s: int = 1) -> None:
         super().__init__()
@@ -177,6 +177,11 @@ class YoloDetector(nn.Module):
         self.bu5 = C2f(c512 + c1024, c1024, n(3), False)
         self.head = DetectHead(cfg.num_classes, (c256, c512, c1024), cfg.reg_max)
         self.head.init_biases(cfg.input_hw)
+
+        if cfg.activation == "relu":
+            for m in self.modules():
+                if isinstance(m, ConvBnAct):
+                    m.act = nn.ReLU(inplace=True)
 
     def forward_raw(self, x: torch.Tensor) -> list[torch.Tensor]:
         """(B, C, H, W) in [0, 1] (C = 3 RGB, or 4 with depth) -> per-level raw maps (B, 4*reg_max + nc, H/s, W/s),

@@ -21,11 +21,12 @@ import numpy as np
 import onnx
 import torch
 
-from .config import ModelConfig
+from .config import DETECTOR_ACTIVATIONS, ModelConfig
 from .onnx_io import ort_session
 
 __all__ = ["ExportError", "DET_IN", "DET_OUT", "git_commit", "warm_up_batchnorm", "read_checkpoint",
-           "trained_input_hw", "trained_input_sizes", "trained_depth_max_m", "load_checkpoint", "external_detector"]
+           "trained_input_hw", "trained_input_sizes", "trained_depth_max_m", "trained_activation",
+           "load_checkpoint", "external_detector"]
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +96,16 @@ def trained_depth_max_m(ckpt: dict) -> float | None:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
         raise ExportError(f"the checkpoint's detector provenance has depth_max_m {v!r}, not a positive number")
     return float(v)
+
+
+def trained_activation(ckpt: dict) -> str:
+    """The activation of a checkpoint's detector (`pallet6d train detector --detector-activation`), from its
+    provenance; "silu" when not recorded (every detector trained before the option was one)."""
+    v = _detector_provenance(ckpt).get("activation", "silu")
+    if v not in DETECTOR_ACTIVATIONS:
+        raise ExportError(f"the checkpoint's detector provenance has activation {v!r}, not one of "
+                          f"{DETECTOR_ACTIVATIONS}")
+    return v
 
 
 def trained_classes(ckpt: dict) -> tuple[str, ...] | None:

@@ -27,9 +27,9 @@ from onnxruntime.quantization.shape_inference import quant_pre_process
 __all__ = ["CONV_OPS", "DETECTOR_OPS", "INT8_RECIPES", "quantize_graph"]
 
 CONV_OPS = ("Conv",)
-# the detector's backbone, neck and heads up to the box/class logits: convs, SiLU, residual adds, the neck's
-# concats, SPPF's max pools, the upsampling, C2f's splits
-DETECTOR_OPS = ("Conv", "Sigmoid", "Mul", "Add", "Concat", "MaxPool", "Resize", "Split")
+# the detector's backbone, neck and heads up to the box/class logits: convs, SiLU (or ReLU, which onnxruntime folds
+# into the conv before it), residual adds, the neck's concats, SPPF's max pools, the upsampling, C2f's splits
+DETECTOR_OPS = ("Conv", "Sigmoid", "Mul", "Relu", "Add", "Concat", "MaxPool", "Resize", "Split")
 
 # per stage, `quantize_graph`'s keyword arguments. Detector: the whole graph up to and with its box output
 # convs (validation recall unchanged, boxes within a pixel of fp32); the class output convs and the decoding

@@ -424,7 +424,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     optimizer = torch.optim.AdamW(groups, lr=settings.lr, betas=(0.937, 0.999))
     provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
                   "input_sizes": [list(hw) for hw in trainer.input_sizes], "classes": list(cfg.detector.classes),
-                  "depth_max_m": cfg.detector.depth_max_m,
+                  "depth_max_m": cfg.detector.depth_max_m, "activation": cfg.detector.activation,
                   **({"depth_off_prob": DEPTH_OFF_PROB, "depth_mismatch_prob": DEPTH_MISMATCH_PROB}
                      if cfg.detector.depth_max_m is not None else {}),
                   "seed": settings.seed, "command": command,
