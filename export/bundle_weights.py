@@ -40,9 +40,11 @@ from .detector import build_detector
 from .fusion import build_fusion
 from .onnx_io import check_parity, ort_session, run_session
 from .pose import MostConfidentPose, SplitInputConv1d, build_pose
-from .train_loop import CKPT_FORMAT
+from .export_inputs import trained_activation
+from .train_loop import CKPT_FORMAT, load_checkpoint
 
-__all__ = ["BundleWeightsError", "bundle_checkpoint", "graph_activation", "load_bundle_weights", "pose_inputs"]
+__all__ = ["BundleWeightsError", "bundle_checkpoint", "detector_activation_of", "graph_activation",
+           "load_bundle_weights", "pose_inputs"]
 
 log = logging.getLogger(__name__)
 
@@ -263,6 +265,19 @@ def pose_inputs(calib: CalibrationSet, bundle: Bundle, count: int | None = None)
 def graph_activation(graph_path: Path) -> str:
     """The activation of one of our detector graphs: "relu" where it has Relu nodes, else YOLOv8's "silu"."""
     return "relu" if any(n.op_type == "Relu" for n in onnx.load(str(graph_path)).graph.node) else "silu"
+
+
+def detector_activation_of(path: str | Path | None) -> str:
+    """The activation of the detector in `path` (a bundle: its graph's; a checkpoint: its record); "silu" for
+    None. A path that is neither is reported where its weights are loaded, so it reads as "silu" here."""
+    if path is None:
+        return "silu"
+    try:
+        if Path(path).is_dir():
+            return graph_activation(_read_bundle(path).graph("detector", "fp32"))
+        return trained_activation(load_checkpoint(path))
+    except (OSError, ValueError, KeyError):
+        return "silu"
 
 
 def _read_bundle(bundle_dir: str | Path) -> Bundle:

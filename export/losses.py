@@ -9,7 +9,8 @@ import torch.nn.functional as F
 
 from .detector import YoloDetector, make_anchors
 
-__all__ = ["quat_to_rot", "pose_loss", "pad_symmetries", "stack_model_points", "bbox_ciou", "DetectorLoss"]
+__all__ = ["quat_to_rot", "pose_loss", "pad_symmetries", "stack_model_points", "bbox_ciou", "DetectorLoss",
+           "detector_distill_loss"]
 
 
 # ----------------------------------------------------------------------------------------------- pose
@@ -126,6 +127,31 @@ def _box_iou_pairwise(gt: torch.Tensor, pred: torch.Tensor, eps: float = 1e-9) -
              (torch.minimum(g[..., 3], p[..., 3]) - torch.maximum(g[..., 1], p[..., 1])).clamp(min=0))
     area = lambda b: (b[..., 2] - b[..., 0]).clamp(min=0) * (b[..., 3] - b[..., 1]).clamp(min=0)  # noqa: E731
     return inter / (area(g) + area(p) - inter + eps)
+
+
+def detector_distill_loss(student: list[torch.Tensor], teacher: list[torch.Tensor],
+                          reg_max: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """How far a detector's raw maps are from a teacher's (the same layout, `YoloDetector.forward_raw`): every
+    anchor's class scores by the Bernoulli KL divergence from the teacher's probabilities, its box sides by the KL
+    divergence of their DFL bin distributions, weighted by the teacher's best class probability (its boxes count
+    where it sees a pallet). Both sums are divided by the teacher's total best probability, as YOLOv8 divides by
+    its target scores: zero where the student computes what the teacher does.
+
+    :param student, teacher: per level (B, 4 * reg_max + nc, H_l, W_l). :return: (class term, box term).
+    """
+    s = torch.cat([r.flatten(2) for r in student], 2).float()          # (B, 4 * reg_max + nc, A)
+    t = torch.cat([r.flatten(2) for r in teacher], 2).float()
+    nb = 4 * reg_max
+    p_t = t[:, nb:].sigmoid()
+    cls = (F.binary_cross_entropy_with_logits(s[:, nb:], p_t, reduction="none")
+           - F.binary_cross_entropy_with_logits(t[:, nb:], p_t, reduction="none"))
+    weight = p_t.amax(1)                                                # (B, A)
+    norm = weight.sum().clamp(min=1.0)
+    b, _, a = s.shape
+    log_s = s[:, :nb].reshape(b, 4, reg_max, a).log_softmax(2)
+    log_t = t[:, :nb].reshape(b, 4, reg_max, a).log_softmax(2)
+    kl_box = (log_t.exp() * (log_t - log_s)).sum(2).mean(1)            # (B, A)
+    return cls.sum() / norm, (kl_box * weight).sum() / norm
 
 
 class DetectorLoss:

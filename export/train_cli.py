@@ -94,10 +94,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distill", type=Path, metavar="BUNDLE|CKPT",
                         help="pose: also train the fusion network to give these weights' fused features (a bundle or "
                              "checkpoint whose fusion network takes the same crops, e.g. a smaller config learning "
-                             "from models/epal-default)")
+                             "from models/epal-default). detector: also match this detector's class scores and box "
+                             "distributions at every anchor (e.g. a ReLU detector learning from the SiLU one)")
     parser.add_argument("--distill-weight", type=float, default=1.0,
-                        help="pose: weight of --distill's feature error (relative to the teacher's variance) in the "
-                             "loss (default 1)")
+                        help="weight of --distill's term in the loss (pose: the feature error relative to the "
+                             "teacher's variance; default 1)")
     parser.add_argument("--negatives", metavar="PRESET,...",
                         help="pose: crops without a pallet, the boxes --negatives-detector finds in pallet-free scenes "
                              "of these sim presets (their loads set down and left hanging; seed --seed): with "
@@ -222,24 +223,6 @@ def detector_classes(spec: str, data: list[Path]) -> tuple[str, ...]:
     return names
 
 
-def _init_activation(init: Path | None) -> str:
-    """The activation of the detector `--init` starts from (a checkpoint's record, a bundle's graph); "silu"
-    without one. An unreadable `--init` is reported where its weights are loaded."""
-    if init is None:
-        return "silu"
-    try:
-        if Path(init).is_dir():
-            from pallet6d.runtime.bundle import load_bundle
-
-            from .bundle_weights import graph_activation
-            return graph_activation(load_bundle(init).graph("detector", "fp32"))
-        from .export_inputs import trained_activation
-        from .train_loop import load_checkpoint
-        return trained_activation(load_checkpoint(init))
-    except (OSError, ValueError, KeyError):
-        return "silu"
-
-
 def _hw(text: str) -> tuple[int, int]:
     try:
         h, w = (int(v) for v in text.lower().split("x"))
@@ -335,7 +318,8 @@ def main(args: argparse.Namespace) -> int:
             print("pallet6d train: --detector-activation is for the detector stage", file=sys.stderr)
             return 2
         if args.stage == "detector":
-            activation = args.detector_activation or _init_activation(args.init)
+            from .bundle_weights import detector_activation_of
+            activation = args.detector_activation or detector_activation_of(args.init)
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, activation=activation))
         sizes = args.detector_input_sizes
         if sizes is not None:
@@ -360,10 +344,10 @@ def main(args: argparse.Namespace) -> int:
         if args.num_points is not None and args.stage != "pose":
             print("pallet6d train: --num-points is for the pose stage", file=sys.stderr)
             return 2
-        if (args.distill is not None or args.freeze_pose or args.pose_only or args.negatives or args.mismatched_frames
+        if (args.freeze_pose or args.pose_only or args.negatives or args.mismatched_frames
                 or args.conf_head_only or args.keep_pallet_conf or args.verifier_only
                 or args.calibrate_share is not None) and args.stage != "pose":
-            print("pallet6d train: --distill, --freeze-pose, --pose-only, --negatives, --mismatched-frames, "
+            print("pallet6d train: --freeze-pose, --pose-only, --negatives, --mismatched-frames, "
                   "--conf-head-only, --keep-pallet-conf, --verifier-only and --calibrate-share are for the pose stage",
                   file=sys.stderr)
             return 2
@@ -398,7 +382,8 @@ def main(args: argparse.Namespace) -> int:
                                    real_max_images=args.real_max_images, input_sizes=sizes,
                                    real_repeat_large=args.real_repeat_large, select=args.select,
                                    loader_threads=args.loader_threads, class_lr_mult=args.class_lr_mult,
-                                   mosaic=args.mosaic, **common)
+                                   mosaic=args.mosaic, distill=args.distill, distill_weight=args.distill_weight,
+                                   **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -48,10 +48,10 @@ from pallet6d.runtime.evaluation import box_iou
 
 from .config import ModelConfig
 from .detector import build_detector
-from .losses import DetectorLoss
+from .losses import DetectorLoss, detector_distill_loss
 from .train_data import AugmentConfig, DetectorSamples, augment_depth, augment_rgb, build_detector_samples, \
     flip_horizontal, load_or_build, place_mosaic, place_rgbd_in_window, repeat_train, repeated_roots
-from .train_loop import LoopSettings, autocast, train_epochs
+from .train_loop import LoopSettings, autocast, load_init_weights, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
 
@@ -150,7 +150,8 @@ class DetectorTrainer:
 
     def __init__(self, cfg: ModelConfig, data: DetectorData, aug: AugmentConfig, device: str = "cpu",
                  amp: bool = False, input_sizes: Sequence[tuple[int, int]] | None = None,
-                 select: str = "loss", loader_threads: int = 1, mosaic: float = 0.0) -> None:
+                 select: str = "loss", loader_threads: int = 1, mosaic: float = 0.0,
+                 teacher: torch.nn.Module | None = None, distill_weight: float = 1.0) -> None:
         if select not in SELECTIONS:
             raise ValueError(f"select must be one of {SELECTIONS}, got {select!r}")
         if select == "near_f1" and not data.real[data.val_idx].any():
@@ -172,6 +173,13 @@ class DetectorTrainer:
         self._sim_frames = np.flatnonzero(~data.real)   # frames with depth, for `_mismatched_depth`
         self.detector = build_detector(cfg.detector).to(self.device)
         self.loss = DetectorLoss(self.detector)
+        if teacher is not None and not distill_weight > 0:
+            raise ValueError(f"distill_weight must be positive, got {distill_weight}")
+        # a fixed teacher (e.g. the SiLU detector a ReLU one starts from): its raw maps on the same inputs are a
+        # target at every anchor, where the boxes are one at a few (`detector_distill_loss`)
+        self.teacher, self.distill_weight = teacher, float(distill_weight)
+        if teacher is not None:
+            teacher.to(self.device).eval().requires_grad_(False)
 
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
@@ -271,7 +279,14 @@ class DetectorTrainer:
         with autocast(self.device.type, self.amp):
             raw = self.detector.forward_raw(x)
         loss, parts = self.loss([r.float() for r in raw], targets)
-        return loss, {k: float(v) for k, v in parts.items() if k != "fg"}
+        out = {k: float(v) for k, v in parts.items() if k != "fg"}
+        if self.teacher is not None:
+            with torch.no_grad(), autocast(self.device.type, self.amp):
+                ref = self.teacher.forward_raw(x)
+            cls, box = detector_distill_loss(raw, ref, self.detector.head.reg_max)
+            loss = loss + self.distill_weight * (cls + box)
+            out.update(distill_cls=float(cls.detach()), distill_box=float(box.detach()))
+        return loss, out
 
     @torch.no_grad()
     def validate(self, batch: int = 8, score_threshold: float = 0.25, iou: float = 0.5) -> dict:
@@ -396,14 +411,18 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                    progress: bool = True, init: str | Path | None = None, real: str | Path | None = None,
                    real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None,
                    real_repeat_large: int = 1, select: str = "loss", loader_threads: int = 1,
-                   class_lr_mult: float = 1.0, mosaic: float = 0.0) -> dict:
+                   class_lr_mult: float = 1.0, mosaic: float = 0.0, distill: str | Path | None = None,
+                   distill_weight: float = 1.0) -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry.
 
     :param class_lr_mult: the learning rate of the class outputs (`class_output_names`) relative to the rest (a
         detector given a class per type from a one-class one starts every class alike). 20x alone did not part the
         types in two CPU epochs (docs/experiments/pallet-types.md): the features below must learn them too.
-    :param mosaic: share of the training inputs that hold four frames (`DetectorTrainer`)."""
+    :param mosaic: share of the training inputs that hold four frames (`DetectorTrainer`).
+    :param distill: a bundle or checkpoint whose detector (of its own activation) is the fixed teacher, matched at
+        every anchor with `distill_weight` (`losses.detector_distill_loss`); e.g. the SiLU detector a ReLU one
+        starts from."""
     if not class_lr_mult > 0:
         raise ValueError(f"class_lr_mult must be positive, got {class_lr_mult}")
     run_dir = Path(run_dir)
@@ -411,8 +430,15 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     torch.manual_seed(settings.seed)
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
                             val_fraction, max_frames, progress, real, real_max_images, real_repeat_large)
+    teacher, teacher_record = None, None
+    if distill is not None:
+        from .bundle_weights import detector_activation_of
+        teacher = build_detector(replace(cfg.detector, activation=detector_activation_of(distill)))
+        teacher_record = {"weights": load_init_weights(distill, {"detector": teacher}), "weight": distill_weight,
+                          "activation": teacher.cfg.activation}
     trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes,
-                              select=select, loader_threads=loader_threads, mosaic=mosaic)
+                              select=select, loader_threads=loader_threads, mosaic=mosaic, teacher=teacher,
+                              distill_weight=distill_weight)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases; the class outputs at their own rate
     params = dict(trainer.detector.named_parameters())
     class_out = [n for n in params if n in class_output_names(trainer.detector)] if class_lr_mult != 1.0 else []
@@ -431,7 +457,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                   "data": dd.fingerprints, "epochs": settings.epochs, "batch": settings.batch, "lr": settings.lr,
                   "augment": aug.to_dict(), "val_fraction": val_fraction,
                   "real_repeat_large": real_repeat_large, "select": select, "class_lr_mult": class_lr_mult,
-                  "mosaic": mosaic,
+                  "mosaic": mosaic, "distill": teacher_record,
                   "samples": {"train": int(len(dd.train_idx)), "val": int(len(dd.val_idx)),
                               "real": int(dd.real.sum())},
                   "device": settings.device, "amp": "bf16" if settings.amp else None, "torch": str(torch.__version__)}

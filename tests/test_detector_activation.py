@@ -1,6 +1,7 @@
 """A ReLU detector (`DetectorConfig.activation`, `pallet6d train detector --detector-activation relu`): the same
-layers as YOLOv8's SiLU detector, so it starts from a SiLU detector's weights (a checkpoint or a bundle's graph);
-its int8 graph folds the ReLU into the convolutions; export builds the activation the checkpoint was trained with."""
+layers as YOLOv8's SiLU detector, so it starts from a SiLU detector's weights (a checkpoint or a bundle's graph)
+and can learn from it as a teacher (`--distill`); its int8 graph folds the ReLU into the convolutions; export
+builds the activation the checkpoint was trained with."""
 from __future__ import annotations
 
 import dataclasses
@@ -11,13 +12,15 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from pallet6d.export.bundle_weights import bundle_checkpoint, graph_activation, load_bundle_weights  # noqa: E402
+from pallet6d.export.bundle_weights import (bundle_checkpoint, detector_activation_of, graph_activation,  # noqa: E402
+                                            load_bundle_weights)
 from pallet6d.export.config import DetectorConfig, get_config  # noqa: E402
 from pallet6d.export.detector import build_detector  # noqa: E402
 from pallet6d.export.export_inputs import ExportError, trained_activation  # noqa: E402
 from pallet6d.export.onnx_io import export_graph, ort_session, run_session  # noqa: E402
 from pallet6d.export.quantize import INT8_RECIPES, quantize_graph  # noqa: E402
-from pallet6d.export.train_cli import _init_activation  # noqa: E402
+from pallet6d.export.losses import detector_distill_loss  # noqa: E402
+from pallet6d.export.train_loop import LoopSettings, load_checkpoint  # noqa: E402
 
 CFG = get_config("tiny")
 
@@ -60,7 +63,7 @@ def test_relu_int8_graph_folds_the_activation_and_follows_fp32(tmp_path):
 
 def test_a_relu_detector_starts_from_a_silu_bundles_weights(bundle_dir):
     assert graph_activation(bundle_dir / "detector.onnx") == "silu"
-    assert _init_activation(bundle_dir) == "silu" and _init_activation(None) == "silu"
+    assert detector_activation_of(bundle_dir) == "silu" and detector_activation_of(None) == "silu"
     silu, relu = build_detector(CFG.detector), build_detector(_relu())
     load_bundle_weights(bundle_dir, {"detector": silu}, calib_frames=1)
     record = load_bundle_weights(bundle_dir, {"detector": relu}, calib_frames=1)
@@ -83,3 +86,38 @@ def test_export_builds_the_activation_the_checkpoint_was_trained_with(provenance
 def test_a_checkpoint_with_an_unknown_activation_is_a_clear_error():
     with pytest.raises(ExportError, match="activation 'tanh'"):
         trained_activation({"provenance": {"stage": "detector", "activation": "tanh"}})
+
+
+def test_distillation_is_zero_where_the_student_computes_what_the_teacher_does():
+    torch.manual_seed(0)
+    net = build_detector(CFG.detector).eval()
+    h, w = CFG.detector.input_hw
+    x = torch.rand(2, 3, h, w)
+    with torch.no_grad():
+        ref = net.forward_raw(x)
+    cls, box = detector_distill_loss(ref, ref, net.head.reg_max)
+    assert abs(float(cls)) < 1e-5 and abs(float(box)) < 1e-5
+    student = build_detector(_relu())
+    student.load_state_dict(net.state_dict())
+    cls, box = detector_distill_loss(student.forward_raw(x), ref, net.head.reg_max)
+    assert float(cls.detach()) > 0 and float(box.detach()) > 0
+    (cls + box).backward()
+    assert student.stem.conv.weight.grad.abs().sum() > 0
+
+
+def test_a_relu_detector_trains_from_and_against_a_silu_bundle(bundle_dir, sim_bop_dataset, tmp_path):
+    from pallet6d.export.train_detector import train_detector
+
+    entry = train_detector(dataclasses.replace(CFG, detector=_relu()), [sim_bop_dataset], tmp_path / "det",
+                           LoopSettings(epochs=1, batch=2, lr=1e-3), progress=False, init=bundle_dir,
+                           distill=bundle_dir, distill_weight=2.0)
+    assert entry["train_distill_cls"] >= 0 and entry["train_distill_box"] >= 0
+    ckpt = load_checkpoint(tmp_path / "det" / "last.pt")
+    prov = ckpt["provenance"]
+    assert prov["activation"] == "relu" and trained_activation(ckpt) == "relu"
+    assert prov["distill"]["weight"] == 2.0 and prov["distill"]["activation"] == "silu"
+    assert prov["distill"]["weights"]["bundle"] == str(bundle_dir)
+    assert detector_activation_of(tmp_path / "det" / "last.pt") == "relu"
+    with pytest.raises(ValueError, match="distill_weight"):
+        train_detector(CFG, [sim_bop_dataset], tmp_path / "bad", LoopSettings(epochs=1, batch=2, lr=1e-3),
+                       progress=False, distill=bundle_dir, distill_weight=0.0)
