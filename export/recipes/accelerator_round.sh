@@ -10,7 +10,8 @@
 #      BUNDLE), POSE_LR (2e-4), DET_LR (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
 #      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55),
 #      DET_REPEAT / POSE_REPEAT (name prefixes of chunks the detector / the pose stage sees twice, e.g. "vo- in-",
-#      "faepal-"; none), POSE_CONFIG (edge2-dilated),
+#      "faepal-"; none), POSE_CONFIG (edge2-dilated), DET_ARGS (more `pallet6d train detector` flags, e.g.
+#      "--detector-activation relu --distill models/epal-default"; none),
 #      POSE_ARGS (more `pallet6d train pose` flags, e.g. "--distill models/epal-default --calibrate-share 0.944"
 #      with POSE_CONFIG=edge2-pruned, which starts from the bundle's most important layer4 / PSP channels, trains
 #      the pose network with it and ends with the floor keeping the shipped networks' share of pallets; none),
@@ -28,6 +29,7 @@ SIM_S=${SIM_S:-190} TRAIN_MIN=${TRAIN_MIN:-4.6} DEVICE=${DEVICE:-cuda} PROCS=${P
 DET_EPOCHS=${DET_EPOCHS:-7} POSE_EPOCHS=${POSE_EPOCHS:-12} BUNDLE=${BUNDLE:-models/epal-default}
 STAGES=${STAGES:-det pose} DET_INIT=${DET_INIT:-$BUNDLE} POSE_INIT=${POSE_INIT:-$BUNDLE}
 POSE_LR=${POSE_LR:-2e-4} DET_LR=${DET_LR:-3e-4} POSE_CONFIG=${POSE_CONFIG:-edge2-dilated} POSE_ARGS=${POSE_ARGS:-}
+DET_ARGS=${DET_ARGS:-}
 POSE_WARM_MIN=${POSE_WARM_MIN:-0} POSE_WARM_ARGS=${POSE_WARM_ARGS:-} POSE_WARM_EPOCHS=${POSE_WARM_EPOCHS:-4}
 POSE_WARM_LR=${POSE_WARM_LR:-$POSE_LR}
 export RECIPES=$PWD/export/recipes W=${W:-/tmp/p6d}
@@ -75,7 +77,7 @@ export OMP_NUM_THREADS=3
   --data $DET_DIRS --real "$REAL" --real-repeat-large 3 --select near_f1 \
   --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr "$DET_LR" \
   --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
-  --cache-dir "$W/cache" --out "$W/det" >"$OUT_DIR/det.log" 2>&1 &
+  --cache-dir "$W/cache" --out "$W/det" $DET_ARGS >"$OUT_DIR/det.log" 2>&1 &
 # train_pose INIT EPOCHS LR MINUTES OUT ARGS...: one pose phase
 train_pose() {
   local init=$1 epochs=$2 lr=$3 minutes=$4 out=$5; shift 5
