@@ -176,7 +176,7 @@ class DetectorTrainer:
         if teacher is not None and not distill_weight > 0:
             raise ValueError(f"distill_weight must be positive, got {distill_weight}")
         # a fixed teacher (e.g. the SiLU detector a ReLU one starts from): its raw maps on the same inputs are a
-        # target at every anchor, where the boxes are one at a few (`detector_distill_loss`)
+        # target at every anchor, where the labelled boxes give one at a few (`detector_distill_loss`)
         self.teacher, self.distill_weight = teacher, float(distill_weight)
         if teacher is not None:
             teacher.to(self.device).eval().requires_grad_(False)
