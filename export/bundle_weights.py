@@ -269,15 +269,12 @@ def graph_activation(graph_path: Path) -> str:
 
 def detector_activation_of(path: str | Path | None) -> str:
     """The activation of the detector in `path` (a bundle: its graph's; a checkpoint: its record); "silu" for
-    None. A path that is neither is reported where its weights are loaded, so it reads as "silu" here."""
+    None. :raises ValueError: not a bundle or checkpoint, or a checkpoint that records an unknown activation."""
     if path is None:
         return "silu"
-    try:
-        if Path(path).is_dir():
-            return graph_activation(_read_bundle(path).graph("detector", "fp32"))
-        return trained_activation(load_checkpoint(path))
-    except (OSError, ValueError, KeyError):
-        return "silu"
+    if Path(path).is_dir():
+        return graph_activation(_read_bundle(path).graph("detector", "fp32"))
+    return trained_activation(load_checkpoint(path))
 
 
 def _read_bundle(bundle_dir: str | Path) -> Bundle:

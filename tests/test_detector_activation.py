@@ -20,7 +20,7 @@ from pallet6d.export.export_inputs import ExportError, trained_activation  # noq
 from pallet6d.export.onnx_io import export_graph, ort_session, run_session  # noqa: E402
 from pallet6d.export.quantize import INT8_RECIPES, quantize_graph  # noqa: E402
 from pallet6d.export.losses import detector_distill_loss  # noqa: E402
-from pallet6d.export.train_loop import LoopSettings, load_checkpoint  # noqa: E402
+from pallet6d.export.train_loop import CKPT_FORMAT, LoopSettings, load_checkpoint  # noqa: E402
 
 CFG = get_config("tiny")
 
@@ -83,9 +83,15 @@ def test_export_builds_the_activation_the_checkpoint_was_trained_with(provenance
     assert trained_activation({"provenance": provenance}) == expected
 
 
-def test_a_checkpoint_with_an_unknown_activation_is_a_clear_error():
+def test_a_checkpoint_with_an_unknown_activation_is_a_clear_error(tmp_path):
     with pytest.raises(ExportError, match="activation 'tanh'"):
         trained_activation({"provenance": {"stage": "detector", "activation": "tanh"}})
+    # as an --init or --distill path too, before any weights are loaded into a network of a guessed activation
+    torch.save({"format": CKPT_FORMAT, "provenance": {"stage": "detector", "activation": "tanh"}}, tmp_path / "d.pt")
+    with pytest.raises(ExportError, match="activation 'tanh'"):
+        detector_activation_of(tmp_path / "d.pt")
+    with pytest.raises(ValueError, match="no checkpoint"):
+        detector_activation_of(tmp_path / "missing.pt")
 
 
 def test_distillation_is_zero_where_the_student_computes_what_the_teacher_does():
