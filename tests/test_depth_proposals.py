@@ -103,71 +103,6 @@ def test_what_stands_on_the_pallet_does_not_change_its_proposal():
     assert box_iou(boxes, _projected_box(PALLET, T))[0, 0] > 0.6
 
 
-def _raised(T: np.ndarray, height_m: float) -> np.ndarray:
-    """`T` (a camera's axes in the vehicle frame) with the camera `height_m` above the floor."""
-    T = T.copy()
-    T[2, 3] = height_m
-    return T
-
-
-def _pallet_on(level_m: float, x0: float = 3.0, y0: float = 0.0, pockets: bool = True) -> list[tuple]:
-    """An EPAL seen from its long side, standing at `level_m`: three bottom boards, three columns of blocks with two
-    fork pockets 0.38 m wide between them (or, `pockets` False, a solid block of its size), the deck on top."""
-    L = level_m
-    if not pockets:
-        return [(x0, x0 + 0.8, y0 - 0.6, y0 + 0.6, L, L + 0.144)]
-    boards = [(x0 + a, x0 + a + 0.1, y0 - 0.6, y0 + 0.6, L, L + 0.022) for a in (0.0, 0.35, 0.7)]
-    blocks = [(x0, x0 + 0.8, y0 + a, y0 + b, L + 0.022, L + 0.1) for a, b in
-              ((-0.6, -0.455), (-0.0725, 0.0725), (0.455, 0.6))]
-    return [*boards, *blocks, (x0, x0 + 0.8, y0 - 0.6, y0 + 0.6, L + 0.1, L + 0.144)]
-
-
-BEAM_TOP_M = 1.1
-RACK = [(2.95, 3.05, -2.0, 2.0, BEAM_TOP_M - 0.12, BEAM_TOP_M),      # the beam the pallet stands on
-        (5.0, 5.1, -3.0, 3.0, 0.0, 3.0)]                             # the wall behind the rack
-
-
-@pytest.mark.parametrize("pitch_deg, y0", [(5.0, 0.0), (0.0, 0.4), (-5.0, -0.3)])
-def test_a_pallet_on_a_rack_is_proposed_at_the_level_its_pockets_show(pitch_deg, y0):
-    T = _raised(_T_vehicle_cam(pitch_deg), 1.15)
-    pallet = _pallet_on(BEAM_TOP_M, y0=y0)
-    depth = _render([*RACK, *pallet], T)
-    boxes = propose_boxes(depth, K, T)
-    whole = (3.0, 3.8, y0 - 0.6, y0 + 0.6, BEAM_TOP_M, BEAM_TOP_M + 0.144)
-    assert len(boxes) == 1 and box_iou(boxes, _projected_box(whole, T))[0, 0] > 0.6
-    # the floor alone knows no pallet there
-    assert propose_boxes(depth, K, T, DepthProposals(off_floor=False)).shape == (0, 4)
-
-
-@pytest.mark.parametrize("blocks, why", [
-    (_pallet_on(BEAM_TOP_M, pockets=False), "a solid block of a pallet's size on the beam: no pockets"),
-    ([(3.0, 3.8, -0.6, -0.2, BEAM_TOP_M, BEAM_TOP_M + 0.144), (3.0, 3.8, 0.2, 0.6, BEAM_TOP_M, BEAM_TOP_M + 0.144)],
-     "two boxes with one gap between them: one opening, not a pair"),
-    ([(3.0, 3.8, -0.6, -0.455, BEAM_TOP_M, BEAM_TOP_M + 0.6), (3.0, 3.8, -0.0725, 0.0725, BEAM_TOP_M, BEAM_TOP_M + 0.6),
-      (3.0, 3.8, 0.455, 0.6, BEAM_TOP_M, BEAM_TOP_M + 0.6)], "three posts: gaps far taller than a pocket"),
-])
-def test_nothing_without_a_pair_of_pockets_is_proposed_off_the_floor(blocks, why):
-    T = _raised(_T_vehicle_cam(5.0), 1.15)
-    assert propose_boxes(_render([*RACK, *blocks], T), K, T).shape == (0, 4), why
-
-
-def test_a_pallet_on_the_floor_is_proposed_once_though_its_pockets_show():
-    T = _T_vehicle_cam()
-    pallet = _pallet_on(0.0)
-    boxes = propose_boxes(_render(pallet, T), K, T)
-    assert boxes.shape == (1, 4)
-    assert box_iou(boxes, _projected_box(PALLET, T))[0, 0] > 0.7
-
-
-def test_a_pallet_on_a_pallet_is_proposed_with_it():
-    T = _raised(_T_vehicle_cam(0.0), 0.2)                          # the forks' height: the upper pallet's pockets
-    boxes = propose_boxes(_render([*_pallet_on(0.0), *_pallet_on(0.144)], T), K, T)
-    lower, upper = (3.0, 3.8, -0.6, 0.6, 0.0, 0.144), (3.0, 3.8, -0.6, 0.6, 0.144, 0.288)
-    assert len(boxes) == 2
-    assert box_iou(boxes, _projected_box(lower, T)).max() > 0.6
-    assert box_iou(boxes, _projected_box(upper, T)).max() > 0.6
-
-
 @pytest.mark.parametrize("depth", [np.zeros((H, W), np.float32), np.full((H, W), np.nan, np.float32)])
 def test_depth_without_data_proposes_nothing(depth):
     T = _T_vehicle_cam()
@@ -189,8 +124,6 @@ def test_inputs_of_the_wrong_shape_are_refused(depth, K_, T, match):
     ("band_m", (0.2, 0.1)), ("band_m", (-0.1, 0.2)), ("width_m", (1.0, 0.5)), ("max_range_m", 0.0),
     ("min_height_m", float("nan")), ("cell_m", True), ("stride", 0), ("stride", 1.5), ("min_points", 0),
     ("margin", 1.5), ("max_iou", -0.1), ("max_boxes", 0), ("max_boxes", 2.0),
-    ("pocket_width_m", (0.6, 0.1)), ("pocket_height_m", (0.0, 0.2)), ("pocket_spacing_m", (0.8, 0.3)),
-    ("pocket_gap_m", 0.0), ("max_levels", 0),
 ])
 def test_proposal_params_are_checked(field, value):
     with pytest.raises(ValueError, match=f"DepthProposals.{field}"):
