@@ -114,6 +114,55 @@ def test_the_validation_split_measures_the_presets_on_validation_seeds_under_dat
         scorecard.run_measure(name, tmp_path, "int8", {}, False, tmp_path, tmp_path, "train")
 
 
+@pytest.mark.parametrize("split", ["val", "test"])
+def test_validation_presets_pool_two_seeds_and_the_test_sets_keep_one(scorecard, monkeypatch, tmp_path, split):
+    import pallet6d.export.accuracy_report as accuracy_report
+    import pallet6d.runtime.eval_cli as eval_cli
+
+    # (seed, frames) -> (pallets, share within 5 cm, missed)
+    sets = {(8011, 100): (400, 0.95, {"no_detection": {"n_gt": 4, "refused_within_5cm": 0}}),
+            (8021, 60): (240, 0.90, {"no_detection": {"n_gt": 2, "refused_within_5cm": 0},
+                                     "poor_fit": {"n_gt": 3, "refused_within_5cm": 1}}),
+            (9001, 100): (410, 0.97, {})}
+    seen = []
+
+    def ensure(preset, frames, root, seed):
+        seen.append((preset, seed, frames))
+        return (seed, frames)
+
+    def evaluate(est, key, split_name):
+        n, share, missed = sets.get(key, (100, 0.5, {}))
+        return {"summary": {"n_gt": n, "add_sym_acc": {"0.05": share}, "missed_by_reason": missed}}
+
+    monkeypatch.setattr(accuracy_report, "ensure_test_set", ensure)
+    monkeypatch.setattr(eval_cli, "evaluate_dataset", evaluate)
+    monkeypatch.setattr(scorecard, "_estimator", lambda *a, **k: None)
+    res = scorecard.measure_presets(tmp_path, "int8", {}, 100, tmp_path, split)
+    if split == "val":
+        assert ("virtual-clean", 8011, 100) in seen and ("virtual-clean", 8021, 60) in seen and len(seen) == 6
+        assert res["virtual-clean"] == pytest.approx(100 * (400 * 0.95 + 240 * 0.90) / 640, abs=0.01)
+        assert res["virtual-clean-pallets"] == 640
+        assert res["virtual-clean-missed"] == {"no_detection": {"n_gt": 6, "refused_within_5cm": 0},
+                                               "poor_fit": {"n_gt": 3, "refused_within_5cm": 1}}
+        assert res["virtual-clean-by_seed"] == {8011: 95.0, 8021: 90.0}
+        assert res["seeds"]["indoor-noisy"] == [8013, 8023]
+    else:
+        assert seen == [("virtual-clean", 9001, 100), ("virtual-occluded", 9002, 100), ("indoor-noisy", 9003, 100)]
+        assert res["virtual-clean"] == 97.0 and res["virtual-clean-pallets"] == 410
+        assert res["seeds"]["virtual-clean"] == 9001
+
+
+def test_validation_presets_kept_from_one_seed_are_measured_again(scorecard, tmp_path):
+    old = tmp_path / "presets-val-int8.json"
+    old.write_text(json.dumps({"virtual-clean": 96.0, "seeds": {"virtual-clean": 8011}}))
+    assert scorecard._stale("presets", "val", old)
+    now = tmp_path / "presets-val-now.json"
+    now.write_text(json.dumps({"seeds": {p: [scorecard.VAL_SEEDS[p], scorecard.VAL_POOLED_SEEDS[p]]
+                                         for p in scorecard.PAPER_PRESETS}}))
+    assert not scorecard._stale("presets", "val", now)
+    assert not scorecard._stale("presets", "test", old) and not scorecard._stale("forklift", "val", old)
+
+
 def test_validation_results_are_kept_apart_from_the_test_results(scorecard, tmp_path, monkeypatch, capsys):
     bundle = tmp_path / "cand"
     bundle.mkdir()
