@@ -188,7 +188,7 @@ def measure_presets(bundle: Path, precision: str, options: dict, frames: int, da
             n_gt += s["n_gt"]
             by_seed[seed] = _pct(s["add_sym_acc"]["0.05"])
             for reason, counts in s["missed_by_reason"].items():
-                into = missed.setdefault(reason, dict.fromkeys(counts, 0))
+                into = missed.setdefault(reason, {})
                 for k, v in counts.items():
                     into[k] = into.get(k, 0) + v
         out[preset] = _pct(within / n_gt if n_gt else 0.0)
