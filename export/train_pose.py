@@ -59,8 +59,8 @@ from .losses import pad_symmetries, pose_loss, stack_model_points
 from .pose import build_pose
 from .train_data import (AugmentConfig, PoseSamples, build_pose_samples, load_or_build, model_points_for,
                          pallet_type_name, repeat_train, repeated_roots)
-from .train_loop import (BEST, LAST, LoopSettings, autocast, load_checkpoint, load_init_weights, save_checkpoint,
-                         train_epochs)
+from .train_loop import (BEST, LAST, LoopSettings, autocast, conv_input, conv_layout, load_checkpoint,
+                         load_init_weights, save_checkpoint, train_epochs)
 from .warm_start import init_config, warm_start
 
 __all__ = ["PoseData", "load_pose_data", "PoseTrainer", "calibrate_floor", "calibrate_verifier", "gather_points",
@@ -222,7 +222,7 @@ class PoseTrainer:
         if num_points is not None and not 0 < num_points <= prepared:
             raise ValueError(f"num_points must be in [1, {prepared}] (the points prepared per sample), got {num_points}")
         self.num_points = num_points if num_points is not None else prepared
-        self.fusion = build_fusion(cfg.fusion).to(self.device)
+        self.fusion = conv_layout(build_fusion(cfg.fusion).to(self.device))
         self.pose = build_pose(cfg.pose, cfg.fusion.feature_dim).to(self.device)
         # per-type geometry as tables indexed by a sample's row in `obj_ids`
         self.obj_ids = np.array(sorted(data.model_points), np.int64)
@@ -230,7 +230,7 @@ class PoseTrainer:
                                               ).float().to(self.device)
         self.type_symmetries = pad_symmetries([torch.from_numpy(data.symmetries[int(o)]).float()
                                                for o in self.obj_ids]).to(self.device)
-        self.teacher = None if teacher is None else teacher.to(self.device).eval().requires_grad_(False)
+        self.teacher = None if teacher is None else conv_layout(teacher.to(self.device)).eval().requires_grad_(False)
         self.distill_weight = float(distill_weight)
         self.feature_error = float("nan")    # the last batch's relative feature error against the teacher
         self.last_confidence = torch.zeros(0)  # the last batch's confidence as the graph gives it (B,)
@@ -351,6 +351,7 @@ class PoseTrainer:
     def _features(self, fusion: torch.nn.Module, rgb: torch.Tensor, depth: torch.Tensor,
                   choose: torch.Tensor) -> torch.Tensor:
         """(B, N, C) fused features at the sampled pixels."""
+        rgb, depth = conv_input(rgb), conv_input(depth)
         if self.cfg.fusion.sampled:
             return fusion(rgb, depth, choose)
         return gather_points(fusion(rgb, depth), choose)

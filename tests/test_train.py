@@ -15,7 +15,8 @@ from pallet6d.export.train_data import (NO_AUGMENT, AugmentConfig, augment_depth
                                         dataset_fingerprint, flip_horizontal, jitter_box, load_or_build,
                                         place_in_window)
 from pallet6d.export.train_detector import DetectorTrainer, load_detector_data  # noqa: E402
-from pallet6d.export.train_loop import LoopSettings, load_checkpoint, load_init_weights, lr_at  # noqa: E402
+from pallet6d.export.train_loop import (LoopSettings, conv_layout, load_checkpoint, load_init_weights,  # noqa: E402
+                                       lr_at)
 from pallet6d.export.train_pose import PoseTrainer, load_pose_data, subsample_points, train_pose  # noqa: E402
 
 CFG = get_config("tiny")
@@ -380,6 +381,9 @@ def test_detector_trained_at_another_input_size_exports_at_that_size(pose_run, s
                    progress=False)
     det = load_checkpoint(tmp_path / "det" / "last.pt")
     assert det["provenance"]["input_hw"] == [96, 160] and trained_input_hw(det) == (96, 160)
+    # trained channels-last (`conv_layout`), stored contiguous: a checkpoint's layout is the same whoever trained it
+    assert det["detector"]["stem.conv.weight"].dim() == 4
+    assert all(v.is_contiguous() for v in det["detector"].values())
     with pytest.raises(ValueError, match="trained at input"):   # resuming at the config's size is refused
         train_detector(CFG, [sim_bop_dataset], tmp_path / "det", LoopSettings(epochs=2, batch=2, lr=1e-3),
                        resume=True, progress=False)
@@ -469,7 +473,8 @@ def test_pose_only_trains_the_pose_network_on_the_fixed_fusions_features_compute
     assert np.isfinite(entry["val_metric"])
     ckpt = load_checkpoint(tmp_path / "p" / "last.pt")
     assert ckpt["provenance"]["trainable"] == "pose_network"
-    fusion, pose = build_fusion(CFG.fusion), build_pose(CFG.pose, CFG.fusion.feature_dim)
+    # built as the trainer builds it: its BatchNorm statistics come from a forward pass, whose rounding the layout moves
+    fusion, pose = conv_layout(build_fusion(CFG.fusion)), build_pose(CFG.pose, CFG.fusion.feature_dim)
     load_init_weights(bundle_dir, {"fusion": fusion, "pose": pose})
     for k, v in fusion.state_dict().items():     # the fusion network stayed as --init gave it, BatchNorm included
         assert torch.equal(ckpt["fusion"][k], v), k
