@@ -185,8 +185,10 @@ def _cmd_check(args) -> int:
 def main(args: argparse.Namespace) -> int:
     run = {"intrinsics": _cmd_intrinsics, "extrinsics": _cmd_extrinsics, "floor": _cmd_floor, "show": _cmd_show,
            "check": _cmd_check}[args.calib_command]
+    from pallet6d.runtime.cameras.errors import CameraError
+
     try:
         return run(args)
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, CameraError) as exc:   # a camera that is not there or a recording that cannot be read
         print(f"pallet6d calib {args.calib_command}: {exc}", file=sys.stderr)
         return 1

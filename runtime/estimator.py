@@ -52,7 +52,10 @@ from .stage_pose import PoseNetworkStage
 from .stage_refine import RefinerStage
 from .weak_boxes import WeakBoxes, inside_fraction
 
-__all__ = ["EstimatorOptions", "PalletEstimator"]
+__all__ = ["EstimatorOptions", "PalletEstimator", "MAX_THREADS"]
+
+# onnxruntime makes every pool's threads when a session is built: a mistyped count (100000) would hang there
+MAX_THREADS = 64
 
 STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
 
@@ -240,6 +243,8 @@ class EstimatorOptions:
             raise ValueError(f"depth_range_m must be (min, max) with 0 <= min < max, got {self.depth_range_m}")
         if int(self.min_valid_points) < 1:
             raise ValueError(f"min_valid_points must be >= 1, got {self.min_valid_points}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {self.seed!r}")
         if not 0.0 <= self.min_fit <= 1.0:
             raise ValueError(f"min_fit must be in [0, 1], got {self.min_fit}")
         if not -1.0 <= self.refine_margin <= 1.0:
@@ -304,6 +309,8 @@ class PalletEstimator:
                  options: EstimatorOptions | None = None, clock: Callable[[], float] = time.perf_counter) -> None:
         if precision not in ("fp32", "int8"):
             raise ValueError(f"precision must be 'fp32' or 'int8', got {precision!r}")
+        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or not 1 <= threads <= MAX_THREADS:
+            raise ValueError(f"threads must be an integer in 1..{MAX_THREADS}, got {threads!r}")
         self.bundle = bundle
         self.precision = precision
         self.threads = int(threads)
@@ -501,6 +508,8 @@ class PalletEstimator:
         scores = np.ones(len(boxes)) if scores is None else np.asarray(scores, dtype=np.float64).reshape(-1)
         if len(scores) != len(boxes):
             raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
+        if not (np.isfinite(boxes).all() and np.isfinite(scores).all()):
+            raise ValueError("boxes_xyxy and scores must be finite numbers (image pixels; detector scores)")
         first = min(self._types_of_class)
         class_ids = np.full(len(boxes), first) if class_ids is None else np.asarray(class_ids, np.int64).reshape(-1)
         if len(class_ids) != len(boxes):

@@ -73,9 +73,9 @@ def add_estimator_arguments(parser: argparse.ArgumentParser) -> None:
 def load_estimator(args: argparse.Namespace, command: str):
     """The `PalletEstimator` the arguments describe, or None after printing why it cannot be loaded.
     Without `--bundle`, `args.bundle` becomes the default bundle's folder (`default_bundle`)."""
-    from .bundle import BundleError
+    from .bundle import BundleError, load_bundle
     from .default_bundle import BundleNotFoundError, default_bundle
-    from .estimator import PalletEstimator
+    from .estimator import MAX_THREADS, EstimatorOptions, PalletEstimator
 
     if args.bundle is None:
         try:
@@ -84,6 +84,9 @@ def load_estimator(args: argparse.Namespace, command: str):
             print(f"pallet6d {command}: {exc}", file=sys.stderr)
             return None
         logging.getLogger(__name__).info("bundle: %s", args.bundle)
+    if not 1 <= args.threads <= MAX_THREADS:
+        print(f"pallet6d {command}: --threads must be in 1..{MAX_THREADS}, got {args.threads}", file=sys.stderr)
+        return None
     try:
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
         extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
@@ -106,10 +109,14 @@ def load_estimator(args: argparse.Namespace, command: str):
         if args.floor_from_depth:
             from .level import LevelParams
             extra["level"] = LevelParams(floor_from_depth=True)
-        return PalletEstimator.from_bundle(args.bundle, threads=args.threads,
-                                           precision="int8" if args.int8 else "fp32",
-                                           score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,
-                                           refine=not args.no_refine, **extra)
+        options = EstimatorOptions(score_threshold=args.score_threshold, min_fit=args.min_fit, seed=args.seed,
+                                   refine=not args.no_refine, **extra)
+    except (TypeError, ValueError) as exc:
+        print(f"pallet6d {command}: invalid option: {exc}", file=sys.stderr)
+        return None
+    try:
+        return PalletEstimator(load_bundle(args.bundle), threads=args.threads,
+                               precision="int8" if args.int8 else "fp32", options=options)
     except (BundleError, FileNotFoundError, ValueError) as exc:
         print(f"pallet6d {command}: cannot load bundle {args.bundle}: {exc}", file=sys.stderr)
         return None

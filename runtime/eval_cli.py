@@ -168,7 +168,27 @@ def format_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def _json_problem(path: Path | None) -> str | None:
+    """Why `--json` cannot be written (checked before the evaluation, not after it), or None."""
+    if path is None:
+        return None
+    if path.is_dir():
+        return f"--json {path} is a folder; give a file name"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        return f"--json {path}: cannot create its folder: {exc.strerror or exc}"
+    return None
+
+
 def main(args: argparse.Namespace) -> int:
+    if args.max_frames < 0:
+        print(f"pallet6d eval: --max-frames must be >= 0 (0: all), got {args.max_frames}", file=sys.stderr)
+        return 2
+    problem = _json_problem(args.json)
+    if problem:
+        print(f"pallet6d eval: {problem}", file=sys.stderr)
+        return 2
     est = load_estimator(args, "eval")
     if est is None:
         return 2
@@ -182,7 +202,10 @@ def main(args: argparse.Namespace) -> int:
     if args.json:
         doc = {"bundle": str(args.bundle), "data": str(args.data), "graphs": "int8" if args.int8 else "fp32",
                **out["summary"], "records": out["records"]}
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        try:
+            args.json.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+        except OSError as exc:
+            print(f"pallet6d eval: cannot write --json {args.json}: {exc.strerror or exc}", file=sys.stderr)
+            return 1
         print(f"wrote {args.json}")
     return 0

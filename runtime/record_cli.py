@@ -38,8 +38,12 @@ def _source_options(args: argparse.Namespace, kind: str) -> dict:
         try:
             w, h = (int(v) for v in args.size.lower().split("x"))
         except ValueError:
-            raise SystemExit(f"pallet6d record: --size must look like 848x480, got {args.size!r}") from None
+            raise ValueError(f"--size must look like 848x480, got {args.size!r}") from None
+        if w <= 0 or h <= 0:
+            raise ValueError(f"--size must be positive, got {args.size!r}")
         size = (w, h)
+    if args.fps <= 0:
+        raise ValueError(f"--fps must be positive, got {args.fps}")
     if kind == "realsense":
         opts.update(fps=args.fps, filters=tuple(f for f in args.filters.split(",") if f))
         if size:

@@ -8,6 +8,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from pallet6d.runtime.cli_paths import writable_folder
 from pallet6d.sim.presets import PRESETS, get_preset
 from pallet6d.sim.scene import SceneError
 from pallet6d.sim.sensors import SENSORS
@@ -68,8 +69,12 @@ def main(args: argparse.Namespace) -> int:
             config = replace(config, pallet_models=names)
         if args.sensor:
             config = replace(config, sensor=args.sensor, sensor_model=None, sensor_mix=())
-        if args.frames < 1 or args.start < 0:
-            print("pallet6d sim: --frames must be >= 1 and --start >= 0", file=sys.stderr)
+        if args.frames < 1 or args.start < 0 or args.seed < 0:
+            print("pallet6d sim: --frames must be >= 1, --start and --seed >= 0", file=sys.stderr)
+            return 2
+        problem = writable_folder(args.out)
+        if problem:
+            print(f"pallet6d sim: {problem}", file=sys.stderr)
             return 2
         t0 = time.perf_counter()
         with tqdm(total=args.frames, desc=f"sim {config.name}", unit="frame", file=sys.stderr) as bar:

@@ -20,6 +20,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from pallet6d.runtime.inputs import MAX_IMAGE_PIXELS
 from pallet6d.sim.appearance import AppearanceConfig
 from pallet6d.sim.depth_sensors import DepthModel, check_sensor_model
 from pallet6d.sim.pallets import PALLET_MODELS, get_pallet_model
@@ -81,6 +82,9 @@ class SimConfig:
     def __post_init__(self) -> None:
         if self.width < 16 or self.height < 16:
             raise ValueError(f"{self.name}: image must be at least 16x16, got {self.width}x{self.height}")
+        if self.width * self.height > MAX_IMAGE_PIXELS:   # the runtime refuses larger frames
+            raise ValueError(f"{self.name}: image must be at most {MAX_IMAGE_PIXELS / 1e6:.1f} MP (3840x2160), got "
+                             f"{self.width}x{self.height}")
         if not 10.0 <= self.hfov_deg <= 150.0:
             raise ValueError(f"{self.name}: hfov_deg must be in [10, 150], got {self.hfov_deg}")
         if self.layout not in LAYOUTS:

@@ -100,6 +100,27 @@ def test_bad_out_is_one_line_and_status_2(replay_dir, bundle_dir, tmp_path, caps
         assert rc == 2 and "--out" in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.parametrize("args, status, message", [
+    (["sim", "--frames", "1", "--seed", "-5", "--out", "{tmp}/s"], 2, "--seed >= 0"),
+    (["sim", "--frames", "1", "--out", "{tmp}/file"], 2, "exists and is not a folder"),
+    (["sim", "--frames", "1", "--size", "5000x5000", "--out", "{tmp}/s"], 2, "image must be at most 8.3 MP"),
+    (["eval", "--bundle", "{bundle}", "--data", "{tmp}", "--json", "{tmp}"], 2, "is a folder; give a file name"),
+    (["eval", "--bundle", "{bundle}", "--data", "{tmp}", "--max-frames", "-2"], 2, "--max-frames must be >= 0"),
+    (["record", "--source", "replay:{rec}", "--out", "{tmp}/r", "--size", "0x0"], 2, "--size must be positive"),
+    (["record", "--source", "replay:{rec}", "--out", "{tmp}/r", "--size", "big"], 2, "--size must look like"),
+    (["record", "--source", "replay:{rec}", "--out", "{tmp}/r", "--fps", "-5"], 2, "--fps must be positive"),
+    (["record", "--source", "replay:{rec}", "--out", "{rec}"], 2, "`pallet6d record --overwrite`"),
+    (["calib", "floor", "--source", "replay:{tmp}/none", "--out", "{tmp}/c.toml"], 1, "does not exist"),
+])
+def test_other_commands_refuse_bad_options_in_one_line(replay_dir, bundle_dir, tmp_path, capsys, args, status,
+                                                        message):
+    (tmp_path / "file").write_text("x")
+    fill = {"tmp": str(tmp_path), "bundle": str(bundle_dir), "rec": str(replay_dir)}
+    rc = main([a.format(**fill) for a in args])
+    err = [x for x in capsys.readouterr().err.splitlines() if x.startswith("pallet6d")]
+    assert rc == status and len(err) == 1 and message in err[0], err
+
+
 def test_an_unexpected_error_is_one_line_and_status_3(monkeypatch, capsys):
     from pallet6d.runtime import bundle_cli
 

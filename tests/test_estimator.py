@@ -191,6 +191,9 @@ def test_rejections_are_reported_with_reasons(bundle_dir, frame, boxes):
     assert reasons == ["poor_fit", "too_few_points", "box_outside_image"]
     assert r.rejected[0].pose is not None and r.rejected[1].pose is None
     assert "valid depth pixels" in r.rejected[1].detail
+    for bad in (dict(boxes_xyxy=[[np.nan, 0.0, 10.0, 10.0]]), dict(boxes_xyxy=boxes[:1], scores=[np.inf])):
+        with pytest.raises(ValueError, match="boxes_xyxy and scores must be finite"):
+            est.estimate_boxes(frame.rgb, depth, frame.K, **bad)
 
 
 def _bad(frame):
@@ -253,6 +256,13 @@ def test_bad_options_and_precision(bundle_dir):
         EstimatorOptions(refine_start_max_rms_m=-0.001)
     with pytest.raises(ValueError, match="precision"):
         PalletEstimator.from_bundle(bundle_dir, precision="fp16")
+    for seed in (-1, 1.5, True, "0"):          # numpy's sampler would refuse a negative seed at every frame
+        with pytest.raises(ValueError, match="seed must be an integer >= 0"):
+            EstimatorOptions(seed=seed)
+    assert EstimatorOptions(seed=np.int64(3)).seed == 3
+    for threads in (0, 65, 100000, 2.5, True):  # onnxruntime would make 100000 threads, or refuse 0 mid-load
+        with pytest.raises(ValueError, match="threads must be an integer in 1..64"):
+            PalletEstimator.from_bundle(bundle_dir, threads=threads)
 
 
 def test_bundle_that_disagrees_with_its_graphs(bundle_dir, tmp_path):

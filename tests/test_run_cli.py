@@ -46,6 +46,19 @@ def test_run_with_a_missing_bundle_fails_clearly(tmp_path, capsys):
     assert rc == 2 and "cannot load bundle" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("option, message", [
+    (["--seed", "-1"], "invalid option: seed must be an integer >= 0, got -1"),
+    (["--threads", "100000"], "--threads must be in 1..64, got 100000"),
+    (["--threads", "0"], "--threads must be in 1..64, got 0"),
+    (["--score-threshold", "2"], "invalid option: score_threshold must be in [0, 1], got 2.0"),
+])
+def test_run_refuses_a_bad_option_before_any_frame(bundle_dir, bop_dir, capsys, option, message):
+    rc = main(["run", "--source", f"bop:{bop_dir}", "--bundle", str(bundle_dir), "--frame", "camera",
+               *option])
+    out, err = capsys.readouterr()
+    assert rc == 2 and out == "" and err.strip().splitlines() == [f"pallet6d run: {message}"]
+
+
 def _failing_estimate(monkeypatch, fail_frames):
     from pallet6d.runtime.estimator import PalletEstimator
 

@@ -64,6 +64,8 @@ def test_empty_config_means_defaults_and_relative_paths_follow_the_file(tmp_path
     ("[model]\nprecision = 'fp16'\n", "model.precision"),
     ("[model]\nthreads = 0\n", "model.threads"),
     ("[model]\nthreads = true\n", "model.threads: expected int"),
+    ("[model]\nthreads = 100000\n", "model.threads: must be in 1..64, got 100000"),
+    ("[estimator]\nseed = -1\n", "seed must be an integer >= 0, got -1"),
     ("[estimator]\nscore_threshold = 2.0\n", "score_threshold must be in [0, 1]"),
     ("[estimator]\nthreshold = 0.5\n", "[estimator] unknown key(s) ['threshold']"),
     ("[estimator]\ndepth_range_m = [1]\n", "estimator.depth_range_m"),

@@ -75,8 +75,8 @@ class ReplayWriter:
             raise ValueError(f"jpeg_quality must be in 1..100, got {jpeg_quality}")
         self.out_dir = Path(out_dir)
         if (self.out_dir / "camera.json").exists() and not overwrite:
-            raise FileExistsError(f"{self.out_dir} already holds a recording (camera.json); "
-                                  "choose another folder or pass overwrite=True")
+            raise FileExistsError(f"{self.out_dir} already holds a recording (camera.json); choose another folder "
+                                  "or overwrite it (overwrite=True, `pallet6d record --overwrite`)")
         (self.out_dir / "rgb").mkdir(parents=True, exist_ok=True)
         (self.out_dir / "depth").mkdir(parents=True, exist_ok=True)
         self.rgb_format = rgb_format

@@ -53,7 +53,7 @@ from typing import Any
 
 from ..calibration import Calibration, CalibrationError, load_calibration
 from ..cameras import parse_source_spec
-from ..estimator import EstimatorOptions
+from ..estimator import MAX_THREADS, EstimatorOptions
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -192,8 +192,8 @@ class ServeConfig:
             raise bad("camera.max_rate_hz", f"must be 0 (no limit) or in 0.1..1000, got {c.max_rate_hz}")
         if m.precision not in ("fp32", "int8"):
             raise bad("model.precision", f"must be 'fp32' or 'int8', got {m.precision!r}")
-        if not 1 <= m.threads <= 64:
-            raise bad("model.threads", f"must be in 1..64, got {m.threads}")
+        if not 1 <= m.threads <= MAX_THREADS:
+            raise bad("model.threads", f"must be in 1..{MAX_THREADS}, got {m.threads}")
         calibration = _resolve(o.calibration, base_dir)
         frame = o.frame or ("vehicle" if calibration else "")
         if frame not in FRAMES:
