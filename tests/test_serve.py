@@ -104,6 +104,8 @@ def test_detect_with_and_without_a_region_hint(daemon):
     ({"tolerance_m": 0}, 422),
     ({"unknown": 1}, 422),
     ("not json", 422),
+    ('{"box_xyxy": [NaN, 0, 10, 10]}', 422),          # Python's JSON reads NaN; the answer must not carry it
+    ('{"distance_m": Infinity}', 422),
 ])
 def test_detect_rejects_invalid_bodies(daemon, body, status):
     if isinstance(body, str):

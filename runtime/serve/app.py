@@ -24,6 +24,8 @@ from typing import Annotated
 import anyio
 import cv2
 from fastapi import Depends, FastAPI, HTTPException, Query, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -157,6 +159,23 @@ class _Payloads:
             return self._jpeg[2]
 
 
+def _json_safe(value):
+    """`value` with NaN and infinities (which JSON cannot carry) written as strings, containers walked."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+async def _invalid_request(_request: Request, exc: RequestValidationError) -> JSONResponse:
+    """422 with what was wrong, as FastAPI answers, also where the input held a NaN (Python's JSON reads one, and
+    FastAPI's own answer would then fail as a 500)."""
+    return JSONResponse({"detail": _json_safe(jsonable_encoder(exc.errors()))}, status_code=422)
+
+
 def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: FrameRing,
                model_info: dict | None = None) -> FastAPI:
     """The API over a running (or about to run) `CameraLoop`."""
@@ -186,6 +205,7 @@ def create_app(config: ServeConfig, loop: CameraLoop, metrics: Metrics, ring: Fr
     app = FastAPI(title="pallet6d daemon", version=str((model_info or {}).get("version", "")),
                   description="Pallet 6D poses from the forklift's RGB-D camera.", lifespan=lifespan,
                   docs_url=None, redoc_url=None)
+    app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_middleware(RequestLimits, max_body_bytes=config.api.max_body_bytes)
     app.add_middleware(RequestTimer, histogram=metrics.http_latency, routes=TIMED_ROUTES)
     app.state.ticks = ticks
