@@ -184,5 +184,7 @@ def test_bag_closed_early_does_not_hang(tmp_path, sim_frames):
 def test_missing_bag_and_bad_options(tmp_path):
     with pytest.raises(CameraNotFound, match="does not exist"):
         open_source(f"bag:{tmp_path / 'nope.bag'}").start()
+    with pytest.raises(CameraNotFound, match="is a folder, not a .bag file"):
+        open_source(f"bag:{tmp_path}").start()
     with pytest.raises(ValueError, match="unknown depth filter"):
         RealSenseCamera(filters=("median",))
