@@ -32,7 +32,9 @@ CONV_OPS = ("Conv",)
 DETECTOR_OPS = ("Conv", "Sigmoid", "Mul", "Relu", "Add", "Concat", "MaxPool", "Resize", "Split")
 
 # per stage, `quantize_graph`'s keyword arguments. Detector: the whole graph up to and with its box output
-# convs (validation recall unchanged, boxes within a pixel of fp32); the class output convs and the decoding
+# convs (validation recall unchanged, boxes within a pixel of fp32), its ranges the mean of the calibration frames'
+# extremes (plain MinMax let the frames drawn move the forklift views' recall at 0.25 between 66.6 and 72.6 %, the
+# float graph's being 68.5 %; the mean keeps it within 67.9-68.5 %); the class output convs and the decoding
 # after them stay float: uint8 class logits span the background's large negative logits in ~0.36 steps, which
 # left 14 distinct scores above 0.1 (0.189, 0.251, 0.263, 0.326, ...), so a threshold between two of them meant
 # the same and equal scores tied the ranking. Fusion: convs but the branches' output convs (1 % of the FLOPs;
@@ -41,7 +43,7 @@ DETECTOR_OPS = ("Conv", "Sigmoid", "Mul", "Relu", "Add", "Concat", "MaxPool", "R
 # ~1 cm steps; a uint8 confidence ties the argmax).
 INT8_RECIPES: dict[str, dict] = {
     "detector": {"op_types": DETECTOR_OPS, "exclude_nodes": ("/head/cls.*.2/Conv",),
-                 "float_after": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv")},
+                 "float_after": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv"), "moving_average": True},
     "fusion": {"exclude_nodes": ("/*/final/Conv",)},
     "pose": {"exclude_nodes": ("/conv1/Conv", "/head_[rtc]/head_[rtc].6/Conv")},
 }
@@ -70,13 +72,15 @@ class _FeedReader(CalibrationDataReader):
 
 def quantize_graph(fp32_path: Path, int8_path: Path, feeds: list[dict[str, np.ndarray]],
                    exclude_nodes: tuple[str, ...] = (), op_types: tuple[str, ...] = CONV_OPS,
-                   float_after: tuple[str, ...] = ()) -> Path:
+                   float_after: tuple[str, ...] = (), moving_average: bool = False) -> Path:
     """Write a static QDQ int8 copy of `fp32_path` calibrated on `feeds` (one dict of inputs per batch).
 
     :param exclude_nodes: fnmatch patterns of node names kept in float.
     :param op_types: the operator types to quantize (`CONV_OPS`, or `DETECTOR_OPS` for the detector).
     :param float_after: fnmatch patterns of node names whose downstream nodes all stay float (e.g. the
         detector's output convs: its box decoding computes in pixels).
+    :param moving_average: each tensor's range is the mean of the batches' minima and maxima, not the extremes
+        over all of them: one unusual calibration batch no longer sets the range for every input.
     """
     if not feeds:
         raise ValueError("int8 quantization needs at least one calibration batch")
@@ -95,7 +99,8 @@ def quantize_graph(fp32_path: Path, int8_path: Path, feeds: list[dict[str, np.nd
         quantize_static(str(pre), str(int8_path), _FeedReader(feeds), quant_format=QuantFormat.QDQ,
                         per_channel=True, activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                         op_types_to_quantize=list(op_types), nodes_to_exclude=excluded,
-                        calibrate_method=CalibrationMethod.MinMax)
+                        calibrate_method=CalibrationMethod.MinMax,
+                        extra_options={"CalibMovingAverage": bool(moving_average)})
     onnx.checker.check_model(onnx.load(str(int8_path)))
     log.info("quantized %s -> %s (%d calibration batches, %d nodes kept float)", Path(fp32_path).name,
              Path(int8_path).name, len(feeds), len(excluded))

@@ -55,6 +55,21 @@ def test_detector_recipe_quantizes_the_graph_up_to_the_heads(tmp_path):
     assert np.corrcoef(ref.ravel(), got.ravel())[0, 1] > 0.98
 
 
+def test_moving_average_keeps_one_unusual_calibration_batch_from_setting_the_ranges(tmp_path):
+    """Plain MinMax takes each tensor's range from the most extreme calibration batch; with the moving average
+    (the detector's recipe) an outlier frame among ordinary ones leaves ordinary inputs finely quantized."""
+    fp32 = _tiny_detector(tmp_path / "det.onnx")
+    feeds = _feeds(7)
+    feeds[3] = {"x": feeds[3]["x"] * 20.0}                 # one frame far brighter than the rest
+    kw = dict(op_types=DETECTOR_OPS, float_after=("/head/Conv",))
+    extremes = quantize_graph(fp32, tmp_path / "minmax.onnx", feeds, **kw)
+    mean = quantize_graph(fp32, tmp_path / "mean.onnx", feeds, moving_average=True, **kw)
+    x = _feeds(9)[8]["x"]                                  # an ordinary input
+    ref = _run(fp32, x)
+    err_extremes, err_mean = (float(np.abs(_run(g, x) - ref).mean()) for g in (extremes, mean))
+    assert err_mean < 0.5 * err_extremes, (err_mean, err_extremes)
+
+
 def test_convs_only_and_fallback_when_the_heads_are_not_found(tmp_path):
     fp32 = _tiny_detector(tmp_path / "det.onnx")
     convs = _quantized_outputs(quantize_graph(fp32, tmp_path / "a.onnx", _feeds(), op_types=CONV_OPS))
