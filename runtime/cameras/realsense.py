@@ -108,8 +108,8 @@ class RealSenseCamera(FrameSource):
         self._playback = None
         if self.bag_path is not None:
             if not self.bag_path.is_file():
-                raise CameraNotFound(f"RealSense recording {self.bag_path} "
-                                     f"{'is a folder, not a .bag file' if self.bag_path.is_dir() else 'does not exist'}")
+                what = "is a folder, not a .bag file" if self.bag_path.is_dir() else "does not exist"
+                raise CameraNotFound(f"RealSense recording {self.bag_path} {what}")
             self._playback = BagPlayback(rs, ctx, self.bag_path, self.realtime)
             device, color, depth = self._playback.device, self._playback.color_profile, self._playback.depth_profile
         else:
