@@ -1,4 +1,5 @@
-"""The detector stage alone on BOP datasets: recall by visible box height and pallet type, and what the misses are.
+"""The detector stage alone on BOP datasets: recall by visible box height and pallet type, what the misses are,
+precision and average precision.
 
     python benchmarks/detector_recall.py --bundle models/epal-default --data data/val/virtual-occluded [...]
 
@@ -10,7 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pallet6d.runtime.detector_recall import class_types, recall_report, recall_rows, type_names
+from pallet6d.runtime.detector_recall import class_types, detector_tally, recall_report, type_names
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -31,8 +32,8 @@ def main(argv: list[str] | None = None) -> int:
                                       score_threshold=0.02, max_pallets=1000)
     parts = [f"# Detector recall: {args.bundle}{' (int8)' if args.int8 else ''}", ""]
     for data in args.data:
-        parts.append(recall_report(str(data), recall_rows(est, data, args.max_frames), args.score_threshold,
-                                   type_names(data), class_types(est)))
+        rows, scored = detector_tally(est, data, args.max_frames)
+        parts.append(recall_report(str(data), rows, args.score_threshold, type_names(data), class_types(est), scored))
     text = "\n".join(parts)
     print(text)
     if args.out:
