@@ -52,7 +52,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import fnmatch
 import logging
+import math
 import shlex
 import sys
 from pathlib import Path
@@ -197,6 +199,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", type=Path,
                         help="merge: detector checkpoint, or a bundle folder to take its detector")
     parser.add_argument("--pose", type=Path, help="merge: pose checkpoint, or a bundle folder to take its pose stage")
+    parser.add_argument("--detector-logit-offset", type=float, default=0.0, metavar="D",
+                        help="merge: add D to the detector's class logits, so that a detector whose scores run lower "
+                             "than the one it replaces reads at the runtime's threshold as that one did (0.288 moves "
+                             "a score of 0.20 to 0.25); recorded in the provenance")
 
 
 def detector_classes(spec: str, data: list[Path]) -> tuple[str, ...]:
@@ -235,12 +241,18 @@ def _hw_list(text: str) -> list[tuple[int, int]]:
     return [_hw(t) for t in text.split(",") if t.strip()]
 
 
-def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path) -> dict:
+def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path, detector_logit_offset: float = 0.0) -> dict:
     """One checkpoint with detector + fusion + pose weights (the `export_bundle` format) and both provenances.
     Either side may be a bundle folder: its stage is read back from its graphs (`bundle_weights.bundle_checkpoint`).
 
-    :raises ValueError: wrong stages or configs that differ.
+    :param detector_logit_offset: added to the detector's class logits (the biases of its class output convs,
+        `head.cls.*.2.bias`) and recorded in the provenance: a detector whose scores run lower than the one it
+        replaces then reads at the runtime's score threshold as that one did (a ReLU detector whose recall and false
+        boxes at 0.20 match the SiLU one's at 0.25: logit(0.25) - logit(0.20) = 0.288).
+    :raises ValueError: wrong stages or configs that differ, an offset that is not finite.
     """
+    if not math.isfinite(detector_logit_offset):
+        raise ValueError(f"detector_logit_offset must be a finite number, got {detector_logit_offset}")
     from .bundle_weights import bundle_checkpoint
     from .train_loop import load_checkpoint, save_checkpoint
 
@@ -255,10 +267,18 @@ def merge_checkpoints(detector_ckpt: Path, pose_ckpt: Path, out: Path) -> dict:
     if get_config(det["config"]).detector != get_config(pose["config"]).detector:
         raise ValueError(f"the detector was trained with config {det['config']!r}, whose detector differs from "
                          f"that of the pose stage's {pose['config']!r}: export needs one config")
-    merged = {"config": pose["config"], "detector": det["detector"], "fusion": pose["fusion"], "pose": pose["pose"],
+    det_weights, det_record = dict(det["detector"]), {}
+    if detector_logit_offset:
+        cls_biases = [k for k in det_weights if fnmatch.fnmatchcase(k, "head.cls.*.2.bias")]
+        if not cls_biases:
+            raise ValueError("the detector has no class output convs (head.cls.*.2) to offset")
+        for k in cls_biases:
+            det_weights[k] = det_weights[k] + detector_logit_offset
+        det_record = {"logit_offset": float(detector_logit_offset)}
+    merged = {"config": pose["config"], "detector": det_weights, "fusion": pose["fusion"], "pose": pose["pose"],
               "format": det["format"], "format_version": det["format_version"], "stage": "merged",
               "provenance": {"detector": {**det["provenance"], "checkpoint": str(detector_ckpt),
-                                          "epoch": det["epoch"], "val": det["val"]},
+                                          "epoch": det["epoch"], "val": det["val"], **det_record},
                              "pose": {**pose["provenance"], "checkpoint": str(pose_ckpt), "epoch": pose["epoch"],
                                       "val": pose["val"]}}}
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -275,7 +295,7 @@ def main(args: argparse.Namespace) -> int:
             print("pallet6d train merge: needs --detector CKPT and --pose CKPT", file=sys.stderr)
             return 2
         try:
-            merge_checkpoints(args.detector, args.pose, args.out)
+            merge_checkpoints(args.detector, args.pose, args.out, args.detector_logit_offset)
         except ValueError as exc:
             print(f"pallet6d train merge: {exc}", file=sys.stderr)
             return 1

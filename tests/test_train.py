@@ -339,6 +339,17 @@ def test_checkpoint_exports_to_a_bundle_the_runtime_loads(pose_run, sim_bop_data
         == "edge-densefusion"
     with pytest.raises(ValueError, match="whose detector differs"):
         merge_checkpoints(tmp_path / "det-edge.pt", run / "best.pt", tmp_path / "m3.pt")
+    # the detector's scores moved up: its class output convs' biases alone change, by the offset, recorded
+    shifted = merge_checkpoints(tmp_path / "det" / "last.pt", run / "best.pt", tmp_path / "m4.pt", 0.288)
+    moved = {k for k, v in merged["detector"].items() if not torch.equal(v, shifted["detector"][k])}
+    assert moved and all(k.startswith("head.cls.") and k.endswith(".2.bias") for k in moved)
+    for k in moved:
+        torch.testing.assert_close(shifted["detector"][k] - merged["detector"][k],
+                                   torch.full_like(merged["detector"][k], 0.288))
+    assert shifted["provenance"]["detector"]["logit_offset"] == 0.288
+    assert "logit_offset" not in merged["provenance"]["detector"]
+    with pytest.raises(ValueError, match="finite"):
+        merge_checkpoints(tmp_path / "det" / "last.pt", run / "best.pt", tmp_path / "m5.pt", float("nan"))
     calib = make_calibration_set(CFG, frames=2, max_crops=4, seed=0, synthetic=True)
     manifest = export_bundle(CFG, tmp_path / "bundle", checkpoint=tmp_path / "model.pt", calib=calib)
     # the training recipe, data and seeds travel into the bundle's provenance
