@@ -32,17 +32,15 @@ CONV_OPS = ("Conv",)
 DETECTOR_OPS = ("Conv", "Sigmoid", "Mul", "Relu", "Add", "Concat", "MaxPool", "Resize", "Split")
 
 # per stage, `quantize_graph`'s keyword arguments. Detector: the whole graph up to and with its box output
-# convs (validation recall unchanged, boxes within a pixel of fp32), its ranges the extremes over every frame (the
-# frames drawn move the forklift views' recall at 0.25 between 66.6 and 72.6 %, the float graph's being 68.5 %;
-# their mean extremes, `moving_average`, keep it within 67.9-68.5 % and halve the outputs' typical error, but
-# posed 11 fewer occluded validation pallets of 821 than the shipped graph and its float one); the class output
-# convs and the decoding after them stay float: uint8 class logits span the background's large negative logits in ~0.36 steps, which
+# convs (validation recall unchanged, boxes within a pixel of fp32); the class output convs and the decoding
+# after them stay float: uint8 class logits span the background's large negative logits in ~0.36 steps, which
 # left 14 distinct scores above 0.1 (0.189, 0.251, 0.263, 0.326, ...), so a threshold between two of them meant
 # the same and equal scores tied the ranking. Fusion: convs but the branches' output convs (1 % of the FLOPs;
-# the fused features' error vs fp32 drops from 3.7 to 2.5 % RMS on the edge config), its ranges the extremes over
-# every batch too (the mean of four-crop batches' extremes clipped the features: 14-20 % RMS error against 2 %). Pose:
-# convs but its first layer (metric points in: 5 mm steps if quantized) and its heads' output convs (a uint8
-# translation offset has ~1 cm steps; a uint8 confidence ties the argmax).
+# the fused features' error vs fp32 drops from 3.7 to 2.5 % RMS on the edge config). Pose: convs but its first
+# layer (metric points in: 5 mm steps if quantized) and its heads' output convs (a uint8 translation offset has
+# ~1 cm steps; a uint8 confidence ties the argmax). Every range is the extremes over all calibration batches: the
+# mean of the batches' extremes (`moving_average`) clipped the fusion features (14-20 % RMS error against 2 %) and
+# posed 11 fewer occluded validation pallets of 821 with the detector (docs/experiments/detector-levels.md).
 INT8_RECIPES: dict[str, dict] = {
     "detector": {"op_types": DETECTOR_OPS, "exclude_nodes": ("/head/cls.*.2/Conv",),
                  "float_after": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv")},
