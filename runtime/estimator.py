@@ -52,10 +52,17 @@ from .stage_pose import PoseNetworkStage
 from .stage_refine import RefinerStage
 from .weak_boxes import WeakBoxes, inside_fraction
 
-__all__ = ["EstimatorOptions", "PalletEstimator", "MAX_THREADS"]
+__all__ = ["EstimatorOptions", "PalletEstimator", "MAX_THREADS", "check_threads"]
 
 # onnxruntime makes every pool's threads when a session is built: a mistyped count (100000) would hang there
 MAX_THREADS = 64
+
+
+def check_threads(threads) -> int:
+    """`threads` as an int. :raises ValueError: not an integer in 1..MAX_THREADS."""
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or not 1 <= threads <= MAX_THREADS:
+        raise ValueError(f"threads must be an integer in 1..{MAX_THREADS}, got {threads!r}")
+    return int(threads)
 
 STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
 
@@ -309,11 +316,9 @@ class PalletEstimator:
                  options: EstimatorOptions | None = None, clock: Callable[[], float] = time.perf_counter) -> None:
         if precision not in ("fp32", "int8"):
             raise ValueError(f"precision must be 'fp32' or 'int8', got {precision!r}")
-        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or not 1 <= threads <= MAX_THREADS:
-            raise ValueError(f"threads must be an integer in 1..{MAX_THREADS}, got {threads!r}")
+        self.threads = check_threads(threads)
         self.bundle = bundle
         self.precision = precision
-        self.threads = int(threads)
         self.options = o = options or EstimatorOptions()
         self.clock = clock
         spec = bundle.pose_input_spec()

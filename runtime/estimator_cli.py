@@ -75,7 +75,7 @@ def load_estimator(args: argparse.Namespace, command: str):
     Without `--bundle`, `args.bundle` becomes the default bundle's folder (`default_bundle`)."""
     from .bundle import BundleError, load_bundle
     from .default_bundle import BundleNotFoundError, default_bundle
-    from .estimator import MAX_THREADS, EstimatorOptions, PalletEstimator
+    from .estimator import EstimatorOptions, PalletEstimator, check_threads
 
     if args.bundle is None:
         try:
@@ -84,10 +84,8 @@ def load_estimator(args: argparse.Namespace, command: str):
             print(f"pallet6d {command}: {exc}", file=sys.stderr)
             return None
         logging.getLogger(__name__).info("bundle: %s", args.bundle)
-    if not 1 <= args.threads <= MAX_THREADS:
-        print(f"pallet6d {command}: --threads must be in 1..{MAX_THREADS}, got {args.threads}", file=sys.stderr)
-        return None
     try:
+        check_threads(args.threads)
         # options left unset on the command line keep EstimatorOptions' defaults (one place says them)
         extra = {k: v for k, v in (("refine_starts", args.refine_starts), ("max_pallets", args.max_pallets),
                                    ("type_candidates", args.type_candidates),

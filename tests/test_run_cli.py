@@ -48,8 +48,8 @@ def test_run_with_a_missing_bundle_fails_clearly(tmp_path, capsys):
 
 @pytest.mark.parametrize("option, message", [
     (["--seed", "-1"], "invalid option: seed must be an integer >= 0, got -1"),
-    (["--threads", "100000"], "--threads must be in 1..64, got 100000"),
-    (["--threads", "0"], "--threads must be in 1..64, got 0"),
+    (["--threads", "100000"], "invalid option: threads must be an integer in 1..64, got 100000"),
+    (["--threads", "0"], "invalid option: threads must be an integer in 1..64, got 0"),
     (["--score-threshold", "2"], "invalid option: score_threshold must be in [0, 1], got 2.0"),
 ])
 def test_run_refuses_a_bad_option_before_any_frame(bundle_dir, bop_dir, capsys, option, message):
