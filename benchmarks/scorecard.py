@@ -49,11 +49,17 @@ Results are kept per bundle, variant and measure (`OUT/<bundle name>[+<label>]/<
 a second call measures only what is missing (delete a file to measure it again). `--quick` uses a fraction of the
 frames, for trying the command, never for a decision. Writes `OUT/scorecard.md`. Latency is not here: it needs an
 otherwise idle machine (`benchmarks/latency.py`).
+
+With two or more bundles the scorecard also compares each with the first pallet by pallet on the presets and the
+forklift views: the pallets only one of them puts within 5 cm, and the exact sign test's p on them (is a difference
+of a few pallets more than the draw of pallets?). Results kept from before the presets and forklift files held each
+pallet's outcome show "-" there until they are measured again.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import sys
@@ -169,6 +175,51 @@ def _estimator(bundle: Path, precision: str, options: dict, **fixed):
     return PalletEstimator.from_bundle(bundle, threads=2, precision=precision, **{**options, **fixed})
 
 
+def within_5cm_bits(records: list[dict] | None) -> str:
+    """Each counted pallet's outcome in the dataset's order, "1" within 5 cm (ADD-sym) and "0" not (a missed
+    pallet is a "0"): two bundles measured on the same frames are then compared pallet by pallet. "" without
+    records."""
+    return "".join("1" if r.get("add_sym_m") is not None and r["add_sym_m"] < 0.05 else "0" for r in records or ())
+
+
+def sign_test(gained: int, lost: int) -> float:
+    """The exact two-sided sign test (McNemar's exact test) on the pallets two bundles disagree on: how likely a
+    split at least this uneven is when each such pallet goes either way with probability 1/2."""
+    n, k = gained + lost, min(gained, lost)
+    if n == 0:
+        return 1.0
+    return min(1.0, 2.0 * sum(math.comb(n, i) for i in range(k + 1)) / 2.0 ** n)
+
+
+def paired_table(names: list[str], results: list[dict]) -> str:
+    """Each bundle after the first against the first, pallet by pallet on the frames both were measured on: the
+    pallets within 5 cm for it alone (+) and for the first alone (-), and the sign test's p; "" for one bundle."""
+    if len(names) < 2:
+        return ""
+    lines = ["| pallets within 5 cm for one bundle alone | " + " | ".join(f"`{n}`" for n in names[1:]) + " |",
+             "|---|" + "---|" * (len(names) - 1)]
+    for measure, sets in (("presets", PAPER_PRESETS), ("forklift", tuple(FORKLIFT_SEEDS["test"]))):
+        for name in sets:
+            key = f"{name}-within5"
+            base = results[0].get(measure, {}).get(key)
+            cells = []
+            for r in results[1:]:
+                other = r.get(measure, {}).get(key)
+                if not base or not other or len(base) != len(other):
+                    cells.append("-")
+                    continue
+                gained = sum(a == "0" and b == "1" for a, b in zip(base, other))
+                lost = sum(a == "1" and b == "0" for a, b in zip(base, other))
+                cells.append(f"+{gained} / -{lost} (p {sign_test(gained, lost):.2g})")
+            if any(c != "-" for c in cells):
+                lines.append(f"| {name} ({len(base)} pallets) | " + " | ".join(cells) + " |")
+    if len(lines) == 2:
+        return ""
+    return (f"Pallet by pallet against `{names[0]}` (within 5 cm for the column's bundle alone +, for `{names[0]}` "
+            "alone -; p: the exact sign test on those pallets, small where the draw of pallets does not explain the "
+            "difference):\n\n" + "\n".join(lines) + "\n")
+
+
 def measure_presets(bundle: Path, precision: str, options: dict, frames: int, data_root: Path,
                     split: str = "test") -> dict:
     from pallet6d.export.accuracy_report import TEST_SEEDS, ensure_test_set
@@ -181,9 +232,11 @@ def measure_presets(bundle: Path, precision: str, options: dict, frames: int, da
         sets = [(seeds[preset], frames)]
         if split == "val":
             sets.append((VAL_POOLED_SEEDS[preset], min(frames, VAL_POOLED_FRAMES)))
-        within, n_gt, missed, by_seed = 0.0, 0, {}, {}
+        within, n_gt, missed, by_seed, bits = 0.0, 0, {}, {}, ""
         for seed, n_frames in sets:
-            s = evaluate_dataset(est, ensure_test_set(preset, n_frames, data_root, seed), "test")["summary"]
+            ev = evaluate_dataset(est, ensure_test_set(preset, n_frames, data_root, seed), "test")
+            s = ev["summary"]
+            bits += within_5cm_bits(ev.get("records"))
             within += s["add_sym_acc"]["0.05"] * s["n_gt"]
             n_gt += s["n_gt"]
             by_seed[seed] = _pct(s["add_sym_acc"]["0.05"])
@@ -195,6 +248,7 @@ def measure_presets(bundle: Path, precision: str, options: dict, frames: int, da
         out[f"{preset}-pallets"] = n_gt
         out[f"{preset}-missed"] = missed
         out[f"{preset}-by_seed"] = by_seed
+        out[f"{preset}-within5"] = bits
     out["seeds"] = {p: seeds[p] if split == "test" else [seeds[p], VAL_POOLED_SEEDS[p]] for p in PAPER_PRESETS}
     return out
 
@@ -208,8 +262,10 @@ def measure_forklift(bundle: Path, precision: str, options: dict, frames: int, d
     out = {}
     for preset, seed in FORKLIFT_SEEDS[split].items():
         root = ensure_test_set(preset, frames, data_root, seed)
-        s = evaluate_dataset(est, root, "test", calibrated=True)["summary"]
+        ev = evaluate_dataset(est, root, "test", calibrated=True)
+        s = ev["summary"]
         out[preset] = _pct(s["add_sym_acc"]["0.05"])
+        out[f"{preset}-within5"] = within_5cm_bits(ev.get("records"))
         out[f"{preset}-precision"] = round(float(s["precision"]), 3)
         out[f"{preset}-pallets"] = s["n_gt"]
         out[f"{preset}-missed"] = s["missed_by_reason"]
@@ -466,7 +522,8 @@ def main(argv: list[str] | None = None) -> int:
             f"{', validation frames' if args.split == 'val' else ''}"
             f"{', quick (a fraction of the frames: not for a decision)' if args.quick else ''}.\n\n"
             + ("Variants (estimator options):\n\n" + "\n".join(shown) + "\n\n" if shown else "")
-            + table(columns, results))
+            + table(columns, results)
+            + (f"\n{paired}" if (paired := paired_table(columns, results)) else ""))
     (args.out / "scorecard.md").write_text(text)
     print(text)
     return 0

@@ -236,3 +236,49 @@ def test_mismatched_inputs_are_measured_on_validation_seeds_and_held_out_on_test
     assert seen[0] == (30, tmp_path / "data")                                       # VAL_SEEDS by default
     assert seen[1] == (30, tmp_path / "test-sets", {"virtual-clean": 9001, "virtual-occluded": 9002,
                                                     "indoor-noisy": 9003})
+
+
+@pytest.mark.parametrize("gained, lost, p", [(0, 0, 1.0), (3, 3, 1.0), (5, 0, 2 / 32), (0, 5, 2 / 32),
+                                             (10, 0, 2 / 1024), (7, 1, 2 * 9 / 256), (1, 2, 1.0)])
+def test_the_sign_test_on_the_pallets_two_bundles_disagree_on(scorecard, gained, lost, p):
+    assert scorecard.sign_test(gained, lost) == pytest.approx(p)
+
+
+def test_within_5cm_bits_keep_each_pallets_outcome_in_order(scorecard):
+    records = [{"add_sym_m": 0.01}, {"add_sym_m": None}, {"add_sym_m": 0.05}, {"add_sym_m": 0.0499}]
+    assert scorecard.within_5cm_bits(records) == "1001"
+    assert scorecard.within_5cm_bits(None) == ""
+
+
+def test_bundles_are_compared_pallet_by_pallet_with_the_first(scorecard):
+    shipped = {"presets": {"virtual-clean-within5": "1111000011", "indoor-noisy-within5": "1110"},
+               "forklift": {"mixed-within5": "10"}}
+    cand = {"presets": {"virtual-clean-within5": "1011110001", "indoor-noisy-within5": "111"},
+            "forklift": {"mixed-within5": "10"}}
+    text = scorecard.paired_table(["shipped", "cand"], [shipped, cand])
+    rows = {line.split(" | ")[0].lstrip("| "): line for line in text.splitlines() if line.startswith("|")}
+    assert rows["virtual-clean (10 pallets)"].endswith("| +2 / -2 (p 1) |")
+    assert rows["mixed (2 pallets)"].endswith("| +0 / -0 (p 1) |")
+    assert not any(k.startswith("indoor-noisy") for k in rows)     # measured on other frames: not compared
+    assert scorecard.paired_table(["shipped"], [shipped]) == ""
+    assert scorecard.paired_table(["a", "b"], [{"presets": {}}, {"presets": {}}]) == ""
+
+
+def test_the_presets_keep_each_pallets_outcome_over_the_pooled_seeds(scorecard, monkeypatch, tmp_path):
+    import pallet6d.export.accuracy_report as accuracy_report
+    import pallet6d.runtime.eval_cli as eval_cli
+
+    outcomes = {8011: [0.01, None], 8021: [0.2], 8012: [], 8022: [0.03], 8013: [None], 8023: [0.04, 0.06]}
+
+    def evaluate(est, seed, split_name):
+        errs = outcomes[seed]
+        return {"summary": {"n_gt": len(errs), "add_sym_acc": {"0.05": 0.5}, "missed_by_reason": {}},
+                "records": [{"add_sym_m": e} for e in errs]}
+
+    monkeypatch.setattr(accuracy_report, "ensure_test_set", lambda preset, frames, root, seed: seed)
+    monkeypatch.setattr(eval_cli, "evaluate_dataset", evaluate)
+    monkeypatch.setattr(scorecard, "_estimator", lambda *a, **k: None)
+    res = scorecard.measure_presets(tmp_path, "int8", {}, 100, tmp_path, "val")
+    assert res["virtual-clean-within5"] == "100"
+    assert res["virtual-occluded-within5"] == "1"
+    assert res["indoor-noisy-within5"] == "010"
