@@ -50,10 +50,10 @@ a second call measures only what is missing (delete a file to measure it again).
 frames, for trying the command, never for a decision. Writes `OUT/scorecard.md`. Latency is not here: it needs an
 otherwise idle machine (`benchmarks/latency.py`).
 
-With two or more bundles the scorecard also compares each with the first pallet by pallet on the presets and the
-forklift views: the pallets only one of them puts within 5 cm, and the exact sign test's p on them (is a difference
-of a few pallets more than the draw of pallets?). Results kept from before the presets and forklift files held each
-pallet's outcome show "-" there until they are measured again.
+With two or more bundles the scorecard also compares each with the first pallet by pallet on the presets, the
+forklift views and the pocket targets: the pallets (targets) only one of them gets right, and the exact sign test's p
+on them (is a difference of a few pallets more than the draw of pallets?). Results kept from before those files held
+each pallet's outcome show "-" there until they are measured again.
 """
 from __future__ import annotations
 
@@ -175,6 +175,15 @@ def _estimator(bundle: Path, precision: str, options: dict, **fixed):
     return PalletEstimator.from_bundle(bundle, threads=2, precision=precision, **{**options, **fixed})
 
 
+# (measure, key of each pallet's outcome as "0"/"1", row label) for the pallet-by-pallet comparison
+PAIRED_ROWS = (tuple(("presets", f"{p}-within5", f"{p} within 5 cm") for p in PAPER_PRESETS)
+               + tuple(("forklift", f"{p}-within5", f"{p} within 5 cm, calibrated") for p in FORKLIFT_SEEDS["test"])
+               + (("pockets", "exact-ok", "EPAL pocket targets, exact depth"),
+                  ("pockets", "d435-ok", "EPAL pocket targets, D435-like depth"),
+                  ("pockets-all", "exact-ok", "every type's pocket targets, exact depth"),
+                  ("pockets-all", "d435-ok", "every type's pocket targets, D435-like depth")))
+
+
 def within_5cm_bits(records: list[dict] | None) -> str:
     """Each counted pallet's outcome in the dataset's order, "1" within 5 cm (ADD-sym) and "0" not (a missed
     pallet is a "0"): two bundles measured on the same frames are then compared pallet by pallet. "" without
@@ -196,28 +205,27 @@ def paired_table(names: list[str], results: list[dict]) -> str:
     pallets within 5 cm for it alone (+) and for the first alone (-), and the sign test's p; "" for one bundle."""
     if len(names) < 2:
         return ""
-    lines = ["| pallets within 5 cm for one bundle alone | " + " | ".join(f"`{n}`" for n in names[1:]) + " |",
+    lines = ["| right for one bundle alone | " + " | ".join(f"`{n}`" for n in names[1:]) + " |",
              "|---|" + "---|" * (len(names) - 1)]
-    for measure, sets in (("presets", PAPER_PRESETS), ("forklift", tuple(FORKLIFT_SEEDS["test"]))):
-        for name in sets:
-            key = f"{name}-within5"
-            base = results[0].get(measure, {}).get(key)
-            cells = []
-            for r in results[1:]:
-                other = r.get(measure, {}).get(key)
-                if not base or not other or len(base) != len(other):
-                    cells.append("-")
-                    continue
-                gained = sum(a == "0" and b == "1" for a, b in zip(base, other))
-                lost = sum(a == "1" and b == "0" for a, b in zip(base, other))
-                cells.append(f"+{gained} / -{lost} (p {sign_test(gained, lost):.2g})")
-            if any(c != "-" for c in cells):
-                lines.append(f"| {name} ({len(base)} pallets) | " + " | ".join(cells) + " |")
+    for measure, key, what in PAIRED_ROWS:
+        base = results[0].get(measure, {}).get(key)
+        cells = []
+        for r in results[1:]:
+            other = r.get(measure, {}).get(key)
+            if not base or not other or len(base) != len(other):
+                cells.append("-")
+                continue
+            gained = sum(a == "0" and b == "1" for a, b in zip(base, other))
+            lost = sum(a == "1" and b == "0" for a, b in zip(base, other))
+            cells.append(f"+{gained} / -{lost} (p {sign_test(gained, lost):.2g})")
+        if any(c != "-" for c in cells):
+            lines.append(f"| {what} ({len(base)}) | " + " | ".join(cells) + " |")
     if len(lines) == 2:
         return ""
-    return (f"Pallet by pallet against `{names[0]}` (within 5 cm for the column's bundle alone +, for `{names[0]}` "
-            "alone -; p: the exact sign test on those pallets, small where the draw of pallets does not explain the "
-            "difference):\n\n" + "\n".join(lines) + "\n")
+    return (f"Pallet by pallet against `{names[0]}` (right for the column's bundle alone +, for `{names[0]}` alone -; "
+            "pallets within 5 cm, pocket targets with both pockets within 2 cm and the face within 1 degree; p: the "
+            "exact sign test on those, small where the draw of pallets does not explain the difference):\n\n"
+            + "\n".join(lines) + "\n")
 
 
 def measure_presets(bundle: Path, precision: str, options: dict, frames: int, data_root: Path,
@@ -362,6 +370,8 @@ def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, fr
         out[key] = _pct(s["within_2cm_1deg"])
         out[f"{key}-targets"] = s["pallets"]
         out[f"{key}-detected"] = s["detected"]
+        out[f"{key}-ok"] = "".join("1" if "pocket_err_m" in r and r["pocket_err_m"] <= 0.02 and r["yaw_err_deg"] <= 1.0
+                                   else "0" for r in s.get("rows", ()))
     out["blocked_safe"] = sum(res[d]["pick_safe_table"]["blocked->safe"] for d in ("clean", "d435"))
     out["seed"] = seed
     return out

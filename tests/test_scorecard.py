@@ -257,8 +257,8 @@ def test_bundles_are_compared_pallet_by_pallet_with_the_first(scorecard):
             "forklift": {"mixed-within5": "10"}}
     text = scorecard.paired_table(["shipped", "cand"], [shipped, cand])
     rows = {line.split(" | ")[0].lstrip("| "): line for line in text.splitlines() if line.startswith("|")}
-    assert rows["virtual-clean (10 pallets)"].endswith("| +2 / -2 (p 1) |")
-    assert rows["mixed (2 pallets)"].endswith("| +0 / -0 (p 1) |")
+    assert rows["virtual-clean within 5 cm (10)"].endswith("| +2 / -2 (p 1) |")
+    assert rows["mixed within 5 cm, calibrated (2)"].endswith("| +0 / -0 (p 1) |")
     assert not any(k.startswith("indoor-noisy") for k in rows)     # measured on other frames: not compared
     assert scorecard.paired_table(["shipped"], [shipped]) == ""
     assert scorecard.paired_table(["a", "b"], [{"presets": {}}, {"presets": {}}]) == ""
@@ -282,3 +282,22 @@ def test_the_presets_keep_each_pallets_outcome_over_the_pooled_seeds(scorecard, 
     assert res["virtual-clean-within5"] == "100"
     assert res["virtual-occluded-within5"] == "1"
     assert res["indoor-noisy-within5"] == "010"
+
+
+def test_pocket_targets_keep_each_targets_outcome_and_are_compared(scorecard, monkeypatch, tmp_path):
+    import forklift_pockets
+
+    rows = [{"pocket_err_m": 0.01, "yaw_err_deg": 0.5}, {"pocket_err_m": 0.03, "yaw_err_deg": 0.5},
+            {"pocket_err_m": 0.01, "yaw_err_deg": 1.5}, {"missed": "no_box"}]
+    summary = {"within_2cm_1deg": 0.25, "pallets": 4, "detected": 3, "pick_safe_table": {"blocked->safe": 0},
+               "rows": rows}
+    monkeypatch.setattr(scorecard, "_forklift_frames", lambda *a: tmp_path)
+    monkeypatch.setattr(scorecard, "_estimator", lambda *a, **k: None)
+    monkeypatch.setattr(forklift_pockets, "npz_frames", lambda root: iter(()))
+    monkeypatch.setattr(forklift_pockets, "evaluate", lambda *a: {"clean": summary, "d435": summary})
+    res = scorecard.measure_pockets(tmp_path, "int8", {}, 60, tmp_path)
+    assert res["exact-ok"] == res["d435-ok"] == "1000"
+    other = dict(res, **{"exact-ok": "0110"})
+    text = scorecard.paired_table(["shipped", "cand"], [{"pockets": res}, {"pockets": other}])
+    assert "| EPAL pocket targets, exact depth (4) | +2 / -1 (p 1) |" in text
+    assert "| EPAL pocket targets, D435-like depth (4) | +0 / -0 (p 1) |" in text
