@@ -181,9 +181,14 @@ def miss_reason(result, box_xyxy) -> str:
     return nearest.reason if nearest is not None and _iou(nearest.box_xyxy, box_xyxy) >= 0.3 else "no_box"
 
 
+def target_met(row: dict) -> bool:
+    """A target posed with both pockets within 2 cm and the face's yaw within 1 degree (the forks' figure)."""
+    return "pocket_err_m" in row and row["pocket_err_m"] <= 0.02 and row["yaw_err_deg"] <= 1.0
+
+
 def summarize(rows: list[dict]) -> dict:
     posed = [r for r in rows if "pocket_err_m" in r]
-    ok = [r for r in posed if r["pocket_err_m"] <= 0.02 and r["yaw_err_deg"] <= 1.0]
+    ok = [r for r in posed if target_met(r)]
     table = {f"{'blocked' if b else 'clear'}->{'safe' if s else 'unsafe'}":
              sum(1 for r in posed if r["gt_blocked"] == b and r["pick_safe"] == s) for b in (True, False)
              for s in (True, False)}

@@ -201,8 +201,9 @@ def sign_test(gained: int, lost: int) -> float:
 
 
 def paired_table(names: list[str], results: list[dict]) -> str:
-    """Each bundle after the first against the first, pallet by pallet on the frames both were measured on: the
-    pallets within 5 cm for it alone (+) and for the first alone (-), and the sign test's p; "" for one bundle."""
+    """Each bundle after the first against the first, pallet by pallet on the frames both were measured on
+    (`PAIRED_ROWS`): the pallets it alone gets right (+), those the first alone gets right (-), and the sign test's p;
+    "" for one bundle or nothing to compare."""
     if len(names) < 2:
         return ""
     lines = ["| right for one bundle alone | " + " | ".join(f"`{n}`" for n in names[1:]) + " |",
@@ -356,7 +357,7 @@ def _forklift_frames(root: Path, frames: int, seed: int, models: str | None) -> 
 
 def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, frames_dir: Path, seed: int = 8,
                     models: str | None = "epal") -> dict:
-    from forklift_pockets import evaluate, npz_frames
+    from forklift_pockets import evaluate, npz_frames, target_met
 
     from pallet6d.runtime.forklift import ForkliftParams
 
@@ -370,8 +371,7 @@ def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, fr
         out[key] = _pct(s["within_2cm_1deg"])
         out[f"{key}-targets"] = s["pallets"]
         out[f"{key}-detected"] = s["detected"]
-        out[f"{key}-ok"] = "".join("1" if "pocket_err_m" in r and r["pocket_err_m"] <= 0.02 and r["yaw_err_deg"] <= 1.0
-                                   else "0" for r in s.get("rows", ()))
+        out[f"{key}-ok"] = "".join("1" if target_met(r) else "0" for r in s.get("rows", ()))
     out["blocked_safe"] = sum(res[d]["pick_safe_table"]["blocked->safe"] for d in ("clean", "d435"))
     out["seed"] = seed
     return out
