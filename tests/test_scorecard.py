@@ -115,7 +115,7 @@ def test_the_validation_split_measures_the_presets_on_validation_seeds_under_dat
 
 
 @pytest.mark.parametrize("split", ["val", "test"])
-def test_validation_presets_pool_two_seeds_and_the_test_sets_keep_one(scorecard, monkeypatch, tmp_path, split):
+def test_validation_presets_pool_their_seeds_and_the_test_sets_keep_one(scorecard, monkeypatch, tmp_path, split):
     import pallet6d.export.accuracy_report as accuracy_report
     import pallet6d.runtime.eval_cli as eval_cli
 
@@ -139,13 +139,14 @@ def test_validation_presets_pool_two_seeds_and_the_test_sets_keep_one(scorecard,
     monkeypatch.setattr(scorecard, "_estimator", lambda *a, **k: None)
     res = scorecard.measure_presets(tmp_path, "int8", {}, 100, tmp_path, split)
     if split == "val":
-        assert ("virtual-clean", 8011, 100) in seen and ("virtual-clean", 8021, 60) in seen and len(seen) == 6
+        assert ("virtual-clean", 8011, 100) in seen and ("virtual-clean", 8021, 60) in seen and len(seen) == 7
         assert res["virtual-clean"] == pytest.approx(100 * (400 * 0.95 + 240 * 0.90) / 640, abs=0.01)
         assert res["virtual-clean-pallets"] == 640
         assert res["virtual-clean-missed"] == {"no_detection": {"n_gt": 6, "refused_within_5cm": 0},
                                                "poor_fit": {"n_gt": 3, "refused_within_5cm": 1}}
         assert res["virtual-clean-by_seed"] == {8011: 95.0, 8021: 90.0}
-        assert res["seeds"]["indoor-noisy"] == [8013, 8023]
+        assert res["seeds"]["indoor-noisy"] == [8013, 8023, 8033]
+        assert ("indoor-noisy", 8033, 300) in seen
     else:
         assert seen == [("virtual-clean", 9001, 100), ("virtual-occluded", 9002, 100), ("indoor-noisy", 9003, 100)]
         assert res["virtual-clean"] == 97.0 and res["virtual-clean-pallets"] == 410
@@ -157,8 +158,7 @@ def test_validation_presets_kept_from_one_seed_are_measured_again(scorecard, tmp
     old.write_text(json.dumps({"virtual-clean": 96.0, "seeds": {"virtual-clean": 8011}}))
     assert scorecard._stale("presets", "val", old)
     now = tmp_path / "presets-val-now.json"
-    now.write_text(json.dumps({"seeds": {p: [scorecard.VAL_SEEDS[p], scorecard.VAL_POOLED_SEEDS[p]]
-                                         for p in scorecard.PAPER_PRESETS}}))
+    now.write_text(json.dumps({"seeds": {p: scorecard.val_seeds(p) for p in scorecard.PAPER_PRESETS}}))
     assert not scorecard._stale("presets", "val", now)
     assert not scorecard._stale("presets", "test", old) and not scorecard._stale("forklift", "val", old)
 
@@ -268,7 +268,8 @@ def test_the_presets_keep_each_pallets_outcome_over_the_pooled_seeds(scorecard, 
     import pallet6d.export.accuracy_report as accuracy_report
     import pallet6d.runtime.eval_cli as eval_cli
 
-    outcomes = {8011: [0.01, None], 8021: [0.2], 8012: [], 8022: [0.03], 8013: [None], 8023: [0.04, 0.06]}
+    outcomes = {8011: [0.01, None], 8021: [0.2], 8012: [], 8022: [0.03], 8013: [None], 8023: [0.04, 0.06],
+                8033: [0.01]}
 
     def evaluate(est, seed, split_name):
         errs = outcomes[seed]
@@ -281,7 +282,7 @@ def test_the_presets_keep_each_pallets_outcome_over_the_pooled_seeds(scorecard, 
     res = scorecard.measure_presets(tmp_path, "int8", {}, 100, tmp_path, "val")
     assert res["virtual-clean-within5"] == "100"
     assert res["virtual-occluded-within5"] == "1"
-    assert res["indoor-noisy-within5"] == "010"
+    assert res["indoor-noisy-within5"] == "0101"
 
 
 def test_pocket_targets_keep_each_targets_outcome_and_are_compared(scorecard, monkeypatch, tmp_path):
