@@ -41,9 +41,9 @@ overrides), so a change of the runtime's options is judged like a new bundle:
 `--split val` runs `presets`, `forklift`, `pockets` and `pockets-all` on validation frames instead (seeds 8011-8013
 pooled with 60 frames each of seeds 8021-8023 and 300 frames of the noisy preset's seed 8033, 8015 / 8016, 8031 (200
 EPAL targets) and 819, under `--data`, made when missing; one seed's 100 frames hold too few pallets to choose on, the
-noisy preset's 100 above all): a change or a training round is chosen there and judged once on the test frames. `mismatched` (validation frames),
-`mismatched-heldout` (test frames), the negatives (the seeds their thresholds were chosen on, and a held-out one) and
-`real` (the held-out photographs) keep their frames either way.
+noisy preset's 100 above all): a change or a training round is chosen there and judged once on the test frames.
+`mismatched` (validation frames), `mismatched-heldout` (test frames), the negatives (the seeds their thresholds were
+chosen on, and a held-out one) and `real` (the held-out photographs) keep their frames either way.
 
 Results are kept per bundle, variant and measure (`OUT/<bundle name>[+<label>]/<measure>[-val]-<precision>.json`):
 a second call measures only what is missing (delete a file to measure it again). `--quick` uses a fraction of the
