@@ -203,7 +203,7 @@ def sign_test(gained: int, lost: int) -> float:
     n, k = gained + lost, min(gained, lost)
     if n == 0:
         return 1.0
-    return min(1.0, 2.0 * sum(math.comb(n, i) for i in range(k + 1)) / 2.0 ** n)
+    return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n)     # exact integers: no overflow
 
 
 def paired_table(names: list[str], results: list[dict]) -> str:

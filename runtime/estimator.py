@@ -56,6 +56,7 @@ __all__ = ["EstimatorOptions", "PalletEstimator", "MAX_THREADS", "check_threads"
 
 # onnxruntime makes every pool's threads when a session is built: a mistyped count (100000) would hang there
 MAX_THREADS = 64
+STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
 
 
 def check_threads(threads) -> int:
@@ -63,8 +64,6 @@ def check_threads(threads) -> int:
     if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or not 1 <= threads <= MAX_THREADS:
         raise ValueError(f"threads must be an integer in 1..{MAX_THREADS}, got {threads!r}")
     return int(threads)
-
-STAGES = ("preprocess", "detector", "decode_nms", "pose_inputs", "fusion", "pose", "selection", "refine", "fit")
 
 
 @dataclass(frozen=True)

@@ -239,7 +239,8 @@ def test_mismatched_inputs_are_measured_on_validation_seeds_and_held_out_on_test
 
 
 @pytest.mark.parametrize("gained, lost, p", [(0, 0, 1.0), (3, 3, 1.0), (5, 0, 2 / 32), (0, 5, 2 / 32),
-                                             (10, 0, 2 / 1024), (7, 1, 2 * 9 / 256), (1, 2, 1.0)])
+                                             (10, 0, 2 / 1024), (7, 1, 2 * 9 / 256), (1, 2, 1.0),
+                                             (600, 600, 1.0), (0, 1100, 0.0)])
 def test_the_sign_test_on_the_pallets_two_bundles_disagree_on(scorecard, gained, lost, p):
     assert scorecard.sign_test(gained, lost) == pytest.approx(p)
 
