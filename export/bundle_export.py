@@ -36,7 +36,7 @@ from .config import ModelConfig
 from .detector import build_detector
 from .graph_reuse import KEEPABLE, take_graphs
 from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git_commit, load_checkpoint,
-                            read_checkpoint, trained_activation, trained_classes, trained_depth_max_m, trained_input_hw,
+                            read_checkpoint, trained_activation, trained_architecture, trained_classes, trained_depth_max_m, trained_input_hw,
                             trained_input_sizes, warm_up_batchnorm)
 from .flops import count_gflops
 from .fusion import build_fusion
@@ -159,7 +159,8 @@ def build_networks(cfg: ModelConfig, *, seed: int = 0, checkpoint: str | Path | 
         if ckpt is not None and (depth_max := trained_depth_max_m(ckpt)) is not None:   # an RGB-D detector
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, depth_max_m=depth_max))
         if ckpt is not None:
-            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, activation=trained_activation(ckpt)))
+            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, activation=trained_activation(ckpt),
+                                                           architecture=trained_architecture(ckpt)))
         if ckpt is not None and (hw := trained_input_hw(ckpt)) not in (None, cfg.detector.input_hw):
             # the detector is fully convolutional: export it at the size it was trained at
             log.info("detector input %s, as trained (config %s: %s)", hw, cfg.name, cfg.detector.input_hw)

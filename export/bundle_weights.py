@@ -40,10 +40,11 @@ from .detector import build_detector
 from .fusion import build_fusion
 from .onnx_io import check_parity, ort_session, run_session
 from .pose import MostConfidentPose, SplitInputConv1d, build_pose
-from .export_inputs import trained_activation
+from .export_inputs import trained_activation, trained_architecture
 from .train_loop import CKPT_FORMAT, load_checkpoint
 
-__all__ = ["BundleWeightsError", "bundle_checkpoint", "detector_activation_of", "graph_activation",
+__all__ = ["BundleWeightsError", "bundle_checkpoint", "detector_activation_of", "detector_architecture_of",
+           "graph_activation", "graph_architecture",
            "load_bundle_weights", "pose_inputs"]
 
 log = logging.getLogger(__name__)
@@ -267,6 +268,24 @@ def graph_activation(graph_path: Path) -> str:
     return "relu" if any(n.op_type == "Relu" for n in onnx.load(str(graph_path)).graph.node) else "silu"
 
 
+def graph_architecture(graph_path: Path) -> str:
+    """The architecture of one of our detector graphs: "yolox-nano" where it has grouped (depthwise)
+    convolutions, else "yolov8"."""
+    grouped = any(n.op_type == "Conv" and any(a.name == "group" and a.i > 1 for a in n.attribute)
+                  for n in onnx.load(str(graph_path)).graph.node)
+    return "yolox-nano" if grouped else "yolov8"
+
+
+def detector_architecture_of(path: str | Path | None) -> str:
+    """The architecture of the detector in `path` (a bundle: its graph's; a checkpoint: its record); "yolov8"
+    for None. :raises ValueError: not a bundle or checkpoint, or an unknown recorded architecture."""
+    if path is None:
+        return "yolov8"
+    if Path(path).is_dir():
+        return graph_architecture(_read_bundle(path).graph("detector", "fp32"))
+    return trained_architecture(load_checkpoint(path))
+
+
 def detector_activation_of(path: str | Path | None) -> str:
     """The activation of the detector in `path` (a bundle: its graph's; a checkpoint: its record); "silu" for
     None. :raises ValueError: not a bundle or checkpoint, or a checkpoint that records an unknown activation."""
@@ -354,7 +373,8 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
         det = bundle.detector
         nets = {"detector": build_detector(dataclasses.replace(
             cfg.detector, input_hw=tuple(det.input_hw), classes=tuple(det.classes), depth_max_m=det.depth_max_m,
-            activation=graph_activation(bundle.graph("detector", "fp32"))))}
+            activation=graph_activation(bundle.graph("detector", "fp32")),
+            architecture=graph_architecture(bundle.graph("detector", "fp32"))))}
     elif stage == "pose":
         nets = {"fusion": build_fusion(cfg.fusion), "pose": build_pose(cfg.pose, cfg.fusion.feature_dim)}
     else:
@@ -369,6 +389,7 @@ def bundle_checkpoint(bundle_dir: str | Path, stage: str) -> dict:
         provenance["classes"] = list(bundle.detector.classes)
         provenance["depth_max_m"] = bundle.detector.depth_max_m
         provenance["activation"] = nets["detector"].cfg.activation
+        provenance["architecture"] = nets["detector"].cfg.architecture
     return {"format": CKPT_FORMAT, "format_version": 1, "stage": stage, "config": bundle.config,
             "epoch": before.get("epoch"), "val": before.get("val"), "provenance": provenance,
             **{k: net.state_dict() for k, net in nets.items()}}

@@ -40,7 +40,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 __all__ = ["DetectorConfig", "FusionConfig", "PoseConfig", "ModelConfig", "CONFIGS", "get_config",
-           "DETECTOR_SCALES", "DETECTOR_ACTIVATIONS"]
+           "DETECTOR_SCALES", "DETECTOR_ACTIVATIONS", "DETECTOR_ARCHITECTURES"]
 
 # YOLOv8 (depth multiple, width multiple, max channels) per scale.
 DETECTOR_SCALES: dict[str, tuple[float, float, int]] = {
@@ -49,6 +49,9 @@ DETECTOR_SCALES: dict[str, tuple[float, float, int]] = {
     "m": (0.67, 0.75, 768),
 }
 DETECTOR_ACTIVATIONS = ("silu", "relu")
+# "yolov8": C2f backbone of `scale`, BatchNorm; "yolox-nano": depthwise CSP network that published COCO weights
+# can start (`export.detector_dw`), fixed width, RGB and SiLU only
+DETECTOR_ARCHITECTURES = ("yolov8", "yolox-nano")
 
 
 def _check_positive(name: str, values) -> None:
@@ -67,6 +70,7 @@ class DetectorConfig:
         clipped to [0, 1], 0 where there is none (`runtime.detector.depth_channel`).
     :ivar activation: one of DETECTOR_ACTIVATIONS. "silu" is YOLOv8's; "relu" folds into the int8 convolutions
         (a SiLU stays two uint8 passes between them), about a quarter less detector time on 2 cores.
+    :ivar architecture: one of DETECTOR_ARCHITECTURES; both give the same outputs and loss.
     """
 
     scale: str = "n"
@@ -78,8 +82,12 @@ class DetectorConfig:
     max_channels: int | None = None
     depth_max_m: float | None = None
     activation: str = "silu"
+    architecture: str = "yolov8"
 
     def __post_init__(self) -> None:
+        if self.architecture not in DETECTOR_ARCHITECTURES:
+            raise ValueError(f"detector architecture {self.architecture!r} unknown; use one of "
+                             f"{DETECTOR_ARCHITECTURES}")
         if self.activation not in DETECTOR_ACTIVATIONS:
             raise ValueError(f"detector activation {self.activation!r} unknown; use one of {DETECTOR_ACTIVATIONS}")
         if self.depth_max_m is not None and not self.depth_max_m > 0:

@@ -201,8 +201,12 @@ class YoloDetector(nn.Module):
         return raw if self.training else self.head.decode(raw)
 
 
-def build_detector(cfg: DetectorConfig) -> YoloDetector:
-    """The detector for `cfg` (random weights)."""
+def build_detector(cfg: DetectorConfig) -> nn.Module:
+    """The detector for `cfg` (random weights): `YoloDetector`, or `detector_dw.DepthwiseDetector` for the
+    "yolox-nano" architecture (the same outputs, loss and ONNX layout)."""
+    if cfg.architecture == "yolox-nano":
+        from .detector_dw import DepthwiseDetector
+        return DepthwiseDetector(cfg)
     return YoloDetector(cfg)
 
 

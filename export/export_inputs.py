@@ -21,11 +21,12 @@ import numpy as np
 import onnx
 import torch
 
-from .config import DETECTOR_ACTIVATIONS, ModelConfig
+from .config import DETECTOR_ACTIVATIONS, DETECTOR_ARCHITECTURES, ModelConfig
 from .onnx_io import ort_session
 
 __all__ = ["ExportError", "DET_IN", "DET_OUT", "git_commit", "warm_up_batchnorm", "read_checkpoint",
            "trained_input_hw", "trained_input_sizes", "trained_depth_max_m", "trained_activation",
+           "trained_architecture",
            "load_checkpoint", "external_detector"]
 
 log = logging.getLogger(__name__)
@@ -98,14 +99,25 @@ def trained_depth_max_m(ckpt: dict) -> float | None:
     return float(v)
 
 
-def trained_activation(ckpt: dict) -> str:
-    """The activation of a checkpoint's detector (`pallet6d train detector --detector-activation`), from its
-    provenance; "silu" when not recorded (every detector trained before the option was one)."""
-    v = _detector_provenance(ckpt).get("activation", "silu")
-    if v not in DETECTOR_ACTIVATIONS:
-        raise ExportError(f"the checkpoint's detector provenance has activation {v!r}, not one of "
-                          f"{DETECTOR_ACTIVATIONS}")
+def _recorded_choice(ckpt: dict, key: str, choices: tuple[str, ...]) -> str:
+    """A detector provenance entry that names one of `choices`; the first choice when not recorded (every
+    detector trained before the option was of that kind)."""
+    v = _detector_provenance(ckpt).get(key, choices[0])
+    if v not in choices:
+        raise ExportError(f"the checkpoint's detector provenance has {key} {v!r}, not one of {choices}")
     return v
+
+
+def trained_activation(ckpt: dict) -> str:
+    """The activation of a checkpoint's detector (`pallet6d train detector --detector-activation`); "silu" when
+    not recorded."""
+    return _recorded_choice(ckpt, "activation", DETECTOR_ACTIVATIONS)
+
+
+def trained_architecture(ckpt: dict) -> str:
+    """The architecture of a checkpoint's detector (`pallet6d train detector --detector-architecture`); "yolov8"
+    when not recorded."""
+    return _recorded_choice(ckpt, "architecture", DETECTOR_ARCHITECTURES)
 
 
 def trained_classes(ckpt: dict) -> tuple[str, ...] | None:

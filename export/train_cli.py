@@ -59,7 +59,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from .config import CONFIGS, DETECTOR_ACTIVATIONS, get_config
+from .config import CONFIGS, DETECTOR_ACTIVATIONS, DETECTOR_ARCHITECTURES, get_config
 
 HELP = "train the detector or the pose stage on BOP datasets (sim presets or annotated recordings)"
 
@@ -176,6 +176,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector: silu (YOLOv8's) or relu (folds into the int8 convolutions: about a quarter "
                              "less detector time on 2 cores); default the --init detector's, else silu. `--init` "
                              "from a detector of the other activation starts from its weights")
+    parser.add_argument("--detector-architecture", choices=DETECTOR_ARCHITECTURES,
+                        help="detector: yolov8 (C2f backbone, BatchNorm) or yolox-nano (depthwise CSP network laid "
+                             "out so that published COCO weights can start it, --pretrained); default the --init "
+                             "detector's, else yolov8")
+    parser.add_argument("--pretrained", type=Path, metavar="ONNX",
+                        help="detector: start a yolox-nano detector from the published YOLOX-Nano ONNX export "
+                             "(docs/data.md, Pretrained weights)")
     parser.add_argument("--real", type=Path,
                         help="detector: also train on the train split of real photographs imported by "
                              "`python -m pallet6d.export.real_data import` (this folder; docs/data.md)")
@@ -334,13 +341,16 @@ def main(args: argparse.Namespace) -> int:
                 print("pallet6d train: --detector-depth-max-m is for the detector stage", file=sys.stderr)
                 return 2
             cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, depth_max_m=args.detector_depth_max_m))
-        if args.detector_activation is not None and args.stage != "detector":
-            print("pallet6d train: --detector-activation is for the detector stage", file=sys.stderr)
+        if (args.detector_activation or args.detector_architecture or args.pretrained) and args.stage != "detector":
+            print("pallet6d train: --detector-activation, --detector-architecture and --pretrained are for the "
+                  "detector stage", file=sys.stderr)
             return 2
         if args.stage == "detector":
-            from .bundle_weights import detector_activation_of
+            from .bundle_weights import detector_activation_of, detector_architecture_of
             activation = args.detector_activation or detector_activation_of(args.init)
-            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, activation=activation))
+            architecture = args.detector_architecture or detector_architecture_of(args.init)
+            cfg = cfg.replace(detector=dataclasses.replace(cfg.detector, activation=activation,
+                                                           architecture=architecture))
         sizes = args.detector_input_sizes
         if sizes is not None:
             if args.stage != "detector" or not sizes:
@@ -403,7 +413,7 @@ def main(args: argparse.Namespace) -> int:
                                    real_repeat_large=args.real_repeat_large, select=args.select,
                                    loader_threads=args.loader_threads, class_lr_mult=args.class_lr_mult,
                                    mosaic=args.mosaic, distill=args.distill, distill_weight=args.distill_weight,
-                                   **common)
+                                   pretrained=args.pretrained, **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

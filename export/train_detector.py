@@ -412,7 +412,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                    real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None,
                    real_repeat_large: int = 1, select: str = "loss", loader_threads: int = 1,
                    class_lr_mult: float = 1.0, mosaic: float = 0.0, distill: str | Path | None = None,
-                   distill_weight: float = 1.0) -> dict:
+                   distill_weight: float = 1.0, pretrained: str | Path | None = None) -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry.
 
@@ -422,7 +422,9 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     :param mosaic: share of the training inputs that hold four frames (`DetectorTrainer`).
     :param distill: a bundle or checkpoint whose detector (of its own activation) is the fixed teacher, matched at
         every anchor with `distill_weight` (`losses.detector_distill_loss`); e.g. the SiLU detector a ReLU one
-        starts from."""
+        starts from.
+    :param pretrained: the published YOLOX-Nano ONNX export whose weights start a "yolox-nano" detector
+        (`pretrained_dw.load_yolox_onnx`; not with `init`)."""
     if not class_lr_mult > 0:
         raise ValueError(f"class_lr_mult must be positive, got {class_lr_mult}")
     run_dir = Path(run_dir)
@@ -432,13 +434,21 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                             val_fraction, max_frames, progress, real, real_max_images, real_repeat_large)
     teacher, teacher_record = None, None
     if distill is not None:
-        from .bundle_weights import detector_activation_of
-        teacher = build_detector(replace(cfg.detector, activation=detector_activation_of(distill)))
+        from .bundle_weights import detector_activation_of, detector_architecture_of
+        teacher = build_detector(replace(cfg.detector, activation=detector_activation_of(distill),
+                                         architecture=detector_architecture_of(distill)))
         teacher_record = {"weights": load_init_weights(distill, {"detector": teacher}), "weight": distill_weight,
                           "activation": teacher.cfg.activation}
     trainer = DetectorTrainer(cfg, dd, aug, settings.device, amp=settings.amp, input_sizes=input_sizes,
                               select=select, loader_threads=loader_threads, mosaic=mosaic, teacher=teacher,
                               distill_weight=distill_weight)
+    pretrained_record = None
+    if pretrained is not None:
+        if cfg.detector.architecture != "yolox-nano" or init is not None:
+            raise ValueError("pretrained weights start a 'yolox-nano' detector (and not one given --init)")
+        from .pretrained_dw import load_yolox_onnx
+        # a resumed run's checkpoint holds the weights; the record is the same file's
+        pretrained_record = load_yolox_onnx(trainer.detector, pretrained)
     # YOLOv8 practice: no weight decay on BatchNorm weights and biases; the class outputs at their own rate
     params = dict(trainer.detector.named_parameters())
     class_out = [n for n in params if n in class_output_names(trainer.detector)] if class_lr_mult != 1.0 else []
@@ -451,6 +461,7 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     provenance = {"stage": "detector", "config": cfg.name, "input_hw": list(cfg.detector.input_hw),
                   "input_sizes": [list(hw) for hw in trainer.input_sizes], "classes": list(cfg.detector.classes),
                   "depth_max_m": cfg.detector.depth_max_m, "activation": cfg.detector.activation,
+                  "architecture": cfg.detector.architecture, "pretrained": pretrained_record,
                   **({"depth_off_prob": DEPTH_OFF_PROB, "depth_mismatch_prob": DEPTH_MISMATCH_PROB}
                      if cfg.detector.depth_max_m is not None else {}),
                   "seed": settings.seed, "command": command,
