@@ -36,8 +36,8 @@ from .config import ModelConfig
 from .detector import build_detector
 from .graph_reuse import KEEPABLE, take_graphs
 from .export_inputs import (DET_IN, DET_OUT, ExportError, external_detector, git_commit, load_checkpoint,
-                            read_checkpoint, trained_activation, trained_architecture, trained_classes, trained_depth_max_m, trained_input_hw,
-                            trained_input_sizes, warm_up_batchnorm)
+                            read_checkpoint, trained_activation, trained_architecture, trained_classes,
+                            trained_depth_max_m, trained_input_hw, trained_input_sizes, warm_up_batchnorm)
 from .flops import count_gflops
 from .fusion import build_fusion
 from .onnx_io import check_parity, export_graph, graph_diff, ort_session
