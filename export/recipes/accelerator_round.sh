@@ -7,7 +7,9 @@
 # env: FRAMES (per chunk, 25), SIM_S (seconds of simulation, 190), TRAIN_MIN (minutes of training, 4.6),
 #      DEVICE (cuda), PROCS (16), SEED (21), DET_EPOCHS (7), POSE_EPOCHS (12), BUNDLE (models/epal-default),
 #      STAGES ("det pose": which networks to train), DET_INIT / POSE_INIT (a checkpoint or bundle to start from:
-#      BUNDLE), POSE_LR (2e-4), DET_LR (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
+#      BUNDLE; DET_INIT=none for a detector started by DET_ARGS, e.g. "--detector-architecture yolox-nano
+#      --pretrained data/pretrained/yolox_nano.onnx", with data/pretrained carried), POSE_LR (2e-4), DET_LR
+#      (3e-4), CHUNKS_FILE (lines "NAME PRESET SEED [sim args]" instead of the
 #      built-in mix), CHUNK_S (seconds a chunk needs: none starts later than that before the simulation's end, 55),
 #      DET_REPEAT / POSE_REPEAT (name prefixes of chunks the detector / the pose stage sees twice, e.g. "vo- in-",
 #      "faepal-"; none), POSE_CONFIG (edge2-dilated), DET_ARGS (more `pallet6d train detector` flags, e.g.
@@ -73,7 +75,8 @@ for p in ${POSE_REPEAT:-}; do POSE_DIRS="$POSE_DIRS $(named "$p")"; done
 HARD=$(python3 -c "print(int($TRAIN_MIN * 60 + 75))")   # a pose phase's start-up and calibration: POSE_SLACK_S more
 POSE_HARD=$((HARD + ${POSE_SLACK_S:-0}))
 export OMP_NUM_THREADS=3
-[[ " $STAGES " == *" det "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train detector --config edge2-dilated --init "$DET_INIT" \
+DET_INIT_ARGS=(--init "$DET_INIT"); [ "$DET_INIT" = none ] && DET_INIT_ARGS=()
+[[ " $STAGES " == *" det "* ]] && timeout "$HARD" python3 -m pallet6d.runtime.cli train detector --config edge2-dilated "${DET_INIT_ARGS[@]}" \
   --data $DET_DIRS --real "$REAL" --real-repeat-large 3 --select near_f1 \
   --detector-input-sizes 192x640,256x480,288x416,320x384 --epochs "$DET_EPOCHS" --batch 16 --lr "$DET_LR" \
   --seed "$SEED" --device "$DEVICE" --amp --loader-threads 10 --max-minutes "$TRAIN_MIN" --no-progress \
