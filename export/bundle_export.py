@@ -43,7 +43,7 @@ from .fusion import build_fusion
 from .onnx_io import check_parity, export_graph, graph_diff, ort_session
 from .pallet_types import class_ids_for_types, trained_pallet_types, write_pallet_types
 from .pose import MostConfidentPose, build_pose
-from .quantize import INT8_RECIPES, quantize_graph
+from .quantize import int8_recipe, quantize_graph
 from .weights_fp16 import store_weights_fp16
 from .weights_int8 import store_weights_int8
 
@@ -306,7 +306,7 @@ def quantize_graphs(g: Graphs, out: Path, stages: tuple[str, ...] = INT8_STAGES,
             continue
         # what each stage quantizes and keeps float: quantize.INT8_RECIPES
         files[stage] = quantize_graph(g.files[stage], out / f"{stage}.int8.onnx", g.feeds[stage][:g.split[stage]],
-                                      **INT8_RECIPES[stage])
+                                      **int8_recipe(stage, g.files[stage]))
         checks[stage] = graph_diff(g.files[stage], files[stage], g.held_out(stage))
         if stage == "detector" and len(g.detector_sizes) > 1:
             checks["detector_by_size"] = {

@@ -38,7 +38,7 @@ from .calib_data import CalibrationSet, make_calibration_set
 from .config import get_config
 from .detector import build_detector
 from .fusion import build_fusion
-from .onnx_io import check_parity, ort_session, run_session
+from .onnx_io import check_parity, has_grouped_convs, ort_session, run_session
 from .pose import MostConfidentPose, SplitInputConv1d, build_pose
 from .export_inputs import trained_activation, trained_architecture
 from .train_loop import CKPT_FORMAT, load_checkpoint
@@ -271,9 +271,7 @@ def graph_activation(graph_path: Path) -> str:
 def graph_architecture(graph_path: Path) -> str:
     """The architecture of one of our detector graphs: "yolox-nano" where it has grouped (depthwise)
     convolutions, else "yolov8"."""
-    grouped = any(n.op_type == "Conv" and any(a.name == "group" and a.i > 1 for a in n.attribute)
-                  for n in onnx.load(str(graph_path)).graph.node)
-    return "yolox-nano" if grouped else "yolov8"
+    return "yolox-nano" if has_grouped_convs(graph_path) else "yolov8"
 
 
 def detector_architecture_of(path: str | Path | None) -> str:

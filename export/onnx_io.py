@@ -15,7 +15,7 @@ import torch
 from pallet6d.runtime.sessions import session_options
 
 __all__ = ["OPSET", "PARITY_TOLERANCE", "ParityError", "export_graph", "check_parity", "compare_outputs", "graph_diff", "ort_session",
-           "run_session"]
+           "run_session", "has_grouped_convs"]
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,12 @@ def export_graph(model: torch.nn.Module, args: tuple[torch.Tensor, ...], path: P
     onnx.checker.check_model(onnx.load(str(path)), full_check=True)
     log.info("exported %s (%.1f MB)", path.name, path.stat().st_size / 1e6)
     return path
+
+
+def has_grouped_convs(path: str | Path) -> bool:
+    """Whether the graph at `path` has a grouped (e.g. depthwise) convolution."""
+    return any(n.op_type == "Conv" and any(a.name == "group" and a.i > 1 for a in n.attribute)
+               for n in onnx.load(str(path)).graph.node)
 
 
 def ort_session(path: Path, threads: int = 2) -> ort.InferenceSession:

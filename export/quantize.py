@@ -24,7 +24,9 @@ from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, 
                                       quantize_static)
 from onnxruntime.quantization.shape_inference import quant_pre_process
 
-__all__ = ["CONV_OPS", "DETECTOR_OPS", "INT8_RECIPES", "quantize_graph"]
+from .onnx_io import has_grouped_convs
+
+__all__ = ["CONV_OPS", "DETECTOR_OPS", "INT8_RECIPES", "int8_recipe", "quantize_graph"]
 
 CONV_OPS = ("Conv",)
 # the detector's backbone, neck and heads up to the box/class logits: convs, SiLU (or ReLU, which onnxruntime folds
@@ -41,14 +43,27 @@ DETECTOR_OPS = ("Conv", "Sigmoid", "Mul", "Relu", "Add", "Concat", "MaxPool", "R
 # ~1 cm steps; a uint8 confidence ties the argmax). Every range is the extremes over all calibration batches: the
 # mean of the batches' extremes (`moving_average`) clipped the fusion features (14-20 % RMS error against 2 %) and
 # posed 11 fewer occluded validation pallets of 821 with the detector (docs/experiments/detector-levels.md).
+# The depthwise detector (`detector_dw`, no BatchNorm) also keeps its stem and first downsampling float: a few
+# channels there span far wider ranges than the rest, and one uint8 scale per tensor moved its class scores by up
+# to 0.5 (indoor-noisy validation AP 0.95 -> 0.24); with the two float, 0.96 (docs/experiments/real-data.md).
 INT8_RECIPES: dict[str, dict] = {
     "detector": {"op_types": DETECTOR_OPS, "exclude_nodes": ("/head/cls.*.2/Conv",),
                  "float_after": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv")},
+    "detector-depthwise": {"op_types": DETECTOR_OPS,
+                           "exclude_nodes": ("/head/cls.*.2/Conv", "/stem/*", "/dark2/dark2.0/*"),
+                           "float_after": ("/head/box.*.2/Conv", "/head/cls.*.2/Conv")},
     "fusion": {"exclude_nodes": ("/*/final/Conv",)},
     "pose": {"exclude_nodes": ("/conv1/Conv", "/head_[rtc]/head_[rtc].6/Conv")},
 }
 
 log = logging.getLogger(__name__)
+
+
+def int8_recipe(stage: str, fp32_path: Path) -> dict:
+    """`quantize_graph`'s keyword arguments for `stage`'s graph at `fp32_path` (a depthwise detector has its own)."""
+    if stage == "detector" and has_grouped_convs(fp32_path):
+        return INT8_RECIPES["detector-depthwise"]
+    return INT8_RECIPES[stage]
 
 
 def _downstream(graph: onnx.GraphProto, patterns: tuple[str, ...]) -> list[str]:

@@ -13,6 +13,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from pallet6d.export.bundle_weights import graph_architecture  # noqa: E402
+from pallet6d.export.quantize import INT8_RECIPES, int8_recipe, quantize_graph  # noqa: E402
 from pallet6d.export.config import DetectorConfig, get_config  # noqa: E402
 from pallet6d.export.detector import YoloDetector, build_detector  # noqa: E402
 from pallet6d.export.detector_dw import DW_HEAD_WIDTH, DepthwiseDetector  # noqa: E402
@@ -130,3 +131,27 @@ def test_graph_and_checkpoint_say_their_architecture(tmp_path):
     assert trained_architecture({"provenance": {"stage": "detector"}}) == "yolov8"
     with pytest.raises(ExportError, match="architecture"):
         trained_architecture({"provenance": {"stage": "detector", "architecture": "resnet"}})
+
+
+def test_int8_keeps_the_depthwise_detectors_stem_and_first_downsampling_float(tmp_path):
+    torch.manual_seed(0)
+    x = torch.rand(1, 3, *DW.input_hw)
+    dw = export_graph(build_detector(DW).eval(), (x,), tmp_path / "dw.onnx", ["images"], ["output0"])
+    v8 = export_graph(build_detector(dataclasses.replace(DW, architecture="yolov8")).eval(), (x,),
+                      tmp_path / "v8.onnx", ["images"], ["output0"])
+    assert int8_recipe("detector", v8) is INT8_RECIPES["detector"]
+    recipe = int8_recipe("detector", dw)
+    assert recipe is INT8_RECIPES["detector-depthwise"] and int8_recipe("fusion", dw) is INT8_RECIPES["fusion"]
+    rng = np.random.default_rng(0)
+    feeds = [{"images": rng.random((1, 3, *DW.input_hw), dtype=np.float32)} for _ in range(2)]
+    graph = onnx.load(str(quantize_graph(dw, tmp_path / "dw.int8.onnx", feeds, **recipe))).graph
+    made_by = {o: n for n in graph.node for o in n.output}
+    convs = {n.name: n for n in graph.node if n.op_type == "Conv"}
+
+    def weight_dequantized(conv) -> bool:
+        src = made_by.get(conv.input[1])
+        return src is not None and src.op_type == "DequantizeLinear"
+
+    assert not weight_dequantized(convs["/stem/conv/Conv"])
+    assert not weight_dequantized(convs["/dark2/dark2.0/dconv/conv/Conv"])
+    assert weight_dequantized(convs["/dark3/dark3.0/dconv/conv/Conv"])
