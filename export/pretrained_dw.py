@@ -15,9 +15,20 @@ import torch
 
 from .detector_dw import DepthwiseDetector
 
-__all__ = ["PretrainedError", "load_yolox_onnx", "published_convs"]
+__all__ = ["PretrainedError", "PUBLISHED_WEIGHTS", "load_yolox_onnx", "published_convs"]
 
 _OUTPUT_PREFIXES = ("head.cls_preds.", "head.reg_preds.", "head.obj_preds.")
+
+# Weight files whose source and licence are known, by sha256: a bundle's data card lists the one its detector
+# started from (`real_data.ship_card`), and refuses a file not listed here (no licence, no use).
+PUBLISHED_WEIGHTS: dict[str, dict[str, str]] = {
+    "695e750a5d5754bb5a8d5325643b59282191a7e7a564e435a415fd3c578eab14": {
+        "name": "YOLOX-Nano, COCO 2017 (80 classes), ONNX at 416 x 416",
+        "repository": "github.com/Kazuhito00/YOLOX-ONNX-TFLite-Sample", "path": "model/yolox_nano.onnx",
+        "licence": "Apache-2.0 (the repository; the weights are Megvii's YOLOX-Nano release, Apache-2.0)",
+        "attribution": "YOLOX: Exceeding YOLO Series in 2021, Z. Ge, S. Liu, F. Wang, Z. Li, J. Sun (Megvii); "
+                       "ONNX export by the GitHub user Kazuhito00"},
+}
 
 
 class PretrainedError(ValueError):

@@ -552,9 +552,35 @@ def ship_card(data_root: str | Path, bundle_dir: str | Path) -> Path:
     card = data_root / "card.json"
     if not card.exists():
         raise ValueError(f"{card} not found: import the real data first")
-    (bundle_dir / "data_card.json").write_text(card.read_text())
-    (bundle_dir / "data_card.md").write_text((data_root / "card.md").read_text())
+    text_json, text_md = card.read_text(), (data_root / "card.md").read_text()
+    weights = pretrained_weights_of(bundle_dir)
+    if weights is not None:
+        text_json = json.dumps({**json.loads(text_json), "pretrained_weights": weights}, indent=1)
+        text_md += "\n" + "\n".join(["## Pretrained weights", "", "The detector started from these published weights:",
+                                      "", *(f"- {k}: {v}" for k, v in weights.items()), ""])
+    (bundle_dir / "data_card.json").write_text(text_json)
+    (bundle_dir / "data_card.md").write_text(text_md)
     return bundle_dir / "data_card.json"
+
+
+def pretrained_weights_of(bundle_dir: Path) -> dict | None:
+    """The published weights a bundle's detector started from (its report's training record), with their source
+    and licence; None when it started from none.
+
+    :raises ValueError: weights whose source and licence are not known (`pretrained_dw.PUBLISHED_WEIGHTS`).
+    """
+    from .pretrained_dw import PUBLISHED_WEIGHTS
+
+    report = bundle_dir / "report.json"
+    training = json.loads(report.read_text()).get("provenance", {}).get("training", {}) if report.exists() else {}
+    record = (training.get("detector") or {}).get("pretrained")
+    if not record:
+        return None
+    known = PUBLISHED_WEIGHTS.get(record.get("sha256", ""))
+    if known is None:
+        raise ValueError(f"{bundle_dir}: its detector started from {record.get('file')!r} (sha256 "
+                         f"{record.get('sha256')}), whose source and licence are not known: no licence, no use")
+    return {"file": record["file"], "sha256": record["sha256"], **known}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

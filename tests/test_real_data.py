@@ -317,6 +317,35 @@ def test_card_ships_beside_a_bundle(raw_sources, tmp_path):
         ship_card(tmp_path / "nothing", bundle)
 
 
+def test_card_lists_the_pretrained_weights_the_detector_started_from(raw_sources, tmp_path):
+    pytest.importorskip("torch")
+    from pallet6d.export.pretrained_dw import PUBLISHED_WEIGHTS
+    from pallet6d.export.real_data import ship_card
+
+    raw, sources = raw_sources
+    out = tmp_path / "real"
+    import_sources(raw, out, sources)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir()
+    (bundle / "manifest.json").write_text("{}")
+    sha = next(iter(PUBLISHED_WEIGHTS))
+
+    def report(pretrained):
+        (bundle / "report.json").write_text(json.dumps(
+            {"provenance": {"training": {"detector": {"pretrained": pretrained}}}}))
+
+    report({"file": "yolox_nano.onnx", "sha256": sha, "convolutions": 104})
+    card = json.loads(ship_card(out, bundle).read_text())
+    assert card["format"] == "pallet6d-data-card" and card["pretrained_weights"]["sha256"] == sha
+    assert card["pretrained_weights"]["licence"] == PUBLISHED_WEIGHTS[sha]["licence"]
+    assert "## Pretrained weights" in (bundle / "data_card.md").read_text()
+    report({"file": "other.onnx", "sha256": "0" * 64})
+    with pytest.raises(ValueError, match="no licence, no use"):
+        ship_card(out, bundle)
+    report(None)                                       # a detector started from no published weights
+    assert "pretrained_weights" not in json.loads(ship_card(out, bundle).read_text())
+
+
 def test_validation_cut_keeps_capture_time_windows_together():
     from pallet6d.export.real_data import ImageRecord
     from pallet6d.export.real_samples import real_train_val, validation_unit
