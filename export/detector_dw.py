@@ -13,7 +13,7 @@ import torch
 from torch import nn
 
 from .config import DetectorConfig
-from .detector import DetectHead
+from .detector import DFL, DetectHead
 
 __all__ = ["DepthwiseDetector", "DW_WIDTHS", "DW_HEAD_WIDTH"]
 
@@ -106,9 +106,7 @@ class DepthwiseHead(DetectHead):
     convolutions per branch."""
 
     def __init__(self, nc: int, channels: tuple[int, ...], reg_max: int) -> None:
-        nn.Module.__init__(self)
-        from .detector import DFL
-
+        nn.Module.__init__(self)           # DetectHead's layers are not these
         self.nc, self.reg_max = nc, reg_max
         w = DW_HEAD_WIDTH
         self.stems = nn.ModuleList(ConvAct(c, w, 1) for c in channels)
