@@ -569,13 +569,13 @@ def pretrained_weights_of(bundle_dir: Path) -> dict | None:
 
     :raises ValueError: weights whose source and licence are not known (`pretrained_dw.PUBLISHED_WEIGHTS`).
     """
-    from .pretrained_dw import PUBLISHED_WEIGHTS
-
     report = bundle_dir / "report.json"
     training = json.loads(report.read_text()).get("provenance", {}).get("training", {}) if report.exists() else {}
     record = (training.get("detector") or {}).get("pretrained")
     if not record:
         return None
+    from .pretrained_dw import PUBLISHED_WEIGHTS       # torch: only for a detector that started from weights
+
     known = PUBLISHED_WEIGHTS.get(record.get("sha256", ""))
     if known is None:
         raise ValueError(f"{bundle_dir}: its detector started from {record.get('file')!r} (sha256 "
