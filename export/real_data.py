@@ -34,11 +34,13 @@ import re
 import subprocess
 import sys
 import tarfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+
+from .unit_boxes import PALLET_COLOURS, colour_mask, pallet_boxes_in_units
 
 __all__ = ["Source", "SOURCES", "ImageRecord", "parse_yolo_label", "file_stem", "unstretched_size",
            "sequence_of", "nearest_labels", "split_by_sequence", "import_sources", "write_card",
@@ -81,6 +83,7 @@ class Source:
     augmented_folders: tuple[str, ...] = ()
     other_classes: tuple[int, ...] = ()
     licence_file: str = ""
+    pallet_colour: str = ""     # loaded_unit sources: the pallet's colour (`unit_boxes.PALLET_COLOURS`), to find its box
 
     def __post_init__(self) -> None:
         if self.convention not in CONVENTIONS:
@@ -89,6 +92,9 @@ class Source:
             raise ValueError(f"source {self.name}: unknown sequence rule {self.sequence_rule!r}")
         if self.original_aspect <= 0:
             raise ValueError(f"source {self.name}: original_aspect must be > 0")
+        if self.pallet_colour and (self.convention != "loaded_unit" or self.pallet_colour not in PALLET_COLOURS):
+            raise ValueError(f"source {self.name}: pallet_colour needs convention 'loaded_unit' and one of "
+                             f"{sorted(PALLET_COLOURS)}, got {self.pallet_colour!r}")
 
     @property
     def all_folders(self) -> tuple[str, ...]:
@@ -138,7 +144,7 @@ SOURCES: tuple[Source, ...] = (
            attribution="Palet Counter With Zone Detect v3 by Roboflow user ranggadev (CC BY 4.0)",
            url="https://universe.roboflow.com/ranggadev/palet-counter-with-zone-detect-lxfz6/dataset/3",
            pallet_classes=(0,), original_aspect=1024 / 579, aspect_known=True, convention="loaded_unit",
-           kinds=("plastic", "loaded"), sequence_rule="video",
+           kinds=("plastic", "loaded"), sequence_rule="video", pallet_colour="red",
            shows="red plastic pallets loaded with beer cases on a roller conveyor, frames of two videos (the "
                  "repository's unlabelled `dataset/` folder holds the 1024x579 originals of the `palet` frames); "
                  "the box covers the whole loaded unit"),
@@ -170,6 +176,8 @@ class ImageRecord:
     negative: bool = False
     augmented: bool = False
     origin: str = ""      # path inside the source repository
+    boxes_from: str = "label"   # "label", or "colour": found inside the uploader's loaded-unit boxes (`unit_boxes`)
+    unit_boxes_xyxy: list[list[float]] = field(default_factory=list)   # those loaded-unit boxes, where found so
 
     def box_array(self) -> np.ndarray:
         """(n, 4) float64 xyxy pixels."""
@@ -373,10 +381,13 @@ def import_sources(raw_root: str | Path, out_root: str | Path, sources: Sequence
                 negative = len(boxes) == 0 and bool(classes & set(src.other_classes))
                 if len(boxes) == 0 and not negative:
                     stats["unlabelled"] += 1    # an empty label file says nothing: pallets may be unlabelled
-                recs.append(ImageRecord(image=str(rel), source=src.name, stem=stem, width=w, height=h,
-                                        boxes_xyxy=np.round(boxes, 2).tolist(), convention=src.convention,
-                                        kinds=list(src.kinds), sequence="", negative=negative,
-                                        augmented=augmented, origin=str(img_path.relative_to(base))))
+                rec = ImageRecord(image=str(rel), source=src.name, stem=stem, width=w, height=h,
+                                  boxes_xyxy=np.round(boxes, 2).tolist(), convention=src.convention,
+                                  kinds=list(src.kinds), sequence="", negative=negative,
+                                  augmented=augmented, origin=str(img_path.relative_to(base)))
+                if src.pallet_colour and len(boxes):
+                    _pallet_boxes_by_colour(rec, bgr[:, :, ::-1], src.pallet_colour)
+                recs.append(rec)
                 if src.sequence_rule == "capture-day":
                     descs.append(thumbnail(bgr[:, :, ::-1]))
         keep = [k for k, r in enumerate(recs) if r.boxes_xyxy or r.negative]
@@ -412,6 +423,18 @@ def import_sources(raw_root: str | Path, out_root: str | Path, sources: Sequence
     return records
 
 
+def _pallet_boxes_by_colour(rec: ImageRecord, rgb: np.ndarray, colour: str) -> None:
+    """Turn a loaded-unit record into a whole-pallet one where every unit's pallet is found by its colour; a record
+    with any unit not found keeps its loaded-unit boxes (half-labelled photos would teach the detector that the
+    other pallets are background)."""
+    found = pallet_boxes_in_units(colour_mask(np.ascontiguousarray(rgb), PALLET_COLOURS[colour]), rec.box_array())
+    if any(b is None for b in found):
+        return
+    rec.unit_boxes_xyxy = rec.boxes_xyxy
+    rec.boxes_xyxy = np.round(np.stack(found), 2).tolist()
+    rec.convention, rec.boxes_from = "whole_pallet", "colour"
+
+
 def load_records(root: str | Path) -> list[ImageRecord]:
     """The records of an imported dataset (`root/labels.json`)."""
     path = Path(root) / "labels.json"
@@ -437,13 +460,15 @@ def box_size_bins(box_h_px: np.ndarray, image_h_px: float) -> np.ndarray:
 
 
 def card_summary(records: Sequence[ImageRecord]) -> dict:
-    """Counts per source and split: images, negatives, boxes, and boxes per size bin."""
+    """Counts per source and split: images, negatives, boxes, boxes per size bin, and images whose pallet boxes were
+    found by colour inside loaded-unit boxes."""
     out: dict = {}
     for r in records:
         s = out.setdefault(r.source, {}).setdefault(r.split, {"images": 0, "negatives": 0, "boxes": 0,
                                                              "small": 0, "medium": 0, "large": 0,
-                                                             "sequences": set()})
+                                                             "boxes_by_colour": 0, "sequences": set()})
         s["images"] += 1
+        s["boxes_by_colour"] += int(r.boxes_from == "colour")
         s["negatives"] += int(r.negative)
         s["boxes"] += len(r.boxes_xyxy)
         s["sequences"].add(r.sequence)
@@ -476,7 +501,7 @@ def write_card(out_root: Path, records: Sequence[ImageRecord], sources: Sequence
             "name": src.name, "repository": f"https://github.com/{src.repo}", "commit": src.commit,
             "folders": list(src.all_folders), "licence": src.licence, "licence_file": src.licence_file,
             "attribution": src.attribution, "url": src.url, "shows": src.shows, "kinds": list(src.kinds),
-            "label_convention": src.convention,
+            "label_convention": src.convention, "pallet_colour": src.pallet_colour,
             "original_aspect": round(src.original_aspect, 4), "aspect_known": src.aspect_known,
             "augmented_folders": list(src.augmented_folders), "split_rule": split_rule[src.sequence_rule],
             "dropped": dropped.get(src.name, {}), "counts": summary.get(src.name, {})})
@@ -510,11 +535,21 @@ def card_markdown(card: dict) -> str:
                   f"folders {', '.join(s['folders'])}", f"- licence: {s['licence']} ({s['licence_file']})",
                   f"- attribution: {s['attribution']}", f"- url: {s['url']}", f"- shows: {s['shows']}",
                   f"- kinds: {', '.join(s['kinds'])}; label convention: {s['label_convention']}",
+                  *_colour_line(s),
                   f"- stretch undone to aspect {s['original_aspect']} "
                   f"({'known' if s['aspect_known'] else 'assumed from the image content'})",
                   f"- uploader's augmented copies: {', '.join(s['augmented_folders']) or 'none used'}",
                   f"- split: {s['split_rule']}", f"- dropped: {s['dropped']}", ""]
     return "\n".join(lines)
+
+
+def _colour_line(source: dict) -> list[str]:
+    if not source.get("pallet_colour"):
+        return []
+    found = {split: c.get("boxes_by_colour", 0) for split, c in sorted(source["counts"].items())}
+    return [f"- pallet boxes found by the pallet's colour ({source['pallet_colour']}) inside the loaded-unit boxes "
+            f"(pallet6d.export.unit_boxes), where every unit's pallet was found; those images count as whole-pallet "
+            f"photos: {', '.join(f'{k} {v}' for k, v in found.items())}; the rest keep loaded-unit boxes"]
 
 
 # ----------------------------------------------------------------------------------------------- extract
