@@ -66,10 +66,10 @@ class RealDataReport:
         match, matched = match_greedy(pred_xyxy, scores, gt, iou_threshold)
         tp = match >= 0
         counts = (len(gt), int(matched.sum()), len(pred_xyxy), int(tp.sum()), 1)
-        self.by_source.setdefault(rec["source"], Tally()).add(*counts)
         if rec["convention"] != "whole_pallet":
             self.other_convention.setdefault(rec["source"], Tally()).add(*counts)
             return
+        self.by_source.setdefault(rec["source"], Tally()).add(*counts)
         self.overall.add(*counts)
         for kind in rec["kinds"]:
             self.by_kind.setdefault(kind, Tally()).add(*counts)

@@ -26,14 +26,20 @@ VAL_WINDOW_S = 600   # capture-time window kept together by the validation cut
 
 
 def real_train_val(records: Sequence[ImageRecord], val_fraction: float, conventions: Sequence[str] = ("whole_pallet",),
-                   max_images: int | None = None, seed: int = 0) -> tuple[list[ImageRecord], list[ImageRecord]]:
+                   max_images: int | None = None, seed: int = 0,
+                   keep_kinds: Sequence[str] = ()) -> tuple[list[ImageRecord], list[ImageRecord]]:
     """The train split's usable records, cut by sequence into (train, validation).
 
     :param max_images: keep at most this many (an even subsample, deterministic in `seed`), before the cut.
+    :param keep_kinds: photos showing one of these pallet kinds (e.g. "plastic", rare among the sources) are always
+        among the `max_images`; the subsample draws the rest.
     """
     recs = [r for r in records if r.split == "train" and (r.convention in conventions or r.negative)]
     if max_images is not None and len(recs) > max_images:
-        keep = np.sort(np.random.default_rng(seed).choice(len(recs), max_images, replace=False))
+        always = np.array([bool(set(r.kinds) & set(keep_kinds)) for r in recs], bool)
+        rest = np.flatnonzero(~always)
+        drawn = np.random.default_rng(seed).choice(len(rest), max(max_images - int(always.sum()), 0), replace=False)
+        keep = np.sort(np.concatenate([np.flatnonzero(always), rest[drawn]]))
         recs = [recs[i] for i in keep]
     if val_fraction <= 0 or len(recs) < 2:
         return recs, []
@@ -71,15 +77,15 @@ def build_real_samples(root: str | Path, records: Sequence[ImageRecord], max_sid
 
 
 def load_real_samples(root: str | Path, max_side: int, val_fraction: float, max_images: int | None = None,
-                      seed: int = 0) -> tuple[DetectorSamples, DetectorSamples, dict]:
+                      seed: int = 0, keep_kinds: Sequence[str] = ()) -> tuple[DetectorSamples, DetectorSamples, dict]:
     """(train samples, validation samples, fingerprint) of the imported real data under `root`."""
     root = Path(root)
     labels = root / "labels.json"
     records = load_records(root)
     sha = hashlib.sha256(labels.read_bytes()).hexdigest()
-    train, val = real_train_val(records, val_fraction, max_images=max_images, seed=seed)
+    train, val = real_train_val(records, val_fraction, max_images=max_images, seed=seed, keep_kinds=keep_kinds)
     parts = [build_real_samples(root, recs, max_side) for recs in (train, val)]
     log.info("real frames: %d train, %d val", len(parts[0]), len(parts[1]))
     fp = {"root": str(root.resolve()), "labels_sha256": sha, "max_side": max_side, "val_fraction": val_fraction,
-          "max_images": max_images, "seed": seed}
+          "max_images": max_images, "seed": seed, **({"keep_kinds": list(keep_kinds)} if keep_kinds else {})}
     return parts[0], parts[1], {**fp, "train": len(parts[0]), "val": len(parts[1])}

@@ -187,6 +187,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector: also train on the train split of real photographs imported by "
                              "`python -m pallet6d.export.real_data import` (this folder; docs/data.md)")
     parser.add_argument("--real-max-images", type=int, help="detector: use at most N real photographs")
+    parser.add_argument("--real-keep-kind", action="append", default=[], metavar="KIND",
+                        help="detector: real photographs of this pallet kind (e.g. plastic) are always among "
+                             "--real-max-images (repeatable)")
     parser.add_argument("--detector-classes", metavar="types|NAME,...",
                         help="detector: its classes: 'types' (one per pallet type of the training data, so the "
                              "detector reports the type), or names of pallet types; default one class, 'pallet'")
@@ -413,7 +416,7 @@ def main(args: argparse.Namespace) -> int:
                                    real_repeat_large=args.real_repeat_large, select=args.select,
                                    loader_threads=args.loader_threads, class_lr_mult=args.class_lr_mult,
                                    mosaic=args.mosaic, distill=args.distill, distill_weight=args.distill_weight,
-                                   pretrained=args.pretrained, **common)
+                                   pretrained=args.pretrained, real_keep_kinds=args.real_keep_kind, **common)
     except (ValueError, FloatingPointError) as exc:
         print(f"pallet6d train {args.stage}: {exc}", file=sys.stderr)
         return 1

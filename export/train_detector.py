@@ -86,10 +86,11 @@ class DetectorData:
 def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, cache_dir: str | Path | None,
                        val_fraction: float = 0.1, max_frames: int | None = None,
                        progress: bool = True, real: str | Path | None = None,
-                       real_max_images: int | None = None, real_repeat_large: int = 1) -> DetectorData:
+                       real_max_images: int | None = None, real_repeat_large: int = 1,
+                       real_keep_kinds: Sequence[str] = ()) -> DetectorData:
     """Letterboxed frames of every dataset (cached), split into train/val frames; with `real`, the imported
     real photographs' train split joins them (its own sequence-wise validation cut), those with a large box
-    `real_repeat_large` times. An RGB-D detector's frames keep their depth. A dataset named k times in `data` is loaded
+    `real_repeat_large` times (photos of `real_keep_kinds` always among `real_max_images`). An RGB-D detector's frames keep their depth. A dataset named k times in `data` is loaded
     and held out from once and trained k times (`train_data.repeated_roots`)."""
     if real_repeat_large < 1:
         raise ValueError(f"real_repeat_large must be >= 1, got {real_repeat_large}")
@@ -121,7 +122,8 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     if real is not None:
         from .real_samples import load_real_samples
 
-        r_train, r_val, r_fp = load_real_samples(real, MAX_SIDE, val_fraction, real_max_images, seed)
+        r_train, r_val, r_fp = load_real_samples(real, MAX_SIDE, val_fraction, real_max_images, seed,
+                                                 real_keep_kinds)
         samples = DetectorSamples.concat([samples, r_train, r_val])
         large = np.array([has_large_box(b, img.shape[0]) for b, img in zip(r_train.boxes, r_train.images)], bool)
         repeats = np.where(large, real_repeat_large, 1)
@@ -412,7 +414,8 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
                    real_max_images: int | None = None, input_sizes: Sequence[tuple[int, int]] | None = None,
                    real_repeat_large: int = 1, select: str = "loss", loader_threads: int = 1,
                    class_lr_mult: float = 1.0, mosaic: float = 0.0, distill: str | Path | None = None,
-                   distill_weight: float = 1.0, pretrained: str | Path | None = None) -> dict:
+                   distill_weight: float = 1.0, pretrained: str | Path | None = None,
+                   real_keep_kinds: Sequence[str] = ()) -> dict:
     """Train the detector on BOP datasets (and the train split of imported real photographs, `real`);
     checkpoints and the log go to `run_dir`. Returns the last log entry.
 
@@ -431,7 +434,8 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
     aug = aug or AugmentConfig()
     torch.manual_seed(settings.seed)
     dd = load_detector_data(cfg, data, settings.seed, cache_dir if cache_dir is not None else run_dir / "cache",
-                            val_fraction, max_frames, progress, real, real_max_images, real_repeat_large)
+                            val_fraction, max_frames, progress, real, real_max_images, real_repeat_large,
+                            real_keep_kinds)
     teacher, teacher_record = None, None
     if distill is not None:
         from .bundle_weights import detector_activation_of, detector_architecture_of

@@ -8,7 +8,7 @@ import pytest
 
 cv2 = pytest.importorskip("cv2")
 
-from pallet6d.export.real_data import (Source, file_stem, import_sources, load_records, nearest_labels,
+from pallet6d.export.real_data import (ImageRecord, Source, file_stem, import_sources, load_records, nearest_labels,
                                        parse_yolo_label, sequence_of, split_by_sequence, timestamp_runs,
                                        unstretched_size)
 
@@ -362,3 +362,21 @@ def test_validation_cut_keeps_capture_time_windows_together():
     train, val = real_train_val(same + later + others, val_fraction=0.3)
     assert val and train and len(train) + len(val) == len(same + later)
     assert {validation_unit(r) for r in train}.isdisjoint(validation_unit(r) for r in val)
+
+
+def test_subsample_always_keeps_the_rare_kind():
+    from pallet6d.export.real_samples import real_train_val
+
+    def rec(k, kinds):
+        return ImageRecord(image=f"i{k}.jpg", source="s", stem=f"clip_mp4-{k:04d}", width=10, height=10,
+                           boxes_xyxy=[[1, 1, 5, 5]], convention="whole_pallet", kinds=kinds,
+                           sequence=f"s/{k}", split="train")
+
+    recs = [rec(k, ["wood"]) for k in range(40)] + [rec(100 + k, ["plastic", "loaded"]) for k in range(3)]
+    plain, _ = real_train_val(recs, 0.0, max_images=10, seed=3)
+    kept, _ = real_train_val(recs, 0.0, max_images=10, seed=3, keep_kinds=("plastic",))
+    assert len(plain) == len(kept) == 10
+    assert sum("plastic" in r.kinds for r in kept) == 3
+    # without kinds to keep, the draw is the one it always was
+    rng_pick = np.sort(np.random.default_rng(3).choice(len(recs), 10, replace=False))
+    assert [r.stem for r in plain] == [recs[i].stem for i in rng_pick]

@@ -23,6 +23,11 @@ def test_report_tallies_size_kind_convention_and_negatives():
     assert d["by_size"]["medium"]["recall"] == 1.0 and d["by_size"]["large"]["precision"] == 1.0
     assert "plastic" not in d["by_kind"] and d["by_kind"]["wood"]["boxes"] == 3
     assert d["other_convention"]["b"]["recall"] == pytest.approx(1 / 3)
+    # a source with photos of both conventions: its row holds its whole-pallet photos only
+    rep.add_image({**rec, "source": "b", "kinds": ["plastic"]}, pred, np.array([0.9, 0.8, 0.7]), 0.5)
+    d = rep.to_dict()
+    assert d["by_source"]["b"]["boxes"] == 3 and d["other_convention"]["b"]["boxes"] == 3
+    assert d["by_kind"]["plastic"]["recall"] == pytest.approx(2 / 3)
     assert d["negative_frames"] == 1 and d["false_positives_per_negative_frame"] == 3.0
     assert "overall" in markdown("t", d, {"split": "heldout"})
 
