@@ -43,14 +43,16 @@ def colour_mask(rgb: np.ndarray, rule: ColourRule) -> np.ndarray:
 
 def pallet_boxes_in_units(mask: np.ndarray, units_xyxy: np.ndarray, min_area_frac: float = 0.005,
                           min_inside: float = 0.5, min_top_frac: float = 0.45, min_height_frac: float = 0.03,
-                          max_height_frac: float = 0.5, min_width_frac: float = 0.6) -> list[np.ndarray | None]:
+                          max_height_frac: float = 0.5, min_width_frac: float = 0.6,
+                          min_row_share: float = 0.15) -> list[np.ndarray | None]:
     """Each loaded unit's pallet box: the extent, inside the unit's box, of the pallet-coloured regions of its lower
     part.
 
     A region (8-connected component of `mask`) belongs to a unit's pallet where at least `min_inside` of its pixels
     lie in the unit's box, its pixels there cover at least `min_area_frac` of the box (the load's printed logos are
     smaller) and none of them lies in the box's upper `min_top_frac` (the load stands on the pallet; coloured goods
-    behind the unit reach higher).
+    behind the unit reach higher). The box spans the rows where those regions hold at least `min_row_share` of their
+    fullest row's pixels.
 
     :param mask: (H, W) bool, the pallet-coloured pixels of the image (`colour_mask`).
     :param units_xyxy: (n, 4) the loaded units' boxes, pixels, x1 y1 x2 y2.
@@ -81,11 +83,16 @@ def pallet_boxes_in_units(mask: np.ndarray, units_xyxy: np.ndarray, min_area_fra
         keep = ((inside >= min_inside * np.maximum(sizes, 1)) & (inside >= min_area_frac * crop.size)
                 & (top_row >= min_top_frac * (r2 - r1)))
         keep[0] = False                               # background
-        ys, xs = np.nonzero(keep[crop])
-        if ys.size == 0:
+        pallet = keep[crop]
+        row_count = pallet.sum(axis=1)
+        if row_count.max() == 0:
             out.append(None)
             continue
-        box = np.array([c1 + xs.min(), r1 + ys.min(), c1 + xs.max() + 1, r1 + ys.max() + 1], np.float64)
+        # rows the pallet barely reaches are a logo touching its deck, not the pallet
+        rows_in = np.flatnonzero(row_count >= min_row_share * row_count.max())
+        top, bottom = rows_in[0], rows_in[-1] + 1
+        xs = np.flatnonzero(pallet[top:bottom].any(axis=0))
+        box = np.array([c1 + xs[0], r1 + top, c1 + xs[-1] + 1, r1 + bottom], np.float64)
         height_frac = (box[3] - box[1]) / (r2 - r1)
         if not min_height_frac <= height_frac <= max_height_frac or box[2] - box[0] < min_width_frac * (c2 - c1):
             out.append(None)
