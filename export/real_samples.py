@@ -77,8 +77,10 @@ def build_real_samples(root: str | Path, records: Sequence[ImageRecord], max_sid
 
 
 def load_real_samples(root: str | Path, max_side: int, val_fraction: float, max_images: int | None = None,
-                      seed: int = 0, keep_kinds: Sequence[str] = ()) -> tuple[DetectorSamples, DetectorSamples, dict]:
-    """(train samples, validation samples, fingerprint) of the imported real data under `root`."""
+                      seed: int = 0, keep_kinds: Sequence[str] = ()
+                      ) -> tuple[DetectorSamples, DetectorSamples, dict, np.ndarray]:
+    """(train samples, validation samples, fingerprint, which train samples show one of `keep_kinds`) of the
+    imported real data under `root`."""
     root = Path(root)
     labels = root / "labels.json"
     records = load_records(root)
@@ -88,4 +90,5 @@ def load_real_samples(root: str | Path, max_side: int, val_fraction: float, max_
     log.info("real frames: %d train, %d val", len(parts[0]), len(parts[1]))
     fp = {"root": str(root.resolve()), "labels_sha256": sha, "max_side": max_side, "val_fraction": val_fraction,
           "max_images": max_images, "seed": seed, **({"keep_kinds": list(keep_kinds)} if keep_kinds else {})}
-    return parts[0], parts[1], {**fp, "train": len(parts[0]), "val": len(parts[1])}
+    kept = np.array([bool(set(r.kinds) & set(keep_kinds)) for r in train], bool)
+    return parts[0], parts[1], {**fp, "train": len(parts[0]), "val": len(parts[1])}, kept

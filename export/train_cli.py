@@ -189,7 +189,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--real-max-images", type=int, help="detector: use at most N real photographs")
     parser.add_argument("--real-keep-kind", action="append", default=[], metavar="KIND",
                         help="detector: real photographs of this pallet kind (e.g. plastic) are always among "
-                             "--real-max-images (repeatable)")
+                             "--real-max-images and trained --real-repeat-large times (repeatable)")
     parser.add_argument("--detector-classes", metavar="types|NAME,...",
                         help="detector: its classes: 'types' (one per pallet type of the training data, so the "
                              "detector reports the type), or names of pallet types; default one class, 'pallet'")

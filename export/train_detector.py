@@ -90,7 +90,7 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
                        real_keep_kinds: Sequence[str] = ()) -> DetectorData:
     """Letterboxed frames of every dataset (cached), split into train/val frames; with `real`, the imported
     real photographs' train split joins them (its own sequence-wise validation cut), those with a large box
-    `real_repeat_large` times (photos of `real_keep_kinds` always among `real_max_images`). An RGB-D detector's frames keep their depth. A dataset named k times in `data` is loaded
+    `real_repeat_large` times (as are photos of `real_keep_kinds`, always among `real_max_images`). An RGB-D detector's frames keep their depth. A dataset named k times in `data` is loaded
     and held out from once and trained k times (`train_data.repeated_roots`)."""
     if real_repeat_large < 1:
         raise ValueError(f"real_repeat_large must be >= 1, got {real_repeat_large}")
@@ -122,14 +122,14 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
     if real is not None:
         from .real_samples import load_real_samples
 
-        r_train, r_val, r_fp = load_real_samples(real, MAX_SIDE, val_fraction, real_max_images, seed,
-                                                 real_keep_kinds)
+        r_train, r_val, r_fp, rare = load_real_samples(real, MAX_SIDE, val_fraction, real_max_images, seed,
+                                                       real_keep_kinds)
         samples = DetectorSamples.concat([samples, r_train, r_val])
         large = np.array([has_large_box(b, img.shape[0]) for b, img in zip(r_train.boxes, r_train.images)], bool)
-        repeats = np.where(large, real_repeat_large, 1)
+        repeats = np.where(large | rare, real_repeat_large, 1)
         train_idx = np.concatenate([train_idx, n + np.repeat(np.arange(len(r_train)), repeats)])
-        log.info("real photographs with a large box: %d of %d, each trained %d times",
-                 int(large.sum()), len(large), real_repeat_large)
+        log.info("real photographs with a large box or of a kept kind: %d of %d, each trained %d times",
+                 int((large | rare).sum()), len(large), real_repeat_large)
         val_idx = np.concatenate([val_idx, n + len(r_train) + np.arange(len(r_val))])
         is_real = np.concatenate([is_real, np.ones(len(r_train) + len(r_val), bool)])
         fps.append({"real": r_fp})

@@ -257,6 +257,11 @@ def test_real_photographs_with_a_large_box_repeat_and_near_f1_selects(raw_source
     assert all(counts[i] == 3 for i in large)
     assert len(thrice.train_idx) == len(once.train_idx) + 2 * len(large)
     np.testing.assert_array_equal(thrice.val_idx, once.val_idx)
+    # photos of a kept kind repeat as the large ones do (here every real photo shows wood)
+    kept = load_detector_data(cfg, [sim_bop_dataset], real_repeat_large=3, real_keep_kinds=("wood",), **kw)
+    real_train = [i for i in once.train_idx if once.real[i]]
+    assert len(real_train) > len(large)
+    assert all(np.bincount(kept.train_idx, minlength=len(s))[i] == 3 for i in real_train)
     with pytest.raises(ValueError, match="real_repeat_large"):
         load_detector_data(cfg, [sim_bop_dataset], real_repeat_large=0, **kw)
 

@@ -65,7 +65,7 @@ def test_a_sites_photographs_become_records_split_by_whole_sequences(tmp_path):
     assert card["sources"][0]["name"] == "hall-3" and card["sources"][0]["dropped"] == {"unlabelled": 1,
                                                                                        "unreadable": 0}
     assert "own photographs, all rights reserved" in (into / "card.md").read_text()
-    train, val, fp = load_real_samples(into, max_side=640, val_fraction=0.2)     # the detector's --real reads it
+    train, val, fp, _ = load_real_samples(into, max_side=640, val_fraction=0.2)     # the detector's --real reads it
     assert len(train) + len(val) == sum(r.split == "train" for r in recs) and len(val) > 0
 
 
