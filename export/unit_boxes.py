@@ -4,8 +4,9 @@ Some image sets box the loaded unit (pallet and load together); the detector's c
 the pallet has a colour the load lacks (red plastic under tan cartons), the pallet is the large regions of that
 colour in the lower part of the unit's box, and its box is their extent. A pallet that cannot be found that way (no
 such region, too thin, too narrow) is `None`: the image then keeps its loaded-unit boxes and is not trained on.
-Checked by eye on the conveyor set's photographs: the rule finds the pallets of about a quarter of them (the others
-have a unit whose pallet is hidden, merged with a neighbour's, or cut by the image's edge).
+Checked by eye on the conveyor set's photographs: the rule finds every pallet of about a fifth of them; the others
+hold a unit whose pallet is mostly hidden (by the conveyor's frame or another unit: too narrow) or runs into a
+neighbour's (its region mostly outside the unit's box).
 """
 from __future__ import annotations
 
