@@ -60,3 +60,35 @@ def test_pallet_free_frames_kept_in_a_cache_come_back_the_same(tmp_path):
         np.testing.assert_array_equal(a, b)
     assert again[3].shape == (4, 4)                       # a forklift view keeps its calibration
     assert mod.pallet_free_frame("virtual-clean", 3, 0, False, tmp_path)[3] is None
+
+
+def test_threshold_counts_recall_and_precision_while_ap_counts_every_detection():
+    rep = RealDataReport()
+    # 100 px tall image, two large boxes (50 % of the height)
+    rec = {"source": "a", "convention": "whole_pallet", "kinds": ["wood"], "height": 100, "negative": False,
+           "boxes_xyxy": [[0, 0, 50, 50], [60, 0, 110, 50]]}
+    pred = np.array([[0, 0, 50, 50], [200, 0, 250, 50], [60, 0, 110, 50]], float)   # hit, miss, hit
+    rep.add_image(rec, pred, np.array([0.9, 0.5, 0.1]), 0.5, score_threshold=0.25)
+    rep.add_image({**rec, "negative": True, "boxes_xyxy": []}, pred, np.array([0.9, 0.5, 0.1]), 0.5,
+                  score_threshold=0.25)
+    d = rep.to_dict()
+    o = d["overall"]
+    assert (o["boxes"], o["detections"], o["recall"], o["precision"]) == (2, 2, 0.5, 0.5)
+    # every detection, by score: hit (P 1, R 0.5), miss, hit (P 2/3, R 1): AP = 0.5 * 1 + 0.5 * 2/3
+    assert o["average_precision"] == pytest.approx(0.5 + 0.5 * 2 / 3)
+    assert d["by_size"]["large"]["average_precision"] == pytest.approx(0.5 + 0.5 * 2 / 3)
+    assert d["false_positives_per_negative_frame"] == 2.0          # the pallet-free photo: above the threshold only
+    assert "| 0.833 |" in markdown("t", d, {})
+
+
+def test_ap_by_size_follows_the_matched_box():
+    """A small detection matched to a medium box counts for the medium AP; an unmatched one for its own size."""
+    rep = RealDataReport()
+    rec = {"source": "a", "convention": "whole_pallet", "kinds": ["wood"], "height": 100, "negative": False,
+           "boxes_xyxy": [[0, 0, 10, 10]]}                                     # medium (10 %)
+    pred = np.array([[0, 1, 10, 8.5], [50, 0, 55, 5]], float)                 # 7.5 px: small, matched; small, wrong
+    rep.add_image(rec, pred, np.array([0.9, 0.8]), 0.5)
+    d = rep.to_dict()["by_size"]
+    assert d["medium"]["average_precision"] == pytest.approx(1.0)
+    assert d["small"]["boxes"] == 0 and d["small"]["average_precision"] is None
+    assert d["small"]["detections"] == 2 and d["small"]["precision"] == 0.5
