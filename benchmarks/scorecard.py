@@ -121,6 +121,7 @@ ROWS = (
     ("pockets-all.blocked_safe", "every type: blocked pockets called safe", "0"),
     ("real.recall", "real photographs: recall (%)", ">= 90"),
     ("real.precision", "real photographs: precision (%)", ">= 90"),
+    ("real.ap", "real photographs: average precision over every score", ""),
     ("real.negative_fp", "real pallet-free photographs: false boxes per photo", ""),
 )
 
@@ -385,7 +386,8 @@ def measure_pockets(bundle: Path, precision: str, options: dict, frames: int, fr
 
 
 def measure_real(bundle: Path, precision: str, options: dict, frames: int, real_root: Path) -> dict:
-    from real_data import evaluate
+    from real_data import AP_SCORE_THRESHOLD, evaluate
+    from pallet6d.runtime.estimator import EstimatorOptions
 
     labels = real_root / "labels.json"
     if not labels.is_file():
@@ -393,9 +395,12 @@ def measure_real(bundle: Path, precision: str, options: dict, frames: int, real_
     records = [r for r in json.loads(labels.read_text()) if r["split"] == "heldout" and not r["augmented"]]
     if frames:
         records = records[:frames]
-    est = _estimator(bundle, precision, options, max_pallets=300)
-    r = evaluate(est, records, real_root).to_dict()
+    threshold = options.get("score_threshold", EstimatorOptions().score_threshold)
+    est = _estimator(bundle, precision, options, max_pallets=300,
+                     score_threshold=min(threshold, AP_SCORE_THRESHOLD))
+    r = evaluate(est, records, real_root, score_threshold=threshold).to_dict()
     return {"recall": _pct(r["overall"]["recall"] or 0.0), "precision": _pct(r["overall"]["precision"] or 0.0),
+            "ap": round(r["overall"]["average_precision"] or 0.0, 3),
             "images": r["overall"]["images"], "negative_fp": round(r["false_positives_per_negative_frame"] or 0.0, 2)}
 
 
