@@ -81,6 +81,21 @@ def test_red_goods_above_the_unit_and_a_neighbours_pallet_are_not_taken(scene):
     np.testing.assert_allclose(found[0], [220, 160, 360, 190], atol=1)
 
 
+def test_touching_pallets_of_neighbouring_units_are_split_at_their_boxes():
+    img = np.full((240, 400, 3), GREY, np.uint8)
+    _unit(img, 40, 60, 120, 200, pallet_h=24)
+    _unit(img, 120, 60, 300, 200, pallet_h=24)          # the two pallets touch: one red region, mostly the second's
+    mask = colour_mask(img, PALLET_COLOURS["red"])
+    found = pallet_boxes_in_units(mask, np.array([[38, 58, 120, 202], [120, 58, 302, 202]], np.float64))
+    np.testing.assert_allclose(found[0], [40, 176, 120, 200], atol=1)
+    np.testing.assert_allclose(found[1], [120, 176, 300, 200], atol=1)
+    # the same region running on into red goods no unit's box holds is not split: its owner is unknown
+    img[176:200, 300:380] = RED
+    mask = colour_mask(img, PALLET_COLOURS["red"])
+    found = pallet_boxes_in_units(mask, np.array([[38, 58, 120, 202], [120, 58, 302, 202]], np.float64))
+    assert found[0] is None
+
+
 def test_import_turns_found_units_into_whole_pallet_photos(tmp_path):
     """A loaded-unit source with a pallet colour: photos whose every unit's pallet is found become whole-pallet
     photos (their unit boxes kept); a photo with a unit whose pallet is hidden keeps its loaded-unit boxes."""
