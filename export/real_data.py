@@ -83,7 +83,7 @@ class Source:
     augmented_folders: tuple[str, ...] = ()
     other_classes: tuple[int, ...] = ()
     licence_file: str = ""
-    pallet_colour: str = ""     # loaded_unit sources: the pallet's colour (`unit_boxes.PALLET_COLOURS`), to find its box
+    pallet_colour: str = ""     # loaded_unit sources: the pallets' colour (`unit_boxes.PALLET_COLOURS`) finds them
 
     def __post_init__(self) -> None:
         if self.convention not in CONVENTIONS:
@@ -177,7 +177,7 @@ class ImageRecord:
     augmented: bool = False
     origin: str = ""      # path inside the source repository
     boxes_from: str = "label"   # "label", or "colour": found inside the uploader's loaded-unit boxes (`unit_boxes`)
-    unit_boxes_xyxy: list[list[float]] = field(default_factory=list)   # those loaded-unit boxes, where found so
+    unit_boxes_xyxy: list[list[float]] = field(default_factory=list)   # where "colour": the loaded-unit boxes
 
     def box_array(self) -> np.ndarray:
         """(n, 4) float64 xyxy pixels."""

@@ -11,7 +11,7 @@ their boxes are not the convention the detector is trained for. Pallet-free phot
 Recall and precision count the detections at or above the report's score threshold; the average precision (AP at
 the IoU threshold, `detector_recall.average_precision`) counts every detection it is given, so a detector run at a
 low threshold is compared with another over all thresholds (a retrained detector's scores shift). By size, AP follows
-COCO's area ranges: a detection matched to a box of another size counts neither way, an unmatched one by its own size.
+COCO's area ranges: a detection matched to a box counts for that box's size, an unmatched one for its own size.
 """
 from __future__ import annotations
 

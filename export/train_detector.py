@@ -90,8 +90,9 @@ def load_detector_data(cfg: ModelConfig, data: Sequence[str | Path], seed: int, 
                        real_keep_kinds: Sequence[str] = ()) -> DetectorData:
     """Letterboxed frames of every dataset (cached), split into train/val frames; with `real`, the imported
     real photographs' train split joins them (its own sequence-wise validation cut), those with a large box
-    `real_repeat_large` times (as are photos of `real_keep_kinds`, always among `real_max_images`). An RGB-D detector's frames keep their depth. A dataset named k times in `data` is loaded
-    and held out from once and trained k times (`train_data.repeated_roots`)."""
+    `real_repeat_large` times (as are photos of `real_keep_kinds`, always among `real_max_images`). An RGB-D
+    detector's frames keep their depth. A dataset named k times in `data` is loaded and held out from once and
+    trained k times (`train_data.repeated_roots`)."""
     if real_repeat_large < 1:
         raise ValueError(f"real_repeat_large must be >= 1, got {real_repeat_large}")
     from tqdm import tqdm
@@ -427,7 +428,9 @@ def train_detector(cfg: ModelConfig, data: Sequence[str | Path], run_dir: str | 
         every anchor with `distill_weight` (`losses.detector_distill_loss`); e.g. the SiLU detector a ReLU one
         starts from.
     :param pretrained: the published YOLOX-Nano ONNX export whose weights start a "yolox-nano" detector
-        (`pretrained_dw.load_yolox_onnx`; not with `init`)."""
+        (`pretrained_dw.load_yolox_onnx`; not with `init`).
+    :param real_keep_kinds: real photographs of these pallet kinds (e.g. "plastic") are always among
+        `real_max_images` and trained `real_repeat_large` times (`load_detector_data`)."""
     if not class_lr_mult > 0:
         raise ValueError(f"class_lr_mult must be positive, got {class_lr_mult}")
     run_dir = Path(run_dir)
