@@ -70,15 +70,14 @@ def pallet_boxes_in_units(mask: np.ndarray, units_xyxy: np.ndarray, min_area_fra
     count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
     sizes = np.bincount(labels.ravel(), minlength=count)
     h_img, w_img = mask.shape
+    spans = [(max(int(np.floor(x1)), 0), max(int(np.floor(y1)), 0), min(int(np.ceil(x2)), w_img),
+              min(int(np.ceil(y2)), h_img)) for x1, y1, x2, y2 in units]     # pixel columns / rows, in the image
     in_units = np.zeros(mask.shape, bool)
-    for x1, y1, x2, y2 in units:
-        in_units[max(int(np.floor(y1)), 0):max(int(np.ceil(y2)), 0),
-                 max(int(np.floor(x1)), 0):max(int(np.ceil(x2)), 0)] = True
+    for c1, r1, c2, r2 in spans:
+        in_units[r1:r2, c1:c2] = True
     shared = np.bincount(labels[in_units], minlength=count) >= (1.0 - max_outside_units) * sizes
     out: list[np.ndarray | None] = []
-    for x1, y1, x2, y2 in units:
-        c1, r1 = max(int(np.floor(x1)), 0), max(int(np.floor(y1)), 0)
-        c2, r2 = min(int(np.ceil(x2)), w_img), min(int(np.ceil(y2)), h_img)
+    for c1, r1, c2, r2 in spans:
         if c2 - c1 < 4 or r2 - r1 < 8:
             out.append(None)
             continue
