@@ -12,9 +12,10 @@ stopped cleanly by `--max-minutes` and continued with `--resume` (same arguments
 run from a checkpoint's weights (fine-tuning, e.g. on more data, with a fresh schedule); the checkpoint's path and
 sha256 go into the new run's provenance. `--init models/epal-default` starts from a shipped bundle instead: the
 weights are read back from its float graphs (`bundle_weights.py`; parity with the graphs is checked and recorded),
-so training can go on from what ships when the run that made it is gone. `--detector-input HxW` trains the
-detector at another letterboxed size than the config's (it is fully convolutional); the size is recorded in the
-checkpoint, and `pallet6d export` exports the detector at the size it was trained at.
+so training can go on from what ships when the run that made it is gone; `--freeze-bn-stats` keeps its BatchNorms'
+statistics through such a round. `--detector-input HxW` trains the detector at another letterboxed size than the
+config's (it is fully convolutional); the size is recorded in the checkpoint, and `pallet6d export` exports the
+detector at the size it was trained at.
 
 Default recipe for the shipped `edge` bundle (and, unchanged, the `densefusion` ablation)
 ------------------------------------------------------------------------------------------
@@ -157,6 +158,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--amp", action="store_true",
                         help="bfloat16 autocast of the forward passes: about 1.8x faster on CPUs with AVX512-BF16 or "
                              "AMX, slower on CPUs without (weights, validation and export stay float32)")
+    parser.add_argument("--freeze-bn-stats", action="store_true",
+                        help="BatchNorms normalise with their running statistics and keep them (their scale and "
+                             "shift still learn): for a fine-tuning round from trained weights (--init)")
     parser.add_argument("--max-minutes", type=float, default=0.0, help="stop cleanly after M minutes (0: no limit)")
     parser.add_argument("--max-frames", type=int, help="use at most N frames of each dataset")
     parser.add_argument("--val-fraction", type=float, default=0.1, help="frames held out for validation (0.1)")
@@ -326,7 +330,7 @@ def main(args: argparse.Namespace) -> int:
         settings = LoopSettings(epochs=args.epochs or recipe["epochs"], batch=args.batch or recipe["batch"],
                                 lr=args.lr or recipe["lr"], seed=args.seed, max_minutes=args.max_minutes,
                                 warmup_epochs=1.0 if args.stage == "detector" else 0.0, device=args.device,
-                                amp=args.amp)
+                                amp=args.amp, freeze_bn_stats=args.freeze_bn_stats)
         cfg = get_config(args.config)
         if args.detector_input is not None:
             if args.stage != "detector":

@@ -44,7 +44,9 @@ class LoopSettings:
     :ivar min_lr_fraction: the cosine schedule ends at lr * this. :ivar max_minutes: stop (after saving)
     when this much wall time has passed in this process; 0 = no limit. :ivar grad_clip: max grad norm.
     :ivar amp: bfloat16 autocast of the training forward passes (`autocast`); weights, optimizer state and
-    validation stay float32, so checkpoints and exports are unchanged."""
+    validation stay float32, so checkpoints and exports are unchanged. :ivar freeze_bn_stats: every BatchNorm
+    normalises with its running statistics while training and never updates them (`keep_bn_stats`); its scale
+    and shift still learn."""
 
     epochs: int
     batch: int
@@ -56,6 +58,7 @@ class LoopSettings:
     grad_clip: float = 10.0
     device: str = "cpu"
     amp: bool = False
+    freeze_bn_stats: bool = False
 
     def __post_init__(self) -> None:
         if self.epochs < 1 or self.batch < 1:
@@ -85,6 +88,17 @@ def conv_layout(net: torch.nn.Module) -> torch.nn.Module:
 def conv_input(x: torch.Tensor) -> torch.Tensor:
     """A (B, C, H, W) network input in the layout `conv_layout` gives the weights."""
     return x.contiguous(memory_format=torch.channels_last)
+
+
+def keep_bn_stats(net: torch.nn.Module) -> int:
+    """Put every BatchNorm of `net` (in train mode otherwise) in eval mode: it normalises with its running
+    statistics and leaves them as they are. A round that fine-tunes a trained network on a new mix of frames (a
+    few real photographs among many simulated ones, batches of 16) otherwise re-estimates statistics the rest of
+    the network was fitted to. :return: the number of BatchNorms set."""
+    norms = [m for m in net.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    for m in norms:
+        m.eval()
+    return len(norms)
 
 
 def lr_at(s: LoopSettings, epoch_f: float) -> float:
@@ -200,6 +214,7 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
         provenance = {**provenance, "init": load_init_weights(init, nets)}
     if n_train < 1:
         raise ValueError("no training samples")
+    provenance = {**provenance, "freeze_bn_stats": s.freeze_bn_stats}
     t_start = time.monotonic()
     entry: dict = {}
     for epoch in range(start_epoch, s.epochs):
@@ -208,6 +223,8 @@ def train_epochs(run_dir: Path, stage: str, config_name: str, nets: dict[str, to
         torch.manual_seed(s.seed * 100003 + epoch)
         for net in nets.values():
             net.train()
+            if s.freeze_bn_stats:
+                keep_bn_stats(net)
         batches = _batches(n_train, s.batch, rng)
         sums: dict[str, float] = {}
         stopped = False

@@ -15,8 +15,8 @@ from pallet6d.export.train_data import (NO_AUGMENT, AugmentConfig, augment_depth
                                         dataset_fingerprint, flip_horizontal, jitter_box, load_or_build,
                                         place_in_window)
 from pallet6d.export.train_detector import DetectorTrainer, load_detector_data  # noqa: E402
-from pallet6d.export.train_loop import (LoopSettings, conv_layout, load_checkpoint, load_init_weights,  # noqa: E402
-                                       lr_at)
+from pallet6d.export.train_loop import (LoopSettings, conv_layout, keep_bn_stats, load_checkpoint,  # noqa: E402
+                                       load_init_weights, lr_at, train_epochs)
 from pallet6d.export.train_pose import PoseTrainer, load_pose_data, subsample_points, train_pose  # noqa: E402
 
 CFG = get_config("tiny")
@@ -285,6 +285,30 @@ def test_lr_schedule():
     assert lr_at(s, 10.0) == pytest.approx(5e-5)
     with pytest.raises(ValueError):
         LoopSettings(epochs=0, batch=2, lr=1e-3)
+
+
+@pytest.mark.parametrize("freeze", [False, True])
+def test_freeze_bn_stats_keeps_running_statistics_while_weights_learn(tmp_path, freeze):
+    torch.manual_seed(0)
+    nn = torch.nn
+    net = nn.Sequential(nn.Conv2d(3, 4, 3), nn.BatchNorm2d(4), nn.ReLU(), nn.Conv2d(4, 1, 1))
+    x = torch.randn(8, 3, 6, 6) * 3.0 + 2.0     # far from the fresh statistics (mean 0, variance 1)
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+
+    def step(idx, rng):
+        assert net[1].training is not freeze and net[0].training      # the rest of the net trains either way
+        return net(x[idx]).square().mean(), {}
+
+    s = LoopSettings(epochs=1, batch=4, lr=1e-2, seed=0, freeze_bn_stats=freeze)
+    train_epochs(tmp_path, "toy", "toy", {"net": net}, torch.optim.SGD(net.parameters(), lr=1e-2), s, len(x), step,
+                 lambda: {"metric": 0.0}, {}, progress=False)
+    after = net.state_dict()
+    stats_kept = all(torch.equal(before[f"1.{k}"], after[f"1.{k}"]) for k in ("running_mean", "running_var"))
+    assert stats_kept is freeze
+    assert not torch.equal(before["1.weight"], after["1.weight"])
+    assert not torch.equal(before["0.weight"], after["0.weight"])
+    assert load_checkpoint(tmp_path / "last.pt")["provenance"]["freeze_bn_stats"] is freeze
+    assert keep_bn_stats(net.train()) == 1 and not net[1].training and net[0].training
 
 
 @pytest.fixture(scope="module")
