@@ -61,19 +61,20 @@ def sim_negatives(est, presets: list[str], n_frames: int, seed: int, calibrated:
                   set_down: bool = False, cache: Path | None = None) -> dict:
     """Accepted poses and detections per frame on simulated pallet-free frames, per preset; `calibrated`: the
     forklift views' camera calibration goes to the estimator, as a forklift's would; `set_down`: the loads stand
-    where their pallets stood; `cache`: a folder that keeps the rendered frames (`pallet_free_frame`)."""
+    where their pallets stood; `cache`: a folder that keeps the rendered frames (`pallet_free_frame`). Each
+    preset's `accepted_by_frame` lists the poses accepted on each frame, so that two bundles can be compared frame
+    by frame."""
     out = {}
     for preset in presets:
-        accepted = detections = 0
-        fits = []
+        accepted_by_frame, detections, fits = [], 0, []
         for i in range(n_frames):
             rgb, depth_m, K, T_vc = pallet_free_frame(preset, seed, i, set_down, cache)
             res = est.estimate(rgb, depth_m.astype(np.float32), K, T_vehicle_cam=T_vc if calibrated else None)
-            accepted += len(res.poses)
+            accepted_by_frame.append(len(res.poses))
             detections += len(est.detect(rgb))
             fits += [float(p.fit.score) for p in res.poses]
-        out[preset] = {"frames": n_frames, "accepted_poses_per_frame": accepted / n_frames,
-                       "detections_per_frame": detections / n_frames,
+        out[preset] = {"frames": n_frames, "accepted_poses_per_frame": sum(accepted_by_frame) / n_frames,
+                       "accepted_by_frame": accepted_by_frame, "detections_per_frame": detections / n_frames,
                        "fit_scores_of_false_accepts": [round(f, 3) for f in fits]}
     return out
 

@@ -303,3 +303,38 @@ def test_pocket_targets_keep_each_targets_outcome_and_are_compared(scorecard, mo
     text = scorecard.paired_table(["shipped", "cand"], [{"pockets": res}, {"pockets": other}])
     assert "| EPAL pocket targets, exact depth (4) | +2 / -1 (p 1) |" in text
     assert "| EPAL pocket targets, D435-like depth (4) | +0 / -0 (p 1) |" in text
+
+
+def test_pallet_free_frames_keep_each_frames_outcome_and_are_compared(scorecard, monkeypatch, tmp_path):
+    import real_data
+
+    accepted = {("virtual-clean", 9300): [0, 2], ("forklift-approach", 9300): [1, 0],
+                ("forklift-approach", 9400): [0, 0]}
+
+    def sim_negatives(est, presets, frames, seed, calibrated, set_down, cache):
+        runs = {p: accepted.get((p, seed), [0, 0]) for p in presets}
+        return {p: {"frames": len(a), "accepted_by_frame": a} for p, a in runs.items()}
+
+    monkeypatch.setattr(real_data, "sim_negatives", sim_negatives)
+    monkeypatch.setattr(scorecard, "_estimator", lambda *a, **k: None)
+    res = scorecard.measure_negatives(tmp_path, "int8", {}, 2, tmp_path, (9300, 9400))
+    # five presets a seed, in order; the forklift views' calibrated run has two
+    assert res["set_down"] == 3 and res["set_down-frames"] == 20
+    assert res["set_down-clear"] == "10" + "11" * 2 + "01" + "11" + "11" * 5
+    assert res["calibrated-clear"] == "01" + "11" + "11" + "11" and res["calibrated"] == 1
+    assert res["hanging-clear"] == "10" + "11" * 2 + "01" + "11" and res["seeds"] == [9300, 9400]
+    other = dict(res, **{"set_down-clear": "11" * 10})
+    text = scorecard.paired_table(["shipped", "cand"], [{"negatives-heldout": res}, {"negatives-heldout": other}])
+    assert ("| pallet-free frames of the held-out seeds, loads set down: without a pose (20) | +2 / -0 (p 0.5) |"
+            in text)
+
+
+@pytest.mark.parametrize("kept, stale", [
+    ({"seeds": [9300], "set_down-clear": "1"}, True),             # fewer seeds than the measure now takes
+    ({"seeds": [9300, 9400, 9500]}, True),                          # kept without each frame's outcome
+    ({"seeds": [9300, 9400, 9500], "set_down-clear": "1"}, False),
+])
+def test_pallet_free_results_of_other_seeds_are_measured_again(scorecard, tmp_path, kept, stale):
+    path = tmp_path / "negatives-heldout-int8.json"
+    path.write_text(json.dumps(kept))
+    assert scorecard._stale("negatives-heldout", "test", path) is stale
