@@ -133,6 +133,11 @@ class StructureParams:
         type's height -> "size_mismatch". Tighter than `min_box_height_of_type`, it catches a focal length 2x too
         long (the box then spans half the height). On the validation frames correct poses' whole boxes span at
         least 0.99 of the type's height; 0 turns it off.
+    :ivar whole_box_edge_px: a whole box is held to the type's whole height less this many of the box's pixels
+        (its edges are a pixel or two off), and never to less than `min_whole_box_height_of_type`: a 60 px tall box
+        to 0.95 of the height, a 15 px one to 0.8. inf leaves `min_whole_box_height_of_type` alone. On the
+        validation frames correct poses' whole boxes pass at 3 px while a focal length 2x too long no longer
+        keeps a pose there (docs/experiments/structure-check.md).
     :ivar border_px: a box edge within this many pixels of the image's edge is cut by it.
     :ivar max_box_size_of_diameter: the box's metric width or height above this multiple of the type's diameter
         -> "size_mismatch" (depth scale too large, focal length too short).
@@ -222,6 +227,7 @@ class StructureParams:
     max_tilt_deg: float = 25.0
     min_box_height_of_type: float = 0.4
     min_whole_box_height_of_type: float = 0.8
+    whole_box_edge_px: float = 3.0
     border_px: float = 3.0
     max_box_size_of_diameter: float = 3.0
     min_edge_auc: float = 0.0
@@ -269,6 +275,8 @@ class StructureParams:
             raise ValueError(f"max_box_size_of_diameter must be positive, got {self.max_box_size_of_diameter}")
         if not self.border_px >= 0:
             raise ValueError(f"border_px must be >= 0, got {self.border_px}")
+        if not self.whole_box_edge_px >= 0:
+            raise ValueError(f"whole_box_edge_px must be >= 0 (inf: off), got {self.whole_box_edge_px}")
         if int(self.min_edge_pairs) < 1:
             raise ValueError(f"min_edge_pairs must be >= 1, got {self.min_edge_pairs}")
         if not 0.0 < self.max_tilt_deg <= 180.0:
@@ -705,13 +713,15 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     whole_height_m = np.where(box_cut, np.nan, (det[:, 3] - det[:, 1]) * z_solid / K[1, 1])
     # a box cut by the image's edge whose size cannot show a focal length 2x too long (cut at the top or bottom, or
     # cut aside and less than twice the whole height's bound tall): its pose must not see through its own boards
+    box_h_px = np.maximum(det[:, 3] - det[:, 1], 1e-9)
+    whole_fraction = np.maximum(params.min_whole_box_height_of_type, 1.0 - params.whole_box_edge_px / box_h_px)
     cut_aside = (det[:, 0] < params.border_px) | (det[:, 2] > depth.shape[1] - 1 - params.border_px)
     with np.errstate(invalid="ignore"):
         size_unsure = box_cut | (cut_aside & (whole_height_m < 2.0 * params.min_whole_box_height_of_type
                                               * extent.min()))
         wrong_size = (size_m[:, 1] < params.min_box_height_of_type * extent.min()) \
             | (size_m.max(1) > params.max_box_size_of_diameter * np.linalg.norm(extent)) \
-            | (whole_height_m < params.min_whole_box_height_of_type * extent.min())
+            | (whole_height_m < whole_fraction * extent.min())
     g2 = (len(T), params.grid, params.grid)
     if rgb is None:
         edge_auc = np.full(len(T), np.nan)

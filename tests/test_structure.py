@@ -263,7 +263,8 @@ def test_bad_boxes_raise():
 @pytest.mark.parametrize("kwargs", [dict(grid=2), dict(tol_m=0.0), dict(min_agreement=1.5), dict(max_tilt_deg=0.0),
                                     dict(min_evidence=0), dict(min_edge_auc=1.2), dict(min_box_height_of_type=-0.1),
                                     dict(max_box_size_of_diameter=0.0), dict(min_edge_pairs=0),
-                                    dict(min_whole_box_height_of_type=1.5), dict(border_px=-1.0)])
+                                    dict(min_whole_box_height_of_type=1.5), dict(border_px=-1.0),
+                                    dict(whole_box_edge_px=-1.0), dict(whole_box_edge_px=float("nan"))])
 def test_bad_params_raise(kwargs):
     with pytest.raises(ValueError):
         StructureParams(**kwargs)
@@ -372,6 +373,25 @@ def test_whole_box_height_uses_the_types_own_geometry(name):
     assert wrong.reason == "size_mismatch" and not wrong.box_cut, wrong
     assert wrong.whole_height_m == pytest.approx(s.whole_height_m / 2.0, rel=0.15)
     assert s.whole_height_m == pytest.approx(s.box_size_m[1], rel=0.15)
+
+
+def test_a_whole_box_is_held_to_its_height_less_a_few_pixels():
+    """Seen 18 degrees from above, a pallet's whole box is 1.8 times its height tall: with the focal length 2x too
+    long it spans 0.89 of the height, over the 0.8 bound and under the height less 3 of the box's 34 pixels."""
+    T = make_T(_rot_x(-18.0) @ np.array([[0.0, 1, 0], [0, 0, -1], [1, 0, 0]]), np.array([0.1, 0.45, 2.5]))
+    depth, box = _render_type(EPAL.boxes_m, T)
+    edge = StructureParams()
+    assert edge.whole_box_edge_px == 3.0 and structure_check(T[None], EPAL.boxes_m, depth, K, box, edge)[0].ok
+    T_focal = make_T(T[:3, :3], T[:3, 3] * np.array([0.5, 0.5, 1.0]))
+    K_focal = K.copy()
+    K_focal[0, 0] *= 2.0
+    K_focal[1, 1] *= 2.0
+    loose = structure_check(T_focal[None], EPAL.boxes_m, depth, K_focal, box,
+                            StructureParams(whole_box_edge_px=float("inf")))[0]
+    box_h_px = box[0, 3] - box[0, 1]
+    assert loose.reason != "size_mismatch" and not loose.box_cut, loose
+    assert 0.8 < loose.whole_height_m / EPAL.size_m.min() < 1.0 - 3.0 / box_h_px
+    assert structure_check(T_focal[None], EPAL.boxes_m, depth, K_focal, box, edge)[0].reason == "size_mismatch"
 
 
 def test_box_cut_by_the_image_edge_keeps_the_looser_bound():
