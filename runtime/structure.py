@@ -711,10 +711,11 @@ def structure_check(T_cam_pallet: np.ndarray, boxes_m: np.ndarray, depth_m: np.n
     n_solid = solid.sum(1)
     z_solid = np.array([np.median(z_obs[i][solid[i]]) if n_solid[i] else np.nan for i in range(len(T))])
     whole_height_m = np.where(box_cut, np.nan, (det[:, 3] - det[:, 1]) * z_solid / K[1, 1])
-    # a box cut by the image's edge whose size cannot show a focal length 2x too long (cut at the top or bottom, or
-    # cut aside and less than twice the whole height's bound tall): its pose must not see through its own boards
+    # the fraction of the type's height a whole box must span: all of it less a few of the box's pixels
     box_h_px = np.maximum(det[:, 3] - det[:, 1], 1e-9)
     whole_fraction = np.maximum(params.min_whole_box_height_of_type, 1.0 - params.whole_box_edge_px / box_h_px)
+    # a box cut by the image's edge whose size cannot show a focal length 2x too long (cut at the top or bottom, or
+    # cut aside and less than twice the whole height's bound tall): its pose must not see through its own boards
     cut_aside = (det[:, 0] < params.border_px) | (det[:, 2] > depth.shape[1] - 1 - params.border_px)
     with np.errstate(invalid="ignore"):
         size_unsure = box_cut | (cut_aside & (whole_height_m < 2.0 * params.min_whole_box_height_of_type
