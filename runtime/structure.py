@@ -132,7 +132,7 @@ class StructureParams:
         height at the median depth of the rays that found the posed pallet's surface below this fraction of the
         type's height -> "size_mismatch". Tighter than `min_box_height_of_type`, it catches a focal length 2x too
         long (the box then spans half the height). On the validation frames correct poses' whole boxes span at
-        least 0.99 of the type's height; 0 turns it off.
+        least 0.99 of the type's height; 0 with `whole_box_edge_px` inf turns the whole-height test off.
     :ivar whole_box_edge_px: a whole box is held to the type's whole height less this many of the box's pixels
         (its edges are a pixel or two off), and never to less than `min_whole_box_height_of_type`: a 60 px tall box
         to 0.95 of the height, a 15 px one to 0.8. inf leaves `min_whole_box_height_of_type` alone. On the

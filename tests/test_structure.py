@@ -312,7 +312,8 @@ def test_focal_length_far_too_long_is_a_size_mismatch():
 
 def test_size_bounds_can_be_off():
     shrunk = DEPTH * np.float32(0.1)
-    s = _check(depth=shrunk, params=StructureParams(min_box_height_of_type=0.0, min_whole_box_height_of_type=0.0))
+    s = _check(depth=shrunk, params=StructureParams(min_box_height_of_type=0.0, min_whole_box_height_of_type=0.0,
+                                                    whole_box_edge_px=float("inf")))
     assert s.reason != "size_mismatch"
 
 
